@@ -1,0 +1,37 @@
+"""One exception tree for the whole package.
+
+The CLI catches :class:`CdtmError` and prints its message as one line (exit 1);
+anything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+
+class CdtmError(Exception):
+    """Base of every error a user can cause (bad input, unobservable problem)."""
+
+
+class DtmError(CdtmError):
+    """A DTM file or array is malformed or unreadable."""
+
+
+class FlightLogError(CdtmError):
+    """A flight log violates ``cdtm-flightlog/1`` (file, line and expectation in the message)."""
+
+
+class DegenerateGeometryError(CdtmError):
+    """The geometry cannot determine the pose: flat terrain, narrow FOV, few features, tiny baseline.
+
+    Attributes:
+        reasons: machine-readable names of every degeneracy detected
+            (``"flat_terrain"``, ``"narrow_fov"``, ``"few_features"``, ``"short_baseline"``,
+            ``"ill_conditioned"``).
+    """
+
+    def __init__(self, message: str, reasons: tuple[str, ...] = ()):
+        super().__init__(message)
+        self.reasons = tuple(reasons)
+
+
+class SolverError(CdtmError):
+    """The optimizer failed (indeterminate system, divergence); the message names the variable."""

@@ -1,0 +1,118 @@
+"""Rotation and pose helpers on plain numpy (no GTSAM), vectorized where it matters.
+
+Conventions (FLIGHTLOG.md): quaternions are Hamilton, stored w first, and rotate
+body-frame vectors into the world frame; a pose ``a_T_b`` is a 4x4 matrix with
+``x_a = R_ab x_b + t_ab``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def quat_wxyz_to_rotation(quat_wxyz: np.ndarray) -> np.ndarray:
+    """Rotation matrices from unit quaternions.
+
+    Args:
+        quat_wxyz: (..., 4) quaternions, w first; normalized here.
+
+    Returns:
+        (..., 3, 3) rotation matrices.
+    """
+    q = np.asarray(quat_wxyz, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    R = np.empty(q.shape[:-1] + (3, 3))
+    R[..., 0, 0] = 1 - 2 * (y * y + z * z)
+    R[..., 0, 1] = 2 * (x * y - w * z)
+    R[..., 0, 2] = 2 * (x * z + w * y)
+    R[..., 1, 0] = 2 * (x * y + w * z)
+    R[..., 1, 1] = 1 - 2 * (x * x + z * z)
+    R[..., 1, 2] = 2 * (y * z - w * x)
+    R[..., 2, 0] = 2 * (x * z - w * y)
+    R[..., 2, 1] = 2 * (y * z + w * x)
+    R[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    return R
+
+
+def rotation_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
+    """Unit quaternions (w first, w >= 0) from rotation matrices, (..., 3, 3) -> (..., 4)."""
+    R = np.asarray(R, dtype=float)
+    m = R.reshape(-1, 3, 3)
+    out = np.empty((m.shape[0], 4))
+    tr = np.trace(m, axis1=1, axis2=2)
+    # Pick the numerically largest component per matrix (Shepperd's method).
+    diag = np.stack([tr, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], axis=1)
+    k = np.argmax(diag, axis=1)
+    for case in range(4):
+        s = k == case
+        if not np.any(s):
+            continue
+        a = m[s]
+        if case == 0:
+            r = np.sqrt(1.0 + tr[s]) * 2
+            q = np.stack([0.25 * r, (a[:, 2, 1] - a[:, 1, 2]) / r,
+                          (a[:, 0, 2] - a[:, 2, 0]) / r, (a[:, 1, 0] - a[:, 0, 1]) / r], 1)
+        elif case == 1:
+            r = np.sqrt(1.0 + a[:, 0, 0] - a[:, 1, 1] - a[:, 2, 2]) * 2
+            q = np.stack([(a[:, 2, 1] - a[:, 1, 2]) / r, 0.25 * r,
+                          (a[:, 0, 1] + a[:, 1, 0]) / r, (a[:, 0, 2] + a[:, 2, 0]) / r], 1)
+        elif case == 2:
+            r = np.sqrt(1.0 + a[:, 1, 1] - a[:, 0, 0] - a[:, 2, 2]) * 2
+            q = np.stack([(a[:, 0, 2] - a[:, 2, 0]) / r, (a[:, 0, 1] + a[:, 1, 0]) / r,
+                          0.25 * r, (a[:, 1, 2] + a[:, 2, 1]) / r], 1)
+        else:
+            r = np.sqrt(1.0 + a[:, 2, 2] - a[:, 0, 0] - a[:, 1, 1]) * 2
+            q = np.stack([(a[:, 1, 0] - a[:, 0, 1]) / r, (a[:, 0, 2] + a[:, 2, 0]) / r,
+                          (a[:, 1, 2] + a[:, 2, 1]) / r, 0.25 * r], 1)
+        out[s] = q
+    out *= np.where(out[:, :1] < 0, -1.0, 1.0)
+    return out.reshape(R.shape[:-2] + (4,))
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices, (..., 3) -> (..., 3, 3), with ``skew(a) @ b == cross(a, b)``."""
+    v = np.asarray(v, dtype=float)
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
+    return S
+
+
+def so3_exp(omega: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula, (..., 3) rotation vectors -> (..., 3, 3)."""
+    w = np.asarray(omega, dtype=float)
+    th = np.linalg.norm(w, axis=-1)[..., None, None]
+    K = skew(w)
+    small = th < 1e-8
+    th_safe = np.where(small, 1.0, th)
+    a = np.where(small, 1.0, np.sin(th_safe) / th_safe)
+    b = np.where(small, 0.5, (1 - np.cos(th_safe)) / th_safe**2)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors of rotation matrices, (..., 3, 3) -> (..., 3) (angle < pi)."""
+    R = np.asarray(R, dtype=float)
+    cos = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0)
+    th = np.arccos(cos)
+    v = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
+                  R[..., 1, 0] - R[..., 0, 1]], axis=-1)
+    s = np.sin(th)
+    scale = np.where(th < 1e-8, 0.5, th / (2 * np.where(s == 0, 1.0, s)))
+    return v * scale[..., None]
+
+
+def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """4x4 homogeneous transform from a rotation and a translation."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def invert_pose(T: np.ndarray) -> np.ndarray:
+    """Inverse of a 4x4 rigid transform."""
+    R, t = T[:3, :3], T[:3, 3]
+    return make_pose(R.T, -R.T @ t)

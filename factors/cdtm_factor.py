@@ -1,0 +1,272 @@
+"""GTSAM factors for the C-DTM constraint (paper eq. 7) between two ``world_T_body`` poses.
+
+Two forms with the same linearization:
+
+* :func:`make_feature_factors`: one ``CustomFactor`` per feature with a 2x2
+  Gaussian noise model (optionally wrapped in ``noiseModel.Robust``): the paper's
+  picture, and the reference the fast form is tested against.
+* :class:`CdtmPairFactor`: one ``CustomFactor`` per frame pair holding every
+  feature of the pair; whitening and per-feature M-estimator reweighting happen
+  inside a numba kernel, so a linearization costs one Python callback per pair
+  rather than per feature. Wrapping it in ``noiseModel.Robust`` would treat all its
+  rows as one residual, hence the internal reweighting; its error-only evaluation
+  returns rows whose half squared norm is the robust loss, as GTSAM's Robust does.
+
+Both use the tangent plane in one of two ways (:class:`PlaneMode`): FIXED keeps
+``G_E, N`` from construction (the paper); REINTERSECT casts the ray again from the
+current camera a at every evaluation and linearizes on the tangent plane at the
+new hit (which is the exact derivative of the re-intersected residual).
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from factors import cdtm_math
+from factors.kernel import (
+    KERNEL_CAUCHY,
+    KERNEL_HUBER,
+    KERNEL_NONE,
+    KERNEL_TUKEY,
+    cdtm_linearize,
+)
+
+#: ``raycast(origins (n,3), directions (n,3)) -> (points (n,3), normals (n,3), valid (n,))``,
+#: normals ``(-dh/dx, -dh/dy, 1)``. The factor stays free of any DTM class.
+RayCaster = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+
+class PlaneMode(enum.Enum):
+    """How a factor holds the DTM tangent plane of each feature."""
+
+    FIXED = "fixed"
+    REINTERSECT = "reintersect"
+
+
+class RobustKernel(enum.Enum):
+    """M-estimators applied per feature to the whitened 2-vector residual norm."""
+
+    NONE = "none"
+    HUBER = "huber"
+    CAUCHY = "cauchy"
+    TUKEY = "tukey"
+
+    @property
+    def default_threshold(self) -> float:
+        """95%-efficiency thresholds for a Gaussian residual (whitened units)."""
+        return {"none": 0.0, "huber": 1.345, "cauchy": 2.3849, "tukey": 4.6851}[self.value]
+
+    @property
+    def kernel_id(self) -> int:
+        return {"none": KERNEL_NONE, "huber": KERNEL_HUBER, "cauchy": KERNEL_CAUCHY,
+                "tukey": KERNEL_TUKEY}[self.value]
+
+    def gtsam_estimator(self, threshold: float):
+        """The equivalent ``gtsam.noiseModel.mEstimator`` (``None`` for NONE)."""
+        if self is RobustKernel.NONE:
+            return None
+        m = gtsam.noiseModel.mEstimator
+        return {"huber": m.Huber, "cauchy": m.Cauchy, "tukey": m.Tukey}[self.value].Create(
+            threshold)
+
+
+@dataclass(frozen=True)
+class FeatureNoise:
+    """Data noise of the C-DTM features (eqs. 21-26).
+
+    Attributes:
+        sigma_q_xy: 1-sigma of ``q_b`` in normalized image units (sigma_px/fx, sigma_px/fy).
+        sigma_h_m: 1-sigma DTM height error, metres.
+        sigma_qa_xy: 1-sigma of ``q_a``; ``None`` treats ``q_a`` as exact (the paper's model).
+    """
+
+    sigma_q_xy: tuple[float, float]
+    sigma_h_m: float
+    sigma_qa_xy: tuple[float, float] | None = None
+
+
+@dataclass
+class PairFeatures:
+    """All features of one frame pair (a, b), with their planes and noise.
+
+    Attributes:
+        q_a, q_b: (n, 3) normalized rays (z = 1) in cameras a and b.
+        G_E, N: (n, 3) DTM tangent planes (point, upward normal ``(-dh/dx, -dh/dy, 1)``).
+        Sigma_e: (n, 2, 2) covariance of the 2-vector residual.
+        basis_b: (n, 3, 2) orthonormal complement of ``q_b``.
+        sqrt_info: (n, 2, 2) upper-triangular whitening, ``S^T S = Sigma_e^-1``.
+    """
+
+    q_a: np.ndarray
+    q_b: np.ndarray
+    G_E: np.ndarray
+    N: np.ndarray
+    Sigma_e: np.ndarray
+    basis_b: np.ndarray
+    sqrt_info: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return self.q_a.shape[0]
+
+    @classmethod
+    def build(
+        cls,
+        world_T_cam_a: np.ndarray,
+        world_T_cam_b: np.ndarray,
+        q_a: np.ndarray,
+        q_b: np.ndarray,
+        G_E: np.ndarray,
+        N: np.ndarray,
+        noise: FeatureNoise,
+    ) -> PairFeatures:
+        """Features with their noise linearized at the given camera poses (4x4 each)."""
+        q_a = np.ascontiguousarray(q_a, dtype=float)
+        q_b = np.ascontiguousarray(q_b, dtype=float)
+        G_E = np.ascontiguousarray(G_E, dtype=float)
+        N = np.ascontiguousarray(N, dtype=float)
+        basis = np.ascontiguousarray(cdtm_math.orthonormal_complement(q_b))
+        Sigma_f = cdtm_math.feature_covariance(
+            world_T_cam_a[:3, :3], world_T_cam_a[:3, 3], world_T_cam_b[:3, :3],
+            world_T_cam_b[:3, 3], q_a, q_b, G_E, N, noise.sigma_q_xy, noise.sigma_h_m,
+            noise.sigma_qa_xy)
+        Sigma_e = cdtm_math.residual_covariance(Sigma_f, basis)
+        return cls(q_a, q_b, G_E, N, Sigma_e, basis,
+                   np.ascontiguousarray(cdtm_math.sqrt_information(Sigma_e)))
+
+    def subset(self, index: np.ndarray) -> PairFeatures:
+        """The features selected by ``index`` (mask or indices)."""
+        return PairFeatures(*(np.ascontiguousarray(getattr(self, f)[index]) for f in (
+            "q_a", "q_b", "G_E", "N", "Sigma_e", "basis_b", "sqrt_info")))
+
+
+def _pose_matrix(values: gtsam.Values, key: int) -> np.ndarray:
+    return values.atPose3(key).matrix()
+
+
+class CdtmPairFactor:
+    """Every C-DTM feature of a frame pair in one vectorized GTSAM factor.
+
+    Args:
+        key_a, key_b: ``X(a)``, ``X(b)`` keys of ``world_T_body`` poses, a observed first.
+        features: the pair's features and noise.
+        body_T_cam: (4, 4) camera mounting.
+        plane_mode: FIXED or REINTERSECT.
+        raycast: DTM ray caster, required for REINTERSECT. Where it misses, the
+            construction plane is kept.
+        robust: per-feature M-estimator; ``robust_threshold`` defaults to the kernel's.
+
+    Attributes:
+        factor: the ``gtsam.CustomFactor`` to add to a graph (dimension 2n, unit
+            noise: whitening happens inside).
+    """
+
+    def __init__(
+        self,
+        key_a: int,
+        key_b: int,
+        features: PairFeatures,
+        body_T_cam: np.ndarray,
+        plane_mode: PlaneMode = PlaneMode.FIXED,
+        raycast: RayCaster | None = None,
+        robust: RobustKernel = RobustKernel.NONE,
+        robust_threshold: float | None = None,
+    ):
+        if plane_mode is PlaneMode.REINTERSECT and raycast is None:
+            raise ValueError("PlaneMode.REINTERSECT needs a raycast function")
+        self.key_a, self.key_b = key_a, key_b
+        self.features = features
+        self.body_T_cam = np.asarray(body_T_cam, dtype=float)
+        self.plane_mode = plane_mode
+        self.raycast = raycast
+        self.robust = robust
+        self.robust_threshold = (robust.default_threshold if robust_threshold is None
+                                 else float(robust_threshold))
+        self._Ad = np.ascontiguousarray(cdtm_math.body_to_cam_adjoint(self.body_T_cam))
+        n = features.n
+        self._e = np.empty((n, 2))
+        self._Ha = np.empty((n, 2, 6))
+        self._Hb = np.empty((n, 2, 6))
+        self.n_inactive = 0
+        self.factor = gtsam.CustomFactor(
+            gtsam.noiseModel.Unit.Create(2 * n), [key_a, key_b], self._error)
+
+    def planes(self, world_T_cam_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The tangent planes ``(G_E, N)`` used at this camera-a pose."""
+        f = self.features
+        if self.plane_mode is PlaneMode.FIXED:
+            return f.G_E, f.N
+        ray = f.q_a @ world_T_cam_a[:3, :3].T
+        origins = np.broadcast_to(world_T_cam_a[:3, 3], ray.shape)
+        points, normals, valid = self.raycast(origins, ray)
+        G_E = np.where(valid[:, None], points, f.G_E)
+        N = np.where(valid[:, None], normals, f.N)
+        return np.ascontiguousarray(G_E), np.ascontiguousarray(N)
+
+    def evaluate(
+        self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray, want_jacobians: bool = True
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Whitened, reweighted residuals (n, 2) and Jacobians (n, 2, 6) w.r.t. X(a), X(b).
+
+        The arrays are the factor's own buffers: copy them to keep them.
+        """
+        wTc_a = world_T_body_a @ self.body_T_cam
+        wTc_b = world_T_body_b @ self.body_T_cam
+        G_E, N = self.planes(wTc_a)
+        f = self.features
+        self.n_inactive = cdtm_linearize(
+            wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3], self._Ad,
+            f.q_a, G_E, N, f.basis_b, f.sqrt_info, self.robust.kernel_id,
+            self.robust_threshold, want_jacobians, self._e, self._Ha, self._Hb)
+        return self._e, self._Ha, self._Hb
+
+    def _error(self, this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
+        e, Ha, Hb = self.evaluate(_pose_matrix(values, self.key_a),
+                                  _pose_matrix(values, self.key_b), jacobians is not None)
+        if jacobians is not None:
+            jacobians[0] = Ha.reshape(-1, 6)
+            jacobians[1] = Hb.reshape(-1, 6)
+        return e.reshape(-1)
+
+
+def make_feature_factors(
+    key_a: int,
+    key_b: int,
+    features: PairFeatures,
+    body_T_cam: np.ndarray,
+    plane_mode: PlaneMode = PlaneMode.FIXED,
+    raycast: RayCaster | None = None,
+    robust: RobustKernel = RobustKernel.NONE,
+    robust_threshold: float | None = None,
+) -> list[gtsam.CustomFactor]:
+    """One ``CustomFactor`` per feature (the paper's picture; slow: ~one callback each).
+
+    Same arguments as :class:`CdtmPairFactor`; the noise is a 2x2 Gaussian
+    (``Sigma_e``), wrapped in ``noiseModel.Robust`` when a kernel is given.
+    """
+    threshold = robust.default_threshold if robust_threshold is None else robust_threshold
+    estimator = robust.gtsam_estimator(threshold)
+    factors: list[gtsam.CustomFactor] = []
+    for i in range(features.n):
+        single = features.subset(np.array([i]))
+        # The per-feature factor returns the unwhitened residual; GTSAM whitens.
+        single.sqrt_info = np.ascontiguousarray(np.eye(2)[None])
+        pair = CdtmPairFactor(key_a, key_b, single, body_T_cam, plane_mode, raycast)
+        # smart=False: GTSAM's "smart" constructor would round a covariance with small
+        # off-diagonal terms (~1e-10 rad^2 here) to a diagonal one.
+        noise = gtsam.noiseModel.Gaussian.SqrtInformation(features.sqrt_info[i], False)
+        if estimator is not None:
+            noise = gtsam.noiseModel.Robust.Create(estimator, noise)
+        factors.append(gtsam.CustomFactor(noise, [key_a, key_b], pair._error))
+    return factors
+
+
+def add_pair_factors(graph: gtsam.NonlinearFactorGraph, factors: Sequence[CdtmPairFactor]) -> None:
+    """Add the GTSAM factors of several pair factors to a graph."""
+    for f in factors:
+        graph.add(f.factor)

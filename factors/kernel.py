@@ -1,0 +1,177 @@
+"""Numba kernel: C-DTM residuals and Jacobians of many features in one call.
+
+The hot path of every linearization. It implements, feature by feature, the same
+math as :mod:`factors.cdtm_math` (whose numpy functions are the readable reference
+and are tested against it): ``e = B^T g/|g|`` with the Jacobians derived there,
+chained to ``world_T_body`` through ``Ad(cam_T_body)``, whitened by the per-feature
+square-root information, and reweighted per feature by an M-estimator.
+
+Jacobians w.r.t. the camera pose, right perturbation ``[omega, v]`` (DESIGN.md):
+
+* camera b: ``dg/d omega_b = [g]x``, ``dg/dv_b = -I``;
+* camera a: ``dg/dv_a = R_b^T P(r, N) R_a``, ``dg/d omega_a = -lambda R_b^T P(r, N) R_a [q_a]x``,
+
+with ``de/dg = B^T (I - g g^T/|g|^2) / |g|`` and ``P(r, N) = I - r N^T / N.r``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+# Robust kernels, numbered for the kernel; names and defaults in factors.robust.
+KERNEL_NONE = 0
+KERNEL_HUBER = 1
+KERNEL_CAUCHY = 2
+KERNEL_TUKEY = 3
+
+# Features whose ray grazes the plane (|N.r| tiny) or points away carry no information.
+_MIN_RAY_NORMAL_DOT = 1e-9
+
+
+@njit(cache=True, inline="always")
+def robust_weight(kernel: int, k: float, s: float) -> float:
+    """M-estimator weight w(s) of a whitened residual norm ``s`` (GTSAM's definitions)."""
+    if kernel == KERNEL_HUBER:
+        return 1.0 if s <= k else k / s
+    if kernel == KERNEL_CAUCHY:
+        return 1.0 / (1.0 + (s / k) ** 2)
+    if kernel == KERNEL_TUKEY:
+        if s > k:
+            return 0.0
+        u = 1.0 - (s / k) ** 2
+        return u * u
+    return 1.0
+
+
+@njit(cache=True, inline="always")
+def robust_loss(kernel: int, k: float, s: float) -> float:
+    """M-estimator loss rho(s) (GTSAM's definitions; rho = s^2/2 without a kernel)."""
+    if kernel == KERNEL_HUBER:
+        return 0.5 * s * s if s <= k else k * s - 0.5 * k * k
+    if kernel == KERNEL_CAUCHY:
+        return 0.5 * k * k * np.log1p((s / k) ** 2)
+    if kernel == KERNEL_TUKEY:
+        if s > k:
+            return k * k / 6.0
+        u = 1.0 - (s / k) ** 2
+        return k * k / 6.0 * (1.0 - u * u * u)
+    return 0.5 * s * s
+
+
+@njit(cache=True)
+def cdtm_linearize(
+    R_a, p_a, R_b, p_b, Ad, q_a, G_E, N, basis, sqrt_info, kernel, kernel_k,
+    want_jacobians, e_out, Ha_out, Hb_out,
+):
+    """Whitened, robustly reweighted residuals and body-pose Jacobians of n features.
+
+    Args:
+        R_a, p_a, R_b, p_b: camera-to-world rotation (3, 3) and centre (3,) of cameras a, b.
+        Ad: (6, 6) ``Ad(cam_T_body)``: camera-tangent Jacobians times Ad give body ones.
+        q_a: (n, 3) rays in camera a. G_E, N: (n, 3) tangent planes. basis: (n, 3, 2) ``B_b``.
+        sqrt_info: (n, 2, 2) whitening; the identity gives the unwhitened residual.
+        kernel, kernel_k: robust kernel id and threshold (whitened units).
+        want_jacobians: fill ``Ha_out``/``Hb_out`` and return sqrt(w)-reweighted
+            residuals (a linearization); otherwise return residuals whose half
+            squared norm is the robust loss (an error evaluation).
+        e_out: (n, 2) output. Ha_out, Hb_out: (n, 2, 6) outputs (body tangents).
+
+    Returns:
+        Number of features that were inactive (ray parallel to the plane or
+        the ground point behind camera a); their rows are zero.
+    """
+    n = q_a.shape[0]
+    n_inactive = 0
+    Hc_a = np.empty((2, 6))
+    Hc_b = np.empty((2, 6))
+    for i in range(n):
+        r0 = R_a[0, 0] * q_a[i, 0] + R_a[0, 1] * q_a[i, 1] + R_a[0, 2] * q_a[i, 2]
+        r1 = R_a[1, 0] * q_a[i, 0] + R_a[1, 1] * q_a[i, 1] + R_a[1, 2] * q_a[i, 2]
+        r2 = R_a[2, 0] * q_a[i, 0] + R_a[2, 1] * q_a[i, 1] + R_a[2, 2] * q_a[i, 2]
+        Nr = N[i, 0] * r0 + N[i, 1] * r1 + N[i, 2] * r2
+        c = N[i, 0] * (G_E[i, 0] - p_a[0]) + N[i, 1] * (G_E[i, 1] - p_a[1]) \
+            + N[i, 2] * (G_E[i, 2] - p_a[2])
+        if abs(Nr) < _MIN_RAY_NORMAL_DOT or c / Nr <= 0.0:
+            n_inactive += 1
+            e_out[i, 0] = 0.0
+            e_out[i, 1] = 0.0
+            if want_jacobians:
+                Ha_out[i, :, :] = 0.0
+                Hb_out[i, :, :] = 0.0
+            continue
+        lam = c / Nr
+        d0 = p_a[0] + lam * r0 - p_b[0]
+        d1 = p_a[1] + lam * r1 - p_b[1]
+        d2 = p_a[2] + lam * r2 - p_b[2]
+        # g = R_b^T d
+        g0 = R_b[0, 0] * d0 + R_b[1, 0] * d1 + R_b[2, 0] * d2
+        g1 = R_b[0, 1] * d0 + R_b[1, 1] * d1 + R_b[2, 1] * d2
+        g2 = R_b[0, 2] * d0 + R_b[1, 2] * d1 + R_b[2, 2] * d2
+        gn = np.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+        h0, h1, h2 = g0 / gn, g1 / gn, g2 / gn
+        # unwhitened residual e = B^T h
+        u0 = basis[i, 0, 0] * h0 + basis[i, 1, 0] * h1 + basis[i, 2, 0] * h2
+        u1 = basis[i, 0, 1] * h0 + basis[i, 1, 1] * h1 + basis[i, 2, 1] * h2
+        S00, S01, S10, S11 = sqrt_info[i, 0, 0], sqrt_info[i, 0, 1], sqrt_info[i, 1, 0], \
+            sqrt_info[i, 1, 1]
+        w0 = S00 * u0 + S01 * u1
+        w1 = S10 * u0 + S11 * u1
+        s = np.sqrt(w0 * w0 + w1 * w1)
+        if not want_jacobians:
+            if kernel == KERNEL_NONE or s == 0.0:
+                e_out[i, 0] = w0
+                e_out[i, 1] = w1
+            else:
+                scale = np.sqrt(2.0 * robust_loss(kernel, kernel_k, s)) / s
+                e_out[i, 0] = w0 * scale
+                e_out[i, 1] = w1 * scale
+            continue
+        sw = np.sqrt(robust_weight(kernel, kernel_k, s)) if kernel != KERNEL_NONE else 1.0
+        e_out[i, 0] = sw * w0
+        e_out[i, 1] = sw * w1
+        for k in range(2):
+            # M_k = (B_k - (B_k.h) h) / |g|: row k of de/dg
+            bh = basis[i, 0, k] * h0 + basis[i, 1, k] * h1 + basis[i, 2, k] * h2
+            m0 = (basis[i, 0, k] - bh * h0) / gn
+            m1 = (basis[i, 1, k] - bh * h1) / gn
+            m2 = (basis[i, 2, k] - bh * h2) / gn
+            # camera b: [M_k x g, -M_k]
+            Hc_b[k, 0] = m1 * g2 - m2 * g1
+            Hc_b[k, 1] = m2 * g0 - m0 * g2
+            Hc_b[k, 2] = m0 * g1 - m1 * g0
+            Hc_b[k, 3] = -m0
+            Hc_b[k, 4] = -m1
+            Hc_b[k, 5] = -m2
+            # camera a: w = P(r,N)^T R_b M_k, u = R_a^T w -> [lam q_a x u, u]
+            wm0 = R_b[0, 0] * m0 + R_b[0, 1] * m1 + R_b[0, 2] * m2
+            wm1 = R_b[1, 0] * m0 + R_b[1, 1] * m1 + R_b[1, 2] * m2
+            wm2 = R_b[2, 0] * m0 + R_b[2, 1] * m1 + R_b[2, 2] * m2
+            rw = (r0 * wm0 + r1 * wm1 + r2 * wm2) / Nr
+            wm0 -= N[i, 0] * rw
+            wm1 -= N[i, 1] * rw
+            wm2 -= N[i, 2] * rw
+            a0 = R_a[0, 0] * wm0 + R_a[1, 0] * wm1 + R_a[2, 0] * wm2
+            a1 = R_a[0, 1] * wm0 + R_a[1, 1] * wm1 + R_a[2, 1] * wm2
+            a2 = R_a[0, 2] * wm0 + R_a[1, 2] * wm1 + R_a[2, 2] * wm2
+            Hc_a[k, 0] = lam * (q_a[i, 1] * a2 - q_a[i, 2] * a1)
+            Hc_a[k, 1] = lam * (q_a[i, 2] * a0 - q_a[i, 0] * a2)
+            Hc_a[k, 2] = lam * (q_a[i, 0] * a1 - q_a[i, 1] * a0)
+            Hc_a[k, 3] = a0
+            Hc_a[k, 4] = a1
+            Hc_a[k, 5] = a2
+        # whiten, reweight and carry to the body tangent: H = sw * S @ Hc @ Ad
+        for k in range(2):
+            sk0 = sw * sqrt_info[i, k, 0]
+            sk1 = sw * sqrt_info[i, k, 1]
+            for j in range(6):
+                acc_a = 0.0
+                acc_b = 0.0
+                for m in range(6):
+                    ca = sk0 * Hc_a[0, m] + sk1 * Hc_a[1, m]
+                    cb = sk0 * Hc_b[0, m] + sk1 * Hc_b[1, m]
+                    acc_a += ca * Ad[m, j]
+                    acc_b += cb * Ad[m, j]
+                Ha_out[i, k, j] = acc_a
+                Hb_out[i, k, j] = acc_b
+    return n_inactive

@@ -1,0 +1,193 @@
+"""The C-DTM factor: Jacobians against central differences, both forms agree."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+from gtsam.symbol_shorthand import X
+
+from cdtm_graph.geometry import make_pose
+from factors import (
+    CdtmPairFactor,
+    FeatureNoise,
+    PairFeatures,
+    PlaneMode,
+    RobustKernel,
+    make_feature_factors,
+)
+from factors import cdtm_math
+from tests.manifold import (
+    WavyTerrain,
+    downward_body_T_cam,
+    numerical_jacobian,
+    numerical_pose_jacobian,
+    random_rotation,
+)
+
+N_CONFIGURATIONS = 100
+#: Central differences with a 1e-6 step agree with exact derivatives to ~1e-9 relative.
+JACOBIAN_RTOL = 1e-6
+#: Two forms of one linear system, accumulated in different orders.
+LINEARIZATION_RTOL = 1e-9
+NOISE = FeatureNoise(sigma_q_xy=(0.5 / 350, 0.5 / 340), sigma_h_m=2.4, sigma_qa_xy=(1.4e-3, 1.5e-3))
+
+
+def random_pair(rng, terrain: WavyTerrain | None = None, n: int = 12, pixel_noise: float = 2e-3):
+    """Two body poses ~40 m apart over terrain, a non-identity mounting and n features."""
+    body_T_cam = downward_body_T_cam(rng)
+    wTb_a = make_pose(random_rotation(rng, 0.2),
+                      np.r_[rng.uniform(-200, 200, 2), 500 + rng.uniform(-50, 50)])
+    step = make_pose(random_rotation(rng, 0.17), np.r_[40.0, 0, 0] + rng.normal(0, 5, 3))
+    wTb_b = wTb_a @ step
+    wTc_a, wTc_b = wTb_a @ body_T_cam, wTb_b @ body_T_cam
+    q_a = np.c_[rng.uniform(-0.4, 0.4, (n, 2)), np.ones(n)]
+    ray = q_a @ wTc_a[:3, :3].T
+    if terrain is None:
+        G = wTc_a[:3, 3] + rng.uniform(300, 700, n)[:, None] * ray
+        N = np.c_[rng.uniform(-0.6, 0.6, (n, 2)), np.ones(n)]
+    else:
+        G, N, valid = terrain.raycast(np.broadcast_to(wTc_a[:3, 3], ray.shape), ray)
+        assert valid.all()
+    g_b = (G - wTc_b[:3, 3]) @ wTc_b[:3, :3]
+    q_b = g_b / g_b[:, 2:3]
+    q_b[:, :2] += rng.normal(0, pixel_noise, (n, 2))  # non-zero residuals exercise every term
+    feats = PairFeatures.build(wTc_a, wTc_b, q_a, q_b, G, N, NOISE)
+    return body_T_cam, wTb_a, wTb_b, feats
+
+
+@pytest.mark.parametrize("mode", [PlaneMode.FIXED, PlaneMode.REINTERSECT])
+def test_pose_jacobians_match_central_differences(rng, mode):
+    worst = 0.0
+    for _ in range(N_CONFIGURATIONS):
+        terrain = WavyTerrain(amplitude_m=rng.uniform(10, 60), wavelength_m=rng.uniform(300, 900))
+        body_T_cam, Ta, Tb, feats = random_pair(rng, terrain)
+        fac = CdtmPairFactor(X(0), X(1), feats, body_T_cam, mode, raycast=terrain.raycast)
+        _, Ha, Hb = (a.copy() for a in fac.evaluate(Ta, Tb))
+        num_a = numerical_pose_jacobian(lambda T: fac.evaluate(T, Tb)[0].ravel().copy(), Ta)
+        num_b = numerical_pose_jacobian(lambda T: fac.evaluate(Ta, T)[0].ravel().copy(), Tb)
+        scale = max(np.abs(num_a).max(), np.abs(num_b).max())
+        err = max(np.abs(Ha.reshape(-1, 6) - num_a).max(), np.abs(Hb.reshape(-1, 6) - num_b).max())
+        worst = max(worst, err / scale)
+    assert worst < JACOBIAN_RTOL
+
+
+def test_reintersect_uses_the_plane_at_the_new_hit(rng):
+    """Away from the construction pose, REINTERSECT equals a FIXED factor built on the new hits."""
+    terrain = WavyTerrain(amplitude_m=60.0, wavelength_m=400.0)
+    body_T_cam, Ta, Tb, feats = random_pair(rng, terrain)
+    moved = Ta @ make_pose(np.eye(3), [30.0, -20.0, 5.0])
+    wTc_moved = moved @ body_T_cam
+    ray = feats.q_a @ wTc_moved[:3, :3].T
+    G_new, N_new, _ = terrain.raycast(np.broadcast_to(wTc_moved[:3, 3], ray.shape), ray)
+    refit = PairFeatures(feats.q_a, feats.q_b, G_new, N_new, feats.Sigma_e, feats.basis_b,
+                         feats.sqrt_info)
+    fixed = CdtmPairFactor(X(0), X(1), feats, body_T_cam, PlaneMode.FIXED)
+    fixed_new = CdtmPairFactor(X(0), X(1), refit, body_T_cam, PlaneMode.FIXED)
+    reint = CdtmPairFactor(X(0), X(1), feats, body_T_cam, PlaneMode.REINTERSECT, terrain.raycast)
+    e_reint = reint.evaluate(moved, Tb)[0].copy()
+    np.testing.assert_allclose(e_reint, fixed_new.evaluate(moved, Tb)[0], atol=1e-12)
+    assert np.abs(e_reint - fixed.evaluate(moved, Tb)[0]).max() > 0.1  # whitened units
+    np.testing.assert_allclose(fixed.evaluate(Ta, Tb)[0], reint.evaluate(Ta, Tb)[0], atol=1e-9)
+
+
+def test_data_jacobians_match_central_differences(rng):
+    """Eq. 19 (q_b), eq. 20 (G_E) and the q_a Jacobian, feature by feature."""
+    worst = 0.0
+    for _ in range(N_CONFIGURATIONS):
+        body_T_cam, Ta, Tb, feats = random_pair(rng, n=3, pixel_noise=5e-3)
+        wTc_a, wTc_b = Ta @ body_T_cam, Tb @ body_T_cam
+        args = (wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3])
+        J_qb, J_G, J_qa = cdtm_math.paper_data_jacobians(
+            *args, feats.q_a, feats.q_b, feats.G_E, feats.N)
+        for i in range(feats.n):
+            qa, qb, G, N = feats.q_a[i:i + 1], feats.q_b[i:i + 1], feats.G_E[i:i + 1], feats.N[i:i + 1]
+
+            def f_of(qa=qa, qb=qb, G=G, N=N):
+                return cdtm_math.paper_residual(*args, qa, qb, G, N)[0][0]
+
+            checks = [
+                (J_qb[i], numerical_jacobian(lambda x: f_of(qb=x[None]), qb[0])),
+                (J_G[i], numerical_jacobian(lambda x: f_of(G=x[None]), G[0], step=1e-4)),
+                (J_qa[i], numerical_jacobian(lambda x: f_of(qa=x[None]), qa[0])),
+            ]
+            for analytic, numeric in checks:
+                worst = max(worst, np.abs(analytic - numeric).max() / np.abs(numeric).max())
+    assert worst < JACOBIAN_RTOL
+
+
+def test_factor_residual_is_paper_residual_in_the_basis(rng):
+    """e = B^T f: the factor's 2-vector carries the paper's eq. 7 residual."""
+    body_T_cam, Ta, Tb, feats = random_pair(rng, pixel_noise=5e-3)
+    wTc_a, wTc_b = Ta @ body_T_cam, Tb @ body_T_cam
+    f, _ = cdtm_math.paper_residual(wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3],
+                                    feats.q_a, feats.q_b, feats.G_E, feats.N)
+    unwhitened = PairFeatures(feats.q_a, feats.q_b, feats.G_E, feats.N, feats.Sigma_e,
+                              feats.basis_b, np.repeat(np.eye(2)[None], feats.n, 0))
+    e = CdtmPairFactor(X(0), X(1), unwhitened, body_T_cam).evaluate(Ta, Tb)[0]
+    np.testing.assert_allclose(e, np.einsum("nik,ni->nk", feats.basis_b, f), atol=1e-14)
+    np.testing.assert_allclose(np.linalg.norm(e, axis=1), np.linalg.norm(f, axis=1), rtol=1e-12)
+
+
+def _linear_system(factors, Ta, Tb):
+    graph = gtsam.NonlinearFactorGraph()
+    for f in factors:
+        graph.add(f)
+    values = gtsam.Values()
+    values.insert(X(0), gtsam.Pose3(Ta))
+    values.insert(X(1), gtsam.Pose3(Tb))
+    return graph.linearize(values).augmentedHessian(), graph.error(values)
+
+
+@pytest.mark.parametrize("robust", list(RobustKernel))
+@pytest.mark.parametrize("mode", [PlaneMode.FIXED, PlaneMode.REINTERSECT])
+def test_batched_and_per_feature_factors_linearize_identically(rng, robust, mode):
+    terrain = WavyTerrain()
+    for _ in range(5):
+        # Large pixel noise so that many features sit beyond the robust thresholds.
+        body_T_cam, Ta, Tb, feats = random_pair(rng, terrain, n=40, pixel_noise=8e-3)
+        moved = Ta @ make_pose(np.eye(3), [3.0, -2.0, 1.0])  # off the construction pose
+        batched = CdtmPairFactor(X(0), X(1), feats, body_T_cam, mode, terrain.raycast, robust)
+        single = make_feature_factors(X(0), X(1), feats, body_T_cam, mode, terrain.raycast, robust)
+        H_batched, err_batched = _linear_system([batched.factor], moved, Tb)
+        H_single, err_single = _linear_system(single, moved, Tb)
+        np.testing.assert_allclose(H_batched, H_single, rtol=LINEARIZATION_RTOL,
+                                   atol=LINEARIZATION_RTOL * np.abs(H_single).max())
+        np.testing.assert_allclose(err_batched, err_single, rtol=LINEARIZATION_RTOL)
+        if robust is not RobustKernel.NONE:  # the comparison must involve down-weighted rows
+            e_plain = CdtmPairFactor(X(0), X(1), feats, body_T_cam, mode,
+                                     terrain.raycast).evaluate(moved, Tb)[0]
+            assert np.any(np.linalg.norm(e_plain, axis=1) > robust.default_threshold)
+
+
+def test_robust_kernel_downweights_outliers(rng):
+    """An outlier's rows shrink under Huber and vanish under Tukey beyond the threshold."""
+    body_T_cam, Ta, Tb, feats = random_pair(rng, n=10, pixel_noise=0.0)
+    q_b = feats.q_b.copy()
+    q_b[0, :2] += 0.05  # ~25 sigma
+    feats = PairFeatures.build(Ta @ body_T_cam, Tb @ body_T_cam, feats.q_a, q_b, feats.G_E,
+                               feats.N, NOISE)
+    plain = CdtmPairFactor(X(0), X(1), feats, body_T_cam).evaluate(Ta, Tb)[0].copy()
+    huber = CdtmPairFactor(X(0), X(1), feats, body_T_cam, robust=RobustKernel.HUBER)
+    tukey = CdtmPairFactor(X(0), X(1), feats, body_T_cam, robust=RobustKernel.TUKEY)
+    s = np.linalg.norm(plain[0])
+    k = RobustKernel.HUBER.default_threshold
+    np.testing.assert_allclose(np.linalg.norm(huber.evaluate(Ta, Tb)[0][0]), np.sqrt(k / s) * s)
+    assert np.all(tukey.evaluate(Ta, Tb)[0][0] == 0.0)
+    np.testing.assert_allclose(huber.evaluate(Ta, Tb)[0][1:], plain[1:])
+
+
+def test_noise_model_is_the_projected_feature_covariance(rng):
+    """Sigma_e = B^T Sigma_f B and the whitening inverts it (eqs. 19-26)."""
+    body_T_cam, Ta, Tb, feats = random_pair(rng, pixel_noise=0.0)
+    wTc_a, wTc_b = Ta @ body_T_cam, Tb @ body_T_cam
+    args = (wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3], feats.q_a, feats.q_b,
+            feats.G_E, feats.N)
+    Sigma_f = cdtm_math.feature_covariance(*args, NOISE.sigma_q_xy, NOISE.sigma_h_m, NOISE.sigma_qa_xy)
+    # At a noiseless solution Sigma_f has rank 2 with q_b in its null space.
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", Sigma_f, feats.q_b), 0, atol=1e-15)
+    B = feats.basis_b
+    np.testing.assert_allclose(np.swapaxes(B, 1, 2) @ Sigma_f @ B, feats.Sigma_e, rtol=1e-12)
+    S = feats.sqrt_info
+    np.testing.assert_allclose(S @ feats.Sigma_e @ np.swapaxes(S, 1, 2),
+                               np.broadcast_to(np.eye(2), feats.Sigma_e.shape), atol=1e-9)
