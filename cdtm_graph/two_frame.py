@@ -1,0 +1,193 @@
+"""The paper's one-shot problem: both poses of a frame pair from C-DTM factors alone.
+
+Given the matched features of two frames, the DTM and an initial guess, GTSAM
+estimates ``world_T_body`` of both frames (twelve unknowns, no prior: the DTM fixes
+the gauge), then reports GTSAM's joint marginal, both closed-form covariances of
+eq. 13 and the degeneracy verdict of section V.B.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import X
+
+from cdtm_graph.analysis import (
+    ClosedFormAnalysis,
+    Degeneracy,
+    DegeneracySettings,
+    analyze_pair,
+    geometric_degeneracy,
+    theta_jacobian_wrt_body_tangents,
+)
+from cdtm_graph.errors import DegenerateGeometryError
+from factors import CdtmPairFactor, FeatureNoise, PairFeatures, PlaneMode, RayCaster, RobustKernel
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class TwoFrameSettings:
+    """Settings of :func:`solve_two_frame`.
+
+    Attributes:
+        plane_mode: REINTERSECT (default) follows the terrain from a far initial
+            guess; FIXED is the paper's single linearization of the DTM.
+        robust: per-feature M-estimator.
+        max_iterations: Levenberg-Marquardt iterations.
+        relative_error_tol: LM stops when the error decreases less than this, relatively.
+        degeneracy: thresholds of the degeneracy verdict.
+        raise_on_degenerate: raise :class:`DegenerateGeometryError` (default) rather
+            than return a flagged result.
+    """
+
+    plane_mode: PlaneMode = PlaneMode.REINTERSECT
+    robust: RobustKernel = RobustKernel.NONE
+    max_iterations: int = 30
+    relative_error_tol: float = 1e-12
+    degeneracy: DegeneracySettings = field(default_factory=DegeneracySettings)
+    raise_on_degenerate: bool = True
+
+
+@dataclass(frozen=True)
+class TwoFrameResult:
+    """Estimate and uncertainty of a two-frame C-DTM solve.
+
+    Attributes:
+        world_T_body_a, world_T_body_b: (4, 4) estimated body poses.
+        covariance_ab: (12, 12) GTSAM's joint marginal of ``(X(a), X(b))``, tangent order
+            [omega_a, v_a, omega_b, v_b], right perturbations (body frame).
+        sigma_theta_gtsam: (12, 12) that marginal mapped to the paper's theta.
+        analysis: closed-form analysis at the estimate (both eq. 13 forms, Sigma_C2, verdict).
+        iterations, initial_error, final_error: LM statistics (GTSAM error = chi2 / 2).
+        converged: LM stopped on its tolerance (not on the iteration limit) at a finite error.
+        n_features: features used; n_missed: features whose ray missed the DTM (dropped).
+    """
+
+    world_T_body_a: np.ndarray
+    world_T_body_b: np.ndarray
+    covariance_ab: np.ndarray
+    sigma_theta_gtsam: np.ndarray
+    analysis: ClosedFormAnalysis
+    iterations: int
+    initial_error: float
+    final_error: float
+    converged: bool
+    n_features: int
+    n_missed: int
+
+    @property
+    def degeneracy(self) -> Degeneracy:
+        return self.analysis.degeneracy
+
+    @property
+    def degenerate(self) -> bool:
+        return self.analysis.degeneracy.degenerate
+
+
+def _raise_or_log(verdict: Degeneracy, settings: TwoFrameSettings) -> None:
+    if verdict.degenerate:
+        if settings.raise_on_degenerate:
+            raise DegenerateGeometryError(f"degenerate geometry: {verdict.message()}",
+                                          verdict.reasons)
+        log.warning("degenerate geometry: %s", verdict.message())
+
+
+def solve_two_frame(
+    q_a: np.ndarray,
+    q_b: np.ndarray,
+    raycast: RayCaster,
+    world_T_body_a: np.ndarray,
+    world_T_body_b: np.ndarray,
+    body_T_cam: np.ndarray,
+    noise: FeatureNoise,
+    settings: TwoFrameSettings | None = None,
+) -> TwoFrameResult:
+    """Estimate both poses of a frame pair from C-DTM factors only.
+
+    Args:
+        q_a, q_b: (n, 3) normalized rays (z = 1) of the matched features in frames a, b.
+        raycast: the DTM ray caster (see :data:`factors.RayCaster`).
+        world_T_body_a, world_T_body_b: (4, 4) initial guess.
+        body_T_cam: (4, 4) camera mounting.
+        noise: data noise (pixels in normalized units, DTM height).
+        settings: solver and degeneracy settings.
+
+    Returns:
+        The estimate with GTSAM's marginals and the closed-form analysis.
+
+    Raises:
+        DegenerateGeometryError: the geometry cannot fix the poses (unless
+            ``settings.raise_on_degenerate`` is False, then the result is flagged).
+    """
+    settings = settings or TwoFrameSettings()
+    wTc_a = world_T_body_a @ body_T_cam
+    wTc_b = world_T_body_b @ body_T_cam
+    ray = q_a @ wTc_a[:3, :3].T
+    G_E, N, valid = raycast(np.broadcast_to(wTc_a[:3, 3], ray.shape), ray)
+    n_missed = int((~valid).sum())
+    q_a, q_b, G_E, N = q_a[valid], q_b[valid], G_E[valid], N[valid]
+    _raise_or_log(geometric_degeneracy(wTc_a, wTc_b, q_a, G_E, noise.sigma_h_m,
+                                       settings.degeneracy), settings)
+
+    features = PairFeatures.build(wTc_a, wTc_b, q_a, q_b, G_E, N, noise)
+    pair = CdtmPairFactor(X(0), X(1), features, body_T_cam, settings.plane_mode, raycast,
+                          settings.robust)
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(pair.factor)
+    initial = gtsam.Values()
+    initial.insert(X(0), gtsam.Pose3(world_T_body_a))
+    initial.insert(X(1), gtsam.Pose3(world_T_body_b))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(settings.max_iterations)
+    params.setRelativeErrorTol(settings.relative_error_tol)
+    params.setAbsoluteErrorTol(0.0)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
+    initial_error = graph.error(initial)
+    try:
+        estimate = optimizer.optimize()
+    except RuntimeError as exc:  # indeterminant system: the data cannot fix a direction
+        verdict = Degeneracy(("ill_conditioned",), {"ill_conditioned": str(exc).splitlines()[0]})
+        raise DegenerateGeometryError(f"degenerate geometry: {verdict.message()}",
+                                      verdict.reasons) from None
+    iterations = optimizer.iterations()
+    final_error = graph.error(estimate)
+    Ta = estimate.atPose3(X(0)).matrix()
+    Tb = estimate.atPose3(X(1)).matrix()
+
+    # Linearize the uncertainty at the estimate: planes and noise from the final poses.
+    wTc_a, wTc_b = Ta @ body_T_cam, Tb @ body_T_cam
+    G_E, N = pair.planes(wTc_a)
+    features = PairFeatures.build(wTc_a, wTc_b, q_a, q_b, G_E, N, noise)
+    final = gtsam.NonlinearFactorGraph()
+    final.add(CdtmPairFactor(X(0), X(1), features, body_T_cam).factor)
+    analysis = analyze_pair(wTc_a, wTc_b, q_a, q_b, G_E, N, noise, settings.degeneracy)
+    _raise_or_log(analysis.degeneracy, settings)
+    try:
+        cov = gtsam.Marginals(final, estimate).jointMarginalCovariance([X(0), X(1)]).fullMatrix()
+    except RuntimeError as exc:
+        if settings.raise_on_degenerate:
+            raise DegenerateGeometryError(
+                f"degenerate geometry: GTSAM marginals failed ({str(exc).strip()})",
+                ("ill_conditioned",)) from None
+        cov = np.full((12, 12), np.inf)  # flagged above: no confident covariance
+    H = theta_jacobian_wrt_body_tangents(Ta, Tb, body_T_cam)
+    converged = bool(np.isfinite(final_error) and iterations < settings.max_iterations)
+    with np.errstate(invalid="ignore"):  # a flagged, singular result carries inf
+        sigma_theta = H @ cov @ H.T
+    return TwoFrameResult(
+        world_T_body_a=Ta,
+        world_T_body_b=Tb,
+        covariance_ab=cov,
+        sigma_theta_gtsam=sigma_theta,
+        analysis=analysis,
+        iterations=iterations,
+        initial_error=initial_error,
+        final_error=final_error,
+        converged=converged,
+        n_features=int(q_a.shape[0]),
+        n_missed=n_missed,
+    )
