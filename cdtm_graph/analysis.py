@@ -235,6 +235,14 @@ class ClosedFormAnalysis:
     n_features: int
 
 
+def _pseudo_inverse_psd(S: np.ndarray, rtol: float = 1e-10) -> np.ndarray:
+    """Moore-Penrose inverse of a stack of symmetric PSD matrices, (n, k, k)."""
+    w, V = np.linalg.eigh(S)
+    keep = w > rtol * w[:, -1:]
+    w_inv = np.where(keep, 1.0 / np.where(keep, w, 1.0), 0.0)
+    return (V * w_inv[:, None, :]) @ np.swapaxes(V, 1, 2)
+
+
 def _normalized_spectrum(info: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     d = np.sqrt(np.clip(np.diag(info), 1e-300, None))
     normalized = info / np.outer(d, d)
@@ -291,6 +299,7 @@ def analyze_pair(
     N: np.ndarray,
     noise: FeatureNoise,
     settings: DegeneracySettings | None = None,
+    Sigma_f: np.ndarray | None = None,
 ) -> ClosedFormAnalysis:
     """Closed-form covariance of the C-DTM estimate of one frame pair, eqs. 9-32.
 
@@ -299,6 +308,8 @@ def analyze_pair(
         q_a, q_b: (n, 3) normalized rays (z = 1). G_E, N: (n, 3) DTM tangent planes.
         noise: data noise (eqs. 21-26).
         settings: degeneracy thresholds.
+        Sigma_f: (n, 3, 3) feature covariances at this point if already computed
+            (:func:`factors.cdtm_math.feature_covariance`).
 
     Returns:
         Both forms of Sigma_theta, Sigma_C2, conditioning and the degeneracy verdict.
@@ -309,14 +320,16 @@ def analyze_pair(
     verdict = geometric_degeneracy(world_T_cam_a, world_T_cam_b, q_a, G_E, noise.sigma_h_m,
                                    settings)
     J = jacobian_theta(theta, q_a, q_b, G_E, N)  # (n, 3, 12)
-    Sigma_f = cdtm_math.feature_covariance(
-        world_T_cam_a[:3, :3], world_T_cam_a[:3, 3], world_T_cam_b[:3, :3],
-        world_T_cam_b[:3, 3], q_a, q_b, G_E, N, noise.sigma_q_xy, noise.sigma_h_m,
-        noise.sigma_qa_xy)
-    W = np.linalg.pinv(Sigma_f, rcond=1e-10, hermitian=True)  # rank 2 per feature
-    info = np.einsum("nki,nkl,nlj->ij", J, W, J)
-    JtJ = np.einsum("nki,nkj->ij", J, J)
-    JtSJ = np.einsum("nki,nkl,nlj->ij", J, Sigma_f, J)
+    if Sigma_f is None:
+        Sigma_f = cdtm_math.feature_covariance(
+            world_T_cam_a[:3, :3], world_T_cam_a[:3, 3], world_T_cam_b[:3, :3],
+            world_T_cam_b[:3, 3], q_a, q_b, G_E, N, noise.sigma_q_xy, noise.sigma_h_m,
+            noise.sigma_qa_xy)
+    W = _pseudo_inverse_psd(Sigma_f)  # rank 2 per feature
+    J_flat = J.reshape(-1, 12)
+    info = J_flat.T @ (W @ J).reshape(-1, 12)
+    JtJ = J_flat.T @ J_flat
+    JtSJ = J_flat.T @ (Sigma_f @ J).reshape(-1, 12)
     cond, w, V = _normalized_spectrum(info)
     reasons = list(verdict.reasons)
     details = dict(verdict.details)

@@ -93,14 +93,17 @@ def so3_exp(omega: np.ndarray) -> np.ndarray:
 
 
 def so3_log(R: np.ndarray) -> np.ndarray:
-    """Rotation vectors of rotation matrices, (..., 3, 3) -> (..., 3) (angle < pi)."""
+    """Rotation vectors of rotation matrices, (..., 3, 3) -> (..., 3) (angle < pi).
+
+    The angle comes from ``atan2(|vee(R - R^T)|, tr R - 1)``, accurate near zero where
+    ``arccos`` of the trace loses half the digits.
+    """
     R = np.asarray(R, dtype=float)
-    cos = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0)
-    th = np.arccos(cos)
     v = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
                   R[..., 1, 0] - R[..., 0, 1]], axis=-1)
-    s = np.sin(th)
-    scale = np.where(th < 1e-8, 0.5, th / (2 * np.where(s == 0, 1.0, s)))
+    s2 = np.linalg.norm(v, axis=-1)  # 2 sin(angle)
+    th = np.arctan2(s2, np.trace(R, axis1=-2, axis2=-1) - 1)
+    scale = np.where(s2 < 1e-12, 0.5, th / np.where(s2 < 1e-12, 1.0, s2))
     return v * scale[..., None]
 
 

@@ -98,6 +98,7 @@ class PairFeatures:
         q_a, q_b: (n, 3) normalized rays (z = 1) in cameras a and b.
         G_E, N: (n, 3) DTM tangent planes (point, upward normal ``(-dh/dx, -dh/dy, 1)``).
         Sigma_e: (n, 2, 2) covariance of the 2-vector residual.
+        Sigma_f: (n, 3, 3) covariance of the paper's 3-vector residual (eqs. 19-26).
         basis_b: (n, 3, 2) orthonormal complement of ``q_b``.
         sqrt_info: (n, 2, 2) upper-triangular whitening, ``S^T S = Sigma_e^-1``.
     """
@@ -107,6 +108,7 @@ class PairFeatures:
     G_E: np.ndarray
     N: np.ndarray
     Sigma_e: np.ndarray
+    Sigma_f: np.ndarray
     basis_b: np.ndarray
     sqrt_info: np.ndarray
 
@@ -136,13 +138,13 @@ class PairFeatures:
             world_T_cam_b[:3, 3], q_a, q_b, G_E, N, noise.sigma_q_xy, noise.sigma_h_m,
             noise.sigma_qa_xy)
         Sigma_e = cdtm_math.residual_covariance(Sigma_f, basis)
-        return cls(q_a, q_b, G_E, N, Sigma_e, basis,
+        return cls(q_a, q_b, G_E, N, Sigma_e, Sigma_f, basis,
                    np.ascontiguousarray(cdtm_math.sqrt_information(Sigma_e)))
 
     def subset(self, index: np.ndarray) -> PairFeatures:
         """The features selected by ``index`` (mask or indices)."""
         return PairFeatures(*(np.ascontiguousarray(getattr(self, f)[index]) for f in (
-            "q_a", "q_b", "G_E", "N", "Sigma_e", "basis_b", "sqrt_info")))
+            "q_a", "q_b", "G_E", "N", "Sigma_e", "Sigma_f", "basis_b", "sqrt_info")))
 
 
 def _pose_matrix(values: gtsam.Values, key: int) -> np.ndarray:

@@ -80,8 +80,8 @@ def test_reintersect_uses_the_plane_at_the_new_hit(rng):
     wTc_moved = moved @ body_T_cam
     ray = feats.q_a @ wTc_moved[:3, :3].T
     G_new, N_new, _ = terrain.raycast(np.broadcast_to(wTc_moved[:3, 3], ray.shape), ray)
-    refit = PairFeatures(feats.q_a, feats.q_b, G_new, N_new, feats.Sigma_e, feats.basis_b,
-                         feats.sqrt_info)
+    refit = PairFeatures(feats.q_a, feats.q_b, G_new, N_new, feats.Sigma_e, feats.Sigma_f,
+                         feats.basis_b, feats.sqrt_info)
     fixed = CdtmPairFactor(X(0), X(1), feats, body_T_cam, PlaneMode.FIXED)
     fixed_new = CdtmPairFactor(X(0), X(1), refit, body_T_cam, PlaneMode.FIXED)
     reint = CdtmPairFactor(X(0), X(1), feats, body_T_cam, PlaneMode.REINTERSECT, terrain.raycast)
@@ -122,7 +122,7 @@ def test_factor_residual_is_paper_residual_in_the_basis(rng):
     wTc_a, wTc_b = Ta @ body_T_cam, Tb @ body_T_cam
     f, _ = cdtm_math.paper_residual(wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3],
                                     feats.q_a, feats.q_b, feats.G_E, feats.N)
-    unwhitened = PairFeatures(feats.q_a, feats.q_b, feats.G_E, feats.N, feats.Sigma_e,
+    unwhitened = PairFeatures(feats.q_a, feats.q_b, feats.G_E, feats.N, feats.Sigma_e, feats.Sigma_f,
                               feats.basis_b, np.repeat(np.eye(2)[None], feats.n, 0))
     e = CdtmPairFactor(X(0), X(1), unwhitened, body_T_cam).evaluate(Ta, Tb)[0]
     np.testing.assert_allclose(e, np.einsum("nik,ni->nk", feats.basis_b, f), atol=1e-14)

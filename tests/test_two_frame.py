@@ -1,0 +1,90 @@
+"""Two-frame C-DTM solve: noiseless truth, and Monte Carlo consistency of the nominal scenario."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from cdtm_graph.analysis import THETA_NAMES, theta_from_cameras
+from cdtm_graph.geometry import so3_log
+from cdtm_graph.scenario import PairScenario, dtm_ray_caster, make_terrain, sample_pair
+from cdtm_graph.two_frame import TwoFrameSettings, solve_two_frame
+from factors import PlaneMode
+
+#: Noiseless recovery bounds of the issue (metres, radians).
+POSITION_TOL_M = 1e-6
+ROTATION_TOL_RAD = 1e-8
+#: Monte Carlo: trials, and the allowed relative gap between empirical and predicted std.
+MC_TRIALS = 200
+STD_RTOL = 0.15
+
+
+def _wrap(d: np.ndarray) -> np.ndarray:
+    d = d.copy()
+    for sl in (slice(3, 6), slice(9, 12)):
+        d[sl] = (d[sl] + np.pi) % (2 * np.pi) - np.pi
+    return d
+
+
+@pytest.fixture(scope="module")
+def nominal_terrain():
+    return make_terrain(PairScenario(), seed=7)
+
+
+def test_noiseless_solve_recovers_truth_from_perturbed_start(nominal_terrain):
+    scenario = PairScenario(noiseless=True, initial_position_error_m=20.0,
+                            initial_attitude_error_deg=1.0)
+    rng = np.random.default_rng(11)
+    raycast = dtm_ray_caster(nominal_terrain.dtm)
+    for _ in range(5):
+        s = sample_pair(scenario, nominal_terrain, rng)
+        r = solve_two_frame(s.q_a, s.q_b, raycast, s.initial_a, s.initial_b, s.body_T_cam,
+                            scenario.noise)
+        for est, truth in ((r.world_T_body_a, s.world_T_body_a), (r.world_T_body_b, s.world_T_body_b)):
+            assert np.linalg.norm(est[:3, 3] - truth[:3, 3]) < POSITION_TOL_M
+            assert np.linalg.norm(so3_log(est[:3, :3].T @ truth[:3, :3])) < ROTATION_TOL_RAD
+        assert r.converged and not r.degenerate
+
+
+def test_fixed_plane_mode_converges_near_truth(nominal_terrain):
+    """The paper's single DTM linearization: its bias is second order in the initial error."""
+    scenario = PairScenario(noiseless=True, initial_position_error_m=1.0,
+                            initial_attitude_error_deg=0.05)
+    rng = np.random.default_rng(12)
+    s = sample_pair(scenario, nominal_terrain, rng)
+    r = solve_two_frame(s.q_a, s.q_b, dtm_ray_caster(nominal_terrain.dtm), s.initial_a,
+                        s.initial_b, s.body_T_cam, scenario.noise,
+                        TwoFrameSettings(plane_mode=PlaneMode.FIXED))
+    initial_err = np.linalg.norm(s.initial_b[:3, 3] - s.world_T_body_b[:3, 3])
+    final_err = np.linalg.norm(r.world_T_body_b[:3, 3] - s.world_T_body_b[:3, 3])
+    assert final_err < 0.5 * initial_err
+
+
+def test_monte_carlo_nominal_scenario_is_consistent(nominal_terrain):
+    """Section VI nominal scenario, >= 200 trials.
+
+    Bounds: the mean NEES of theta over T trials is chi2(12 T)/T when the covariance is
+    right; it must lie in that distribution's 99% band. Each parameter's empirical std
+    must be within 15% of the predicted one (the sampling error of a std over 200 trials
+    is ~5%, so 15% is three of those).
+    """
+    scenario = PairScenario()
+    rng = np.random.default_rng(2026)
+    raycast = dtm_ray_caster(nominal_terrain.dtm)
+    errors, predicted, nees = [], [], []
+    for _ in range(MC_TRIALS):
+        s = sample_pair(scenario, nominal_terrain, rng)
+        r = solve_two_frame(s.q_a, s.q_b, raycast, s.initial_a, s.initial_b, s.body_T_cam,
+                            scenario.noise)
+        truth = theta_from_cameras(s.world_T_body_a @ s.body_T_cam, s.world_T_body_b @ s.body_T_cam)
+        d = _wrap(r.analysis.theta - truth)
+        errors.append(d)
+        predicted.append(np.diag(r.sigma_theta_gtsam))
+        nees.append(d @ np.linalg.solve(r.sigma_theta_gtsam, d))
+    dof = 12 * MC_TRIALS
+    lo, hi = stats.chi2.ppf([0.005, 0.995], dof) / MC_TRIALS
+    assert lo < np.mean(nees) < hi, (np.mean(nees), lo, hi)
+    ratio = np.std(errors, axis=0) / np.sqrt(np.mean(predicted, axis=0))
+    bad = {name: round(x, 3) for name, x in zip(THETA_NAMES, ratio) if abs(x - 1) > STD_RTOL}
+    assert not bad, bad
