@@ -1,0 +1,132 @@
+"""Results of a smoothing run: per-frame states, covariances and statistics (no I/O here).
+
+Covariances of poses are in GTSAM's Pose3 tangent order [rotation, translation], with
+perturbations on the right, i.e. in the body frame: ``world_T_body * Exp(xi)``. Writers
+that need world-frame blocks rotate them with :func:`pose_covariance_in_world`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class TrajectoryEstimate:
+    """Per-frame body states.
+
+    Attributes:
+        t_ns: (K,) int64 frame times.
+        world_T_body: (K, 4, 4) body poses.
+        velocity_mps: (K, 3) world-frame velocity.
+        gyro_bias: (K, 3) rad/s. accel_bias: (K, 3) m/s^2.
+    """
+
+    t_ns: np.ndarray
+    world_T_body: np.ndarray
+    velocity_mps: np.ndarray
+    gyro_bias: np.ndarray
+    accel_bias: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.t_ns.shape[0])
+
+    @property
+    def position_m(self) -> np.ndarray:
+        return self.world_T_body[:, :3, 3]
+
+
+@dataclass(frozen=True)
+class StateCovariances:
+    """Marginal covariances per frame.
+
+    Attributes:
+        pose: (K, 6, 6) of ``X(k)``, GTSAM tangent order [rot, trans], body frame.
+        velocity: (K, 3, 3) of ``V(k)``, world frame.
+        bias: (K, 6, 6) of ``B(k)``, GTSAM order [accel, gyro].
+    """
+
+    pose: np.ndarray
+    velocity: np.ndarray
+    bias: np.ndarray
+
+
+@dataclass(frozen=True)
+class SolverStats:
+    """What the optimizer did."""
+
+    mode: str
+    iterations: int
+    initial_error: float
+    final_error: float
+    converged: bool
+    time_s: float
+    marginals_time_s: float = 0.0
+    update_times_s: tuple[float, ...] = ()
+
+
+@dataclass(frozen=True)
+class GraphCounts:
+    """What went into the graph.
+
+    Attributes:
+        n_frames: frames (pose nodes).
+        n_tracks: distinct track ids.
+        n_observations: rows of tracks.csv.
+        n_feature_pairs: consecutive observation pairs offered to the graph.
+        n_cdtm_features: pairs that became C-DTM residuals.
+        n_missed_dtm: pairs dropped because the ray missed the DTM or hit no-data.
+        n_cdtm_factors: batched factors (one per frame pair).
+        n_imu_factors: IMU preintegration factors.
+        features_per_frame: (K,) C-DTM features ending at each frame.
+    """
+
+    n_frames: int
+    n_tracks: int
+    n_observations: int
+    n_feature_pairs: int
+    n_cdtm_features: int
+    n_missed_dtm: int
+    n_cdtm_factors: int
+    n_imu_factors: int
+    features_per_frame: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+
+
+@dataclass(frozen=True)
+class SmootherResult:
+    """Everything a smoothing run produced (``smooth(...)`` or the incremental smoother).
+
+    Attributes:
+        estimate: smoothed per-frame states.
+        covariances: marginal covariances per frame.
+        stats: solver statistics.
+        counts: graph contents.
+        settings: the settings used, as a plain dict (for report.json).
+        flags: per-frame warnings, e.g. ``{12: ["no_features"]}``.
+    """
+
+    estimate: TrajectoryEstimate
+    covariances: StateCovariances
+    stats: SolverStats
+    counts: GraphCounts
+    settings: dict = field(default_factory=dict)
+    flags: dict = field(default_factory=dict)
+
+
+def pose_covariance_in_world(world_T_body: np.ndarray, pose_cov: np.ndarray
+                             ) -> tuple[np.ndarray, np.ndarray]:
+    """World-frame orientation and position covariances from body-frame tangent ones.
+
+    A right perturbation ``[omega, v]`` moves the orientation by ``R omega`` and the
+    position by ``R v`` (world frame), so each 3x3 block is rotated by ``R``.
+
+    Args:
+        world_T_body: (K, 4, 4). pose_cov: (K, 6, 6).
+
+    Returns:
+        ``(orientation_cov, position_cov)``, (K, 3, 3) each, rad^2 and m^2.
+    """
+    R = world_T_body[:, :3, :3]
+    Rt = np.swapaxes(R, 1, 2)
+    return R @ pose_cov[:, :3, :3] @ Rt, R @ pose_cov[:, 3:, 3:] @ Rt
