@@ -26,6 +26,7 @@ import numpy as np
 from cdtm_graph.camera import PinholeCamera
 from cdtm_graph.dtm import Dtm, sigma_h_from_grid_spacing
 from cdtm_graph.geometry import make_pose, so3_exp
+from cdtm_graph.graph import dtm_ray_caster  # noqa: F401  (re-exported for scenario users)
 from cdtm_graph.terrain import fractal_terrain
 from factors import FeatureNoise
 
@@ -145,16 +146,6 @@ class PairSample:
     @property
     def n_features(self) -> int:
         return self.q_a.shape[0]
-
-
-def dtm_ray_caster(dtm: Dtm):
-    """Adapt :meth:`Dtm.raycast` to the factor's ``RayCaster`` signature."""
-
-    def raycast(origins: np.ndarray, directions: np.ndarray):
-        hits = dtm.raycast(origins, directions)
-        return hits.point, hits.normal, hits.hit
-
-    return raycast
 
 
 def _random_unit(rng: np.random.Generator) -> np.ndarray:

@@ -1,0 +1,242 @@
+"""Building the factor graph of a flight log: priors, IMU preintegration, C-DTM factors.
+
+Each builder returns its own factors; the smoothers merge them. Keys (DESIGN.md):
+``X(k)`` Pose3 ``world_T_body`` at frame k, ``V(k)`` world velocity, ``B(k)``
+``imuBias.ConstantBias`` ([accel, gyro]).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import B, V, X
+
+from cdtm_graph.camera import PinholeCamera
+from cdtm_graph.dtm import Dtm
+from cdtm_graph.errors import SolverError
+from cdtm_graph.flightlog import FlightConfig, ImuSamples, InitialState, Tracks
+from cdtm_graph.imu import ImuNoise, SampleHold, integrate_interval, preintegration_params
+from factors import CdtmPairFactor, FeatureNoise, PairFeatures, PlaneMode, RobustKernel
+
+
+@dataclass(frozen=True)
+class GraphSettings:
+    """How the graph is built.
+
+    Attributes:
+        plane_mode: REINTERSECT (default) casts each feature's ray again at every
+            linearization, so drifted initial guesses and hills are handled; FIXED
+            keeps the planes of the initial guess (the paper).
+        robust: per-feature M-estimator; ``robust_threshold`` in whitened units
+            (``None``: the kernel's 95%-efficiency default).
+        imu_hold: which interval an IMU sample stands for (see :mod:`cdtm_graph.imu`);
+            MIDPOINT is second-order accurate for instantaneous samples.
+        first_observation_noise: count the pixel noise of the earlier observation
+            ``q_a`` too (a tracker's points are all noisy; the paper's eq. 22 keeps
+            only ``q_b``).
+    """
+
+    plane_mode: PlaneMode = PlaneMode.REINTERSECT
+    robust: RobustKernel = RobustKernel.NONE
+    robust_threshold: float | None = None
+    imu_hold: SampleHold = SampleHold.MIDPOINT
+    first_observation_noise: bool = True
+
+
+def dtm_ray_caster(dtm: Dtm):
+    """Adapt :meth:`Dtm.raycast` to the factor's ``RayCaster`` signature."""
+
+    def raycast(origins: np.ndarray, directions: np.ndarray):
+        hits = dtm.raycast(origins, directions)
+        return hits.point, hits.normal, hits.hit
+
+    return raycast
+
+
+def feature_noise(config: FlightConfig, dtm: Dtm, settings: GraphSettings) -> FeatureNoise:
+    """The data noise of the log's features (eqs. 21-26) in normalized image units."""
+    cam = config.camera
+    sigma_q = cam.camera.sigma_normalized(cam.pixel_sigma_px)
+    sigma_h = config.dtm.sigma_h_m if config.dtm.sigma_h_m is not None else dtm.sigma_h()
+    return FeatureNoise(sigma_q, sigma_h, sigma_q if settings.first_observation_noise else None)
+
+
+def imu_noise(config: FlightConfig) -> ImuNoise:
+    imu = config.imu
+    return ImuNoise(imu.gyroscope_noise_density, imu.accelerometer_noise_density,
+                    imu.gyroscope_random_walk, imu.accelerometer_random_walk)
+
+
+def initial_bias(initial: InitialState) -> gtsam.imuBias.ConstantBias:
+    return gtsam.imuBias.ConstantBias(np.asarray(initial.accel_bias, dtype=float),
+                                      np.asarray(initial.gyro_bias, dtype=float))
+
+
+def prior_factors(initial: InitialState, key: int = 0) -> gtsam.NonlinearFactorGraph:
+    """Priors on ``X(key)``, ``V(key)``, ``B(key)`` from ``initial_state``."""
+    graph = gtsam.NonlinearFactorGraph()
+    att = initial.sigma_attitude_rad
+    pose_sigmas = np.r_[[att] * 3, [initial.sigma_position_m] * 3]
+    graph.add(gtsam.PriorFactorPose3(X(key), gtsam.Pose3(initial.world_T_body),
+                                     gtsam.noiseModel.Diagonal.Sigmas(pose_sigmas)))
+    graph.add(gtsam.PriorFactorVector(V(key), np.asarray(initial.velocity_mps, dtype=float),
+                                      gtsam.noiseModel.Isotropic.Sigma(3, initial.sigma_velocity_mps)))
+    bias_sigmas = np.r_[[initial.sigma_accel_bias] * 3, [initial.sigma_gyro_bias] * 3]
+    graph.add(gtsam.PriorFactorConstantBias(B(key), initial_bias(initial),
+                                            gtsam.noiseModel.Diagonal.Sigmas(bias_sigmas)))
+    return graph
+
+
+class ImuIntervals:
+    """Preintegrates the IMU over frame intervals of one flight."""
+
+    def __init__(self, config: FlightConfig, imu: ImuSamples, hold: SampleHold):
+        self.params = preintegration_params(imu_noise(config), config.gravity_mps2,
+                                            config.imu.rate_hz)
+        self.imu = imu
+        self.hold = hold
+
+    def preintegrate(self, t0_ns: int, t1_ns: int,
+                     bias: gtsam.imuBias.ConstantBias) -> gtsam.PreintegratedCombinedMeasurements:
+        """IMU over exactly [t0, t1], linearized at ``bias``.
+
+        Raises:
+            SolverError: the samples do not cover the interval.
+        """
+        t = self.imu.t_ns
+        # A window of samples around the interval (neighbours matter to the holds).
+        i0 = max(int(np.searchsorted(t, t0_ns, side="right")) - 2, 0)
+        i1 = min(int(np.searchsorted(t, t1_ns, side="left")) + 2, t.shape[0])
+        pim = gtsam.PreintegratedCombinedMeasurements(self.params, bias)
+        try:
+            integrate_interval(pim, t[i0:i1], self.imu.gyro_radps[i0:i1],
+                               self.imu.acc_mps2[i0:i1], int(t0_ns), int(t1_ns), self.hold)
+        except ValueError as exc:
+            raise SolverError(f"imu.csv does not cover the frame interval "
+                              f"[{t0_ns}, {t1_ns}] ns: {exc}") from None
+        return pim
+
+
+def imu_factor(k: int, pim: gtsam.PreintegratedCombinedMeasurements) -> gtsam.CombinedImuFactor:
+    """The IMU factor between frames k and k+1."""
+    return gtsam.CombinedImuFactor(X(k), V(k), X(k + 1), V(k + 1), B(k), B(k + 1), pim)
+
+
+@dataclass(frozen=True)
+class FramePairObservations:
+    """Consecutive observations of tracks between frames a < b (one batched factor).
+
+    Attributes:
+        frame_a, frame_b: frame indices.
+        q_a, q_b: (n, 3) normalized rays (z = 1).
+        track_id: (n,) track ids.
+    """
+
+    frame_a: int
+    frame_b: int
+    q_a: np.ndarray
+    q_b: np.ndarray
+    track_id: np.ndarray
+
+
+def frame_pair_observations(tracks: Tracks, camera: PinholeCamera) -> list[FramePairObservations]:
+    """Group the consecutive observation pairs of every track by frame pair, vectorized.
+
+    Returns:
+        One entry per distinct (frame_a, frame_b), sorted by (frame_b, frame_a).
+    """
+    rays = camera.pixels_to_rays(tracks.uv_px)
+    rows_a, rows_b = tracks.pairs()
+    fa, fb = tracks.frame[rows_a], tracks.frame[rows_b]
+    order = np.lexsort((fa, fb))
+    rows_a, rows_b, fa, fb = rows_a[order], rows_b[order], fa[order], fb[order]
+    if fa.size == 0:
+        return []
+    change = np.flatnonzero((np.diff(fa) != 0) | (np.diff(fb) != 0)) + 1
+    starts = np.r_[0, change]
+    ends = np.r_[change, fa.size]
+    return [FramePairObservations(int(fa[s]), int(fb[s]), rays[rows_a[s:e]], rays[rows_b[s:e]],
+                                  tracks.track_id[rows_a[s:e]]) for s, e in zip(starts, ends)]
+
+
+@dataclass
+class CdtmBuild:
+    """C-DTM factors of a set of frame pairs, with what was dropped."""
+
+    factors: list[CdtmPairFactor] = field(default_factory=list)
+    n_features: int = 0
+    n_missed: int = 0
+    features_per_frame: dict[int, int] = field(default_factory=dict)
+
+
+def cdtm_factors(
+    pairs: Sequence[FramePairObservations],
+    world_T_body: dict[int, np.ndarray] | Sequence[np.ndarray],
+    body_T_cam: np.ndarray,
+    dtm: Dtm,
+    noise: FeatureNoise,
+    settings: GraphSettings,
+) -> CdtmBuild:
+    """One batched C-DTM factor per frame pair, planes cast from the current pose guesses.
+
+    Args:
+        pairs: observations grouped by frame pair.
+        world_T_body: current guess of every frame's body pose (index -> (4, 4)).
+        body_T_cam: (4, 4) camera mounting.
+        dtm: the terrain. noise: data noise. settings: plane mode, robust kernel.
+
+    Returns:
+        The factors, and the count of features whose ray missed the DTM (dropped).
+    """
+    raycast = dtm_ray_caster(dtm)
+    build = CdtmBuild()
+    for pair in pairs:
+        wTc_a = world_T_body[pair.frame_a] @ body_T_cam
+        wTc_b = world_T_body[pair.frame_b] @ body_T_cam
+        ray = pair.q_a @ wTc_a[:3, :3].T
+        G_E, N, valid = raycast(np.broadcast_to(wTc_a[:3, 3], ray.shape), ray)
+        n_valid = int(valid.sum())
+        build.n_missed += int(valid.size - n_valid)
+        if n_valid == 0:
+            continue
+        features = PairFeatures.build(wTc_a, wTc_b, pair.q_a[valid], pair.q_b[valid],
+                                      G_E[valid], N[valid], noise)
+        build.factors.append(CdtmPairFactor(
+            X(pair.frame_a), X(pair.frame_b), features, body_T_cam, settings.plane_mode,
+            raycast, settings.robust, settings.robust_threshold))
+        build.n_features += n_valid
+        build.features_per_frame[pair.frame_b] = (
+            build.features_per_frame.get(pair.frame_b, 0) + n_valid)
+    return build
+
+
+_SYMBOL = re.compile(r"Symbol:\s*([a-zA-Z])(\d+)")
+
+
+def explain_indeterminant(exc: RuntimeError) -> SolverError:
+    """Turn GTSAM's 'indeterminant system near variable ...' into one clear line."""
+    text = " ".join(str(exc).split())
+    match = _SYMBOL.search(text)
+    if not match:
+        return SolverError(f"GTSAM could not solve the system: {text}")
+    char, index = match.group(1).upper(), int(match.group(2))
+    cause = {
+        "X": "the pose is unobservable: no C-DTM features near this frame, flat terrain "
+             "under it, or an IMU gap",
+        "V": "the velocity is unobservable: check the IMU samples around this frame",
+        "B": "the IMU bias is unobservable: check the IMU samples and the bias priors",
+    }.get(char, "check the inputs around this variable")
+    return SolverError(f"indeterminant system near {char}({index}): {cause}")
+
+
+def navstate_predict(pim: gtsam.PreintegratedCombinedMeasurements, world_T_body: np.ndarray,
+                     velocity: np.ndarray, bias: gtsam.imuBias.ConstantBias
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Propagate a body state over one preintegrated interval."""
+    state = pim.predict(gtsam.NavState(gtsam.Pose3(world_T_body), np.asarray(velocity)), bias)
+    return state.pose().matrix(), np.asarray(state.velocity())
+

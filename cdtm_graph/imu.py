@@ -1,0 +1,335 @@
+"""IMU synthesis, IMU noise, and feeding samples to GTSAM's preintegration.
+
+Measurement model (body frame, FLIGHTLOG.md units)::
+
+    gyro_radps = omega_body + gyro_bias + n_g
+    acc_mps2   = R^T (a_world + g e_z) + accel_bias + n_a     (specific force)
+
+so an IMU at rest, level, reads +g on z. ``n_g``, ``n_a`` are discrete white noise with
+sigma = density * sqrt(rate); the biases are random walks whose per-step sigma is
+random_walk * sqrt(dt). GTSAM's ``imuBias.ConstantBias`` takes (accel, gyro) in that order.
+
+How a sample relates to time (``SampleHold``). GTSAM's ``integrateMeasurement(acc,
+gyro, dt)`` holds one measurement constant over ``dt`` and updates
+``p += v dt + R_k a dt^2/2; v += R_k a dt; R_k+1 = R_k Exp(w dt)`` with the rotation at
+the *start* of the step. ``integrate_interval`` covers exactly a frame interval
+[t0, t1]: each sample gets a hold interval, the holds are cut at t0 and t1 (a sample
+whose hold straddles a frame time is split, one part in each frame interval), and the
+durations are integer ns, so consecutive intervals tile time exactly.
+
+- ``SampleHold.ZERO_ORDER`` holds sample k over [t_k, t_k+1) and passes it to GTSAM
+  unchanged. It is first order in dt, for two reasons: the hold lags the signal by
+  dt/2 (attitude error ~ change of body rate * dt/2, ~2.5e-4 rad across a bank ramp at
+  200 Hz), and GTSAM's start-of-step rotation integrates the world-frame specific
+  force with another dt/2 lag (a velocity error of ~|w x f| dt/2 per second: 1.4e-3 m/s
+  per s in a steady 3 deg/s turn at 200 m/s, ~2e-2 m/s per s while rolling into it).
+- ``SampleHold.MIDPOINT`` treats samples as instantaneous values (what
+  ``simulate_imu`` writes): sample k is held over the half-way points to its
+  neighbours, and its bias-corrected specific force is rotated forward by half the
+  piece's rotation, ``Exp((w - b_g) dt/2) (f - b_a) + b_a``, so GTSAM's start-of-step
+  update integrates ``R(mid) f(mid)``. That is the midpoint rule: second order in dt,
+  ~1e-4 m after 3 s through a bank ramp at 200 Hz. The tweak is exact at the
+  preintegration's bias estimate; GTSAM's bias Jacobians ignore the half-step rotation,
+  a relative error of |w| dt/2 (~2e-3 at 0.7 rad/s, 200 Hz) on a bias correction.
+
+GTSAM 4.3's default ``PreintegratedCombinedMeasurements`` (the type ``CombinedImuFactor``
+takes) behaves as tangent-space preintegration: rotation is integrated by Euler steps
+in the tangent space of the preintegrated rotation, not as the exact product of
+per-step exponentials (``PreintegratedCombinedMeasurementsManifold`` is exact). That adds
+a small first-order rotation error (about a third of the MIDPOINT figure above) and makes
+two consecutive preintegrations composed differ from one over the union by ~1e-6.
+``integrate_interval`` works with either class. ``tests/test_imu.py`` measures all of
+this against the analytic trajectory.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import Enum
+
+import gtsam
+import numpy as np
+
+from cdtm_graph.geometry import so3_exp
+from cdtm_graph.trajectory import FlightPlan, Trajectory, evaluate
+
+NS_PER_S = 1_000_000_000
+
+PreintegratedCombined = (gtsam.PreintegratedCombinedMeasurements
+                         | gtsam.PreintegratedCombinedMeasurementsManifold
+                         | gtsam.PreintegratedCombinedMeasurementsLieGroup)
+
+# Continuous-time covariance of GTSAM's velocity-to-position integration, m^2/s
+# (GTSAM adds dt * this per step): ~1e-4 m after 1 s, far below any noise here.
+INTEGRATION_COVARIANCE = 1e-8
+
+
+@dataclass(frozen=True)
+class ImuNoise:
+    """Continuous-time IMU noise densities, Kalibr names (flight.yaml ``imu:``).
+
+    Attributes:
+        gyroscope_noise_density: rad/s/sqrt(Hz).
+        accelerometer_noise_density: m/s^2/sqrt(Hz).
+        gyroscope_random_walk: gyro bias random walk, rad/s^2/sqrt(Hz).
+        accelerometer_random_walk: accel bias random walk, m/s^3/sqrt(Hz).
+    """
+
+    gyroscope_noise_density: float = 1.7e-4
+    accelerometer_noise_density: float = 2.0e-3
+    gyroscope_random_walk: float = 1.9e-5
+    accelerometer_random_walk: float = 3.0e-3
+
+    def __post_init__(self) -> None:
+        for name in ("gyroscope_noise_density", "accelerometer_noise_density",
+                     "gyroscope_random_walk", "accelerometer_random_walk"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be finite and >= 0, got {value}")
+
+
+@dataclass(frozen=True)
+class ImuData:
+    """IMU samples with the true biases that corrupted them.
+
+    Attributes:
+        t_ns: (N,) int64 sample times, ns, strictly increasing.
+        gyro_radps: (N, 3) measured angular rate, body frame.
+        acc_mps2: (N, 3) measured specific force, body frame.
+        gyro_bias: (N, 3) true gyro bias at each sample, rad/s (ground truth).
+        accel_bias: (N, 3) true accelerometer bias at each sample, m/s^2 (ground truth).
+    """
+
+    t_ns: np.ndarray
+    gyro_radps: np.ndarray
+    acc_mps2: np.ndarray
+    gyro_bias: np.ndarray
+    accel_bias: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = self.t_ns.shape[0]
+        for name in ("gyro_radps", "acc_mps2", "gyro_bias", "accel_bias"):
+            shape = getattr(self, name).shape
+            if shape != (n, 3):
+                raise ValueError(f"ImuData.{name} must have shape ({n}, 3), got {shape}")
+
+
+class SampleHold(Enum):
+    """How an IMU sample stands for time in ``integrate_interval`` (module docstring)."""
+
+    ZERO_ORDER = "zero_order"  # sample k over [t_k, t_k+1), given to GTSAM as is
+    MIDPOINT = "midpoint"      # sample k over the half-way points; half-step rotation
+
+
+def ideal_imu(traj: Trajectory, gravity_mps2: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact, noiseless, bias-free IMU readings along a trajectory.
+
+    Args:
+        traj: true body states, N samples.
+        gravity_mps2: gravity magnitude; gravity points along -z of world.
+
+    Returns:
+        gyro_radps (N, 3): body angular rate in body.
+        acc_mps2 (N, 3): specific force ``R^T (a_world + g e_z)`` in body.
+    """
+    R = traj.rotation_world_body
+    f_world = traj.accel_world_mps2 + np.array([0.0, 0.0, gravity_mps2])
+    acc = np.einsum("nji,nj->ni", R, f_world)
+    return traj.omega_body_radps.copy(), acc
+
+
+def _check_times_ns(t_ns: np.ndarray, name: str) -> np.ndarray:
+    t = np.asarray(t_ns)
+    if t.ndim != 1 or not np.issubdtype(t.dtype, np.integer):
+        raise ValueError(f"{name} must be a 1-D integer array of ns, got {t.dtype} {t.shape}")
+    t = t.astype(np.int64)
+    if t.size >= 2 and np.any(np.diff(t) <= 0):
+        raise ValueError(f"{name} must be strictly increasing")
+    return t
+
+
+def simulate_imu(
+    plan: FlightPlan,
+    t_ns: np.ndarray,
+    gravity_mps2: float,
+    noise: ImuNoise | None,
+    rng: np.random.Generator,
+    initial_gyro_bias: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    initial_accel_bias: tuple[float, float, float] = (0.0, 0.0, 0.0),
+) -> ImuData:
+    """IMU samples along a flight plan: exact instantaneous values plus bias and noise.
+
+    Args:
+        plan: the flight plan.
+        t_ns: (N,) int sample times, ns, strictly increasing.
+        gravity_mps2: gravity magnitude the accelerometer senses.
+        noise: noise densities; None gives noiseless samples whose biases stay at
+            their initial values (still added to the measurements).
+        rng: source of all randomness; draws are made in a fixed order (gyro white
+            noise, accel white noise, gyro bias steps, accel bias steps).
+        initial_gyro_bias: gyro bias at the first sample, rad/s.
+        initial_accel_bias: accelerometer bias at the first sample, m/s^2.
+
+    Returns:
+        The samples and the true biases. White noise sigma = density * sqrt(rate) with
+        rate = 1 / median sample spacing; the bias steps from sample k-1 to k have
+        sigma = random_walk * sqrt(t_k - t_k-1).
+    """
+    t = _check_times_ns(t_ns, "t_ns")
+    n = t.shape[0]
+    traj = evaluate(plan, t.astype(float) / NS_PER_S)
+    gyro, acc = ideal_imu(traj, gravity_mps2)
+    gyro_bias = np.tile(np.asarray(initial_gyro_bias, dtype=float), (n, 1))
+    accel_bias = np.tile(np.asarray(initial_accel_bias, dtype=float), (n, 1))
+    if noise is not None:
+        if n < 2:
+            raise ValueError("simulating IMU noise needs at least two samples (for the rate)")
+        dt_s = np.diff(t).astype(float) / NS_PER_S
+        sqrt_rate = 1.0 / math.sqrt(float(np.median(dt_s)))
+        gyro_white = rng.standard_normal((n, 3)) * noise.gyroscope_noise_density * sqrt_rate
+        acc_white = rng.standard_normal((n, 3)) * noise.accelerometer_noise_density * sqrt_rate
+        step_scale = np.sqrt(dt_s)[:, None]
+        gyro_steps = rng.standard_normal((n - 1, 3)) * noise.gyroscope_random_walk * step_scale
+        acc_steps = rng.standard_normal((n - 1, 3)) * noise.accelerometer_random_walk * step_scale
+        gyro_bias[1:] += np.cumsum(gyro_steps, axis=0)
+        accel_bias[1:] += np.cumsum(acc_steps, axis=0)
+        gyro = gyro + gyro_white
+        acc = acc + acc_white
+    return ImuData(t_ns=t, gyro_radps=gyro + gyro_bias, acc_mps2=acc + accel_bias,
+                   gyro_bias=gyro_bias, accel_bias=accel_bias)
+
+
+def preintegration_params(noise: ImuNoise, gravity_mps2: float,
+                          rate_hz: float | None = None) -> gtsam.PreintegrationCombinedParams:
+    """GTSAM combined-preintegration parameters from continuous-time noise densities.
+
+    GTSAM takes continuous-time covariances: each ``integrateMeasurement(.., dt)`` uses
+    ``accelerometerCovariance / dt`` (gyro likewise) as the covariance of that step's
+    held measurement and adds ``dt * biasAccCovariance`` (omega likewise) for the bias
+    random walk (CombinedImuFactor.cpp; ``tests/test_imu.py`` checks that 1 s of
+    preintegration gives density^2 * 1 s at 100 Hz and at 400 Hz). So the densities are
+    squared and passed as they are; the sample rate is not needed, and ``rate_hz`` is
+    only checked, for callers that have it at hand. Every covariance is set because
+    4.3's ``MakeSharedU`` defaults them all to identity. 4.3 has no ``biasAccOmegaInt``
+    (neither in the Python API nor in the library).
+
+    Args:
+        noise: continuous-time densities (Kalibr names).
+        gravity_mps2: gravity magnitude; ``MakeSharedU``: gravity along -z (ENU).
+        rate_hz: optional IMU rate, Hz; must be > 0 when given; does not change the result.
+
+    Returns:
+        Params with gyro/accel covariance density^2 I, bias random-walk covariance
+        rw^2 I and integration covariance ``INTEGRATION_COVARIANCE`` I.
+    """
+    if rate_hz is not None and not rate_hz > 0:
+        raise ValueError(f"rate_hz must be > 0, got {rate_hz}")
+    params = gtsam.PreintegrationCombinedParams.MakeSharedU(gravity_mps2)
+    eye = np.eye(3)
+    params.setGyroscopeCovariance(noise.gyroscope_noise_density ** 2 * eye)
+    params.setAccelerometerCovariance(noise.accelerometer_noise_density ** 2 * eye)
+    params.setBiasOmegaCovariance(noise.gyroscope_random_walk ** 2 * eye)
+    params.setBiasAccCovariance(noise.accelerometer_random_walk ** 2 * eye)
+    # Velocity-to-position integration is exact in GTSAM's model; a tiny value keeps
+    # the position block positive definite even with zero accelerometer noise.
+    params.setIntegrationCovariance(INTEGRATION_COVARIANCE * eye)
+    return params
+
+
+def hold_segments(t_ns_samples: np.ndarray, t0_ns: int, t1_ns: int,
+                  hold: SampleHold = SampleHold.ZERO_ORDER) -> tuple[np.ndarray, np.ndarray]:
+    """Which sample is held over which part of [t0, t1], in integer nanoseconds.
+
+    Args:
+        t_ns_samples: (N,) int sample times, strictly increasing, N >= 2.
+        t0_ns: interval start, ns.
+        t1_ns: interval end, ns, > t0_ns.
+        hold: hold interval of each sample (``SampleHold``). The first sample is never
+            held before its own time nor the last after its own, so the samples cover
+            exactly [t_ns_samples[0], t_ns_samples[-1]].
+
+    Returns:
+        sample_index (M,) int: index of the sample held over each piece, in time order.
+        dt_ns (M,) int64: piece durations, all > 0; they sum to ``t1_ns - t0_ns`` exactly.
+
+    Raises:
+        ValueError: if the samples do not cover [t0, t1] or the inputs are malformed.
+    """
+    t = np.asarray(t_ns_samples)
+    if t.ndim != 1 or not np.issubdtype(t.dtype, np.integer):
+        raise ValueError(f"t_ns_samples must be a 1-D integer array of ns, got {t.dtype} {t.shape}")
+    n = t.shape[0]
+    t0, t1 = int(t0_ns), int(t1_ns)
+    if n < 2:
+        raise ValueError("need at least two IMU samples")
+    if t1 <= t0:
+        raise ValueError(f"empty interval: t1_ns={t1} <= t0_ns={t0}")
+    if t0 < t[0] or t1 > t[-1]:
+        raise ValueError(f"IMU samples span [{t[0]}, {t[-1]}] ns, which does not cover "
+                         f"the interval [{t0}, {t1}] ns")
+    # Work on the samples near the interval only, so a per-frame call on a long log
+    # costs O(samples in the interval). Two extra samples on each side: the holds of
+    # the outermost ones end before t0 / start after t1 in either mode.
+    a = max(int(np.searchsorted(t, t0, side="right")) - 2, 0)
+    b = min(int(np.searchsorted(t, t1, side="left")) + 2, n)
+    ts = t[a:b].astype(np.int64)
+    if np.any(np.diff(ts) <= 0):
+        raise ValueError("t_ns_samples must be strictly increasing")
+    if hold is SampleHold.ZERO_ORDER:
+        bounds = ts  # sample a+j holds [ts[j], ts[j+1]); the slice's last holds nothing
+    elif hold is SampleHold.MIDPOINT:
+        # Integer half-way points: the pieces still telescope, so their sum stays exact.
+        bounds = np.concatenate([ts[:1], ts[:-1] + np.diff(ts) // 2, ts[-1:]])
+    else:
+        raise ValueError(f"unknown hold {hold!r}")
+    start = np.maximum(bounds[:-1], t0)
+    end = np.minimum(bounds[1:], t1)
+    keep = end > start
+    index = np.arange(a, a + bounds.shape[0] - 1)
+    return index[keep], (end - start)[keep]
+
+
+def integrate_interval(pim: PreintegratedCombined, t_ns_samples: np.ndarray,
+                       gyro: np.ndarray, acc: np.ndarray, t0_ns: int, t1_ns: int,
+                       hold: SampleHold = SampleHold.ZERO_ORDER) -> None:
+    """Add IMU measurements covering exactly [t0, t1] to a preintegration.
+
+    Each sample is held constant over its hold interval (by default from its time to
+    the next sample's, the zero-order hold), cut at t0 and t1: a sample whose hold
+    straddles a frame time is split, one part in each frame interval. Durations are
+    integer ns (``hold_segments``), so consecutive intervals tile time exactly and
+    integrating [t0, tm] then [tm, t1] feeds GTSAM the same pieces as [t0, t1] whenever
+    tm is a hold boundary. Accuracy of the two holds: module docstring.
+
+    Args:
+        pim: preintegration to add to (in place), any of the combined classes.
+            ``SampleHold.MIDPOINT`` uses its bias estimate ``biasHat()``.
+        t_ns_samples: (N,) int sample times, ns, strictly increasing.
+        gyro: (N, 3) measured angular rate, rad/s, body.
+        acc: (N, 3) measured specific force, m/s^2, body.
+        t0_ns: interval start, ns.
+        t1_ns: interval end, ns, > t0_ns.
+        hold: which time interval a sample stands for.
+
+    Raises:
+        ValueError: if the samples do not cover [t0, t1] or shapes disagree.
+    """
+    t = np.asarray(t_ns_samples)
+    gyro = np.asarray(gyro, dtype=float)
+    acc = np.asarray(acc, dtype=float)
+    if t.ndim != 1 or gyro.shape != (t.shape[0], 3) or acc.shape != (t.shape[0], 3):
+        raise ValueError(f"gyro {gyro.shape} and acc {acc.shape} must be (N, 3) for "
+                         f"t_ns_samples {t.shape}")
+    index, dt_ns = hold_segments(t, t0_ns, t1_ns, hold)
+    dt_s = dt_ns.astype(float) / NS_PER_S
+    w, f = gyro[index], acc[index]
+    if hold is SampleHold.MIDPOINT:
+        bias = pim.biasHat()
+        b_a, b_g = np.asarray(bias.accelerometer()), np.asarray(bias.gyroscope())
+        # GTSAM rotates the step's specific force with the rotation at the step's start;
+        # pre-rotating by half the step makes that the rotation at its middle.
+        half_turn = so3_exp((w - b_g) * (0.5 * dt_s)[:, None])
+        f = np.einsum("nij,nj->ni", half_turn, f - b_a) + b_a
+    for k in range(index.shape[0]):
+        pim.integrateMeasurement(f[k], w[k], dt_s[k])
