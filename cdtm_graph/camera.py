@@ -1,0 +1,237 @@
+"""Pinhole camera with OpenCV radial-tangential ("radtan") distortion.
+
+Conventions (FLIGHTLOG.md): the camera frame ``cam`` is OpenCV's (x right, y down,
+z along the optical axis); pixel (0, 0) is the *centre* of the top-left pixel, so the
+image spans ``-0.5 <= u <= width - 0.5`` and ``-0.5 <= v <= height - 0.5``.
+Normalized rays are ``q = (x, y, 1)``: the undistorted point on the plane z = 1.
+
+The distortion model is OpenCV's with coefficients ``(k1, k2, p1, p2[, k3])``::
+
+    r2 = x^2 + y^2,  radial = 1 + k1 r2 + k2 r2^2 + k3 r2^3
+    x_d = x radial + 2 p1 x y + p2 (r2 + 2 x^2)
+    y_d = y radial + p1 (r2 + 2 y^2) + 2 p2 x y
+    u = fx x_d + cx,  v = fy y_d + cy
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+#: Reprojection error (pixels) at which OpenCV's iterative undistortion stops. Far below
+#: any feature noise; the round trip pixels -> rays -> pixels is exact to this level.
+UNDISTORT_EPS_PX = 1e-10
+#: Iteration cap of the undistortion; radtan models of real lenses converge in < 20.
+UNDISTORT_MAX_ITERATIONS = 200
+#: A pixel whose undistorted ray reprojects further than this from it lies where the
+#: distortion model is not invertible (folds over near the corners of strong lenses):
+#: its ray is reported as NaN instead of a wrong direction.
+UNDISTORT_CHECK_TOL_PX = 1e-6
+
+_ALLOWED_DISTORTION_LENGTHS = (0, 4, 5)
+
+
+@dataclass(frozen=True)
+class PinholeCamera:
+    """Intrinsics of a pinhole camera with optional OpenCV radtan distortion.
+
+    Attributes:
+        width: image width in pixels.
+        height: image height in pixels.
+        fx: focal length along u, pixels.
+        fy: focal length along v, pixels.
+        cx: principal point u, pixels (pixel-centre convention).
+        cy: principal point v, pixels.
+        distortion: OpenCV radtan coefficients ``(k1, k2, p1, p2)`` or
+            ``(k1, k2, p1, p2, k3)``; ``()`` means no distortion.
+
+    Raises:
+        ValueError: non-positive or non-integer sizes, non-positive or non-finite
+            focal lengths, non-finite principal point or coefficients, or a
+            distortion vector that is not of length 0, 4 or 5.
+    """
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    distortion: tuple[float, ...] = ()
+
+    def __post_init__(self) -> None:
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | np.integer) or value <= 0:
+                raise ValueError(f"camera {name} must be a positive integer, got {value!r}")
+            object.__setattr__(self, name, int(value))
+        for name in ("fx", "fy", "cx", "cy"):
+            value = _finite_float(getattr(self, name), name)
+            if name in ("fx", "fy") and value <= 0.0:
+                raise ValueError(f"camera {name} must be positive, got {value!r}")
+            object.__setattr__(self, name, value)
+        coeffs = tuple(_finite_float(c, "distortion coefficient") for c in self.distortion)
+        if len(coeffs) not in _ALLOWED_DISTORTION_LENGTHS:
+            raise ValueError(
+                f"camera distortion must have 0, 4 or 5 coefficients (k1 k2 p1 p2 [k3]), "
+                f"got {len(coeffs)}"
+            )
+        object.__setattr__(self, "distortion", coeffs)
+
+    @classmethod
+    def from_fov(cls, width: int, height: int, fov_deg: float) -> PinholeCamera:
+        """Undistorted camera with square pixels and a given horizontal field of view.
+
+        The principal point is the image centre ``((width-1)/2, (height-1)/2)`` and the
+        FOV spans the full image, outer pixel edges included:
+        ``fx = (width / 2) / tan(fov / 2)``.
+
+        Args:
+            width: image width in pixels.
+            height: image height in pixels.
+            fov_deg: full horizontal field of view in degrees, in (0, 180).
+
+        Returns:
+            The camera.
+        """
+        if not 0.0 < float(fov_deg) < 180.0:
+            raise ValueError(f"fov_deg must be in (0, 180), got {fov_deg!r}")
+        f = 0.5 * width / math.tan(math.radians(fov_deg) / 2.0)
+        return cls(width, height, f, f, (width - 1) / 2.0, (height - 1) / 2.0)
+
+    @property
+    def K(self) -> np.ndarray:
+        """(3, 3) OpenCV camera matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def dist_coeffs(self) -> np.ndarray:
+        """(0,), (4,) or (5,) distortion coefficients as OpenCV takes them."""
+        return np.array(self.distortion, dtype=float)
+
+    @property
+    def fov_deg(self) -> tuple[float, float]:
+        """Full horizontal and vertical field of view in degrees, distortion included.
+
+        The angle between the rays through the midpoints of the left and right
+        (top and bottom) outer image edges; with an off-centre principal point the
+        two halves differ and both are counted. NaN where an edge is not invertible.
+        """
+        mid_u, mid_v = self.cx, self.cy
+        edges = np.array([
+            [-0.5, mid_v], [self.width - 0.5, mid_v],   # left, right
+            [mid_u, -0.5], [mid_u, self.height - 0.5],  # top, bottom
+        ])
+        rays = self.pixels_to_rays(edges)
+        return (_angle_deg(rays[0], rays[1]), _angle_deg(rays[2], rays[3]))
+
+    @property
+    def diagonal_fov_deg(self) -> float:
+        """Full field of view between the outer corners of the top-left and bottom-right pixels."""
+        corners = np.array([[-0.5, -0.5], [self.width - 0.5, self.height - 0.5]])
+        rays = self.pixels_to_rays(corners)
+        return _angle_deg(rays[0], rays[1])
+
+    def pixels_to_rays(self, uv: np.ndarray) -> np.ndarray:
+        """Undistorted normalized rays of pixels.
+
+        Uses OpenCV's iterative undistortion with a tight stopping rule
+        (:data:`UNDISTORT_EPS_PX`), then checks by reprojection: pixels where the
+        distortion model cannot be inverted get NaN rays.
+
+        Args:
+            uv: (N, 2) pixel coordinates (u, v).
+
+        Returns:
+            (N, 3) rays ``q = (x, y, 1)`` in the camera frame.
+        """
+        uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+        rays = np.ones((uv.shape[0], 3))
+        if uv.shape[0] == 0:
+            return rays
+        if not self.distortion:
+            rays[:, 0] = (uv[:, 0] - self.cx) / self.fx
+            rays[:, 1] = (uv[:, 1] - self.cy) / self.fy
+            return rays
+        rays[:, :2] = _undistort_normalized(uv, self.K, self.dist_coeffs)
+        error_px = np.linalg.norm(self.rays_to_pixels(rays) - uv, axis=1)
+        not_invertible = ~(error_px <= UNDISTORT_CHECK_TOL_PX)
+        rays[not_invertible, :2] = np.nan
+        return rays
+
+    def rays_to_pixels(self, rays_cam: np.ndarray) -> np.ndarray:
+        """Project camera-frame rays or points to distorted pixels.
+
+        Args:
+            rays_cam: (N, 3) directions or points in the camera frame (any scale).
+
+        Returns:
+            (N, 2) pixels (u, v); NaN rows where ``z <= 0`` (behind the camera).
+        """
+        p = np.asarray(rays_cam, dtype=float).reshape(-1, 3)
+        z = p[:, 2]
+        in_front = z > 0.0
+        z_safe = np.where(in_front, z, 1.0)
+        x = p[:, 0] / z_safe
+        y = p[:, 1] / z_safe
+        if self.distortion:
+            k1, k2, p1, p2 = self.distortion[:4]
+            k3 = self.distortion[4] if len(self.distortion) == 5 else 0.0
+            r2 = x * x + y * y
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            xy = x * y
+            x, y = (x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * x * x),
+                    y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * xy)
+        uv = np.stack([self.fx * x + self.cx, self.fy * y + self.cy], axis=1)
+        uv[~in_front] = np.nan
+        return uv
+
+    def in_image(self, uv: np.ndarray) -> np.ndarray:
+        """Whether pixels lie on the image (outer pixel edges included; NaN is outside).
+
+        Args:
+            uv: (..., 2) pixel coordinates.
+
+        Returns:
+            (...) booleans: ``-0.5 <= u <= width-0.5`` and ``-0.5 <= v <= height-0.5``.
+        """
+        uv = np.asarray(uv, dtype=float)
+        u, v = uv[..., 0], uv[..., 1]
+        return (u >= -0.5) & (u <= self.width - 0.5) & (v >= -0.5) & (v <= self.height - 0.5)
+
+    def sigma_normalized(self, sigma_px: float) -> tuple[float, float]:
+        """A pixel standard deviation in normalized image units: ``(sigma_px/fx, sigma_px/fy)``."""
+        return (sigma_px / self.fx, sigma_px / self.fy)
+
+
+def _finite_float(value: object, name: str) -> float:
+    try:
+        out = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise ValueError(f"camera {name} must be a number, got {value!r}") from None
+    if isinstance(value, bool) or not math.isfinite(out):
+        raise ValueError(f"camera {name} must be a finite number, got {value!r}")
+    return out
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    cos = float(a @ b) / float(np.linalg.norm(a) * np.linalg.norm(b))
+    return math.degrees(math.acos(min(1.0, max(-1.0, cos))))
+
+
+def _undistort_normalized(uv: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """(N, 2) distorted pixels -> (N, 2) undistorted normalized coordinates via OpenCV."""
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS,
+                UNDISTORT_MAX_ITERATIONS, UNDISTORT_EPS_PX)
+    src = uv.reshape(-1, 1, 2)
+    # OpenCV 4 has the stopping rule only in undistortPointsIter; OpenCV 5 folded it
+    # into undistortPoints (its default rule stops after 5 iterations: ~0.3 px off).
+    iterative = getattr(cv2, "undistortPointsIter", None)
+    if iterative is not None:
+        out = iterative(src, K, dist, None, None, criteria)
+    else:
+        out = cv2.undistortPoints(src, K, dist, R=None, P=None, criteria=criteria)
+    return np.asarray(out, dtype=float).reshape(-1, 2)

@@ -1,0 +1,809 @@
+"""Tests of cdtm_graph.flightlog: round trip, EuRoC files, and every malformed case.
+
+Every malformed-log test asserts that the error names the file and the line
+(``"<file>:<line>:"``) and says what was expected.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cdtm_graph import flightlog as fl
+from cdtm_graph.camera import PinholeCamera
+from cdtm_graph.errors import FlightLogError
+from cdtm_graph.flightlog import (
+    CameraConfig,
+    DtmConfig,
+    FlightConfig,
+    FlightLog,
+    Frames,
+    ImuConfig,
+    ImuSamples,
+    InitialState,
+    States,
+    Tracks,
+    read_flightlog,
+    write_flightlog,
+)
+from cdtm_graph.geometry import make_pose, quat_wxyz_to_rotation, so3_exp, so3_log
+
+T0_NS = 1_403_636_579_758_555_392  # a EuRoC MH_01 epoch: needs int64, not float64
+IMU_DT_NS = 5_000_000
+N_IMU = 60
+FRAME_EVERY = 12
+N_FRAMES = 4
+N_TRACKS = 6
+WIDTH, HEIGHT = 400, 300
+ROTATION_ROUND_TRIP_TOL = 1e-15  # body_T_cam is stored as a quaternion
+ANGLE_TOL_RAD = 1e-12
+
+
+# --------------------------------------------------------------------------- fixtures
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(7)
+
+
+def _random_quaternions(rng: np.random.Generator, n: int) -> np.ndarray:
+    q = rng.normal(size=(n, 4))
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def _make_log(root: Path, rng: np.random.Generator) -> FlightLog:
+    camera = PinholeCamera(WIDTH, HEIGHT, 310.5, 309.25, 201.3, 148.7,
+                           (-0.12, 0.03, 8e-4, -5e-4, -0.004))
+    # Downward camera: x along body x, z along -body z (a half turn about x: exact floats).
+    body_T_cam = make_pose(np.diag([1.0, -1.0, -1.0]), [0.25, -0.1, 0.05])
+    config = FlightConfig(
+        gravity_mps2=9.80665,
+        dtm=DtmConfig(root / "dtm.npz", 2.4, (500000.0, 4100000.0, 12.5)),
+        camera=CameraConfig(camera, 0.5, body_T_cam),
+        imu=ImuConfig(200.0, 1.7e-4, 2.0e-3, 1.9e-5, 3.0e-3),
+        initial_state=InitialState(
+            position_m=[10.0, -20.0, 1000.0], quaternion_wxyz=_random_quaternions(rng, 1)[0],
+            velocity_mps=[200.0, 0.5, -1.0], gyro_bias=[1e-4, -2e-4, 3e-5],
+            accel_bias=[0.01, -0.02, 0.005], sigma_position_m=50.0, sigma_attitude_deg=1.0,
+            sigma_velocity_mps=1.0, sigma_gyro_bias=1.0e-4, sigma_accel_bias=1.0e-2),
+        extra={"aircraft": "test", "notes": {"anything": [1, 2.5, "x"]}},
+    )
+    t_imu = T0_NS + IMU_DT_NS * np.arange(N_IMU, dtype=np.int64)
+    imu = ImuSamples(t_imu, rng.normal(scale=0.01, size=(N_IMU, 3)),
+                     rng.normal(scale=0.1, size=(N_IMU, 3)) + [0.0, 0.0, 9.80665])
+    t_frames = t_imu[::FRAME_EVERY][:N_FRAMES]
+    frames = Frames(t_frames, ("",) * N_FRAMES)
+    # Every track in every frame, rows sorted by frame then track.
+    frame = np.repeat(np.arange(N_FRAMES), N_TRACKS)
+    track_id = np.tile(np.arange(N_TRACKS) * 10 + 3, N_FRAMES)
+    uv = np.column_stack([rng.uniform(0.0, WIDTH - 1.0, frame.size),
+                          rng.uniform(0.0, HEIGHT - 1.0, frame.size)])
+    tracks = Tracks(frame, track_id, uv)
+    nav = States(t_frames, rng.normal(size=(N_FRAMES, 3)), _random_quaternions(rng, N_FRAMES),
+                 rng.normal(size=(N_FRAMES, 3)))
+    groundtruth = States(t_imu, rng.normal(size=(N_IMU, 3)), _random_quaternions(rng, N_IMU),
+                         rng.normal(size=(N_IMU, 3)))
+    return FlightLog(root, config, imu, frames, tracks, nav, groundtruth)
+
+
+def _write_dtm(path: Path) -> None:
+    np.savez(path, elevation=np.zeros((3, 3)), x0=0.0, y0=0.0, dx=30.0, dy=30.0)
+
+
+@pytest.fixture
+def log(tmp_path: Path, rng: np.random.Generator) -> FlightLog:
+    """A small valid log, written to tmp_path/log (the DTM written after, as callers do)."""
+    the_log = _make_log(tmp_path / "log", rng)
+    write_flightlog(the_log, the_log.root)
+    _write_dtm(the_log.root / "dtm.npz")
+    return the_log
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _lines(path: Path) -> list[str]:
+    return path.read_text().split("\n")
+
+
+def _set_line(path: Path, line_no: int, text: str) -> None:
+    lines = _lines(path)
+    lines[line_no - 1] = text
+    path.write_text("\n".join(lines))
+
+
+def _insert_line(path: Path, line_no: int, text: str) -> None:
+    """Insert so that ``text`` becomes line ``line_no``."""
+    lines = _lines(path)
+    lines.insert(line_no - 1, text)
+    path.write_text("\n".join(lines))
+
+
+def _delete_line(path: Path, line_no: int) -> None:
+    lines = _lines(path)
+    del lines[line_no - 1]
+    path.write_text("\n".join(lines))
+
+
+def _line_of(path: Path, startswith: str) -> int:
+    """1-based number of the first line whose stripped text starts with ``startswith``."""
+    for i, line in enumerate(_lines(path), start=1):
+        if line.strip().startswith(startswith):
+            return i
+    raise AssertionError(f"no line starting with {startswith!r} in {path}")
+
+
+def _set_value(path: Path, line_no: int, column: int, value: str) -> None:
+    fields = _lines(path)[line_no - 1].split(",")
+    fields[column] = value
+    _set_line(path, line_no, ",".join(fields))
+
+
+def _expect_error(root: Path, file: str, line: int, *words: str) -> str:
+    with pytest.raises(FlightLogError) as info:
+        read_flightlog(root)
+    message = str(info.value)
+    assert f"{file}:{line}: " in message, message
+    assert "; expected " in message, message
+    assert "\n" not in message
+    for word in words:
+        assert word in message, message
+    return message
+
+
+def _data_line(row: int) -> int:
+    """Line of 0-based data row ``row`` in a file written with a header."""
+    return row + 2
+
+
+# --------------------------------------------------------------------------- round trip
+
+
+def test_round_trip_is_exact(log: FlightLog) -> None:
+    back = read_flightlog(log.root)
+    assert back == log
+    # Spot checks that equality really compares contents (and int64 times survive).
+    assert back.imu.t_ns.dtype == np.int64 and back.imu.t_ns[0] == T0_NS
+    assert np.array_equal(back.groundtruth.quaternion_wxyz, log.groundtruth.quaternion_wxyz)
+    assert back.config.extra == {"aircraft": "test", "notes": {"anything": [1, 2.5, "x"]}}
+    assert back.config.dtm.path == log.root / "dtm.npz"
+
+
+def test_equality_notices_a_one_ulp_change(log: FlightLog) -> None:
+    gyro = log.imu.gyro_radps.copy()
+    gyro[3, 1] = np.nextafter(gyro[3, 1], np.inf)
+    changed = ImuSamples(log.imu.t_ns, gyro, log.imu.acc_mps2)
+    assert changed != log.imu
+    assert FlightLog(log.root, log.config, changed, log.frames, log.tracks, log.nav,
+                     log.groundtruth) != log
+
+
+def test_written_files_have_euroc_style_headers(log: FlightLog) -> None:
+    assert _lines(log.root / "imu.csv")[0] == "#t_ns,gyro_x,gyro_y,gyro_z,acc_x,acc_y,acc_z"
+    assert _lines(log.root / "frames.csv")[0] == "#t_ns,image"
+    assert _lines(log.root / "tracks.csv")[0] == "#frame,track_id,u,v"
+    assert _lines(log.root / "nav.csv")[0] == "#t_ns,px,py,pz,qw,qx,qy,qz,vx,vy,vz"
+    assert _lines(log.root / "imu.csv")[1].startswith(f"{T0_NS},")
+    assert (log.root / "flight.yaml").read_text().startswith("format: cdtm-flightlog/1\n")
+
+
+def test_optional_files_absent_read_as_none(tmp_path: Path, rng) -> None:
+    the_log = _make_log(tmp_path / "log", rng)
+    images = tuple(f"images/{k}.png" for k in range(N_FRAMES))
+    bare = FlightLog(the_log.root, the_log.config, the_log.imu,
+                     Frames(the_log.frames.t_ns, images))
+    write_flightlog(bare, bare.root)
+    _write_dtm(bare.root / "dtm.npz")
+    (bare.root / "images").mkdir()
+    for name in images:
+        (bare.root / name).write_bytes(b"")
+    back = read_flightlog(bare.root)
+    assert back == bare
+    assert back.tracks is None and back.nav is None and back.groundtruth is None
+
+
+def test_general_body_T_cam_rotation_round_trips_to_rounding(tmp_path: Path, rng) -> None:
+    the_log = _make_log(tmp_path / "log", rng)
+    body_T_cam = make_pose(so3_exp(np.array([0.3, -1.1, 2.0])), [0.1, 0.2, 0.3])
+    cfg = the_log.config
+    camera = CameraConfig(cfg.camera.camera, cfg.camera.pixel_sigma_px, body_T_cam)
+    config = FlightConfig(cfg.gravity_mps2, cfg.dtm, camera, cfg.imu, cfg.initial_state)
+    write_flightlog(FlightLog(the_log.root, config, the_log.imu, the_log.frames, the_log.tracks),
+                    the_log.root)
+    _write_dtm(the_log.root / "dtm.npz")
+    back = read_flightlog(the_log.root).config.camera.body_T_cam
+    assert np.max(np.abs(back - body_T_cam)) <= ROTATION_ROUND_TRIP_TOL
+    assert np.array_equal(back[:3, 3], body_T_cam[:3, 3])
+
+
+# --------------------------------------------------------------------------- writer
+
+
+def test_write_into_a_directory_holding_the_dtm_removes_stale_log_files(log: FlightLog) -> None:
+    assert (log.root / "tracks.csv").exists()
+    images = tuple(f"{k}.png" for k in range(N_FRAMES))
+    for name in images:
+        (log.root / name).write_bytes(b"")
+    smaller = FlightLog(log.root, log.config, log.imu, Frames(log.frames.t_ns, images))
+    write_flightlog(smaller, log.root)
+    assert not (log.root / "tracks.csv").exists()  # a stale one would be read as this log's
+    assert not (log.root / "groundtruth.csv").exists()
+    assert (log.root / "dtm.npz").exists()  # not the writer's file: left alone
+    assert read_flightlog(log.root) == smaller
+    assert [p.name for p in log.root.parent.iterdir()] == ["log"]  # no staging left
+
+
+def test_write_failure_leaves_nothing_behind(tmp_path: Path, rng) -> None:
+    the_log = _make_log(tmp_path / "log", rng)
+    cfg = the_log.config
+    bad = FlightConfig(cfg.gravity_mps2, cfg.dtm, cfg.camera, cfg.imu, cfg.initial_state,
+                       extra={"not yaml": object()})
+    with pytest.raises(Exception):  # noqa: B017 - PyYAML's own error type
+        write_flightlog(FlightLog(the_log.root, bad, the_log.imu, the_log.frames), the_log.root)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_dtm_outside_the_log_is_written_absolute(tmp_path: Path, rng) -> None:
+    the_log = _make_log(tmp_path / "log", rng)
+    outside = tmp_path / "terrain" / "dem.npz"
+    outside.parent.mkdir()
+    _write_dtm(outside)
+    cfg = the_log.config
+    config = FlightConfig(cfg.gravity_mps2, DtmConfig(outside), cfg.camera, cfg.imu,
+                          cfg.initial_state)
+    written = FlightLog(the_log.root, config, the_log.imu, the_log.frames, the_log.tracks)
+    write_flightlog(written, the_log.root)
+    assert f"path: {outside}" in (the_log.root / "flight.yaml").read_text()
+    back = read_flightlog(the_log.root)
+    assert back.config.dtm == DtmConfig(outside, None, (0.0, 0.0, 0.0))
+
+
+# --------------------------------------------------------------------------- CSV dialects
+
+
+EUROC_IMU = """\
+#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],\
+a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]
+1403636579758555392,-0.099134701513277898,0.14730578886832138,0.02722713633111154,\
+8.1476917083333333,-0.37592158333333331,-2.4026292499999999
+1403636579763555584,-0.099134701513277898,0.14032447186034408,0.029321531433504278,\
+8.033280791666666,-0.40861041666666664,-2.4026292499999999
+1403636579768555520,-0.098436569812480182,0.12775810124598494,0.037699111843077518,\
+7.8861810416666662,-0.42495483333333334,-2.4844780833333332
+"""
+EUROC_CAM = """\
+#timestamp [ns],filename
+1403636579763555584,1403636579763555584.png
+1403636579813555456,1403636579813555456.png
+"""
+EUROC_GROUNDTRUTH = """\
+#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], \
+q_RS_z [], v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1], b_w_RS_S_x [rad s^-1], \
+b_w_RS_S_y [rad s^-1], b_w_RS_S_z [rad s^-1], b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], \
+b_a_RS_S_z [m s^-2]
+1403636580838555648,4.688319,-1.786938,0.783338,0.534108,-0.153029,-0.827383,-0.082152,\
+-0.027876,0.033207,0.800006,-0.003172,0.021267,0.078502,-0.025266,0.136696,0.075593
+1403636580843555328,4.688177,-1.786770,0.787350,0.534640,-0.152990,-0.826976,-0.082863,\
+-0.029272,0.033992,0.804771,-0.003172,0.021267,0.078502,-0.025266,0.136696,0.075593
+"""
+
+
+@pytest.mark.parametrize("newline", ["\n", "\r\n"], ids=["lf", "crlf"])
+def test_euroc_files_copied_in_as_they_are(log: FlightLog, newline: str) -> None:
+    root = log.root
+    for name, text in (("imu.csv", EUROC_IMU), ("frames.csv", EUROC_CAM),
+                       ("groundtruth.csv", EUROC_GROUNDTRUTH)):
+        (root / name).write_bytes(text.replace("\n", newline).encode())
+    (root / "tracks.csv").unlink()
+    (root / "nav.csv").unlink()
+    for line in EUROC_CAM.splitlines()[1:]:
+        (root / line.split(",")[1]).write_bytes(b"")  # frames name images: they must exist
+
+    back = read_flightlog(root)
+    assert back.imu.t_ns.tolist() == [1403636579758555392, 1403636579763555584,
+                                      1403636579768555520]
+    assert back.imu.gyro_radps[0].tolist() == [-0.099134701513277898, 0.14730578886832138,
+                                               0.02722713633111154]
+    assert back.imu.acc_mps2[2, 2] == -2.4844780833333332
+    assert back.frames.image == ("1403636579763555584.png", "1403636579813555456.png")
+    gt = back.groundtruth
+    assert gt.t_ns.tolist() == [1403636580838555648, 1403636580843555328]
+    assert gt.position_m[1].tolist() == [4.688177, -1.786770, 0.787350]
+    assert gt.velocity_mps[0].tolist() == [-0.027876, 0.033207, 0.800006]  # not the biases
+    raw = np.array([0.534108, -0.153029, -0.827383, -0.082152])
+    assert abs(np.linalg.norm(raw) - 1.0) > 1e-7  # six printed digits: not unit ...
+    np.testing.assert_allclose(np.linalg.norm(gt.quaternion_wxyz, axis=1), 1.0, atol=1e-15)
+    np.testing.assert_allclose(gt.quaternion_wxyz[0], raw / np.linalg.norm(raw), atol=1e-15)
+
+
+def test_files_without_header_read(log: FlightLog) -> None:
+    for name in ("imu.csv", "frames.csv", "tracks.csv", "nav.csv", "groundtruth.csv"):
+        _delete_line(log.root / name, 1)
+    assert read_flightlog(log.root) == log
+
+
+def test_clean_files_take_the_fast_path(log: FlightLog, monkeypatch) -> None:
+    def no_scan(*args, **kwargs):
+        raise AssertionError("line-by-line scan used on a clean file")
+
+    monkeypatch.setattr(fl, "_scan_numeric_csv", no_scan)
+    assert read_flightlog(log.root) == log
+
+
+def test_the_line_scan_reads_what_numpy_reads(log: FlightLog, monkeypatch) -> None:
+    # Force the slow path everywhere: same numbers, bit for bit.
+    monkeypatch.setattr(fl, "_count_lines", lambda path, shown: fl._LineCount(
+        fl._is_header(path.read_text().split("\n", 1)[0]), -1, True))
+    assert read_flightlog(log.root) == log
+
+
+def test_bad_value_deep_in_a_large_file_is_located(tmp_path: Path, rng) -> None:
+    the_log = _make_log(tmp_path / "log", rng)
+    n = 20_000
+    t = T0_NS + IMU_DT_NS * np.arange(n, dtype=np.int64)
+    imu = ImuSamples(t, rng.normal(size=(n, 3)), rng.normal(size=(n, 3)))
+    write_flightlog(FlightLog(the_log.root, the_log.config, imu, the_log.frames,
+                              the_log.tracks), the_log.root)
+    _write_dtm(the_log.root / "dtm.npz")
+    _set_value(the_log.root / "imu.csv", 15_321, 4, "8.1x")
+    _expect_error(the_log.root, "imu.csv", 15_321, "acc_x", "'8.1x'")
+
+
+# --------------------------------------------------------------------------- flight.yaml errors
+
+
+def test_unknown_top_level_key(log: FlightLog) -> None:
+    path = log.root / "flight.yaml"
+    line = _line_of(path, "dtm:")
+    _insert_line(path, line, "gravity: 9.81")
+    _expect_error(log.root, "flight.yaml", line, "unknown key 'gravity'")
+
+
+@pytest.mark.parametrize("after, text, key", [
+    ("body_T_cam:", "    rotation_deg: [0.0, 0.0, 0.0]", "camera.body_T_cam.rotation_deg"),
+    ("imu:", "  gyro_noise_density: 1.0e-4", "imu.gyro_noise_density"),
+    ("dtm:", "  sigma_h: 2.0", "dtm.sigma_h"),
+    ("initial_state:", "  sigma_attitude_rad: 0.01", "initial_state.sigma_attitude_rad"),
+])
+def test_unknown_nested_key(log: FlightLog, after: str, text: str, key: str) -> None:
+    path = log.root / "flight.yaml"
+    line = _line_of(path, after) + 1
+    _insert_line(path, line, text)
+    _expect_error(log.root, "flight.yaml", line, f"unknown key '{key}'")
+
+
+def test_anything_goes_under_extra(log: FlightLog) -> None:
+    path = log.root / "flight.yaml"
+    line = _line_of(path, "extra:") + 1
+    _insert_line(path, line, "  whatever_key: {nested: [1, 2]}")
+    assert read_flightlog(log.root).config.extra["whatever_key"] == {"nested": [1, 2]}
+
+
+@pytest.mark.parametrize("value", ["cdtm-flightlog/2", "euroc"])
+def test_wrong_format_string(log: FlightLog, value: str) -> None:
+    _set_line(log.root / "flight.yaml", 1, f"format: {value}")
+    _expect_error(log.root, "flight.yaml", 1, value, "cdtm-flightlog/1")
+
+
+def test_missing_format(log: FlightLog) -> None:
+    _delete_line(log.root / "flight.yaml", 1)
+    _expect_error(log.root, "flight.yaml", 1, "missing key 'format'")
+
+
+def test_missing_required_key(log: FlightLog) -> None:
+    path = log.root / "flight.yaml"
+    _delete_line(path, _line_of(path, "pixel_sigma_px:"))
+    _expect_error(log.root, "flight.yaml", _line_of(path, "camera:"),
+                  "missing key 'camera.pixel_sigma_px'")
+
+
+def test_duplicate_key(log: FlightLog) -> None:
+    path = log.root / "flight.yaml"
+    line = _line_of(path, "gravity_mps2:") + 1
+    _insert_line(path, line, "gravity_mps2: 9.81")
+    _expect_error(log.root, "flight.yaml", line, "duplicate key 'gravity_mps2'")
+
+
+@pytest.mark.parametrize("model", ["equidistant", "radtan8", "fisheye"])
+def test_bad_distortion_model(log: FlightLog, model: str) -> None:
+    path = log.root / "flight.yaml"
+    line = _line_of(path, "distortion_model:")
+    _set_line(path, line, f"  distortion_model: {model}")
+    _expect_error(log.root, "flight.yaml", line, model, "radtan")
+
+
+def test_distortion_model_none_or_absent_means_no_distortion(log: FlightLog) -> None:
+    path = log.root / "flight.yaml"
+    _delete_line(path, _line_of(path, "distortion_coeffs:"))
+    _set_line(path, _line_of(path, "distortion_model:"), "  distortion_model: none")
+    assert read_flightlog(log.root).config.camera.camera.distortion == ()
+    _delete_line(path, _line_of(path, "distortion_model:"))
+    assert read_flightlog(log.root).config.camera.camera.distortion == ()
+
+
+def test_distortion_coeffs_of_wrong_length(log: FlightLog) -> None:
+    path = log.root / "flight.yaml"
+    line = _line_of(path, "distortion_coeffs:")
+    _set_line(path, line, "  distortion_coeffs: [0.1, 0.2, 0.0]")
+    _expect_error(log.root, "flight.yaml", line, "3 values", "4 or 5")
+
+
+def test_non_unit_quaternion_in_yaml(log: FlightLog) -> None:
+    path = log.root / "flight.yaml"
+    line = _line_of(path, "quaternion_wxyz:")  # body_T_cam's comes first
+    _set_line(path, line, "    quaternion_wxyz: [0.0, 1.1, 0.0, 0.0]")
+    _expect_error(log.root, "flight.yaml", line, "camera.body_T_cam.quaternion_wxyz", "unit")
+
+
+def test_slightly_off_unit_quaternion_is_normalized(log: FlightLog) -> None:
+    path = log.root / "flight.yaml"
+    line = _line_of(path, "quaternion_wxyz:")
+    _set_line(path, line, "    quaternion_wxyz: [0.0, 1.0004, 0.0, 0.0]")
+    np.testing.assert_array_equal(read_flightlog(log.root).config.camera.body_T_cam[:3, :3],
+                                  np.diag([1.0, -1.0, -1.0]))
+
+
+def test_deg_key_is_degrees(log: FlightLog) -> None:
+    path = log.root / "flight.yaml"
+    _set_line(path, _line_of(path, "sigma_attitude_deg:"), "  sigma_attitude_deg: 2.0")
+    state = read_flightlog(log.root).config.initial_state
+    assert state.sigma_attitude_deg == 2.0
+    assert state.sigma_attitude_rad == pytest.approx(math.radians(2.0), rel=1e-15)
+
+
+def test_exponent_without_dot_is_a_number(log: FlightLog) -> None:
+    # PyYAML reads 2e-5 as a string (YAML 1.1); Kalibr files write it that way.
+    path = log.root / "flight.yaml"
+    _set_line(path, _line_of(path, "gyroscope_random_walk:"), "  gyroscope_random_walk: 2e-5")
+    assert read_flightlog(log.root).config.imu.gyroscope_random_walk == 2e-5
+
+
+@pytest.mark.parametrize("key, value, words", [
+    ("gravity_mps2:", "gravity_mps2: .nan", ("gravity_mps2", "finite")),
+    ("gravity_mps2:", "gravity_mps2: -9.8", ("gravity_mps2", "positive")),
+    ("pixel_sigma_px:", "  pixel_sigma_px: abc", ("pixel_sigma_px", "finite number")),
+    ("rate_hz:", "  rate_hz: 0", ("imu.rate_hz", "positive")),
+    ("resolution:", "  resolution: [400.5, 300]", ("resolution", "positive integer")),
+    ("intrinsics:", "  intrinsics: [-310.5, 309.25, 201.3, 148.7]", ("fx", "positive")),
+    ("position_m:", "  position_m: [0.0, 0.0]", ("initial_state.position_m", "3")),
+    ("sigma_h_m:", "  sigma_h_m: [1.0]", ("dtm.sigma_h_m", "a list")),
+])
+def test_bad_yaml_values(log: FlightLog, key: str, value: str, words: tuple[str, ...]) -> None:
+    path = log.root / "flight.yaml"
+    line = _line_of(path, key)
+    _set_line(path, line, value)
+    _expect_error(log.root, "flight.yaml", line, *words)
+
+
+def test_yaml_syntax_error(log: FlightLog) -> None:
+    path = log.root / "flight.yaml"
+    line = _line_of(path, "imu:") + 1
+    _insert_line(path, line, "  rate_hz: [200")
+    with pytest.raises(FlightLogError, match=r"flight\.yaml:\d+: YAML error"):
+        read_flightlog(log.root)
+
+
+def test_missing_dtm_file(log: FlightLog) -> None:
+    (log.root / "dtm.npz").unlink()
+    line = _line_of(log.root / "flight.yaml", "path:")
+    _expect_error(log.root, "flight.yaml", line, "dtm.path", "does not exist")
+
+
+def test_dtm_with_unknown_suffix(log: FlightLog) -> None:
+    path = log.root / "flight.yaml"
+    line = _line_of(path, "path:")
+    (log.root / "dtm.png").write_bytes(b"")
+    _set_line(path, line, "  path: dtm.png")
+    _expect_error(log.root, "flight.yaml", line, ".png", ".npz")
+
+
+# --------------------------------------------------------------------------- missing files
+
+
+@pytest.mark.parametrize("name", ["flight.yaml", "imu.csv", "frames.csv"])
+def test_missing_required_file(log: FlightLog, name: str) -> None:
+    (log.root / name).unlink()
+    _expect_error(log.root, name, 1, "missing")
+
+
+def test_missing_tracks_when_frames_have_no_images(log: FlightLog) -> None:
+    (log.root / "tracks.csv").unlink()
+    _expect_error(log.root, "frames.csv", _data_line(0), "no image", "tracks.csv")
+
+
+def test_missing_image_file_without_tracks(log: FlightLog) -> None:
+    (log.root / "tracks.csv").unlink()
+    path = log.root / "frames.csv"
+    for k in range(N_FRAMES):
+        _set_value(path, _data_line(k), 1, f"{k}.png")
+        if k != 2:
+            (log.root / f"{k}.png").write_bytes(b"")
+    _expect_error(log.root, "frames.csv", _data_line(2), "'2.png'", "does not exist")
+
+
+def test_not_a_directory(tmp_path: Path) -> None:
+    with pytest.raises(FlightLogError, match="not a directory"):
+        read_flightlog(tmp_path / "nowhere")
+
+
+# --------------------------------------------------------------------------- CSV errors
+
+
+@pytest.mark.parametrize("token", ["nan", "NaN", "inf", "-inf", "Infinity"])
+def test_nan_and_inf_in_imu(log: FlightLog, token: str) -> None:
+    _set_value(log.root / "imu.csv", 6, 2, token)
+    _expect_error(log.root, "imu.csv", 6, "gyro_y", "finite")
+
+
+@pytest.mark.parametrize("name, column, field", [
+    ("groundtruth.csv", 8, "vx"), ("nav.csv", 1, "px"), ("tracks.csv", 3, "v"),
+])
+def test_nan_in_other_files(log: FlightLog, name: str, column: int, field: str) -> None:
+    _set_value(log.root / name, 3, column, "nan")
+    _expect_error(log.root, name, 3, field, "finite")
+
+
+def test_non_increasing_imu_times(log: FlightLog) -> None:
+    path = log.root / "imu.csv"
+    previous = _lines(path)[5].split(",")[0]  # line 6
+    _set_value(path, 7, 0, previous)
+    _expect_error(log.root, "imu.csv", 7, "strictly increasing")
+
+
+def test_decreasing_frame_times(log: FlightLog) -> None:
+    path = log.root / "frames.csv"
+    _set_value(path, _data_line(2), 0, str(T0_NS - 1))
+    _expect_error(log.root, "frames.csv", _data_line(2), "strictly increasing")
+
+
+def test_non_increasing_groundtruth_times(log: FlightLog) -> None:
+    path = log.root / "groundtruth.csv"
+    _set_value(path, 30, 0, str(T0_NS))
+    _expect_error(log.root, "groundtruth.csv", 30, "strictly increasing")
+
+
+@pytest.mark.parametrize("name, line", [
+    ("imu.csv", 9), ("frames.csv", 3), ("tracks.csv", 5), ("nav.csv", 2), ("groundtruth.csv", 40),
+])
+def test_short_rows(log: FlightLog, name: str, line: int) -> None:
+    path = log.root / name
+    fields = _lines(path)[line - 1].split(",")
+    _set_line(path, line, ",".join(fields[:-1]) if name != "frames.csv" else fields[0])
+    _expect_error(log.root, name, line, "short row")
+
+
+def test_too_many_values_in_imu(log: FlightLog) -> None:
+    path = log.root / "imu.csv"
+    _set_line(path, 4, _lines(path)[3] + ",0.0")
+    _expect_error(log.root, "imu.csv", 4, "too many")
+
+
+@pytest.mark.parametrize("name, line, column, token, field", [
+    ("imu.csv", 4, 3, "abc", "gyro_z"),
+    ("imu.csv", 5, 0, "1403636579778555392.0", "t_ns"),  # times are integers
+    ("imu.csv", 5, 0, "1e18", "t_ns"),
+    ("imu.csv", 5, 0, "99999999999999999999", "t_ns"),  # beyond int64
+    ("imu.csv", 5, 1, "1_000", "gyro_x"),
+    ("tracks.csv", 4, 1, "seven", "track_id"),
+    ("nav.csv", 3, 5, "", "qx"),  # a missing value
+    ("frames.csv", 3, 0, "12x", "t_ns"),
+])
+def test_non_numeric_tokens(log: FlightLog, name, line, column, token, field) -> None:
+    _set_value(log.root / name, line, column, token)
+    _expect_error(log.root, name, line, field)
+
+
+def test_blank_line_in_the_middle(log: FlightLog) -> None:
+    _insert_line(log.root / "imu.csv", 10, "")
+    _expect_error(log.root, "imu.csv", 10, "empty line")
+
+
+def test_earliest_problem_is_reported(log: FlightLog) -> None:
+    path = log.root / "imu.csv"
+    _set_value(path, 20, 1, "nan")
+    _set_value(path, 8, 0, _lines(path)[5].split(",")[0])  # goes back in time on line 8
+    _expect_error(log.root, "imu.csv", 8, "strictly increasing")
+
+
+def test_track_naming_a_frame_that_does_not_exist(log: FlightLog) -> None:
+    path = log.root / "tracks.csv"
+    last = len(_lines(path)) - 1  # the file ends with a newline
+    _set_value(path, last, 0, str(N_FRAMES))
+    _expect_error(log.root, "tracks.csv", last, f"frame {N_FRAMES} does not exist")
+
+
+def test_negative_frame_index(log: FlightLog) -> None:
+    _set_value(log.root / "tracks.csv", 2, 0, "-1")
+    _expect_error(log.root, "tracks.csv", 2, "frame -1 does not exist")
+
+
+def test_tracks_not_sorted_by_frame(log: FlightLog) -> None:
+    line = _data_line(N_TRACKS + 2)  # a row of frame 1
+    _set_value(log.root / "tracks.csv", line, 0, "0")
+    _expect_error(log.root, "tracks.csv", line, "sorted by frame")
+
+
+def test_track_seen_twice_in_one_frame(log: FlightLog) -> None:
+    path = log.root / "tracks.csv"
+    first_id = _lines(path)[_data_line(0) - 1].split(",")[1]
+    _set_value(path, _data_line(3), 1, first_id)
+    _expect_error(log.root, "tracks.csv", _data_line(3), f"track {first_id} is seen twice")
+
+
+@pytest.mark.parametrize("column, value", [
+    (2, f"{WIDTH - 0.5 + 1e-9!r}"), (2, "-0.6"), (3, f"{HEIGHT - 0.5 + 1e-6!r}"), (3, "-3.0"),
+])
+def test_pixels_outside_the_image(log: FlightLog, column: int, value: str) -> None:
+    _set_value(log.root / "tracks.csv", 7, column, value)
+    _expect_error(log.root, "tracks.csv", 7, "outside", f"{WIDTH}x{HEIGHT}")
+
+
+def test_pixels_on_the_outer_edges_are_inside(log: FlightLog) -> None:
+    path = log.root / "tracks.csv"
+    _set_value(path, 7, 2, "-0.5")
+    _set_value(path, 8, 3, f"{HEIGHT - 0.5!r}")
+    read_flightlog(log.root)
+
+
+def test_nav_with_a_row_missing(log: FlightLog) -> None:
+    _delete_line(log.root / "nav.csv", _data_line(N_FRAMES - 1))
+    _expect_error(log.root, "nav.csv", _data_line(N_FRAMES - 1), "one row per frame")
+
+
+def test_nav_with_a_row_too_many(log: FlightLog) -> None:
+    path = log.root / "nav.csv"
+    row = _lines(path)[_data_line(N_FRAMES - 1) - 1].split(",")
+    row[0] = str(int(row[0]) + 1)
+    _insert_line(path, _data_line(N_FRAMES), ",".join(row))
+    _expect_error(log.root, "nav.csv", _data_line(N_FRAMES), "beyond the last frame")
+
+
+def test_nav_with_a_wrong_time(log: FlightLog) -> None:
+    path = log.root / "nav.csv"
+    _set_value(path, _data_line(1), 0, str(int(log.frames.t_ns[1]) + 1))
+    _expect_error(log.root, "nav.csv", _data_line(1), "one row per frame")
+
+
+@pytest.mark.parametrize("name", ["nav.csv", "groundtruth.csv"])
+def test_non_unit_quaternion_in_csv(log: FlightLog, name: str) -> None:
+    path = log.root / name
+    for column in range(4, 8):  # scale the quaternion by 1.01
+        value = float(_lines(path)[2].split(",")[column])
+        _set_value(path, 3, column, repr(1.01 * value))
+    _expect_error(log.root, name, 3, "norm 1.01", "unit quaternion")
+
+
+# --------------------------------------------------------------------------- Tracks.pairs
+
+
+def test_pairs_on_a_hand_made_example() -> None:
+    tracks = Tracks(frame=np.array([0, 0, 0, 1, 1, 2, 2, 3]),
+                    track_id=np.array([7, 3, 5, 3, 7, 7, 5, 3]),
+                    uv_px=np.zeros((8, 2)))
+    rows_a, rows_b = tracks.pairs()
+    # track 3: rows 1 -> 3 -> 7; track 5: rows 2 -> 6 (skips frame 1); track 7: 0 -> 4 -> 5.
+    # Sorted by (frame_a, frame_b, track): (0,1,t3) (0,1,t7) (0,2,t5) (1,2,t7) (1,3,t3).
+    assert rows_a.tolist() == [1, 0, 2, 4, 3]
+    assert rows_b.tolist() == [3, 4, 6, 5, 7]
+    assert rows_a.dtype == np.int64
+
+
+def test_pairs_of_empty_and_single_observation_tracks() -> None:
+    empty = Tracks(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
+    assert [a.tolist() for a in empty.pairs()] == [[], []]
+    single = Tracks(np.array([0, 1]), np.array([1, 2]), np.zeros((2, 2)))
+    assert [a.tolist() for a in single.pairs()] == [[], []]
+
+
+def test_pairs_of_the_fixture_log(log: FlightLog) -> None:
+    rows_a, rows_b = log.tracks.pairs()
+    assert rows_a.size == N_TRACKS * (N_FRAMES - 1)
+    np.testing.assert_array_equal(log.tracks.track_id[rows_a], log.tracks.track_id[rows_b])
+    np.testing.assert_array_equal(log.tracks.frame[rows_b], log.tracks.frame[rows_a] + 1)
+
+
+# --------------------------------------------------------------------------- interpolation
+
+
+def _yaw_quaternion(angle_rad: float) -> np.ndarray:
+    return np.array([math.cos(angle_rad / 2), 0.0, 0.0, math.sin(angle_rad / 2)])
+
+
+def _two_states(q1_sign: float = 1.0) -> States:
+    return States(t_ns=np.array([1_000, 3_000]),
+                  position_m=np.array([[0.0, 0.0, 100.0], [10.0, -4.0, 90.0]]),
+                  quaternion_wxyz=np.array([_yaw_quaternion(0.0),
+                                            q1_sign * _yaw_quaternion(math.pi / 2)]),
+                  velocity_mps=np.array([[1.0, 2.0, 3.0], [3.0, 2.0, 1.0]]))
+
+
+def _angle_between(q_a: np.ndarray, q_b: np.ndarray) -> float:
+    R = quat_wxyz_to_rotation(q_a).T @ quat_wxyz_to_rotation(q_b)
+    return float(np.linalg.norm(so3_log(R)))
+
+
+@pytest.mark.parametrize("q1_sign", [1.0, -1.0], ids=["same_hemisphere", "antipodal_sign"])
+def test_slerp_midpoint_and_quarter_point(q1_sign: float) -> None:
+    states = _two_states(q1_sign)
+    out = states.interpolate(np.array([2_000, 1_500]))
+    np.testing.assert_allclose(out.position_m[0], [5.0, -2.0, 95.0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(out.velocity_mps[0], [2.0, 2.0, 2.0], rtol=0, atol=1e-12)
+    # Slerp turns at a constant rate: 45 deg at the midpoint, 22.5 deg at a quarter
+    # (normalized linear interpolation would give 26.57 deg at the quarter).
+    assert _angle_between(out.quaternion_wxyz[0], _yaw_quaternion(math.pi / 4)) < ANGLE_TOL_RAD
+    assert _angle_between(out.quaternion_wxyz[1], _yaw_quaternion(math.pi / 8)) < ANGLE_TOL_RAD
+    np.testing.assert_allclose(np.linalg.norm(out.quaternion_wxyz, axis=1), 1.0, atol=1e-15)
+    np.testing.assert_array_equal(out.t_ns, [2_000, 1_500])
+
+
+def test_interpolation_at_sample_times_is_exact(rng) -> None:
+    n = 5
+    states = States(np.arange(n, dtype=np.int64) * 7 + T0_NS, rng.normal(size=(n, 3)),
+                    _random_quaternions(rng, n), rng.normal(size=(n, 3)))
+    assert states.interpolate(states.t_ns) == states
+    single = states.interpolate(int(states.t_ns[-1]))
+    assert len(single) == 1 and np.array_equal(single.position_m[0], states.position_m[-1])
+
+
+@pytest.mark.parametrize("t", [999, 3_001])
+def test_interpolation_outside_the_range_raises(t: int) -> None:
+    with pytest.raises(FlightLogError, match=f"t_ns={t}"):
+        _two_states().interpolate(np.array([2_000, t]))
+
+
+# --------------------------------------------------------------------------- dataclasses
+
+
+def test_dataclasses_check_shapes() -> None:
+    with pytest.raises(ValueError, match="gyro_radps"):
+        ImuSamples(np.arange(3), np.zeros((3, 2)), np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="integer"):
+        ImuSamples(np.arange(3.0), np.zeros((3, 3)), np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="length"):
+        Tracks(np.arange(3), np.arange(2), np.zeros((3, 2)))
+    with pytest.raises(ValueError, match="shape"):
+        CameraConfig(PinholeCamera.from_fov(10, 10, 60.0), 0.5, np.eye(3))
+
+
+def test_initial_state_world_T_body() -> None:
+    q = _yaw_quaternion(0.3)
+    state = InitialState([1.0, 2.0, 3.0], q, [0.0] * 3, [0.0] * 3, [0.0] * 3,
+                         1.0, 1.0, 1.0, 1.0, 1.0)
+    expected = make_pose(quat_wxyz_to_rotation(q), [1.0, 2.0, 3.0])
+    np.testing.assert_array_equal(state.world_T_body, expected)
+
+
+# --------------------------------------------------------------------------- odd bytes and headers
+
+
+def test_bytes_that_are_not_utf8_are_located(log: FlightLog) -> None:
+    path = log.root / "imu.csv"
+    data = path.read_bytes().split(b"\n")
+    data[4] = data[4].replace(b",", b",\xff", 1)  # line 5
+    path.write_bytes(b"\n".join(data))
+    _expect_error(log.root, "imu.csv", 5, "UTF-8")
+
+
+def test_a_first_row_with_a_number_first_is_data_not_a_header(log: FlightLog) -> None:
+    # A corrupt first data row must be reported, not skipped as if it were a header.
+    path = log.root / "imu.csv"
+    _delete_line(path, 1)
+    _set_value(path, 1, 3, "oops")
+    _expect_error(log.root, "imu.csv", 1, "gyro_z", "'oops'")
+
+
+def test_header_only_imu_has_no_samples(log: FlightLog) -> None:
+    (log.root / "imu.csv").write_text("#t_ns,gyro_x,gyro_y,gyro_z,acc_x,acc_y,acc_z\n")
+    _expect_error(log.root, "imu.csv", 2, "no IMU samples")
+
+
+def test_writer_refuses_image_names_it_could_not_read_back(log: FlightLog) -> None:
+    frames = Frames(log.frames.t_ns, ("a.png", "b,c.png", "", ""))
+    with pytest.raises(ValueError, match="comma"):
+        write_flightlog(FlightLog(log.root, log.config, log.imu, frames, log.tracks),
+                        log.root.parent / "other")
+    assert not (log.root.parent / "other").exists()
