@@ -1,0 +1,581 @@
+"""Smoothing a flight log: batch Levenberg-Marquardt and incremental iSAM2.
+
+``smooth(log, dtm, settings) -> SmootherResult`` does no file I/O. The batch solver
+drives Levenberg-Marquardt from Python over ``graph.linearize(values)``: GTSAM's own
+optimizers hand every ``CustomFactor`` call a fresh copy of all values, which makes
+an iteration quadratic in the flight length (DESIGN.md, "Performance notes").
+
+:class:`IncrementalSmoother` takes one frame at a time (its IMU samples and tracks)
+and returns the current estimate and the newest frame's covariance, with iSAM2
+underneath, or GTSAM's incremental fixed-lag smoother when a lag is given. Its pass
+over a log is also the batch initializer when the log has no ``nav.csv``.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import B, V, X
+
+from cdtm_graph.dtm import Dtm
+from cdtm_graph.errors import FlightLogError, SolverError
+from cdtm_graph.flightlog import FlightConfig, FlightLog, ImuSamples
+from cdtm_graph.graph import (
+    FramePairObservations,
+    GraphSettings,
+    ImuIntervals,
+    cdtm_factors,
+    explain_indeterminant,
+    feature_noise,
+    frame_pair_observations,
+    imu_factor,
+    initial_bias,
+    navstate_predict,
+    prior_factors,
+)
+from cdtm_graph.results import (
+    GraphCounts,
+    SmootherResult,
+    SolverStats,
+    StateCovariances,
+    TrajectoryEstimate,
+)
+
+log = logging.getLogger(__name__)
+
+#: ``progress(done, total)``: called once per frame on long runs.
+Progress = Callable[[int, int], None]
+
+
+class SmootherMode(enum.Enum):
+    BATCH = "batch"
+    INCREMENTAL = "incremental"
+
+
+@dataclass(frozen=True)
+class SmootherSettings:
+    """Settings of a smoothing run.
+
+    Attributes:
+        graph: how factors are built (plane mode, robust kernel, IMU hold).
+        mode: BATCH (LM over the whole log) or INCREMENTAL (iSAM2, one update per frame).
+        max_iterations: LM iterations (batch).
+        relative_error_tol: LM stops when the error decreases less than this, relatively.
+        lag_s: incremental only: a fixed-lag smoother of this lag (seconds); ``None``
+            keeps the full history in iSAM2.
+        final_iterations: incremental only: extra iSAM2 updates after the last frame
+            so the final estimate reaches the optimum.
+        marginals: compute per-frame marginal covariances.
+    """
+
+    graph: GraphSettings = field(default_factory=GraphSettings)
+    mode: SmootherMode = SmootherMode.BATCH
+    max_iterations: int = 30
+    relative_error_tol: float = 1e-7
+    lag_s: float | None = None
+    final_iterations: int = 3
+    marginals: bool = True
+
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        d["mode"] = self.mode.value
+        d["graph"] = {k: (v.value if isinstance(v, enum.Enum) else v)
+                      for k, v in asdict(self.graph).items()}
+        return d
+
+
+# -- batch ---------------------------------------------------------------------------
+
+
+def _damping_factors(keys: list[tuple[int, int]], lam: float) -> gtsam.GaussianFactorGraph:
+    """``lambda I`` on every variable, as unit-noise Jacobian factors."""
+    damping = gtsam.GaussianFactorGraph()
+    s = np.sqrt(lam)
+    for key, dim in keys:
+        damping.add(key, s * np.eye(dim), np.zeros(dim), gtsam.noiseModel.Unit.Create(dim))
+    return damping
+
+
+def levenberg_marquardt(
+    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iterations: int,
+    relative_error_tol: float, lambda_initial: float = 1e-6,
+) -> tuple[gtsam.Values, SolverStats]:
+    """Levenberg-Marquardt driven from Python on ``graph.linearize`` (no per-call copies).
+
+    Raises:
+        SolverError: the linear system is indeterminant (names the variable).
+    """
+    start = time.perf_counter()
+    keys = [(k, _dim_of(k)) for k in values.keys()]
+    error = graph.error(values)
+    initial_error = error
+    lam = lambda_initial
+    iterations = 0
+    converged = False
+    try:
+        while iterations < max_iterations:
+            iterations += 1
+            linear = graph.linearize(values)
+            improved = False
+            while lam < 1e12:
+                damped = gtsam.GaussianFactorGraph()
+                damped.push_back(linear)
+                damped.push_back(_damping_factors(keys, lam))
+                delta = damped.optimize()
+                candidate = values.retract(delta)
+                new_error = graph.error(candidate)
+                if new_error <= error:
+                    improved = True
+                    lam = max(lam / 10, 1e-12)
+                    break
+                lam *= 10
+            if not improved:
+                converged = True  # no descent direction left at this damping
+                break
+            decrease = (error - new_error) / max(error, 1e-300)
+            values, error = candidate, new_error
+            log.debug("LM iteration %d: error %.6g (lambda %.1e)", iterations, error, lam)
+            if decrease < relative_error_tol:
+                converged = True
+                break
+    except RuntimeError as exc:
+        raise explain_indeterminant(exc) from None
+    return values, SolverStats("batch", iterations, initial_error, error, converged,
+                               time.perf_counter() - start)
+
+
+def _dim_of(key: int) -> int:
+    return {"x": 6, "v": 3, "b": 6}[chr(gtsam.Symbol(key).chr())]
+
+
+def _estimate_from_values(values: gtsam.Values, t_ns: np.ndarray) -> TrajectoryEstimate:
+    K = t_ns.shape[0]
+    poses = np.stack([values.atPose3(X(k)).matrix() for k in range(K)])
+    vel = np.stack([values.atVector(V(k)) for k in range(K)])
+    biases = [values.atConstantBias(B(k)) for k in range(K)]
+    return TrajectoryEstimate(
+        t_ns=np.asarray(t_ns, dtype=np.int64), world_T_body=poses, velocity_mps=vel,
+        gyro_bias=np.stack([b.gyroscope() for b in biases]),
+        accel_bias=np.stack([b.accelerometer() for b in biases]))
+
+
+def _marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+               K: int) -> StateCovariances:
+    try:
+        marginals = gtsam.Marginals(graph, values)
+        pose = np.stack([marginals.marginalCovariance(X(k)) for k in range(K)])
+        vel = np.stack([marginals.marginalCovariance(V(k)) for k in range(K)])
+        bias = np.stack([marginals.marginalCovariance(B(k)) for k in range(K)])
+    except RuntimeError as exc:
+        raise explain_indeterminant(exc) from None
+    return StateCovariances(pose, vel, bias)
+
+
+@dataclass
+class _LogGraph:
+    """Everything the batch solver builds from a log."""
+
+    graph: gtsam.NonlinearFactorGraph
+    values: gtsam.Values
+    counts: GraphCounts
+
+
+def _observation_counts(flight: FlightLog, pairs: list[FramePairObservations]) -> tuple[int, int, int]:
+    tracks = flight.tracks
+    if tracks is None:
+        return 0, 0, 0
+    return (int(np.unique(tracks.track_id).size), len(tracks),
+            int(sum(p.q_a.shape[0] for p in pairs)))
+
+
+def _initial_values(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
+                    intervals: ImuIntervals, progress: Progress | None) -> tuple[gtsam.Values, str]:
+    """Initial guess: nav.csv if present, else the incremental pass (dead reckoning
+    corrected frame by frame)."""
+    K = len(flight.frames)
+    values = gtsam.Values()
+    bias = initial_bias(flight.config.initial_state)
+    if flight.nav is not None:
+        poses = flight.nav.world_T_body
+        for k in range(K):
+            values.insert(X(k), gtsam.Pose3(poses[k]))
+            values.insert(V(k), np.asarray(flight.nav.velocity_mps[k], dtype=float))
+            values.insert(B(k), bias)
+        return values, "nav.csv"
+    incremental = IncrementalSmoother(flight.config, dtm, settings.graph, imu=flight.imu)
+    incremental.run(flight, progress)
+    return incremental.values(), "incremental pass"
+
+
+def build_log_graph(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
+                    initial: gtsam.Values, intervals: ImuIntervals) -> _LogGraph:
+    """Priors, IMU factors and C-DTM factors of the whole log, planes cast from ``initial``."""
+    K = len(flight.frames)
+    t = flight.frames.t_ns
+    graph = prior_factors(flight.config.initial_state)
+    bias0 = initial_bias(flight.config.initial_state)
+    for k in range(K - 1):
+        graph.add(imu_factor(k, intervals.preintegrate(int(t[k]), int(t[k + 1]), bias0)))
+    pairs = (frame_pair_observations(flight.tracks, flight.config.camera.camera)
+             if flight.tracks is not None else [])
+    poses = [initial.atPose3(X(k)).matrix() for k in range(K)]
+    build = cdtm_factors(pairs, poses, flight.config.camera.body_T_cam, dtm,
+                         feature_noise(flight.config, dtm, settings.graph), settings.graph)
+    for f in build.factors:
+        graph.add(f.factor)
+    n_tracks, n_obs, n_pairs = _observation_counts(flight, pairs)
+    per_frame = np.zeros(K, dtype=int)
+    for k, n in build.features_per_frame.items():
+        per_frame[k] = n
+    counts = GraphCounts(K, n_tracks, n_obs, n_pairs, build.n_features, build.n_missed,
+                         len(build.factors), K - 1, per_frame)
+    return _LogGraph(graph, initial, counts)
+
+
+def _frame_flags(counts: GraphCounts) -> dict:
+    flags: dict[int, list[str]] = {}
+    for k in range(1, counts.n_frames):
+        if counts.features_per_frame[k] == 0:
+            flags.setdefault(k, []).append("no_features")
+    return flags
+
+
+def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None,
+           progress: Progress | None = None) -> SmootherResult:
+    """Smooth a flight log (batch LM, or the incremental smoother's pass).
+
+    Args:
+        flight: the log (``read_flightlog``). dtm: its terrain (``load_dtm``).
+        settings: solver settings. progress: per-frame callback on long runs.
+
+    Returns:
+        Smoothed states, per-frame covariances, statistics and counts.
+
+    Raises:
+        SolverError: indeterminant system (names the variable and the likely cause).
+        FlightLogError: the log has fewer than two frames.
+    """
+    settings = settings or SmootherSettings()
+    if len(flight.frames) < 2:
+        raise FlightLogError(f"{flight.root / 'frames.csv'}: {len(flight.frames)} frame(s); "
+                             "expected at least 2")
+    if settings.mode is SmootherMode.INCREMENTAL:
+        smoother = IncrementalSmoother(flight.config, dtm, settings.graph, lag_s=settings.lag_s,
+                                       imu=flight.imu)
+        return smoother.run(flight, progress, final_iterations=settings.final_iterations,
+                            settings_dict=settings.as_dict())
+    intervals = ImuIntervals(flight.config, flight.imu, settings.graph.imu_hold)
+    initial, source = _initial_values(flight, dtm, settings, intervals, progress)
+    built = build_log_graph(flight, dtm, settings, initial, intervals)
+    values, stats = levenberg_marquardt(built.graph, initial, settings.max_iterations,
+                                        settings.relative_error_tol)
+    K = len(flight.frames)
+    start = time.perf_counter()
+    covariances = (_marginals(built.graph, values, K) if settings.marginals else
+                   StateCovariances(np.full((K, 6, 6), np.nan), np.full((K, 3, 3), np.nan),
+                                    np.full((K, 6, 6), np.nan)))
+    stats = SolverStats(stats.mode, stats.iterations, stats.initial_error, stats.final_error,
+                        stats.converged, stats.time_s, time.perf_counter() - start)
+    settings_dict = settings.as_dict()
+    settings_dict["initial_values"] = source
+    return SmootherResult(_estimate_from_values(values, flight.frames.t_ns), covariances, stats,
+                          built.counts, settings_dict, _frame_flags(built.counts))
+
+
+# -- incremental ---------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FrameUpdate:
+    """What the incremental smoother knows right after a frame.
+
+    Attributes:
+        frame: index of the newest frame. t_ns: its time.
+        world_T_body: (4, 4) its current estimate. velocity_mps: (3,).
+        pose_covariance: (6, 6) its marginal, GTSAM tangent order [rot, trans], body frame.
+        n_features: C-DTM features that arrived with it. update_time_s: the update's cost.
+    """
+
+    frame: int
+    t_ns: int
+    world_T_body: np.ndarray
+    velocity_mps: np.ndarray
+    pose_covariance: np.ndarray
+    n_features: int
+    update_time_s: float
+
+
+def isam2_params() -> gtsam.ISAM2Params:
+    """iSAM2 tuned as DESIGN.md measured: per-type thresholds, relinearize every 10th update."""
+    params = gtsam.ISAM2Params()
+    thresholds = gtsam.ISAM2ThresholdMap()
+    thresholds.insert(("x", np.r_[[0.01] * 3, [1.0] * 3]))
+    thresholds.insert(("v", np.full(3, 0.1)))
+    thresholds.insert(("b", np.full(6, 1e-3)))
+    params.setRelinearizeThreshold(thresholds)
+    params.relinearizeSkip = 10
+    # Cholesky declares the IMU + prior system indeterminant at frame 1 (information
+    # spans ~1e-4..1e9 across pose, velocity and bias); QR is stable there.
+    params.setFactorization("QR")
+    params.cacheLinearizedFactors = True
+    params.enablePartialRelinearizationCheck = True
+    return params
+
+
+class IncrementalSmoother:
+    """Feed one frame at a time; get the current estimate and the newest covariance.
+
+    Example::
+
+        smoother = IncrementalSmoother(flight.config, dtm, imu=flight.imu)
+        for k in range(len(flight.frames)):
+            update = smoother.add_frame(t_ns[k], track_ids_k, uv_px_k)
+
+    Args:
+        config: the log's flight.yaml (camera, IMU noise, initial state).
+        dtm: the terrain.
+        settings: graph settings.
+        lag_s: use GTSAM's ``IncrementalFixedLagSmoother`` with this lag; ``None`` keeps
+            the full history in iSAM2.
+        imu: IMU samples known up front (a log); otherwise feed them with ``add_imu``.
+    """
+
+    def __init__(self, config: FlightConfig, dtm: Dtm, settings: GraphSettings | None = None,
+                 lag_s: float | None = None, imu: ImuSamples | None = None):
+        self.config = config
+        self.dtm = dtm
+        self.settings = settings or GraphSettings()
+        self.lag_s = lag_s
+        self._imu = imu or ImuSamples(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
+        self._intervals = ImuIntervals(config, self._imu, self.settings.imu_hold)
+        self._noise = feature_noise(config, dtm, self.settings)
+        self._camera = config.camera.camera
+        self._body_T_cam = config.camera.body_T_cam
+        if lag_s is None:
+            self._isam = gtsam.ISAM2(isam2_params())
+            self._fls = None
+        else:
+            self._fls = gtsam.IncrementalFixedLagSmoother(lag_s, isam2_params())
+            self._isam = None
+        self._t_ns: list[int] = []
+        self._poses: dict[int, np.ndarray] = {}  # latest estimate of every frame
+        self._velocities: dict[int, np.ndarray] = {}
+        self._biases: dict[int, gtsam.imuBias.ConstantBias] = {}
+        self._last_seen: dict[int, tuple[int, np.ndarray]] = {}  # track -> (frame, q)
+        self._factors_by_frame: dict[int, int] = {}
+        self.n_features = 0
+        self.n_missed = 0
+        self.n_too_old = 0
+        self.n_cdtm_factors = 0
+        self.update_times_s: list[float] = []
+        self._pair_count = 0
+        self._observations = 0
+        self._track_ids: set[int] = set()
+
+    # -- input ------------------------------------------------------------------------
+
+    def add_imu(self, imu: ImuSamples) -> None:
+        """Append IMU samples (times after the ones already held)."""
+        old = self._imu
+        if old.t_ns.size and imu.t_ns.size and imu.t_ns[0] <= old.t_ns[-1]:
+            raise FlightLogError("IMU samples must arrive in increasing time order")
+        self._imu = ImuSamples(np.r_[old.t_ns, imu.t_ns], np.r_[old.gyro_radps, imu.gyro_radps],
+                               np.r_[old.acc_mps2, imu.acc_mps2])
+        self._intervals.imu = self._imu
+
+    def add_frame(self, t_ns: int, track_id: np.ndarray | None = None,
+                  uv_px: np.ndarray | None = None, imu: ImuSamples | None = None) -> FrameUpdate:
+        """Add the next frame: its time, its tracked features, and new IMU samples.
+
+        Args:
+            t_ns: frame time (after the previous frame's).
+            track_id: (m,) ids of the features seen in this frame.
+            uv_px: (m, 2) their pixels.
+            imu: IMU samples since the last call (optional if given at construction).
+
+        Returns:
+            The newest frame's estimate and covariance.
+        """
+        start = time.perf_counter()
+        if imu is not None and len(imu):
+            self.add_imu(imu)
+        k = len(self._t_ns)
+        if k and t_ns <= self._t_ns[-1]:
+            raise FlightLogError(f"frame {k}: time {t_ns} ns is not after the previous frame")
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        if k == 0:
+            init = self.config.initial_state
+            graph.push_back(prior_factors(init, 0))
+            pose, vel, bias = init.world_T_body, np.asarray(init.velocity_mps, float), initial_bias(init)
+        else:
+            bias = self._biases[k - 1]
+            pim = self._intervals.preintegrate(self._t_ns[-1], int(t_ns), bias)
+            graph.add(imu_factor(k - 1, pim))
+            pose, vel = navstate_predict(pim, self._poses[k - 1], self._velocities[k - 1], bias)
+        values.insert(X(k), gtsam.Pose3(pose))
+        values.insert(V(k), vel)
+        values.insert(B(k), bias)
+        self._t_ns.append(int(t_ns))
+        self._poses[k], self._velocities[k], self._biases[k] = pose, vel, bias
+        n_new = 0
+        if track_id is not None and len(track_id):
+            n_new = self._add_cdtm(k, np.asarray(track_id, dtype=np.int64),
+                                   np.asarray(uv_px, dtype=float), graph)
+        self._update(graph, values, k)
+        cov = self._marginal(k)
+        elapsed = time.perf_counter() - start
+        self.update_times_s.append(elapsed)
+        return FrameUpdate(k, int(t_ns), self._poses[k], self._velocities[k], cov, n_new, elapsed)
+
+    def _add_cdtm(self, k: int, track_id: np.ndarray, uv_px: np.ndarray,
+                  graph: gtsam.NonlinearFactorGraph) -> int:
+        q = self._camera.pixels_to_rays(uv_px)
+        self._observations += len(track_id)
+        by_frame: dict[int, tuple[list[np.ndarray], list[np.ndarray], list[int]]] = {}
+        t_k = self._t_ns[k]
+        for tid, q_b in zip(track_id.tolist(), q):
+            self._track_ids.add(tid)
+            prev = self._last_seen.get(tid)
+            self._last_seen[tid] = (k, q_b)
+            if prev is None:
+                continue
+            a, q_a = prev
+            self._pair_count += 1
+            if self.lag_s is not None and (t_k - self._t_ns[a]) * 1e-9 >= self.lag_s:
+                self.n_too_old += 1  # X(a) already marginalized out of the window
+                continue
+            entry = by_frame.setdefault(a, ([], [], []))
+            entry[0].append(q_a)
+            entry[1].append(q_b)
+            entry[2].append(tid)
+        pairs = [FramePairObservations(a, k, np.asarray(qa), np.asarray(qb), np.asarray(ids))
+                 for a, (qa, qb, ids) in sorted(by_frame.items())]
+        build = cdtm_factors(pairs, self._poses, self._body_T_cam, self.dtm, self._noise,
+                             self.settings)
+        for f in build.factors:
+            graph.add(f.factor)
+        self.n_features += build.n_features
+        self.n_missed += build.n_missed
+        self.n_cdtm_factors += len(build.factors)
+        self._factors_by_frame[k] = build.n_features
+        return build.n_features
+
+    def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, k: int) -> None:
+        try:
+            if self._fls is not None:
+                stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+                t_s = self._t_ns[k] * 1e-9
+                for key in (X(k), V(k), B(k)):
+                    stamps.insert((key, t_s))
+                self._fls.update(graph, values, stamps)
+                estimate = self._fls.calculateEstimate()
+            else:
+                self._isam.update(graph, values)
+                estimate = self._isam.calculateEstimate()
+        except RuntimeError as exc:
+            raise explain_indeterminant(exc) from None
+        self._refresh(estimate)
+
+    def _refresh(self, estimate: gtsam.Values) -> None:
+        for key in estimate.keys():
+            sym = gtsam.Symbol(key)
+            i, c = int(sym.index()), chr(sym.chr())
+            if c == "x":
+                self._poses[i] = estimate.atPose3(key).matrix()
+            elif c == "v":
+                self._velocities[i] = np.asarray(estimate.atVector(key))
+            elif c == "b":
+                self._biases[i] = estimate.atConstantBias(key)
+
+    def _marginal(self, k: int) -> np.ndarray:
+        try:
+            if self._fls is not None:
+                return np.asarray(self._fls.marginalCovariance(X(k)))
+            return np.asarray(self._isam.marginalCovariance(X(k)))
+        except RuntimeError as exc:
+            raise explain_indeterminant(exc) from None
+
+    # -- results ----------------------------------------------------------------------
+
+    def finalize(self, iterations: int = 3) -> None:
+        """Extra updates with no new data, so the estimate reaches the optimum."""
+        for _ in range(iterations):
+            if self._fls is not None:
+                self._fls.update()
+                estimate = self._fls.calculateEstimate()
+            else:
+                self._isam.update()
+                estimate = self._isam.calculateEstimate()
+            self._refresh(estimate)
+
+    def values(self) -> gtsam.Values:
+        """Latest estimate of every frame so far (frames out of a lag window keep the
+        estimate they had when they left it)."""
+        values = gtsam.Values()
+        for k in range(len(self._t_ns)):
+            values.insert(X(k), gtsam.Pose3(self._poses[k]))
+            values.insert(V(k), self._velocities[k])
+            values.insert(B(k), self._biases[k])
+        return values
+
+    def estimate(self) -> TrajectoryEstimate:
+        return _estimate_from_values(self.values(), np.asarray(self._t_ns, dtype=np.int64))
+
+    def covariances(self) -> StateCovariances:
+        """Marginals of every frame (full-history iSAM2), or of the frames still in the
+        window (fixed lag; NaN for the others)."""
+        K = len(self._t_ns)
+        pose = np.full((K, 6, 6), np.nan)
+        vel = np.full((K, 3, 3), np.nan)
+        bias = np.full((K, 6, 6), np.nan)
+        source = self._fls if self._fls is not None else self._isam
+        current = (self._fls.calculateEstimate() if self._fls is not None
+                   else self._isam.calculateEstimate())
+        try:
+            for k in range(K):
+                if not current.exists(X(k)):
+                    continue
+                pose[k] = source.marginalCovariance(X(k))
+                vel[k] = source.marginalCovariance(V(k))
+                bias[k] = source.marginalCovariance(B(k))
+        except RuntimeError as exc:
+            raise explain_indeterminant(exc) from None
+        return StateCovariances(pose, vel, bias)
+
+    def run(self, flight: FlightLog, progress: Progress | None = None, final_iterations: int = 3,
+            settings_dict: dict | None = None) -> SmootherResult:
+        """Feed a whole log frame by frame; return the result like :func:`smooth`."""
+        start = time.perf_counter()
+        K = len(flight.frames)
+        tracks = flight.tracks
+        if tracks is not None:
+            bounds = np.searchsorted(tracks.frame, np.arange(K + 1))
+        for k in range(K):
+            if tracks is not None:
+                s, e = bounds[k], bounds[k + 1]
+                self.add_frame(int(flight.frames.t_ns[k]), tracks.track_id[s:e], tracks.uv_px[s:e])
+            else:
+                self.add_frame(int(flight.frames.t_ns[k]))
+            if progress is not None:
+                progress(k + 1, K)
+        self.finalize(final_iterations)
+        elapsed = time.perf_counter() - start
+        t0 = time.perf_counter()
+        covariances = self.covariances()
+        per_frame = np.array([self._factors_by_frame.get(k, 0) for k in range(K)])
+        counts = GraphCounts(K, len(self._track_ids), self._observations, self._pair_count,
+                             self.n_features, self.n_missed, self.n_cdtm_factors, K - 1, per_frame)
+        stats = SolverStats("incremental" if self.lag_s is None else "fixed_lag", K, float("nan"),
+                            float("nan"), True, elapsed, time.perf_counter() - t0,
+                            tuple(self.update_times_s))
+        settings = dict(settings_dict or {})
+        settings["n_too_old_for_lag"] = self.n_too_old
+        return SmootherResult(self.estimate(), covariances, stats, counts, settings,
+                              _frame_flags(counts))
