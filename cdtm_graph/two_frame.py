@@ -125,6 +125,58 @@ def _optimize(
     return estimate, optimizer.iterations()
 
 
+@dataclass(frozen=True)
+class PairUncertainty:
+    """Uncertainty of a frame pair linearized at given poses (no optimization).
+
+    Attributes:
+        covariance_ab: (12, 12) GTSAM's joint marginal of ``(X(a), X(b))`` of the
+            C-DTM-only two-frame graph ([omega_a, v_a, omega_b, v_b], body frame).
+        sigma_theta_gtsam: (12, 12) that marginal mapped to the paper's theta.
+        analysis: the closed form (both eq. 13 forms, Sigma_C2, verdict).
+    """
+
+    covariance_ab: np.ndarray
+    sigma_theta_gtsam: np.ndarray
+    analysis: ClosedFormAnalysis
+
+
+def pair_uncertainty(
+    world_T_body_a: np.ndarray, world_T_body_b: np.ndarray, body_T_cam: np.ndarray,
+    q_a: np.ndarray, q_b: np.ndarray, G_E: np.ndarray, N: np.ndarray, noise: FeatureNoise,
+    settings: TwoFrameSettings | None = None,
+) -> PairUncertainty:
+    """GTSAM's marginals and the closed form of one frame pair at the given poses.
+
+    Raises:
+        DegenerateGeometryError: degenerate geometry, unless
+            ``settings.raise_on_degenerate`` is False (then covariances may be inf).
+    """
+    settings = settings or TwoFrameSettings()
+    wTc_a, wTc_b = world_T_body_a @ body_T_cam, world_T_body_b @ body_T_cam
+    features = PairFeatures.build(wTc_a, wTc_b, q_a, q_b, G_E, N, noise)
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(CdtmPairFactor(X(0), X(1), features, body_T_cam).factor)
+    values = gtsam.Values()
+    values.insert(X(0), gtsam.Pose3(world_T_body_a))
+    values.insert(X(1), gtsam.Pose3(world_T_body_b))
+    analysis = analyze_pair(wTc_a, wTc_b, q_a, q_b, G_E, N, noise, settings.degeneracy,
+                            Sigma_f=features.Sigma_f)
+    _raise_or_log(analysis.degeneracy, settings)
+    try:
+        cov = gtsam.Marginals(graph, values).jointMarginalCovariance([X(0), X(1)]).fullMatrix()
+    except RuntimeError as exc:
+        if settings.raise_on_degenerate:
+            raise DegenerateGeometryError(
+                f"degenerate geometry: GTSAM marginals failed ({str(exc).strip()})",
+                ("ill_conditioned",)) from None
+        cov = np.full((12, 12), np.inf)  # flagged above: no confident covariance
+    H = theta_jacobian_wrt_body_tangents(world_T_body_a, world_T_body_b, body_T_cam)
+    with np.errstate(invalid="ignore"):  # a flagged, singular result carries inf
+        sigma_theta = H @ cov @ H.T
+    return PairUncertainty(cov, sigma_theta, analysis)
+
+
 def solve_two_frame(
     q_a: np.ndarray,
     q_b: np.ndarray,
@@ -182,32 +234,15 @@ def solve_two_frame(
     Tb = estimate.atPose3(X(1)).matrix()
 
     # Linearize the uncertainty at the estimate: planes and noise from the final poses.
-    wTc_a, wTc_b = Ta @ body_T_cam, Tb @ body_T_cam
-    G_E, N = pair.planes(wTc_a)
-    features = PairFeatures.build(wTc_a, wTc_b, q_a, q_b, G_E, N, noise)
-    final = gtsam.NonlinearFactorGraph()
-    final.add(CdtmPairFactor(X(0), X(1), features, body_T_cam).factor)
-    analysis = analyze_pair(wTc_a, wTc_b, q_a, q_b, G_E, N, noise, settings.degeneracy,
-                            Sigma_f=features.Sigma_f)
-    _raise_or_log(analysis.degeneracy, settings)
-    try:
-        cov = gtsam.Marginals(final, estimate).jointMarginalCovariance([X(0), X(1)]).fullMatrix()
-    except RuntimeError as exc:
-        if settings.raise_on_degenerate:
-            raise DegenerateGeometryError(
-                f"degenerate geometry: GTSAM marginals failed ({str(exc).strip()})",
-                ("ill_conditioned",)) from None
-        cov = np.full((12, 12), np.inf)  # flagged above: no confident covariance
-    H = theta_jacobian_wrt_body_tangents(Ta, Tb, body_T_cam)
+    G_E, N = pair.planes(Ta @ body_T_cam)
+    unc = pair_uncertainty(Ta, Tb, body_T_cam, q_a, q_b, G_E, N, noise, settings)
     converged = bool(np.isfinite(final_error) and iterations < settings.max_iterations)
-    with np.errstate(invalid="ignore"):  # a flagged, singular result carries inf
-        sigma_theta = H @ cov @ H.T
     return TwoFrameResult(
         world_T_body_a=Ta,
         world_T_body_b=Tb,
-        covariance_ab=cov,
-        sigma_theta_gtsam=sigma_theta,
-        analysis=analysis,
+        covariance_ab=unc.covariance_ab,
+        sigma_theta_gtsam=unc.sigma_theta_gtsam,
+        analysis=unc.analysis,
         iterations=iterations,
         initial_error=initial_error,
         final_error=final_error,
@@ -215,3 +250,68 @@ def solve_two_frame(
         n_features=int(q_a.shape[0]),
         n_missed=n_missed,
     )
+
+
+@dataclass(frozen=True)
+class LogPairAnalysis:
+    """``cdtm analyze``: the uncertainty of frames a, b of a flight log at given poses."""
+
+    frame_a: int
+    frame_b: int
+    poses_from: str
+    n_features: int
+    n_missed: int
+    uncertainty: PairUncertainty
+
+
+def analyze_log_pair(flight, dtm, frame_a: int, frame_b: int, poses_from: str = "groundtruth",
+                     ) -> LogPairAnalysis:
+    """Linearize the C-DTM problem of two frames of a log at known poses (no solve).
+
+    The features are the tracks seen in both frames; ``G_E`` and ``N`` come from ray
+    casting from pose a. The noise is the paper's (``q_a`` exact, eqs. 21-26).
+
+    Args:
+        flight: the log. dtm: its terrain.
+        frame_a, frame_b: frame indices (rows of frames.csv), a != b.
+        poses_from: "groundtruth" (interpolated to the frame times) or "nav".
+
+    Raises:
+        FlightLogError: bad frame indices, or the pose source is missing.
+    """
+    from cdtm_graph.errors import FlightLogError
+    from cdtm_graph.graph import dtm_ray_caster
+
+    K = len(flight.frames)
+    for name, k in (("A", frame_a), ("B", frame_b)):
+        if not 0 <= k < K:
+            raise FlightLogError(f"{flight.root / 'frames.csv'}: frame {name}={k} does not "
+                                 f"exist; expected 0 <= frame < {K}")
+    if frame_a == frame_b:
+        raise FlightLogError(f"frames A and B are both {frame_a}; expected two different frames")
+    states = {"groundtruth": flight.groundtruth, "nav": flight.nav}.get(poses_from)
+    if states is None:
+        raise FlightLogError(f"{flight.root}: no {poses_from}.csv to take the poses from; "
+                             "expected --at groundtruth or --at nav with that file present")
+    poses = states.interpolate(flight.frames.t_ns[[frame_a, frame_b]]).world_T_body
+    tracks = flight.tracks
+    if tracks is None:
+        raise FlightLogError(f"{flight.root / 'tracks.csv'}: missing; expected feature tracks")
+    in_a = tracks.frame == frame_a
+    in_b = tracks.frame == frame_b
+    common, ia, ib = np.intersect1d(tracks.track_id[in_a], tracks.track_id[in_b],
+                                    return_indices=True)
+    camera = flight.config.camera.camera
+    q_a = camera.pixels_to_rays(tracks.uv_px[in_a][ia])
+    q_b = camera.pixels_to_rays(tracks.uv_px[in_b][ib])
+    body_T_cam = flight.config.camera.body_T_cam
+    wTc_a = poses[0] @ body_T_cam
+    ray = q_a @ wTc_a[:3, :3].T
+    G_E, N, valid = dtm_ray_caster(dtm)(np.broadcast_to(wTc_a[:3, 3], ray.shape), ray)
+    cam_cfg = flight.config.camera
+    sigma_h = flight.config.dtm.sigma_h_m if flight.config.dtm.sigma_h_m is not None else dtm.sigma_h()
+    noise = FeatureNoise(camera.sigma_normalized(cam_cfg.pixel_sigma_px), sigma_h)
+    unc = pair_uncertainty(poses[0], poses[1], body_T_cam, q_a[valid], q_b[valid], G_E[valid],
+                           N[valid], noise, TwoFrameSettings(raise_on_degenerate=False))
+    return LogPairAnalysis(frame_a, frame_b, poses_from, int(valid.sum()),
+                           int((~valid).sum()), unc)
