@@ -115,13 +115,12 @@ def jacobian_theta(
     Nr = np.einsum("ni,ni->n", N, q_a @ R1.T)
     L = q_a[:, :, None] * N[:, None, :] / Nr[:, None, None]  # eq. 2
     LG = np.einsum("nij,nj->ni", L, G_E - p1)  # L (G_E - p1) = lambda q_a
+    A = NP @ R12 @ L
     J = np.empty((q_a.shape[0], 3, 12))
-    J[:, :, 0:3] = -NP @ R12 @ L  # eq. 15
-    for k in range(3):
-        dR1_LG = np.einsum("ij,nj->ni", dR1[k], LG)
-        J[:, :, 3 + k] = -np.einsum("nij,nj->ni", NP @ R12 @ L, dR1_LG)  # eq. 16
-        J[:, :, 9 + k] = np.einsum("nij,nj->ni", NP, LG @ dR12[k].T)  # eq. 18
+    J[:, :, 0:3] = -A  # eq. 15
+    J[:, :, 3:6] = -A @ np.einsum("kij,nj->nik", dR1, LG)  # eq. 16, one column per angle
     J[:, :, 6:9] = NP  # eq. 17
+    J[:, :, 9:12] = NP @ np.einsum("kij,nj->nik", dR12, LG)  # eq. 18
     return J
 
 

@@ -343,6 +343,31 @@ class Dtm:
         )
         return RayHits(point=point, t=t, normal=normal, status=status)
 
+    def tangent_planes(
+        self, origins: np.ndarray, directions: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The C-DTM factor's ray caster: ``(points (N,3), normals (N,3), hit (N,))``.
+
+        Same exact first hit as :meth:`raycast`, without its input checks: the
+        re-intersecting factor calls this at every linearization.
+
+        Args:
+            origins: (N, 3) or (3,) ray origins. directions: (N, 3) ray directions.
+        """
+        d = np.ascontiguousarray(directions, dtype=np.float64)
+        n = d.shape[0]
+        o = np.ascontiguousarray(np.broadcast_to(np.asarray(origins, dtype=np.float64), d.shape))
+        point = np.empty((n, 3))
+        t = np.empty(n)
+        normal = np.empty((n, 3))
+        status = np.empty(n, dtype=np.int8)
+        point.fill(np.nan)
+        normal.fill(np.nan)
+        status.fill(RayStatus.MISS)
+        _raycast_kernel(self.elevation, self._cell_max, self.x0, self.y0, self.dx, self.dy,
+                        self._z_top, o, d, point, t, normal, status)
+        return point, normal, status == RayStatus.HIT
+
     # -- conversions -----------------------------------------------------------------
 
     def to_trimesh(self) -> trimesh.Trimesh:

@@ -48,13 +48,8 @@ class GraphSettings:
 
 
 def dtm_ray_caster(dtm: Dtm):
-    """Adapt :meth:`Dtm.raycast` to the factor's ``RayCaster`` signature."""
-
-    def raycast(origins: np.ndarray, directions: np.ndarray):
-        hits = dtm.raycast(origins, directions)
-        return hits.point, hits.normal, hits.hit
-
-    return raycast
+    """The factor's ``RayCaster`` for a DTM (:meth:`Dtm.tangent_planes`)."""
+    return dtm.tangent_planes
 
 
 def feature_noise(config: FlightConfig, dtm: Dtm, settings: GraphSettings) -> FeatureNoise:

@@ -36,8 +36,9 @@ from factors.kernel import (
     cdtm_linearize,
 )
 
-#: ``raycast(origins (n,3), directions (n,3)) -> (points (n,3), normals (n,3), valid (n,))``,
-#: normals ``(-dh/dx, -dh/dy, 1)``. The factor stays free of any DTM class.
+#: ``raycast(origin (3,) or (n,3), directions (n,3)) -> (points, normals, valid)``, fresh
+#: (n,3), (n,3), (n,) arrays; normals ``(-dh/dx, -dh/dy, 1)``. The factor stays free of
+#: any DTM class.
 RayCaster = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
 
 
@@ -204,11 +205,11 @@ class CdtmPairFactor:
         if self.plane_mode is PlaneMode.FIXED:
             return f.G_E, f.N
         ray = f.q_a @ world_T_cam_a[:3, :3].T
-        origins = np.broadcast_to(world_T_cam_a[:3, 3], ray.shape)
-        points, normals, valid = self.raycast(origins, ray)
-        G_E = np.where(valid[:, None], points, f.G_E)
-        N = np.where(valid[:, None], normals, f.N)
-        return np.ascontiguousarray(G_E), np.ascontiguousarray(N)
+        points, normals, valid = self.raycast(world_T_cam_a[:3, 3], ray)
+        if not valid.all():
+            points[~valid] = f.G_E[~valid]
+            normals[~valid] = f.N[~valid]
+        return points, normals
 
     def evaluate(
         self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray, want_jacobians: bool = True

@@ -80,8 +80,8 @@ class WavyTerrain:
         return np.stack([-hx, -hy, np.ones_like(hx)], axis=-1)
 
     def raycast(self, origins, directions):
-        o = np.asarray(origins, dtype=float)
         d = np.asarray(directions, dtype=float)
+        o = np.broadcast_to(np.asarray(origins, dtype=float), d.shape)
         t = (o[:, 2] - self.base) / -d[:, 2]
         for _ in range(60):
             x = o + t[:, None] * d
