@@ -196,6 +196,7 @@ class CdtmPairFactor:
         self._Ha = np.empty((n, 2, 6))
         self._Hb = np.empty((n, 2, 6))
         self.n_inactive = 0
+        self._planes_cache: tuple[bytes, np.ndarray, np.ndarray] | None = None
         self.factor = gtsam.CustomFactor(
             gtsam.noiseModel.Unit.Create(2 * n), [key_a, key_b], self._error)
 
@@ -204,11 +205,17 @@ class CdtmPairFactor:
         f = self.features
         if self.plane_mode is PlaneMode.FIXED:
             return f.G_E, f.N
+        # An optimizer evaluates the error at a candidate and then linearizes at the
+        # same values: cast once per distinct camera-a pose.
+        key = world_T_cam_a.tobytes()
+        if self._planes_cache is not None and self._planes_cache[0] == key:
+            return self._planes_cache[1], self._planes_cache[2]
         ray = f.q_a @ world_T_cam_a[:3, :3].T
         points, normals, valid = self.raycast(world_T_cam_a[:3, 3], ray)
         if not valid.all():
             points[~valid] = f.G_E[~valid]
             normals[~valid] = f.N[~valid]
+        self._planes_cache = (key, points, normals)
         return points, normals
 
     def evaluate(
