@@ -408,7 +408,9 @@ class IncrementalSmoother:
         self._poses: dict[int, np.ndarray] = {}  # latest estimate of every frame
         self._velocities: dict[int, np.ndarray] = {}
         self._biases: dict[int, gtsam.imuBias.ConstantBias] = {}
-        self._last_seen: dict[int, tuple[int, np.ndarray]] = {}  # track -> (frame, q)
+        self._seen_ids = np.zeros(0, dtype=np.int64)  # sorted track ids seen so far
+        self._seen_frame = np.zeros(0, dtype=np.int64)  # ... their last frame
+        self._seen_q = np.zeros((0, 3))  # ... and ray there
         self._factors_by_frame: dict[int, int] = {}
         self.n_features = 0
         self.n_missed = 0
@@ -417,7 +419,6 @@ class IncrementalSmoother:
         self.update_times_s: list[float] = []
         self._pair_count = 0
         self._observations = 0
-        self._track_ids: set[int] = set()
 
     # -- input ------------------------------------------------------------------------
 
@@ -479,25 +480,44 @@ class IncrementalSmoother:
                   graph: gtsam.NonlinearFactorGraph) -> int:
         q = self._camera.pixels_to_rays(uv_px)
         self._observations += len(track_id)
-        by_frame: dict[int, tuple[list[np.ndarray], list[np.ndarray], list[int]]] = {}
-        t_k = self._t_ns[k]
-        for tid, q_b in zip(track_id.tolist(), q):
-            self._track_ids.add(tid)
-            prev = self._last_seen.get(tid)
-            self._last_seen[tid] = (k, q_b)
-            if prev is None:
-                continue
-            a, q_a = prev
-            self._pair_count += 1
-            if self.lag_s is not None and (t_k - self._t_ns[a]) * 1e-9 >= self.lag_s:
-                self.n_too_old += 1  # X(a) already marginalized out of the window
-                continue
-            entry = by_frame.setdefault(a, ([], [], []))
-            entry[0].append(q_a)
-            entry[1].append(q_b)
-            entry[2].append(tid)
-        pairs = [FramePairObservations(a, k, np.asarray(qa), np.asarray(qb), np.asarray(ids))
-                 for a, (qa, qb, ids) in sorted(by_frame.items())]
+        # Last sighting of every track, as sorted arrays (vectorized look-up and update).
+        ids = self._seen_ids
+        idx = np.searchsorted(ids, track_id)
+        found = idx < ids.size
+        found[found] = ids[idx[found]] == track_id[found]
+        rows = idx[found]
+        frame_a = self._seen_frame[rows]
+        q_a_all = self._seen_q[rows]
+        q_b_all = q[found]
+        tid_all = track_id[found]
+        self._seen_frame[rows] = k
+        self._seen_q[rows] = q[found]
+        new = ~found
+        if new.any():
+            new_ids, first = np.unique(track_id[new], return_index=True)
+            self._seen_ids = np.r_[ids, new_ids]
+            self._seen_frame = np.r_[self._seen_frame, np.full(new_ids.size, k)]
+            self._seen_q = np.r_[self._seen_q, q[new][first]]
+            order = np.argsort(self._seen_ids, kind="stable")
+            self._seen_ids = self._seen_ids[order]
+            self._seen_frame = self._seen_frame[order]
+            self._seen_q = self._seen_q[order]
+        self._pair_count += int(rows.size)
+        if self.lag_s is not None:  # X(a) already marginalized out of the window
+            t_frames = np.asarray(self._t_ns)
+            too_old = (t_frames[k] - t_frames[frame_a]) * 1e-9 >= self.lag_s
+            self.n_too_old += int(too_old.sum())
+            keep = ~too_old
+            frame_a, q_a_all, q_b_all, tid_all = (frame_a[keep], q_a_all[keep], q_b_all[keep],
+                                                  tid_all[keep])
+        pairs = []
+        by_frame = np.unique(frame_a)
+        for a in by_frame.tolist():
+            sel = frame_a == a
+            pairs.append(FramePairObservations(a, k, q_a_all[sel], q_b_all[sel], tid_all[sel]))
+        if self._fls is None:  # full history: fetch only the poses these planes need
+            for a in by_frame.tolist():
+                self._poses[a] = self._isam.calculateEstimatePose3(X(a)).matrix()
         build = cdtm_factors(pairs, self._poses, self._body_T_cam, self.dtm, self._noise,
                              self.settings)
         for f in build.factors:
@@ -517,12 +537,15 @@ class IncrementalSmoother:
                     stamps.insert((key, t_s))
                 self._fls.update(graph, values, stamps)
                 estimate = self._fls.calculateEstimate()
+                self._refresh(estimate)  # the window only: constant cost per frame
             else:
                 self._isam.update(graph, values)
-                estimate = self._isam.calculateEstimate()
+                # Only the newest state: a full calculateEstimate grows with the flight.
+                self._poses[k] = self._isam.calculateEstimatePose3(X(k)).matrix()
+                self._velocities[k] = np.asarray(self._isam.calculateEstimateVector(V(k)))
+                self._biases[k] = self._isam.calculateEstimateConstantBias(B(k))
         except RuntimeError as exc:
             raise explain_indeterminant(exc) from None
-        self._refresh(estimate)
 
     def _refresh(self, estimate: gtsam.Values) -> None:
         for key in estimate.keys():
@@ -611,7 +634,7 @@ class IncrementalSmoother:
         t0 = time.perf_counter()
         covariances = self.covariances()
         per_frame = np.array([self._factors_by_frame.get(k, 0) for k in range(K)])
-        counts = GraphCounts(K, len(self._track_ids), self._observations, self._pair_count,
+        counts = GraphCounts(K, int(self._seen_ids.size), self._observations, self._pair_count,
                              self.n_features, self.n_missed, self.n_cdtm_factors, K - 1, per_frame)
         stats = SolverStats("incremental" if self.lag_s is None else "fixed_lag", K, float("nan"),
                             float("nan"), True, elapsed, time.perf_counter() - t0,

@@ -29,6 +29,7 @@ import numpy as np
 
 from factors import cdtm_math
 from factors.kernel import (
+    feature_covariance_kernel,
     KERNEL_CAUCHY,
     KERNEL_HUBER,
     KERNEL_NONE,
@@ -134,10 +135,14 @@ class PairFeatures:
         G_E = np.ascontiguousarray(G_E, dtype=float)
         N = np.ascontiguousarray(N, dtype=float)
         basis = np.ascontiguousarray(cdtm_math.orthonormal_complement(q_b))
-        Sigma_f = cdtm_math.feature_covariance(
-            world_T_cam_a[:3, :3], world_T_cam_a[:3, 3], world_T_cam_b[:3, :3],
-            world_T_cam_b[:3, 3], q_a, q_b, G_E, N, noise.sigma_q_xy, noise.sigma_h_m,
-            noise.sigma_qa_xy)
+        Sigma_f = np.empty((q_a.shape[0], 3, 3))
+        sax, say = noise.sigma_qa_xy if noise.sigma_qa_xy is not None else (0.0, 0.0)
+        # numba twin of cdtm_math.feature_covariance (tested equal): ~50x faster
+        feature_covariance_kernel(
+            np.ascontiguousarray(world_T_cam_a[:3, :3]), world_T_cam_a[:3, 3].copy(),
+            np.ascontiguousarray(world_T_cam_b[:3, :3]), world_T_cam_b[:3, 3].copy(),
+            q_a, q_b, G_E, N, float(noise.sigma_q_xy[0]), float(noise.sigma_q_xy[1]),
+            float(noise.sigma_h_m), float(sax), float(say), Sigma_f)
         Sigma_e = cdtm_math.residual_covariance(Sigma_f, basis)
         return cls(q_a, q_b, G_E, N, Sigma_e, Sigma_f, basis,
                    np.ascontiguousarray(cdtm_math.sqrt_information(Sigma_e)))

@@ -175,3 +175,88 @@ def cdtm_linearize(
                 Ha_out[i, k, j] = acc_a
                 Hb_out[i, k, j] = acc_b
     return n_inactive
+
+
+@njit(cache=True)
+def _np_apply(q, qq, g, gn, x, out):
+    """out = N_P(q, g) x = P(q, q) P(g, g) x / |g| (eq. 14)."""
+    gx = (g[0] * x[0] + g[1] * x[1] + g[2] * x[2]) / (gn * gn)
+    y0, y1, y2 = x[0] - g[0] * gx, x[1] - g[1] * gx, x[2] - g[2] * gx
+    qy = (q[0] * y0 + q[1] * y1 + q[2] * y2) / qq
+    out[0] = (y0 - q[0] * qy) / gn
+    out[1] = (y1 - q[1] * qy) / gn
+    out[2] = (y2 - q[2] * qy) / gn
+
+
+@njit(cache=True)
+def feature_covariance_kernel(R_a, p_a, R_b, p_b, q_a, q_b, G_E, N, sx, sy, sigma_h,
+                              sax, say, Sigma_out):
+    """Sigma_f of eqs. 19-26 per feature, as a sum of rank-one terms (n, 3, 3).
+
+    The same formula as :func:`factors.cdtm_math.feature_covariance` (the tested
+    reference): ``J_q Sigma_q J_q^T`` has one term per noisy image axis, and the DTM
+    term is ``sigma_h^2 u u^T`` with ``u = J_G dG_E/dh = N_P R_b^T r / N.r`` (eqs. 20, 25).
+    ``sax = say = 0`` leaves ``q_a`` exact (the paper).
+    """
+    n = q_a.shape[0]
+    r = np.empty(3)
+    g = np.empty(3)
+    x = np.empty(3)
+    w = np.empty(3)
+    cols = np.empty((5, 3))
+    for i in range(n):
+        for a in range(3):
+            r[a] = R_a[a, 0] * q_a[i, 0] + R_a[a, 1] * q_a[i, 1] + R_a[a, 2] * q_a[i, 2]
+        Nr = N[i, 0] * r[0] + N[i, 1] * r[1] + N[i, 2] * r[2]
+        lam = (N[i, 0] * (G_E[i, 0] - p_a[0]) + N[i, 1] * (G_E[i, 1] - p_a[1])
+               + N[i, 2] * (G_E[i, 2] - p_a[2])) / Nr
+        d0 = p_a[0] + lam * r[0] - p_b[0]
+        d1 = p_a[1] + lam * r[1] - p_b[1]
+        d2 = p_a[2] + lam * r[2] - p_b[2]
+        for a in range(3):
+            g[a] = R_b[0, a] * d0 + R_b[1, a] * d1 + R_b[2, a] * d2
+        gn = np.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
+        q = q_b[i]
+        qq = q[0] * q[0] + q[1] * q[1] + q[2] * q[2]
+        qg = q[0] * g[0] + q[1] * g[1] + q[2] * g[2]
+        # eq. 19 columns x, y: -[(q.g) I + q g^T] P(q,q) e_c / (|q|^2 |g|)
+        for c in range(2):
+            pc0 = -q[0] * q[c] / qq
+            pc1 = -q[1] * q[c] / qq
+            pc2 = -q[2] * q[c] / qq
+            if c == 0:
+                pc0 += 1.0
+            else:
+                pc1 += 1.0
+            gp = g[0] * pc0 + g[1] * pc1 + g[2] * pc2
+            scale = (sx if c == 0 else sy) / (qq * gn)
+            cols[c, 0] = -(qg * pc0 + q[0] * gp) * scale
+            cols[c, 1] = -(qg * pc1 + q[1] * gp) * scale
+            cols[c, 2] = -(qg * pc2 + q[2] * gp) * scale
+        # DTM height: sigma_h N_P R_b^T r / N.r
+        for a in range(3):
+            x[a] = (R_b[0, a] * r[0] + R_b[1, a] * r[1] + R_b[2, a] * r[2]) * sigma_h / Nr
+        _np_apply(q, qq, g, gn, x, w)
+        cols[2, :] = w
+        # q_a columns: lam N_P R_b^T P(r, N) R_a e_c
+        m = 3
+        for c in range(2):
+            s = sax if c == 0 else say
+            if s == 0.0:
+                continue
+            v0, v1, v2 = R_a[0, c], R_a[1, c], R_a[2, c]
+            nv = (N[i, 0] * v0 + N[i, 1] * v1 + N[i, 2] * v2) / Nr
+            v0 -= r[0] * nv
+            v1 -= r[1] * nv
+            v2 -= r[2] * nv
+            for a in range(3):
+                x[a] = (R_b[0, a] * v0 + R_b[1, a] * v1 + R_b[2, a] * v2) * lam * s
+            _np_apply(q, qq, g, gn, x, w)
+            cols[m, :] = w
+            m += 1
+        for a in range(3):
+            for b in range(3):
+                acc = 0.0
+                for k in range(m):
+                    acc += cols[k, a] * cols[k, b]
+                Sigma_out[i, a, b] = acc

@@ -191,3 +191,19 @@ def test_noise_model_is_the_projected_feature_covariance(rng):
     S = feats.sqrt_info
     np.testing.assert_allclose(S @ feats.Sigma_e @ np.swapaxes(S, 1, 2),
                                np.broadcast_to(np.eye(2), feats.Sigma_e.shape), atol=1e-9)
+
+
+def test_numba_feature_covariance_equals_the_paper_formulas(rng):
+    """PairFeatures.build's numba Sigma_f equals cdtm_math.feature_covariance (eqs. 19-26)."""
+    for qa_noise in (NOISE.sigma_qa_xy, None):
+        noise = FeatureNoise(NOISE.sigma_q_xy, NOISE.sigma_h_m, qa_noise)
+        for _ in range(20):
+            body_T_cam, Ta, Tb, feats = random_pair(rng, pixel_noise=5e-3)
+            wTc_a, wTc_b = Ta @ body_T_cam, Tb @ body_T_cam
+            built = PairFeatures.build(wTc_a, wTc_b, feats.q_a, feats.q_b, feats.G_E, feats.N,
+                                       noise)
+            reference = cdtm_math.feature_covariance(
+                wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3], feats.q_a, feats.q_b,
+                feats.G_E, feats.N, noise.sigma_q_xy, noise.sigma_h_m, noise.sigma_qa_xy)
+            np.testing.assert_allclose(built.Sigma_f, reference, rtol=1e-10,
+                                       atol=1e-14 * np.abs(reference).max())
