@@ -1,0 +1,359 @@
+"""Errors against ground truth, consistency (NEES), and IMU-only "Free" navigation.
+
+Pure: no file I/O. ``trajectory_errors`` compares an estimate with ground truth at the
+frame times; ``dead_reckoning`` propagates the IMU alone from the initial state (the
+paper's "Free" navigation of Table 1); ``free_vs_compensated`` puts the two side by side
+as Table 1 does.
+
+Sign and frame conventions:
+
+- Position errors are ``p_est - p_true`` in world axes (x east, y north, z up), metres.
+- The attitude error is the angle of ``R_est^T R_true``, degrees.
+- NEES. GTSAM's marginal covariance of ``X(k)`` is that of ``xi`` in
+  ``T_true = T_est.retract(xi)``, tangent order [rot, trans]. So the pose error is
+  ``xi = T_est.localCoordinates(T_true)``: the inverse of the retraction the covariance
+  was computed for. With the Expmap retraction of the gtsam 4.3 wheel (checked in the
+  tests) that is ``Pose3.Logmap(T_est^-1 T_true)``, whose translation part is
+  ``J_l(omega)^-1 R_est^T (p_true - p_est)``, not the plain translation difference. The
+  position NEES uses the world-frame position block with ``p_true - p_est``, which equals
+  ``R_est v`` to first order in the rotation error.
+- ANEES = mean NEES over the evaluated frames; its 95% band assumes the K frames'
+  NEES are independent chi-square(dof) (sum ~ chi-square(K dof)). Smoothed errors of
+  neighbouring frames are correlated, so for a smoother the band is a guide, not a test
+  of exact level.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import gtsam
+import numpy as np
+from scipy.stats import chi2
+
+from cdtm_graph.errors import FlightLogError
+from cdtm_graph.flightlog import FlightLog, States
+from cdtm_graph.geometry import so3_log
+from cdtm_graph.imu import ImuNoise, SampleHold, integrate_interval, preintegration_params
+from cdtm_graph.results import StateCovariances, TrajectoryEstimate, pose_covariance_in_world
+
+NS_PER_S = 1_000_000_000
+AXES = ("x", "y", "z")
+#: Two-sided probability of the ANEES consistency band.
+ANEES_CONFIDENCE = 0.95
+POSITION_DOF = 3
+POSE_DOF = 6
+
+
+def anees_band(n_frames: int, dof: int, confidence: float = ANEES_CONFIDENCE
+               ) -> tuple[float, float]:
+    """Two-sided chi-square band of the average NEES of ``n_frames`` independent frames.
+
+    ``K * ANEES ~ chi2(K * dof)``, so the band is ``chi2.ppf((1 -+ c) / 2, K dof) / K``.
+
+    Args:
+        n_frames: K >= 1.
+        dof: degrees of freedom of one frame's NEES.
+        confidence: probability inside the band.
+
+    Returns:
+        (lower, upper).
+    """
+    if n_frames < 1:
+        raise ValueError(f"n_frames must be >= 1, got {n_frames}")
+    tail = (1.0 - confidence) / 2.0
+    total = n_frames * dof
+    return (float(chi2.ppf(tail, total)) / n_frames,
+            float(chi2.ppf(1.0 - tail, total)) / n_frames)
+
+
+@dataclass(frozen=True)
+class ErrorReport:
+    """Errors of an estimate against ground truth at the frames ground truth covers.
+
+    Per-frame arrays have M rows, one per evaluated frame (``evaluated`` marks them
+    among the estimate's K frames). NEES fields are None when no covariances were given.
+
+    Attributes:
+        t_ns: (M,) evaluated frame times.
+        evaluated: (K,) bool, frames inside the ground truth's time range.
+        n_frames_evaluated: M.
+        n_frames_outside_groundtruth: K - M (excluded, not extrapolated).
+        position_error_world_m: (M, 3) ``p_est - p_true``, world axes.
+        velocity_error_world_mps: (M, 3) ``v_est - v_true``.
+        attitude_error_deg: (M,) angle of ``R_est^T R_true``.
+        pose_error_tangent: (M, 6) ``T_est.localCoordinates(T_true)``, [rot rad, trans m].
+        position_sigma_world_m: (M, 3) 1-sigma from the world-frame position covariance,
+            or None.
+        rmse_position_m: (3,) per world axis. max_abs_position_error_m: (3,) per axis.
+        rmse_position_3d_m: sqrt(mean |error|^2).
+        rmse_velocity_mps: (3,) per world axis.
+        rmse_attitude_deg, max_attitude_deg: of the attitude error angle.
+        position_nees: (M,) with the world-frame position covariance (3 dof), or None.
+        pose_nees: (M,) with the 6x6 tangent covariance (6 dof), or None.
+        anees_position, anees_pose: means of the above, or None.
+        anees_position_band, anees_pose_band: 95% chi-square bands for M frames, or None.
+    """
+
+    t_ns: np.ndarray
+    evaluated: np.ndarray
+    n_frames_evaluated: int
+    n_frames_outside_groundtruth: int
+    position_error_world_m: np.ndarray
+    velocity_error_world_mps: np.ndarray
+    attitude_error_deg: np.ndarray
+    pose_error_tangent: np.ndarray
+    position_sigma_world_m: np.ndarray | None
+    rmse_position_m: np.ndarray
+    max_abs_position_error_m: np.ndarray
+    rmse_position_3d_m: float
+    rmse_velocity_mps: np.ndarray
+    rmse_attitude_deg: float
+    max_attitude_deg: float
+    position_nees: np.ndarray | None = None
+    pose_nees: np.ndarray | None = None
+    anees_position: float | None = None
+    anees_pose: float | None = None
+    anees_position_band: tuple[float, float] | None = None
+    anees_pose_band: tuple[float, float] | None = None
+
+    @property
+    def position_consistent(self) -> bool | None:
+        """ANEES of position inside its band (None without covariances)."""
+        return _inside(self.anees_position, self.anees_position_band)
+
+    @property
+    def pose_consistent(self) -> bool | None:
+        """ANEES of pose inside its band (None without covariances)."""
+        return _inside(self.anees_pose, self.anees_pose_band)
+
+    def to_dict(self, per_frame: bool = False) -> dict[str, Any]:
+        """JSON-safe summary (plain floats/lists; NaN and inf become None).
+
+        Args:
+            per_frame: also include the per-frame arrays (large for long flights).
+        """
+        out: dict[str, Any] = {
+            "n_frames_evaluated": self.n_frames_evaluated,
+            "n_frames_outside_groundtruth": self.n_frames_outside_groundtruth,
+            "error_convention": "estimate - truth, world axes (ENU)",
+            "rmse_position_m": dict(zip(AXES, _floats(self.rmse_position_m), strict=True)),
+            "max_abs_position_error_m": dict(zip(AXES, _floats(self.max_abs_position_error_m),
+                                                 strict=True)),
+            "rmse_position_3d_m": _float(self.rmse_position_3d_m),
+            "rmse_velocity_mps": dict(zip(AXES, _floats(self.rmse_velocity_mps), strict=True)),
+            "rmse_attitude_deg": _float(self.rmse_attitude_deg),
+            "max_attitude_deg": _float(self.max_attitude_deg),
+            "nees_convention": ("pose: xi = T_est.localCoordinates(T_true) = "
+                                "Logmap(T_est^-1 T_true), [rot, trans], 6 dof; position: "
+                                "p_true - p_est with the world-frame block, 3 dof"),
+            "anees_position": _float(self.anees_position),
+            "anees_position_band_95": _floats(self.anees_position_band),
+            "anees_position_consistent": self.position_consistent,
+            "anees_pose": _float(self.anees_pose),
+            "anees_pose_band_95": _floats(self.anees_pose_band),
+            "anees_pose_consistent": self.pose_consistent,
+        }
+        if per_frame:
+            out["per_frame"] = {
+                "t_ns": [int(t) for t in self.t_ns],
+                "position_error_world_m": _floats(self.position_error_world_m),
+                "attitude_error_deg": _floats(self.attitude_error_deg),
+                "position_nees": _floats(self.position_nees),
+                "pose_nees": _floats(self.pose_nees),
+            }
+        return out
+
+
+def _inside(value: float | None, band: tuple[float, float] | None) -> bool | None:
+    if value is None or band is None or not math.isfinite(value):
+        return None
+    return bool(band[0] <= value <= band[1])
+
+
+def _float(value: float | None) -> float | None:
+    if value is None:
+        return None
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def _floats(values: Any) -> Any:
+    """Nested lists of floats with None for NaN/inf (None stays None)."""
+    if values is None:
+        return None
+    arr = np.asarray(values, dtype=float)
+    return np.where(np.isfinite(arr), arr, None).tolist()
+
+
+def _rmse(e: np.ndarray, axis: int = 0) -> np.ndarray:
+    return np.sqrt(np.mean(e * e, axis=axis)) if e.shape[0] else np.full(e.shape[1:], np.nan)
+
+
+def _nees(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """(M, d) errors and (M, d, d) covariances -> (M,) ``e^T P^-1 e`` (NaN where P is not PD)."""
+    out = np.full(err.shape[0], np.nan)
+    for i in range(err.shape[0]):
+        try:
+            L = np.linalg.cholesky(cov[i])
+        except np.linalg.LinAlgError:
+            continue  # not positive definite: no honest NEES for this frame
+        w = np.linalg.solve(L, err[i])
+        out[i] = float(w @ w)
+    return out
+
+
+def trajectory_errors(estimate: TrajectoryEstimate, covariances: StateCovariances | None,
+                      groundtruth: States) -> ErrorReport:
+    """Errors, RMSE/max per axis and NEES of an estimate against ground truth.
+
+    Ground truth is interpolated to the frame times (``States.interpolate``: linear
+    position, slerp attitude); frames outside its time range are excluded and counted.
+
+    Args:
+        estimate: K frames.
+        covariances: marginals of the K frames (GTSAM tangent order, body frame), or None
+            (e.g. for dead reckoning) to skip NEES.
+        groundtruth: true body states at any rate.
+
+    Returns:
+        The report. With no frame inside the ground truth, statistics are NaN/None.
+
+    Raises:
+        ValueError: covariances of another length than the estimate.
+    """
+    t_all = np.asarray(estimate.t_ns, dtype=np.int64)
+    k = t_all.shape[0]
+    if covariances is not None and np.shape(covariances.pose) != (k, 6, 6):
+        raise ValueError(f"covariances.pose has shape {np.shape(covariances.pose)}, expected "
+                         f"({k}, 6, 6) for {k} frames")
+    if len(groundtruth):
+        inside = (t_all >= groundtruth.t_ns[0]) & (t_all <= groundtruth.t_ns[-1])
+    else:
+        inside = np.zeros(k, dtype=bool)
+    idx = np.flatnonzero(inside)
+    m = idx.size
+    T_est = estimate.world_T_body[idx]
+    if m:
+        truth = groundtruth.interpolate(t_all[idx])
+        T_true, v_true = truth.world_T_body, truth.velocity_mps
+    else:
+        T_true, v_true = np.zeros((0, 4, 4)), np.zeros((0, 3))
+
+    p_err = T_est[:, :3, 3] - T_true[:, :3, 3]
+    v_err = estimate.velocity_mps[idx] - v_true
+    R_rel = np.swapaxes(T_est[:, :3, :3], 1, 2) @ T_true[:, :3, :3]
+    att_deg = np.degrees(np.linalg.norm(so3_log(R_rel), axis=-1)) if m else np.zeros(0)
+    xi = np.array([gtsam.Pose3(T_est[i]).localCoordinates(gtsam.Pose3(T_true[i]))
+                   for i in range(m)]).reshape(m, 6)
+
+    fields: dict[str, Any] = {}
+    sigma = None
+    if covariances is not None and m:
+        pose_cov = np.asarray(covariances.pose)[idx]
+        _, position_cov = pose_covariance_in_world(T_est, pose_cov)
+        sigma = np.sqrt(np.clip(np.diagonal(position_cov, axis1=1, axis2=2), 0.0, None))
+        position_nees = _nees(-p_err, position_cov)
+        pose_nees = _nees(xi, pose_cov)
+        fields = dict(
+            position_nees=position_nees, pose_nees=pose_nees,
+            anees_position=float(np.mean(position_nees)), anees_pose=float(np.mean(pose_nees)),
+            anees_position_band=anees_band(m, POSITION_DOF),
+            anees_pose_band=anees_band(m, POSE_DOF))
+
+    return ErrorReport(
+        t_ns=t_all[idx], evaluated=inside, n_frames_evaluated=int(m),
+        n_frames_outside_groundtruth=int(k - m),
+        position_error_world_m=p_err, velocity_error_world_mps=v_err,
+        attitude_error_deg=att_deg, pose_error_tangent=xi, position_sigma_world_m=sigma,
+        rmse_position_m=_rmse(p_err),
+        max_abs_position_error_m=np.max(np.abs(p_err), axis=0) if m else np.full(3, np.nan),
+        rmse_position_3d_m=float(np.sqrt(np.mean(np.sum(p_err**2, axis=1)))) if m else math.nan,
+        rmse_velocity_mps=_rmse(v_err),
+        rmse_attitude_deg=float(np.sqrt(np.mean(att_deg**2))) if m else math.nan,
+        max_attitude_deg=float(np.max(att_deg)) if m else math.nan,
+        **fields)
+
+
+def dead_reckoning(log: FlightLog, hold: SampleHold = SampleHold.MIDPOINT
+                   ) -> TrajectoryEstimate:
+    """IMU-only navigation from the initial state, no corrections: the paper's "Free".
+
+    From ``initial_state`` (position, attitude, velocity, biases) at the first frame, each
+    frame interval is preintegrated with GTSAM's combined preintegration
+    (``integrate_interval``) and predicted with ``pim.predict(NavState, bias)``; the
+    biases stay at their initial values.
+
+    Args:
+        log: the flight log (its IMU must cover the frame times).
+        hold: how an IMU sample stands for time; the default is the smoother's
+            (``GraphSettings.imu_hold`` in :mod:`cdtm_graph.graph`), so "Free" and
+            "Compensated" integrate the same IMU model.
+
+    Returns:
+        K states at the frame times (biases constant).
+
+    Raises:
+        FlightLogError: the IMU samples do not cover the frames.
+    """
+    cfg = log.config
+    init = cfg.initial_state
+    t_frames = np.asarray(log.frames.t_ns, dtype=np.int64)
+    k = t_frames.shape[0]
+    t_imu = np.asarray(log.imu.t_ns, dtype=np.int64)
+    if k and (t_imu.size < 2 or t_frames[0] < t_imu[0] or t_frames[-1] > t_imu[-1]):
+        span = f"[{t_imu[0]}, {t_imu[-1]}]" if t_imu.size else "nothing"
+        raise FlightLogError(f"imu.csv: samples span {span} ns; expected them to cover the "
+                             f"frames [{t_frames[0]}, {t_frames[-1]}] ns")
+    noise = ImuNoise(cfg.imu.gyroscope_noise_density, cfg.imu.accelerometer_noise_density,
+                     cfg.imu.gyroscope_random_walk, cfg.imu.accelerometer_random_walk)
+    params = preintegration_params(noise, cfg.gravity_mps2, cfg.imu.rate_hz)
+    bias = gtsam.imuBias.ConstantBias(np.asarray(init.accel_bias, dtype=float),
+                                      np.asarray(init.gyro_bias, dtype=float))
+    state = gtsam.NavState(gtsam.Pose3(init.world_T_body), np.asarray(init.velocity_mps, float))
+    poses = np.empty((k, 4, 4))
+    velocities = np.empty((k, 3))
+    for i in range(k):
+        if i:
+            pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
+            integrate_interval(pim, t_imu, log.imu.gyro_radps, log.imu.acc_mps2,
+                               int(t_frames[i - 1]), int(t_frames[i]), hold)
+            state = pim.predict(state, bias)
+        poses[i] = state.pose().matrix()
+        velocities[i] = state.velocity()
+    return TrajectoryEstimate(
+        t_ns=t_frames, world_T_body=poses, velocity_mps=velocities,
+        gyro_bias=np.tile(np.asarray(init.gyro_bias, dtype=float), (k, 1)),
+        accel_bias=np.tile(np.asarray(init.accel_bias, dtype=float), (k, 1)))
+
+
+def free_vs_compensated(smoothed_errors: ErrorReport, free_errors: ErrorReport
+                        ) -> dict[str, Any]:
+    """Table 1 of the paper: maximum |error| per axis, Free (IMU only) vs Compensated.
+
+    Args:
+        smoothed_errors: errors of the C-DTM-corrected (smoothed) trajectory.
+        free_errors: errors of ``dead_reckoning`` on the same log.
+
+    Returns:
+        JSON-safe dict: ``rows`` maps "Free-x", "Compensated-x", "Free-y", ... to the
+        maximum |error| in metres; ``ratio_free_over_compensated`` maps "x", "y", "z" to
+        Free / Compensated (None where undefined); plus the frame counts behind each.
+    """
+    rows: dict[str, float | None] = {}
+    ratio: dict[str, float | None] = {}
+    for a, axis in enumerate(AXES):
+        free = float(free_errors.max_abs_position_error_m[a])
+        comp = float(smoothed_errors.max_abs_position_error_m[a])
+        rows[f"Free-{axis}"] = _float(free)
+        rows[f"Compensated-{axis}"] = _float(comp)
+        ratio[axis] = _float(free / comp) if comp > 0 else None
+    return {
+        "statistic": "max |p_est - p_true| over the evaluated frames, m, world axes (ENU)",
+        "rows": rows,
+        "ratio_free_over_compensated": ratio,
+        "n_frames_free": free_errors.n_frames_evaluated,
+        "n_frames_compensated": smoothed_errors.n_frames_evaluated,
+    }

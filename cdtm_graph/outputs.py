@@ -1,0 +1,436 @@
+"""The files of one run directory (DESIGN.md "Outputs of a run"): writers and readers.
+
+A run directory holds::
+
+    trajectory.tum        t_s tx ty tz qx qy qz qw                      (evo, TUM format)
+    trajectory_cov.txt    the same 8 columns + 6 + 6 covariance columns (OpenVINS ov_eval)
+    states.csv            t_ns, position, quaternion wxyz, velocity, biases, 1-sigma
+    covariances.npz       per-frame marginal covariances in GTSAM's tangent order
+    report.json           counts, solver statistics, settings, flags + the caller's report
+    <extra files>         e.g. PNG plots, written by caller-supplied functions
+
+Conventions of the files:
+
+- ``world`` is local ENU, ``body`` the IMU; every pose is ``world_T_body``.
+- Times in the text files are seconds written from integer nanoseconds as
+  ``<seconds>.<9 digits>`` (exact: a float64 cannot hold a 2024 epoch to 1 ns, a
+  decimal string can); the readers parse them back to the same integer nanoseconds.
+- Floats are written with Python's shortest round-trip ``repr``: every value reads back
+  bit for bit, and a covariance of 1e-12 rad^2 is not printed as 0.000000000.
+- ``trajectory_cov.txt`` carries *world-frame* 3x3 blocks (rotated from GTSAM's body-frame
+  tangent with :func:`~cdtm_graph.results.pose_covariance_in_world`): the orientation
+  block is the covariance of ``dtheta`` in ``R_true = Exp(dtheta) R_est`` (a small
+  rotation about the world axes), the position block that of ``p_true - p_est``. Upper
+  triangles in the order xx xy xz yy yz zz, orientation first, as ov_eval's loader reads
+  them.
+- ``covariances.npz`` keeps GTSAM's own order: pose [rotation, translation] with the
+  perturbation on the right, ``world_T_body * Exp(xi)`` (body frame); bias [accel, gyro].
+
+Everything is written inside :func:`~cdtm_graph.atomic.atomic_output_dir`: a failure
+anywhere (including in an extra-file writer) leaves the target directory as it was.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import json
+import math
+import os
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from decimal import Decimal, InvalidOperation
+from pathlib import Path, PurePath
+from typing import Any
+
+import numpy as np
+
+from cdtm_graph.atomic import atomic_output_dir
+from cdtm_graph.errors import CdtmError
+from cdtm_graph.geometry import quat_wxyz_to_rotation, rotation_to_quat_wxyz
+from cdtm_graph.results import SmootherResult, pose_covariance_in_world
+
+NS_PER_S = 1_000_000_000
+
+TRAJECTORY_TUM = "trajectory.tum"
+TRAJECTORY_COV = "trajectory_cov.txt"
+STATES_CSV = "states.csv"
+COVARIANCES_NPZ = "covariances.npz"
+REPORT_JSON = "report.json"
+#: The files ``write_run`` always writes; extra files may not take these names.
+RUN_FILES = (TRAJECTORY_TUM, TRAJECTORY_COV, STATES_CSV, COVARIANCES_NPZ, REPORT_JSON)
+
+POSE_COVARIANCE_CONVENTION = ("Pose3 tangent [rot, trans], right perturbation (body frame): "
+                              "world_T_body_true = world_T_body_est * Exp(xi)")
+BIAS_COVARIANCE_CONVENTION = "imuBias.ConstantBias [accel (m/s^2), gyro (rad/s)]"
+VELOCITY_COVARIANCE_CONVENTION = "world frame, (m/s)^2"
+
+TUM_COLUMNS = ("t_s", "tx", "ty", "tz", "qx", "qy", "qz", "qw")
+#: Upper-triangle order of a symmetric 3x3 block, as OpenVINS' ov_eval reads it.
+UPPER_TRIANGLE = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+_UPPER_NAMES = ("xx", "xy", "xz", "yy", "yz", "zz")
+COV_COLUMNS = (TUM_COLUMNS + tuple(f"ori_{n}" for n in _UPPER_NAMES)
+               + tuple(f"pos_{n}" for n in _UPPER_NAMES))
+
+STATES_COLUMNS = (
+    "t_ns", "px", "py", "pz", "qw", "qx", "qy", "qz", "vx", "vy", "vz",
+    "bgx", "bgy", "bgz", "bax", "bay", "baz",
+    # 1-sigma: position (m) and orientation (rad, small rotations about the world axes)
+    # from the world-frame blocks; velocity (m/s, world); biases (rad/s, m/s^2).
+    "sigma_px", "sigma_py", "sigma_pz", "sigma_rx", "sigma_ry", "sigma_rz",
+    "sigma_vx", "sigma_vy", "sigma_vz",
+    "sigma_bgx", "sigma_bgy", "sigma_bgz", "sigma_bax", "sigma_bay", "sigma_baz",
+)
+
+#: A quaternion read from a file further than this from unit norm is a data error (six
+#: printed digits, as some tools write, stay well inside it).
+QUATERNION_UNIT_TOL = 1e-3
+
+#: Writes one extra file at the given path (inside the temporary run directory).
+ExtraFileWriter = Callable[[Path], Any]
+
+
+# --------------------------------------------------------------------------- formatting
+
+
+def format_t_s(t_ns: int) -> str:
+    """Seconds with exactly nine decimals from integer nanoseconds: ``-1`` -> ``-0.000000001``."""
+    t = int(t_ns)
+    sign = "-" if t < 0 else ""
+    seconds, nanoseconds = divmod(abs(t), NS_PER_S)
+    return f"{sign}{seconds}.{nanoseconds:09d}"
+
+
+def parse_t_s(token: str) -> int:
+    """Integer nanoseconds from a decimal seconds string (any float syntax), rounded to 1 ns.
+
+    Raises:
+        ValueError: the token is not a finite number.
+    """
+    try:
+        value = Decimal(token)
+    except InvalidOperation:
+        raise ValueError(f"not a number: {token!r}") from None
+    if not value.is_finite():
+        raise ValueError(f"not finite: {token!r}")
+    return int((value * NS_PER_S).to_integral_value())
+
+
+def _rows_text(t_ns: np.ndarray, values: np.ndarray, sep: str = " ",
+               t_format: Callable[[int], str] = format_t_s) -> str:
+    """One line per row: the formatted time, then every value in shortest round-trip form."""
+    lines = [sep.join([t_format(int(t)), *map(repr, row)])
+             for t, row in zip(t_ns.tolist(), values.tolist(), strict=True)]
+    return "\n".join(lines) + "\n" if lines else ""
+
+
+def _upper(cov: np.ndarray) -> np.ndarray:
+    """(K, 3, 3) -> (K, 6) upper triangles in ``UPPER_TRIANGLE`` order."""
+    rows, cols = zip(*UPPER_TRIANGLE, strict=True)
+    return cov[:, list(rows), list(cols)]
+
+
+def _sigma(cov: np.ndarray) -> np.ndarray:
+    """(K, n, n) -> (K, n) square roots of the diagonals (NaN where a variance is negative)."""
+    var = np.diagonal(cov, axis1=1, axis2=2)
+    with np.errstate(invalid="ignore"):
+        return np.sqrt(np.where(var >= 0, var, np.nan))
+
+
+# --------------------------------------------------------------------------- JSON
+
+
+def to_json_safe(obj: Any) -> Any:
+    """A structure ``json.dumps(..., allow_nan=False)`` accepts.
+
+    Dataclasses become dicts, numpy arrays and tuples lists, numpy scalars Python ones,
+    mapping keys strings, enums their values, paths strings; NaN and +-inf become None
+    (JSON has no token for them, and a bare ``NaN`` breaks strict parsers).
+    """
+    if obj is None or isinstance(obj, bool | str):
+        return obj
+    if isinstance(obj, enum.Enum):
+        return to_json_safe(obj.value)
+    if isinstance(obj, int | np.integer):
+        return int(obj)
+    if isinstance(obj, float | np.floating):
+        value = float(obj)
+        return value if math.isfinite(value) else None
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    if isinstance(obj, np.ndarray):
+        return to_json_safe(obj.tolist())
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: to_json_safe(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, Mapping):
+        return {str(to_json_safe(k)): to_json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple | set | frozenset):
+        return [to_json_safe(v) for v in obj]
+    if isinstance(obj, PurePath):
+        return str(obj)
+    raise TypeError(f"cannot write a {type(obj).__name__} to JSON: {obj!r}")
+
+
+def run_report(result: SmootherResult, report: Mapping[str, Any]) -> dict[str, Any]:
+    """The content of report.json: the result's counts, statistics, settings and flags,
+    the file conventions, and the caller's ``report`` (timings, evaluation, degeneracy...).
+
+    Raises:
+        ValueError: ``report`` reuses a key this function fills in.
+    """
+    generated: dict[str, Any] = {
+        "counts": result.counts,
+        "solver": result.stats,
+        "settings": result.settings,
+        "flags": result.flags,
+        "conventions": {
+            "world": "local ENU, metres",
+            "pose": "world_T_body (body = IMU)",
+            "covariances.npz/pose": POSE_COVARIANCE_CONVENTION,
+            "covariances.npz/bias": BIAS_COVARIANCE_CONVENTION,
+            "covariances.npz/velocity": VELOCITY_COVARIANCE_CONVENTION,
+            "trajectory_cov.txt": ("world frame: orientation rad^2 of dtheta in "
+                                   "R_true = Exp(dtheta) R_est, position m^2"),
+            "time": "t_s written from integer ns with 9 decimals",
+        },
+    }
+    clash = sorted(set(generated) & set(report))
+    if clash:
+        raise ValueError(f"report keys {clash} are filled in by write_run; use other names")
+    return to_json_safe({**generated, **report})
+
+
+# --------------------------------------------------------------------------- writers
+
+
+def _check_result(result: SmootherResult) -> int:
+    est, cov = result.estimate, result.covariances
+    k = len(est)
+    expected = {
+        "estimate.world_T_body": (est.world_T_body, (k, 4, 4)),
+        "estimate.velocity_mps": (est.velocity_mps, (k, 3)),
+        "estimate.gyro_bias": (est.gyro_bias, (k, 3)),
+        "estimate.accel_bias": (est.accel_bias, (k, 3)),
+        "covariances.pose": (cov.pose, (k, 6, 6)),
+        "covariances.velocity": (cov.velocity, (k, 3, 3)),
+        "covariances.bias": (cov.bias, (k, 6, 6)),
+    }
+    for name, (array, shape) in expected.items():
+        if np.shape(array) != shape:
+            raise ValueError(f"{name} has shape {np.shape(array)}, expected {shape}")
+    return k
+
+
+def _tum_values(world_T_body: np.ndarray) -> np.ndarray:
+    """(K, 7) ``tx ty tz qx qy qz qw``."""
+    q_wxyz = rotation_to_quat_wxyz(world_T_body[:, :3, :3])
+    return np.column_stack([world_T_body[:, :3, 3], q_wxyz[:, 1:], q_wxyz[:, :1]])
+
+
+def write_trajectory_tum(path: str | os.PathLike, t_ns: np.ndarray,
+                         world_T_body: np.ndarray) -> None:
+    """Write a TUM trajectory ``t_s tx ty tz qx qy qz qw`` (one '#' header line).
+
+    Args:
+        path: file to write (not atomic by itself; ``write_run`` makes it so).
+        t_ns: (K,) int64 times.
+        world_T_body: (K, 4, 4) body poses in world.
+    """
+    header = "# " + " ".join(TUM_COLUMNS) + "  (world_T_body; world = local ENU, m)\n"
+    text = _rows_text(np.asarray(t_ns, dtype=np.int64), _tum_values(world_T_body))
+    Path(path).write_text(header + text)
+
+
+def write_trajectory_cov(path: str | os.PathLike, t_ns: np.ndarray, world_T_body: np.ndarray,
+                         pose_cov: np.ndarray) -> None:
+    """Write the 20-column trajectory-with-covariance file (OpenVINS ov_eval format).
+
+    Args:
+        path: file to write.
+        t_ns: (K,) int64 times.
+        world_T_body: (K, 4, 4) body poses in world.
+        pose_cov: (K, 6, 6) GTSAM tangent order [rot, trans], body frame; rotated to the
+            world frame here.
+    """
+    orientation_cov, position_cov = pose_covariance_in_world(world_T_body, pose_cov)
+    values = np.column_stack([_tum_values(world_T_body), _upper(orientation_cov),
+                              _upper(position_cov)])
+    header = ("# " + " ".join(COV_COLUMNS) + "  (world frame: orientation rad^2 of dtheta in "
+              "R_true = Exp(dtheta) R_est, position m^2; upper triangles)\n")
+    Path(path).write_text(header + _rows_text(np.asarray(t_ns, dtype=np.int64), values))
+
+
+def write_states_csv(path: str | os.PathLike, result: SmootherResult) -> None:
+    """Write ``states.csv``: one row per frame, columns ``STATES_COLUMNS``, one header line."""
+    est, cov = result.estimate, result.covariances
+    orientation_cov, position_cov = pose_covariance_in_world(est.world_T_body, cov.pose)
+    values = np.column_stack([
+        est.position_m, rotation_to_quat_wxyz(est.world_T_body[:, :3, :3]), est.velocity_mps,
+        est.gyro_bias, est.accel_bias,
+        _sigma(position_cov), _sigma(orientation_cov), _sigma(cov.velocity),
+        # GTSAM's bias order is [accel, gyro]; the columns are gyro first.
+        _sigma(cov.bias[:, 3:, 3:]), _sigma(cov.bias[:, :3, :3]),
+    ])
+    text = _rows_text(np.asarray(est.t_ns, dtype=np.int64), values, sep=",", t_format=str)
+    Path(path).write_text(",".join(STATES_COLUMNS) + "\n" + text)
+
+
+def write_covariances_npz(path: str | os.PathLike, result: SmootherResult) -> None:
+    """Write ``covariances.npz``: t_ns, pose, velocity, bias and their conventions as strings."""
+    cov = result.covariances
+    with open(path, "wb") as f:
+        np.savez(f, t_ns=np.asarray(result.estimate.t_ns, dtype=np.int64),
+                 pose=np.asarray(cov.pose, dtype=float),
+                 velocity=np.asarray(cov.velocity, dtype=float),
+                 bias=np.asarray(cov.bias, dtype=float),
+                 convention=np.array(POSE_COVARIANCE_CONVENTION),
+                 velocity_convention=np.array(VELOCITY_COVARIANCE_CONVENTION),
+                 bias_convention=np.array(BIAS_COVARIANCE_CONVENTION))
+
+
+def _check_extra_name(name: str) -> None:
+    pure = PurePath(name)
+    if (not name or pure.name != name or name in (".", "..") or "\\" in name
+            or name in RUN_FILES):
+        raise ValueError(f"extra file name {name!r} must be a plain file name other than "
+                         f"{', '.join(RUN_FILES)}")
+
+
+def write_run(out_dir: str | os.PathLike, result: SmootherResult, report: Mapping[str, Any],
+              extra_files: Sequence[tuple[str, ExtraFileWriter]] = ()) -> None:
+    """Write a whole run directory, atomically.
+
+    The files are written into a temporary directory beside ``out_dir`` that replaces
+    ``out_dir`` only when every file, extras included, has been written; on any
+    exception ``out_dir`` keeps its old content (or stays absent) and the exception
+    propagates.
+
+    Args:
+        out_dir: the run directory; an existing one is replaced as a whole.
+        result: what the smoother produced.
+        report: extra report.json content (timings, degeneracy flags, evaluation...);
+            must not use the keys ``run_report`` fills in.
+        extra_files: ``(file name, writer)`` pairs; each writer is called with the
+            file's path inside the temporary directory, e.g.
+            ``("trajectory.png", lambda p: plot_trajectory_over_dtm(p, dtm, ...))``.
+
+    Raises:
+        ValueError: inconsistent shapes, a bad or duplicate extra file name, or report
+            keys that clash with generated ones (all checked before anything is written).
+    """
+    k = _check_result(result)
+    names = [name for name, _ in extra_files]
+    for name in names:
+        _check_extra_name(name)
+    if len(set(names)) != len(names):
+        raise ValueError(f"duplicate extra file names in {names}")
+    report_text = json.dumps(run_report(result, report), indent=2, allow_nan=False) + "\n"
+    est = result.estimate
+    t_ns = np.asarray(est.t_ns, dtype=np.int64).reshape(k)
+    with atomic_output_dir(out_dir) as tmp:
+        write_trajectory_tum(tmp / TRAJECTORY_TUM, t_ns, est.world_T_body)
+        write_trajectory_cov(tmp / TRAJECTORY_COV, t_ns, est.world_T_body,
+                             result.covariances.pose)
+        write_states_csv(tmp / STATES_CSV, result)
+        write_covariances_npz(tmp / COVARIANCES_NPZ, result)
+        (tmp / REPORT_JSON).write_text(report_text)
+        for name, writer in extra_files:
+            writer(tmp / name)
+
+
+# --------------------------------------------------------------------------- readers
+
+
+def _data_lines(path: Path) -> Iterator[tuple[int, list[str]]]:
+    """(1-based line number, whitespace-split tokens) of every non-blank, non-'#' line."""
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CdtmError(f"{path}: cannot read: {exc}") from None
+    for line_no, line in enumerate(text.splitlines(), start=1):
+        stripped = line.strip()
+        if stripped and not stripped.startswith("#"):
+            yield line_no, stripped.split()
+
+
+def _read_pose_table(path: str | os.PathLike, n_columns: int
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Parse a space-separated table whose first 8 columns are TUM.
+
+    Returns:
+        t_ns (K,) int64, world_T_body (K, 4, 4), the remaining columns (K, n_columns - 8).
+    """
+    path = Path(path)
+    expected = " ".join(COV_COLUMNS[:n_columns])
+    times: list[int] = []
+    rows: list[list[float]] = []
+    line_numbers: list[int] = []
+    for line_no, tokens in _data_lines(path):
+        where = f"{path}:{line_no}"
+        if len(tokens) != n_columns:
+            raise CdtmError(f"{where}: {len(tokens)} columns; expected {n_columns}: {expected}")
+        try:
+            t = parse_t_s(tokens[0])
+            values = [float(tok) for tok in tokens[1:]]
+        except ValueError as exc:
+            raise CdtmError(f"{where}: {exc}; expected numbers: {expected}") from None
+        if not all(math.isfinite(v) for v in values):
+            raise CdtmError(f"{where}: non-finite value; expected finite numbers: {expected}")
+        if times and t <= times[-1]:
+            raise CdtmError(f"{where}: time {tokens[0]} s does not increase; expected "
+                            f"strictly increasing times")
+        times.append(t)
+        rows.append(values)
+        line_numbers.append(line_no)
+    if not rows:
+        raise CdtmError(f"{path}:1: no data lines; expected rows of {expected}")
+    table = np.array(rows, dtype=float)
+    q_xyzw = table[:, 3:7]
+    norm = np.linalg.norm(q_xyzw, axis=1)
+    bad = np.flatnonzero(np.abs(norm - 1.0) > QUATERNION_UNIT_TOL)
+    if bad.size:
+        i = int(bad[0])
+        raise CdtmError(f"{path}:{line_numbers[i]}: quaternion norm {norm[i]:.6g}; expected a "
+                        f"unit quaternion qx qy qz qw")
+    T = np.tile(np.eye(4), (table.shape[0], 1, 1))
+    T[:, :3, :3] = quat_wxyz_to_rotation(np.column_stack([q_xyzw[:, 3], q_xyzw[:, :3]]))
+    T[:, :3, 3] = table[:, :3]
+    return np.array(times, dtype=np.int64), T, table[:, 7:]
+
+
+def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read a TUM trajectory (``t_s tx ty tz qx qy qz qw``; '#' lines and blank lines skipped).
+
+    Args:
+        path: the file.
+
+    Returns:
+        t_ns (K,) int64 (the decimal seconds parsed exactly, rounded to 1 ns) and
+        world_T_body (K, 4, 4).
+
+    Raises:
+        CdtmError: unreadable file, wrong column count, non-numbers, non-increasing
+            times or non-unit quaternions; the message names the file and line.
+    """
+    t_ns, T, _ = _read_pose_table(path, len(TUM_COLUMNS))
+    return t_ns, T
+
+
+def read_trajectory_cov(path: str | os.PathLike
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Read the 20-column trajectory-with-covariance file ``write_trajectory_cov`` writes.
+
+    Returns:
+        t_ns (K,) int64, world_T_body (K, 4, 4), orientation_cov (K, 3, 3) rad^2 and
+        position_cov (K, 3, 3) m^2, both world frame and symmetric.
+
+    Raises:
+        CdtmError: as :func:`read_tum`, for 20 columns.
+    """
+    t_ns, T, upper = _read_pose_table(path, len(COV_COLUMNS))
+    covs = []
+    for block in (upper[:, :6], upper[:, 6:]):
+        cov = np.empty((upper.shape[0], 3, 3))
+        for col, (i, j) in enumerate(UPPER_TRIANGLE):
+            cov[:, i, j] = cov[:, j, i] = block[:, col]
+        covs.append(cov)
+    return t_ns, T, covs[0], covs[1]
