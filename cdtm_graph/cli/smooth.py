@@ -1,0 +1,127 @@
+"""``cdtm smooth LOG --out DIR``: smooth a flight log and write the run directory."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from cdtm_graph.errors import CdtmError
+from cdtm_graph.graph import GraphSettings
+from cdtm_graph.loading import load_log_and_dtm
+from cdtm_graph.outputs import write_run
+from cdtm_graph.results import pose_covariance_in_world
+from cdtm_graph.run import RunOutput, smooth_and_evaluate
+from cdtm_graph.smoother import SmootherMode, SmootherSettings
+from factors import PlaneMode, RobustKernel
+
+#: Runs with at least this many frames show a progress bar (unless --quiet).
+PROGRESS_MIN_FRAMES = 100
+
+
+def add_smoothing_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--mode", choices=[m.value for m in SmootherMode], default="batch",
+                   help="batch Levenberg-Marquardt (default) or incremental iSAM2")
+    p.add_argument("--plane", choices=[m.value for m in PlaneMode], default="reintersect",
+                   help="DTM tangent plane: re-intersect at every linearization (default) "
+                        "or fixed at the initial guess (the paper)")
+    p.add_argument("--robust", choices=[k.value for k in RobustKernel], default="none",
+                   help="per-feature M-estimator")
+    p.add_argument("--lag-s", type=float, default=None,
+                   help="incremental mode: fixed-lag smoother with this lag (seconds)")
+    p.add_argument("--plots", action="store_true",
+                   help="also write trajectory.png (over the DTM, 3-sigma ellipses) and "
+                        "errors.png (errors inside +-3 sigma)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar, no summary")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("smooth", help="smooth a flight log (IMU + C-DTM factors)",
+                       description="Smooth a cdtm-flightlog/1 directory and write "
+                                   "trajectory.tum, trajectory_cov.txt, states.csv, "
+                                   "covariances.npz and report.json into --out.")
+    p.add_argument("log", help="flight log directory")
+    p.add_argument("--out", required=True, help="output directory (replaced as a whole)")
+    add_smoothing_options(p)
+    p.set_defaults(func=run)
+
+
+def settings_from_args(args: argparse.Namespace) -> SmootherSettings:
+    if args.lag_s is not None and not args.lag_s > 0:
+        raise CdtmError(f"--lag-s {args.lag_s}: expected a lag > 0 seconds")
+    if args.lag_s is not None and args.mode != "incremental":
+        raise CdtmError("--lag-s needs --mode incremental")
+    return SmootherSettings(
+        graph=GraphSettings(plane_mode=PlaneMode(args.plane), robust=RobustKernel(args.robust)),
+        mode=SmootherMode(args.mode), lag_s=args.lag_s)
+
+
+def progress_bar(quiet: bool):
+    """A one-line progress bar on stderr for long runs, or None."""
+    if quiet:
+        return None
+
+    def show(done: int, total: int) -> None:
+        if total < PROGRESS_MIN_FRAMES:
+            return
+        width = 30
+        filled = width * done // total
+        sys.stderr.write(f"\rsmoothing [{'#' * filled}{'.' * (width - filled)}] {done}/{total} frames")
+        if done == total:
+            sys.stderr.write("\n")
+        sys.stderr.flush()
+
+    return show
+
+
+def plot_writers(out: RunOutput, dtm, flight) -> list:
+    from cdtm_graph.plots.trajectory import plot_errors, plot_trajectory_over_dtm
+
+    est = out.result.estimate
+    _, pos_cov = pose_covariance_in_world(est.world_T_body, out.result.covariances.pose)
+    writers = [("trajectory.png",
+                lambda p: plot_trajectory_over_dtm(p, dtm, est, pos_cov, flight.groundtruth))]
+    if out.errors is not None:
+        e = out.errors
+        writers.append(("errors.png", lambda p: plot_errors(
+            p, (e.t_ns - e.t_ns[0]) * 1e-9, e.position_error_world_m, e.position_sigma_world_m)))
+    return writers
+
+
+def summary(out: RunOutput, out_dir: Path) -> str:
+    r = out.result
+    lines = [f"{r.counts.n_frames} frames, {r.counts.n_cdtm_features} C-DTM features "
+             f"({r.counts.n_missed_dtm} missed the DTM), {r.stats.mode} solve in "
+             f"{r.stats.time_s:.2f} s -> {out_dir}"]
+    if out.errors is not None:
+        e, f = out.errors, out.free_errors
+        fmt = lambda v: " ".join(f"{x:8.2f}" for x in v)  # noqa: E731
+        lines += [f"{'':24}{'x':>8} {'y':>8} {'z':>8}   (m, world)",
+                  f"{'RMSE compensated':24}{fmt(e.rmse_position_m)}",
+                  f"{'max error compensated':24}{fmt(e.max_abs_position_error_m)}",
+                  f"{'max error free (IMU)':24}{fmt(f.max_abs_position_error_m)}"]
+        if e.anees_position is not None:
+            lo, hi = e.anees_position_band
+            lines.append(f"position ANEES {e.anees_position:.2f} (3 dof; 95% band "
+                         f"{lo:.2f}-{hi:.2f}), pose ANEES {e.anees_pose:.2f} (6 dof)")
+    if r.flags:
+        lines.append(f"frame flags: {r.flags}")
+    return "\n".join(lines)
+
+
+def smooth_log_to_dir(log_dir: str, out_dir: Path, args: argparse.Namespace) -> RunOutput:
+    settings = settings_from_args(args)
+    flight, dtm = load_log_and_dtm(log_dir)
+    out = smooth_and_evaluate(flight, dtm, settings, progress_bar(args.quiet))
+    extras = plot_writers(out, dtm, flight) if args.plots else []
+    write_run(out_dir, out.result, out.report, extras)
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    out_dir = Path(args.out)
+    out = smooth_log_to_dir(args.log, out_dir, args)
+    if not args.quiet:
+        print(summary(out, out_dir))
+    return 0
+
