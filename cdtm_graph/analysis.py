@@ -211,7 +211,8 @@ class ClosedFormAnalysis:
     Attributes:
         theta: (12,) linearization point.
         sigma_theta_unweighted: (12, 12) eq. 13 as printed (unweighted least squares).
-        sigma_theta_weighted: (12, 12) ``(J^T W J)^-1``, ``W = blockdiag(Sigma_f^+)``: the
+        sigma_theta_weighted: (12, 12) ``(J^T W J)^-1``, ``W = blockdiag(Sigma_f^+)`` (the
+            pseudo-inverse on each residual's plane, orthogonal to ``q_b``): the
             covariance of the weighted estimator GTSAM solves.
         sigma_c2_unweighted, sigma_c2_weighted: (6, 6) camera-2 pose covariance (eqs. 27-32).
         information: (12, 12) ``J^T W J``.
@@ -232,14 +233,6 @@ class ClosedFormAnalysis:
     weakest_eigenvalues: np.ndarray
     degeneracy: Degeneracy
     n_features: int
-
-
-def _pseudo_inverse_psd(S: np.ndarray, rtol: float = 1e-10) -> np.ndarray:
-    """Moore-Penrose inverse of a stack of symmetric PSD matrices, (n, k, k)."""
-    w, V = np.linalg.eigh(S)
-    keep = w > rtol * w[:, -1:]
-    w_inv = np.where(keep, 1.0 / np.where(keep, w, 1.0), 0.0)
-    return (V * w_inv[:, None, :]) @ np.swapaxes(V, 1, 2)
 
 
 def _normalized_spectrum(info: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -324,7 +317,13 @@ def analyze_pair(
             world_T_cam_a[:3, :3], world_T_cam_a[:3, 3], world_T_cam_b[:3, :3],
             world_T_cam_b[:3, 3], q_a, q_b, G_E, N, noise.sigma_q_xy, noise.sigma_h_m,
             noise.sigma_qa_xy)
-    W = _pseudo_inverse_psd(Sigma_f)  # rank 2 per feature
+    # f = P(q_b, q_b) g/|g| lies in q_b's orthogonal complement by construction, so its
+    # covariance is inverted there: W = B (B^T Sigma_f B)^-1 B^T. (A plain pseudo-inverse
+    # of Sigma_f would also invert the tiny q_b component that eq. 19 picks up when the
+    # residual is not zero, i.e. with real data, and invent information.)
+    B = cdtm_math.orthonormal_complement(q_b)
+    Bt = np.swapaxes(B, 1, 2)
+    W = B @ np.linalg.inv(Bt @ Sigma_f @ B) @ Bt
     J_flat = J.reshape(-1, 12)
     info = J_flat.T @ (W @ J).reshape(-1, 12)
     JtJ = J_flat.T @ J_flat
