@@ -23,7 +23,6 @@ from __future__ import annotations
 import enum
 import math
 import os
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -708,21 +707,11 @@ def save_dtm_npz(dtm: Dtm, path: str | os.PathLike) -> None:
     path = Path(path)
     if path.suffix.lower() != ".npz":
         raise DtmError(f"{path}: cannot write a DTM here, expected a path ending in .npz")
-    fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(
-                f,
-                elevation=np.asarray(dtm.elevation),
-                x0=np.float64(dtm.x0),
-                y0=np.float64(dtm.y0),
-                dx=np.float64(dtm.dx),
-                dy=np.float64(dtm.dy),
-            )
-        os.replace(tmp_name, path)
-    except BaseException:
-        Path(tmp_name).unlink(missing_ok=True)
-        raise
+    from cdtm_graph.atomic import atomic_output_file
+
+    with atomic_output_file(path) as tmp, open(tmp, "wb") as f:
+        np.savez(f, elevation=np.asarray(dtm.elevation), x0=np.float64(dtm.x0),
+                 y0=np.float64(dtm.y0), dx=np.float64(dtm.dx), dy=np.float64(dtm.dy))
 
 
 _NPZ_SCALARS = ("x0", "y0", "dx", "dy")

@@ -35,3 +35,7 @@ class DegenerateGeometryError(CdtmError):
 
 class SolverError(CdtmError):
     """The optimizer failed (indeterminate system, divergence); the message names the variable."""
+
+
+class SimulationError(CdtmError):
+    """The simulation settings or terrain cannot give a valid flight log."""

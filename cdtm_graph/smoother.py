@@ -24,7 +24,7 @@ import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 
 from cdtm_graph.dtm import Dtm
-from cdtm_graph.errors import FlightLogError, SolverError
+from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import FlightConfig, FlightLog, ImuSamples
 from cdtm_graph.graph import (
     FramePairObservations,

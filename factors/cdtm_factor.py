@@ -29,12 +29,12 @@ import numpy as np
 
 from factors import cdtm_math
 from factors.kernel import (
-    feature_covariance_kernel,
     KERNEL_CAUCHY,
     KERNEL_HUBER,
     KERNEL_NONE,
     KERNEL_TUKEY,
     cdtm_linearize,
+    feature_covariance_kernel,
 )
 
 #: ``raycast(origin (3,) or (n,3), directions (n,3)) -> (points, normals, valid)``, fresh

@@ -14,9 +14,9 @@ from factors import (
     PairFeatures,
     PlaneMode,
     RobustKernel,
+    cdtm_math,
     make_feature_factors,
 )
-from factors import cdtm_math
 from tests.manifold import (
     WavyTerrain,
     downward_body_T_cam,
