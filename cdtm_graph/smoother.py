@@ -404,6 +404,8 @@ class IncrementalSmoother:
         else:
             self._fls = gtsam.IncrementalFixedLagSmoother(lag_s, isam2_params())
             self._isam = None
+        self._solver = self._isam if self._fls is None else self._fls
+        self._settled = 0  # fixed lag: frames before this one have left the window
         self._t_ns: list[int] = []
         self._poses: dict[int, np.ndarray] = {}  # latest estimate of every frame
         self._velocities: dict[int, np.ndarray] = {}
@@ -466,6 +468,8 @@ class IncrementalSmoother:
         values.insert(B(k), bias)
         self._t_ns.append(int(t_ns))
         self._poses[k], self._velocities[k], self._biases[k] = pose, vel, bias
+        if self._fls is not None and k:
+            self._settle(k)
         n_new = 0
         if track_id is not None and len(track_id):
             n_new = self._add_cdtm(k, np.asarray(track_id, dtype=np.int64),
@@ -503,9 +507,8 @@ class IncrementalSmoother:
             self._seen_frame = self._seen_frame[order]
             self._seen_q = self._seen_q[order]
         self._pair_count += int(rows.size)
-        if self.lag_s is not None:  # X(a) already marginalized out of the window
-            t_frames = np.asarray(self._t_ns)
-            too_old = (t_frames[k] - t_frames[frame_a]) * 1e-9 >= self.lag_s
+        if self.lag_s is not None:  # X(a) leaves (or left) the window at this update
+            too_old = frame_a < self._settled
             self.n_too_old += int(too_old.sum())
             keep = ~too_old
             frame_a, q_a_all, q_b_all, tid_all = (frame_a[keep], q_a_all[keep], q_b_all[keep],
@@ -515,9 +518,8 @@ class IncrementalSmoother:
         for a in by_frame.tolist():
             sel = frame_a == a
             pairs.append(FramePairObservations(a, k, q_a_all[sel], q_b_all[sel], tid_all[sel]))
-        if self._fls is None:  # full history: fetch only the poses these planes need
-            for a in by_frame.tolist():
-                self._poses[a] = self._isam.calculateEstimatePose3(X(a)).matrix()
+        for a in by_frame.tolist():  # fetch only the poses these planes need
+            self._poses[a] = self._solver.calculateEstimatePose3(X(a)).matrix()
         build = cdtm_factors(pairs, self._poses, self._body_T_cam, self.dtm, self._noise,
                              self.settings)
         for f in build.factors:
@@ -536,16 +538,28 @@ class IncrementalSmoother:
                 for key in (X(k), V(k), B(k)):
                     stamps.insert((key, t_s))
                 self._fls.update(graph, values, stamps)
-                estimate = self._fls.calculateEstimate()
-                self._refresh(estimate)  # the window only: constant cost per frame
             else:
                 self._isam.update(graph, values)
-                # Only the newest state: a full calculateEstimate grows with the flight.
-                self._poses[k] = self._isam.calculateEstimatePose3(X(k)).matrix()
-                self._velocities[k] = np.asarray(self._isam.calculateEstimateVector(V(k)))
-                self._biases[k] = self._isam.calculateEstimateConstantBias(B(k))
+            # Only the newest state: a full calculateEstimate grows with the flight.
+            self._fetch(k)
         except RuntimeError as exc:
             raise explain_indeterminant(exc) from None
+
+    def _settle(self, k: int) -> None:
+        """Fixed lag: fetch, for the last time, the frames that frame k's update may
+        marginalize (older than the lag, with one frame interval of margin so float
+        timestamps cannot race the smoother); they keep that estimate."""
+        margin_ns = self._t_ns[k] - self._t_ns[k - 1]
+        horizon = self._t_ns[k] - self.lag_s * 1e9 + margin_ns
+        while self._settled < k and self._t_ns[self._settled] < horizon:
+            self._fetch(self._settled)
+            self._settled += 1
+
+    def _fetch(self, k: int) -> None:
+        """Current estimate of frame k's states."""
+        self._poses[k] = self._solver.calculateEstimatePose3(X(k)).matrix()
+        self._velocities[k] = np.asarray(self._solver.calculateEstimateVector(V(k)))
+        self._biases[k] = self._solver.calculateEstimateConstantBias(B(k))
 
     def _refresh(self, estimate: gtsam.Values) -> None:
         for key in estimate.keys():

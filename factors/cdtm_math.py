@@ -78,11 +78,16 @@ def orthonormal_complement(q: np.ndarray) -> np.ndarray:
         (n, 3, 2) with ``B^T B = I`` and ``B^T q = 0``.
     """
     q = np.asarray(q, dtype=float)
-    qh = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    b1 = np.cross(np.array([0.0, 1.0, 0.0]), qh)
-    b1 /= np.linalg.norm(b1, axis=-1, keepdims=True)
-    b2 = np.cross(qh, b1)
-    return np.stack([b1, b2], axis=-1)
+    qh = q / np.sqrt(np.einsum("ni,ni->n", q, q))[:, None]
+    # b1 = e_y x q / |.| = (q_z, 0, -q_x) / |.|, b2 = q x b1 (np.cross is slow on small arrays)
+    B = np.zeros(q.shape + (2,))
+    s = 1.0 / np.hypot(qh[:, 0], qh[:, 2])
+    B[:, 0, 0] = qh[:, 2] * s
+    B[:, 2, 0] = -qh[:, 0] * s
+    B[:, 0, 1] = qh[:, 1] * B[:, 2, 0]
+    B[:, 1, 1] = qh[:, 2] * B[:, 0, 0] - qh[:, 0] * B[:, 2, 0]
+    B[:, 2, 1] = -qh[:, 1] * B[:, 0, 0]
+    return B
 
 
 def tangent_plane_intersection(
@@ -193,10 +198,19 @@ def residual_covariance(Sigma_f: np.ndarray, basis_b: np.ndarray) -> np.ndarray:
 
 
 def sqrt_information(Sigma_e: np.ndarray) -> np.ndarray:
-    """Upper-triangular ``S`` with ``S^T S = Sigma_e^-1`` (GTSAM's whitening), (n, 2, 2)."""
-    info = np.linalg.inv(Sigma_e)
-    L = np.linalg.cholesky(info)  # info = L L^T, so S = L^T
-    return np.swapaxes(L, 1, 2)
+    """Upper-triangular ``S`` with ``S^T S = Sigma_e^-1`` (GTSAM's whitening), (n, 2, 2).
+
+    Closed form for 2x2 blocks: with ``I = Sigma_e^-1``, ``S = [[a, b], [0, c]]``,
+    ``a = sqrt(I00)``, ``b = I01 / a``, ``c = sqrt(I11 - b^2)``.
+    """
+    s00, s01, s11 = Sigma_e[:, 0, 0], Sigma_e[:, 0, 1], Sigma_e[:, 1, 1]
+    det = s00 * s11 - s01 * s01
+    i00, i01, i11 = s11 / det, -s01 / det, s00 / det
+    S = np.zeros_like(Sigma_e)
+    S[:, 0, 0] = np.sqrt(i00)
+    S[:, 0, 1] = i01 / S[:, 0, 0]
+    S[:, 1, 1] = np.sqrt(i11 - S[:, 0, 1] ** 2)
+    return S
 
 
 def body_to_cam_adjoint(body_T_cam: np.ndarray) -> np.ndarray:
