@@ -196,26 +196,32 @@ def _estimate_from_values(values: gtsam.Values, t_ns: np.ndarray) -> TrajectoryE
 
 
 def _marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
-               K: int) -> StateCovariances:
-    """Per-frame marginals from a QR Bayes tree of the graph linearized at ``values``.
+               K: int, qr_only: bool = False) -> StateCovariances:
+    """Per-frame marginals from a Bayes tree of the graph linearized at ``values``.
 
-    ``gtsam.Marginals`` eliminates with Cholesky, which declares this system
-    indeterminant: its information spans ~1e-4 (pose prior) to ~1e10 (bias random
-    walk), and Cholesky's squared condition number loses the small pivots.
+    Cholesky first (as ``gtsam.Marginals``); where it declares the system indeterminant,
+    which happens on these wide-range systems (information from ~1e-4 for the pose prior
+    to ~1e10 for the bias random walk), QR, which does not square the condition number.
     """
-    try:
-        tree = graph.linearize(values).eliminateMultifrontal(function=gtsam.EliminateQR)
+    linear = graph.linearize(values)
+    for qr in (True,) if qr_only else (False, True):
+        try:
+            tree = (linear.eliminateMultifrontal(function=gtsam.EliminateQR) if qr
+                    else linear.eliminateMultifrontal())
 
-        def cov(key: int) -> np.ndarray:
-            # information() includes the conditional's noise model (QR leaves sigmas on it)
-            return np.linalg.inv(tree.marginalFactor(key, gtsam.EliminateQR).information())
+            def cov(key: int, tree=tree, qr=qr) -> np.ndarray:
+                marginal = (tree.marginalFactor(key, gtsam.EliminateQR) if qr
+                            else tree.marginalFactor(key))
+                # information() includes the conditional's noise model (QR leaves sigmas)
+                return np.linalg.inv(marginal.information())
 
-        pose = np.stack([cov(X(k)) for k in range(K)])
-        vel = np.stack([cov(V(k)) for k in range(K)])
-        bias = np.stack([cov(B(k)) for k in range(K)])
-    except RuntimeError as exc:
-        raise explain_indeterminant(exc) from None
-    return StateCovariances(pose, vel, bias)
+            pose = np.stack([cov(X(k)) for k in range(K)])
+            vel = np.stack([cov(V(k)) for k in range(K)])
+            bias = np.stack([cov(B(k)) for k in range(K)])
+            return StateCovariances(pose, vel, bias)
+        except RuntimeError as exc:
+            error = exc
+    raise explain_indeterminant(error) from None
 
 
 @dataclass

@@ -129,3 +129,28 @@ def test_incremental_api_one_frame_at_a_time(nominal_log):
             assert update.n_features > 0
     # C-DTM updates pull the 50 m prior down to metres within a few frames
     assert sigmas[0] > 20 and sigmas[-1] < 5
+
+
+def test_marginals_match_gtsam_with_cholesky_and_with_qr(nominal_log, batch_run):
+    """Our Bayes-tree marginals (Cholesky, or the QR fallback) equal gtsam.Marginals."""
+    from cdtm_graph.graph import ImuIntervals
+    from cdtm_graph.smoother import _marginals, build_log_graph
+
+    flight, dtm = nominal_log
+    settings = SmootherSettings()
+    values = gtsam.Values()
+    est = batch_run.result.estimate
+    from gtsam.symbol_shorthand import B, V
+
+    for k in range(len(est)):
+        values.insert(X(k), gtsam.Pose3(est.world_T_body[k]))
+        values.insert(V(k), est.velocity_mps[k])
+        values.insert(B(k), gtsam.imuBias.ConstantBias(est.accel_bias[k], est.gyro_bias[k]))
+    graph = build_log_graph(flight, dtm, settings, values,
+                            ImuIntervals(flight.config, flight.imu, settings.graph.imu_hold)).graph
+    reference = gtsam.Marginals(graph, values)
+    for qr_only in (False, True):
+        ours = _marginals(graph, values, len(est), qr_only=qr_only)
+        for k in (0, len(est) // 2, len(est) - 1):
+            ref = reference.marginalCovariance(X(k))
+            np.testing.assert_allclose(ours.pose[k], ref, rtol=1e-6, atol=1e-9 * np.abs(ref).max())
