@@ -212,6 +212,29 @@ def cdtm_factors(
     return build
 
 
+#: Inlier gate without a robust kernel: chi-square with 2 dof, 99.9%.
+CHI2_2DOF_999 = 13.815510557964274
+
+
+def count_outliers(factors: Sequence[CdtmPairFactor], world_T_body: Sequence[np.ndarray],
+                   n_frames: int) -> tuple[int, np.ndarray]:
+    """Features whose whitened residual fails the chi-square(2) 99.9% gate at given poses.
+
+    The same gate whatever the robust kernel (the kernel decides the weighting; a
+    Huber threshold of 1.345 would call 40% of Gaussian inliers outliers).
+
+    Returns:
+        The total and the count per frame (by the pair's later frame), (K,).
+    """
+    per_frame = np.zeros(n_frames, dtype=int)
+    for f in factors:
+        a = int(gtsam.Symbol(f.key_a).index())
+        b = int(gtsam.Symbol(f.key_b).index())
+        r2 = np.sum(f.whitened_residuals(world_T_body[a], world_T_body[b]) ** 2, axis=1)
+        per_frame[b] += int(np.count_nonzero(r2 > CHI2_2DOF_999))
+    return int(per_frame.sum()), per_frame
+
+
 _SYMBOL = re.compile(r"Symbol:\s*([a-zA-Z])(\d+)")
 
 

@@ -80,6 +80,9 @@ class GraphCounts:
         n_cdtm_factors: batched factors (one per frame pair).
         n_imu_factors: IMU preintegration factors.
         features_per_frame: (K,) C-DTM features ending at each frame.
+        n_outliers: features whose whitened residual at the solution fails the
+            chi-square(2) 99.9% gate (flagged; the robust kernel, if any, weights them).
+        outliers_per_frame: (K,) the same, by the frame the feature pair ends at.
     """
 
     n_frames: int
@@ -91,6 +94,8 @@ class GraphCounts:
     n_cdtm_factors: int
     n_imu_factors: int
     features_per_frame: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+    n_outliers: int = 0
+    outliers_per_frame: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
 
 
 @dataclass(frozen=True)

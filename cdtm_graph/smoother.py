@@ -17,7 +17,7 @@ import enum
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import gtsam
 import numpy as np
@@ -31,6 +31,7 @@ from cdtm_graph.graph import (
     GraphSettings,
     ImuIntervals,
     cdtm_factors,
+    count_outliers,
     explain_indeterminant,
     feature_noise,
     frame_pair_observations,
@@ -231,6 +232,7 @@ class _LogGraph:
     graph: gtsam.NonlinearFactorGraph
     values: gtsam.Values
     counts: GraphCounts
+    cdtm: list
 
 
 def _observation_counts(flight: FlightLog, pairs: list[FramePairObservations]) -> tuple[int, int, int]:
@@ -282,7 +284,7 @@ def build_log_graph(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
         per_frame[k] = n
     counts = GraphCounts(K, n_tracks, n_obs, n_pairs, build.n_features, build.n_missed,
                          len(build.factors), K - 1, per_frame)
-    return _LogGraph(graph, initial, counts)
+    return _LogGraph(graph, initial, counts, build.factors)
 
 
 def _frame_flags(counts: GraphCounts) -> dict:
@@ -331,8 +333,11 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
                         stats.converged, stats.time_s, time.perf_counter() - start)
     settings_dict = settings.as_dict()
     settings_dict["initial_values"] = source
-    return SmootherResult(_estimate_from_values(values, flight.frames.t_ns), covariances, stats,
-                          built.counts, settings_dict, _frame_flags(built.counts))
+    estimate = _estimate_from_values(values, flight.frames.t_ns)
+    n_out, out_per_frame = count_outliers(built.cdtm, estimate.world_T_body, K)
+    counts = replace(built.counts, n_outliers=n_out, outliers_per_frame=out_per_frame)
+    return SmootherResult(estimate, covariances, stats, counts, settings_dict,
+                          _frame_flags(counts))
 
 
 # -- incremental ---------------------------------------------------------------------
@@ -412,6 +417,7 @@ class IncrementalSmoother:
             self._isam = None
         self._solver = self._isam if self._fls is None else self._fls
         self._settled = 0  # fixed lag: frames before this one have left the window
+        self._cdtm: list = []  # every C-DTM factor, for the outlier count
         self._t_ns: list[int] = []
         self._poses: dict[int, np.ndarray] = {}  # latest estimate of every frame
         self._velocities: dict[int, np.ndarray] = {}
@@ -530,6 +536,7 @@ class IncrementalSmoother:
                              self.settings)
         for f in build.factors:
             graph.add(f.factor)
+        self._cdtm.extend(build.factors)
         self.n_features += build.n_features
         self.n_missed += build.n_missed
         self.n_cdtm_factors += len(build.factors)
@@ -654,12 +661,15 @@ class IncrementalSmoother:
         t0 = time.perf_counter()
         covariances = self.covariances()
         per_frame = np.array([self._factors_by_frame.get(k, 0) for k in range(K)])
+        estimate = self.estimate()
+        n_out, out_per_frame = count_outliers(self._cdtm, estimate.world_T_body, K)
         counts = GraphCounts(K, int(self._seen_ids.size), self._observations, self._pair_count,
-                             self.n_features, self.n_missed, self.n_cdtm_factors, K - 1, per_frame)
+                             self.n_features, self.n_missed, self.n_cdtm_factors, K - 1, per_frame,
+                             n_out, out_per_frame)
         stats = SolverStats("incremental" if self.lag_s is None else "fixed_lag", K, float("nan"),
                             float("nan"), True, elapsed, time.perf_counter() - t0,
                             tuple(self.update_times_s))
         settings = dict(settings_dict or {})
         settings["n_too_old_for_lag"] = self.n_too_old
-        return SmootherResult(self.estimate(), covariances, stats, counts, settings,
+        return SmootherResult(estimate, covariances, stats, counts, settings,
                               _frame_flags(counts))

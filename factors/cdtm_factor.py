@@ -240,6 +240,22 @@ class CdtmPairFactor:
             self.robust_threshold, want_jacobians, self._e, self._Ha, self._Hb)
         return self._e, self._Ha, self._Hb
 
+    def whitened_residuals(self, world_T_body_a: np.ndarray,
+                           world_T_body_b: np.ndarray) -> np.ndarray:
+        """Whitened residuals before any robust reweighting, (n, 2) (a fresh array).
+
+        ``|r|^2`` is chi-square with 2 degrees of freedom for an inlier.
+        """
+        wTc_a = world_T_body_a @ self.body_T_cam
+        wTc_b = world_T_body_b @ self.body_T_cam
+        G_E, N = self.planes(wTc_a)
+        f = self.features
+        e = np.empty((f.n, 2))
+        cdtm_linearize(wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3], self._Ad,
+                       f.q_a, G_E, N, f.basis_b, f.sqrt_info, KERNEL_NONE, 0.0, False, e,
+                       self._Ha, self._Hb)
+        return e
+
     def _error(self, this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
         e, Ha, Hb = self.evaluate(_pose_matrix(values, self.key_a),
                                   _pose_matrix(values, self.key_b), jacobians is not None)
