@@ -154,3 +154,28 @@ def test_marginals_match_gtsam_with_cholesky_and_with_qr(nominal_log, batch_run)
         for k in (0, len(est) // 2, len(est) - 1):
             ref = reference.marginalCovariance(X(k))
             np.testing.assert_allclose(ours.pose[k], ref, rtol=1e-6, atol=1e-9 * np.abs(ref).max())
+
+
+def test_robust_kernels_resist_mismatched_tracks(nominal_log):
+    """5% of observations displaced by up to 25 px (bad matches): the gate flags the
+    pairs they enter, and Huber keeps the solution near the clean one."""
+    import dataclasses
+
+    from cdtm_graph.graph import GraphSettings
+    from factors import RobustKernel
+
+    flight, dtm = nominal_log
+    rng = np.random.default_rng(3)
+    uv = flight.tracks.uv_px.copy()
+    bad = rng.random(len(uv)) < 0.05
+    uv[bad] += rng.uniform(-25, 25, (int(bad.sum()), 2))
+    uv = np.clip(uv, 0, 399)
+    corrupted = dataclasses.replace(flight, tracks=dataclasses.replace(flight.tracks, uv_px=uv))
+    plain = smooth_and_evaluate(corrupted, dtm, SmootherSettings())
+    huber = smooth_and_evaluate(corrupted, dtm, SmootherSettings(
+        graph=GraphSettings(robust=RobustKernel.HUBER)))
+    # each bad observation enters up to two pairs; most must fail the chi-square gate
+    assert huber.result.counts.n_outliers > bad.sum()
+    assert np.linalg.norm(huber.errors.rmse_position_m) < 0.5 * np.linalg.norm(
+        plain.errors.rmse_position_m)
+    assert np.all(huber.errors.rmse_position_m <= MAX_RMSE_M)
