@@ -1,0 +1,157 @@
+"""Accuracy map: flat terrain flagged, rough terrain mapped, each node = analyze_pair by hand."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from cdtm_graph.accuracy_map import (
+    DEGENERACY_CODE_NAMES,
+    AccuracyMapSettings,
+    AltitudeReference,
+    DegeneracyCode,
+    accuracy_at,
+    accuracy_map,
+    map_nodes,
+)
+from cdtm_graph.analysis import analyze_pair
+from cdtm_graph.cli import main as cdtm_main
+from cdtm_graph.dtm import Dtm, save_dtm_npz
+from cdtm_graph.errors import CdtmError
+from cdtm_graph.geometry import so3_log
+from cdtm_graph.parallel import ParallelSettings
+from cdtm_graph.terrain import fractal_terrain
+from tests.conftest import TEST_SEED
+
+#: The map stores exactly what analyze_pair returns (same inputs, same arithmetic).
+SAME_NUMBER_RTOL = 1e-12
+#: Noiseless features: the second ray reprojects its ground point to rounding.
+REPROJECTION_TOL = 1e-12
+#: Terrain: 2.4 x 2.4 km at 20 m; x < 0 is flat, x >= 0 is 300 m of fractal relief.
+SIZE_M, SPACING_M = 2400.0, 20.0
+#: Nodes whose whole footprint (half-width ~350 m at 500 m over 60 degrees, plus the
+#: 40 m baseline) stays on one side of x = 0.
+FOOTPRINT_CLEARANCE_M = 450.0
+SETTINGS = AccuracyMapSettings(altitude_m=500.0, fov_deg=60.0, step_m=200.0, sigma_h_m=2.4)
+
+
+@pytest.fixture(scope="module")
+def half_flat_dtm() -> Dtm:
+    rough = fractal_terrain(size_m=SIZE_M, spacing_m=SPACING_M, relief_m=300.0,
+                            seed=TEST_SEED, origin_xy=(-SIZE_M / 2, -SIZE_M / 2))
+    x = rough.x0 + np.arange(rough.shape[1]) * rough.dx
+    elevation = np.where(x[None, :] < 0.0, 0.0, rough.elevation)
+    return Dtm(elevation, rough.x0, rough.y0, rough.dx, rough.dy, sigma_h_m=2.4)
+
+
+@pytest.fixture(scope="module")
+def amap(half_flat_dtm):
+    return accuracy_map(half_flat_dtm, SETTINGS)
+
+
+def test_flat_region_is_degenerate_and_rough_region_is_mapped(amap):
+    flat = amap.x_m < -FOOTPRINT_CLEARANCE_M
+    rough = amap.x_m > FOOTPRINT_CLEARANCE_M
+    assert flat.any() and rough.any()
+    assert np.all(amap.reason_codes[:, flat] & DegeneracyCode.FLAT_TERRAIN)
+    assert np.all(np.isnan(amap.sigma_pos2_m[:, flat]))
+    assert np.all(amap.degenerate[:, flat])
+    assert not amap.degenerate[:, rough].any()
+    pos, att = amap.sigma_pos2_m[:, rough], amap.sigma_att2_deg[:, rough]
+    assert np.all(np.isfinite(pos) & (pos > 0)) and np.all(np.isfinite(att) & (att > 0))
+    # The nominal geometry of section VI: metres to tens of metres, about a degree.
+    assert 1.0 < np.median(pos) < 50.0 and 0.1 < np.median(att) < 5.0
+
+
+def test_a_node_equals_analyze_pair_run_by_hand(half_flat_dtm, amap):
+    i, j = len(amap.y_m) // 2, len(amap.x_m) - 2  # a rough-side node
+    x, y = float(amap.x_m[j]), float(amap.y_m[i])
+    loc = accuracy_at(half_flat_dtm, x, y, SETTINGS)
+    a = analyze_pair(loc.world_T_cam_a, loc.world_T_cam_b, loc.q_a, loc.q_b, loc.G_E, loc.N,
+                     loc.noise)
+    sigma_pos = math.sqrt(np.trace(a.sigma_c2_weighted[:3, :3]))
+    sigma_att = math.degrees(math.sqrt(np.trace(a.sigma_c2_weighted[3:, 3:])))
+    assert not a.degeneracy.degenerate
+    assert amap.sigma_pos2_m[i, j] == pytest.approx(sigma_pos, rel=SAME_NUMBER_RTOL)
+    assert amap.sigma_att2_deg[i, j] == pytest.approx(sigma_att, rel=SAME_NUMBER_RTOL)
+
+    # ... and the pair there is the one the settings describe, with noiseless features.
+    Ta, Tb = loc.world_T_cam_a, loc.world_T_cam_b
+    np.testing.assert_allclose(Ta[:2, 3], [x, y])
+    assert Ta[2, 3] == pytest.approx(np.nanmean(half_flat_dtm.elevation) + 500.0)
+    assert np.linalg.norm(Tb[:3, 3] - Ta[:3, 3]) == pytest.approx(SETTINGS.baseline_m)
+    assert np.degrees(np.linalg.norm(so3_log(Ta[:3, :3].T @ Tb[:3, :3]))) == pytest.approx(
+        SETTINGS.rotation_deg)
+    assert Ta[2, 2] == pytest.approx(-1.0)  # optical axis straight down
+    assert loc.q_a.shape[0] == SETTINGS.n_features == amap.n_features[i, j]
+    g_b = (loc.G_E - Tb[:3, 3]) @ Tb[:3, :3]
+    np.testing.assert_allclose(loc.q_b, g_b / g_b[:, 2:3], atol=REPROJECTION_TOL)
+    np.testing.assert_allclose(half_flat_dtm.height(loc.G_E[:, 0], loc.G_E[:, 1]),
+                               loc.G_E[:, 2], atol=1e-6)
+
+
+def test_nodes_cover_the_dtm_at_the_step(half_flat_dtm, amap):
+    x, y = map_nodes(half_flat_dtm, SETTINGS.step_m)
+    np.testing.assert_array_equal(x, amap.x_m)
+    assert np.allclose(np.diff(x), SETTINGS.step_m) and np.allclose(np.diff(y), SETTINGS.step_m)
+    xmin, xmax, ymin, ymax = half_flat_dtm.bounds
+    assert x[0] - SETTINGS.step_m / 2 >= xmin - 1e-9 and x[-1] + SETTINGS.step_m / 2 <= xmax + 1e-9
+    assert amap.sigma_pos2_m.shape == (y.size, x.size)
+
+
+def test_parallel_map_equals_serial(half_flat_dtm):
+    small = AccuracyMapSettings(altitude_m=500.0, fov_deg=60.0, step_m=600.0, sigma_h_m=2.4)
+    serial = accuracy_map(half_flat_dtm, small)
+    two = accuracy_map(half_flat_dtm, small, ParallelSettings(workers=2))
+    np.testing.assert_array_equal(serial.sigma_pos2_m, two.sigma_pos2_m)
+    np.testing.assert_array_equal(serial.reason_codes, two.reason_codes)
+
+
+def test_ground_altitude_reference_flies_over_the_ground(half_flat_dtm):
+    s = AccuracyMapSettings(altitude_m=400.0, fov_deg=60.0,
+                            altitude_reference=AltitudeReference.GROUND)
+    loc = accuracy_at(half_flat_dtm, 600.0, 100.0, s)
+    ground = float(half_flat_dtm.height(np.array(600.0), np.array(100.0)))
+    assert loc.world_T_cam_a[2, 3] == pytest.approx(ground + 400.0)
+
+
+def test_reason_codes_name_every_reason():
+    code = DegeneracyCode.from_reasons(("flat_terrain", "ill_conditioned", "new_reason"))
+    assert code == DegeneracyCode.FLAT_TERRAIN | DegeneracyCode.ILL_CONDITIONED | \
+        DegeneracyCode.OTHER
+    assert DEGENERACY_CODE_NAMES[int(math.log2(DegeneracyCode.FLAT_TERRAIN))] == "flat_terrain"
+
+
+@pytest.mark.parametrize("change", [{"fov_deg": 0.0}, {"altitude_m": -5.0},
+                                    {"n_features": 0}, {"step_m": 0.0}])
+def test_bad_settings_are_user_errors(half_flat_dtm, change):
+    kwargs = {"altitude_m": 500.0, "fov_deg": 60.0} | change
+    with pytest.raises(CdtmError):
+        accuracy_map(half_flat_dtm, AccuracyMapSettings(**kwargs))
+
+
+def test_cli_writes_npz_and_png(tmp_path, half_flat_dtm, capsys):
+    dtm_path = tmp_path / "dtm.npz"
+    save_dtm_npz(half_flat_dtm, dtm_path)
+    out = tmp_path / "map"
+    code = cdtm_main(["accuracy-map", str(dtm_path), "--alt-m", "500", "--fov-deg", "60",
+                      "--step-m", "600", "--workers", "1", "--out", str(out)])
+    assert code == 0
+    with np.load(out / "accuracy_map.npz") as z:
+        assert z["sigma_pos2_m"].shape == (z["y_m"].size, z["x_m"].size)
+        np.testing.assert_array_equal(z["degenerate"], z["reason_codes"] != 0)
+        assert z["degenerate"].any() and not z["degenerate"].all()
+        assert tuple(z["reason_names"]) == DEGENERACY_CODE_NAMES
+        assert float(z["fov_deg"]) == 60.0
+    assert (out / "accuracy_map.png").read_bytes().startswith(b"\x89PNG")
+    assert "degenerate nodes" in capsys.readouterr().out
+
+
+def test_cli_missing_dtm_is_one_line(tmp_path, capsys):
+    code = cdtm_main(["accuracy-map", str(tmp_path / "nope.npz"), "--alt-m", "500",
+                      "--fov-deg", "60", "--out", str(tmp_path / "map")])
+    assert code == 1
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    assert not (tmp_path / "map").exists()
