@@ -3,7 +3,8 @@
 Run: ``python benchmarks/bench_smoother.py --frames 1000``. Simulates a flight with ~170
 features per frame pair (a nav.csv INS solution as the batch initial guess), then ends
 with one line:
-``batch_s=... peak_mb=... isam2_median_ms=... isam2_p99_ms=... fixedlag_median_ms=... fixedlag_p99_ms=...``
+``batch_s=... peak_mb=... isam2_median_ms=... isam2_p99_ms=...``
+``fixedlag_median_ms=... fixedlag_p99_ms=...`` (one line).
 """
 
 from __future__ import annotations
@@ -54,7 +55,8 @@ def main(argv: list[str] | None = None) -> None:
     inc = smooth(flight, dtm, SmootherSettings(mode=SmootherMode.INCREMENTAL))
     u = 1e3 * np.asarray(inc.stats.update_times_s)
     tail = u[-ISAM2_WINDOW:]
-    print(f"iSAM2 full history: median {np.median(tail):.2f} ms, p99 {np.percentile(tail, 99):.1f} ms "
+    print(f"iSAM2 full history: median {np.median(tail):.2f} ms, "
+          f"p99 {np.percentile(tail, 99):.1f} ms "
           f"over the last {ISAM2_WINDOW} frames; total {inc.stats.time_s:.1f} s")
 
     lag = smooth(flight, dtm, SmootherSettings(mode=SmootherMode.INCREMENTAL, lag_s=args.lag_s))

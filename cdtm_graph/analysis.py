@@ -179,13 +179,16 @@ class DegeneracySettings:
             DTM cannot fix the translation.
         flat_relief_sigma: terrain is flat when the RMS deviation of the hit points
             from their best-fit plane is below this many ``sigma_h`` (at least 0.5 m).
+            Only near-planar patches are named flat: above that, the covariance
+            itself reports the weak relief honestly (a 1-sigma threshold called every
+            130 m-grid DTM and every 15-degree footprint flat).
         max_condition_number: of the scale-normalized information ``J^T W J``.
     """
 
     min_features: int = 6
     min_fov_deg: float = 8.0
     min_baseline_ratio: float = 0.005
-    flat_relief_sigma: float = 1.0
+    flat_relief_sigma: float = 0.25
     max_condition_number: float = 1e9
 
 

@@ -722,7 +722,8 @@ def _read_npz(path: Path) -> tuple[np.ndarray, float, float, float, float]:
     try:
         archive = np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError) as exc:
-        raise DtmError(f"{path}: not a readable .npz archive ({exc}), expected a numpy .npz file")
+        raise DtmError(f"{path}: not a readable .npz archive ({exc}), "
+                       "expected a numpy .npz file") from None
     if not isinstance(archive, np.lib.npyio.NpzFile):
         raise DtmError(f"{path}: holds a single array, expected an .npz archive of arrays")
     with archive:
@@ -777,7 +778,8 @@ def _read_asc(path: Path) -> tuple[np.ndarray, float, float, float, float]:
     try:
         text = path.read_text(encoding="ascii")
     except (OSError, UnicodeDecodeError) as exc:
-        raise DtmError(f"{path}: cannot read ({exc}), expected an ESRI ASCII grid text file")
+        raise DtmError(f"{path}: cannot read ({exc}), "
+                       "expected an ESRI ASCII grid text file") from None
     lines = text.splitlines()
     header: dict[str, tuple[str, int]] = {}
     n = 0

@@ -20,7 +20,7 @@ class FlightLogError(CdtmError):
 
 
 class DegenerateGeometryError(CdtmError):
-    """The geometry cannot determine the pose: flat terrain, narrow FOV, few features, tiny baseline.
+    """The geometry cannot fix the pose: flat terrain, narrow FOV, few features, tiny baseline.
 
     Attributes:
         reasons: machine-readable names of every degeneracy detected

@@ -81,8 +81,9 @@ def prior_factors(initial: InitialState, key: int = 0) -> gtsam.NonlinearFactorG
     pose_sigmas = np.r_[[att] * 3, [initial.sigma_position_m] * 3]
     graph.add(gtsam.PriorFactorPose3(X(key), gtsam.Pose3(initial.world_T_body),
                                      gtsam.noiseModel.Diagonal.Sigmas(pose_sigmas)))
+    velocity_noise = gtsam.noiseModel.Isotropic.Sigma(3, initial.sigma_velocity_mps)
     graph.add(gtsam.PriorFactorVector(V(key), np.asarray(initial.velocity_mps, dtype=float),
-                                      gtsam.noiseModel.Isotropic.Sigma(3, initial.sigma_velocity_mps)))
+                                      velocity_noise))
     bias_sigmas = np.r_[[initial.sigma_accel_bias] * 3, [initial.sigma_gyro_bias] * 3]
     graph.add(gtsam.PriorFactorConstantBias(B(key), initial_bias(initial),
                                             gtsam.noiseModel.Diagonal.Sigmas(bias_sigmas)))

@@ -235,7 +235,8 @@ class _LogGraph:
     cdtm: list
 
 
-def _observation_counts(flight: FlightLog, pairs: list[FramePairObservations]) -> tuple[int, int, int]:
+def _observation_counts(flight: FlightLog,
+                        pairs: list[FramePairObservations]) -> tuple[int, int, int]:
     tracks = flight.tracks
     if tracks is None:
         return 0, 0, 0
@@ -469,7 +470,8 @@ class IncrementalSmoother:
         if k == 0:
             init = self.config.initial_state
             graph.push_back(prior_factors(init, 0))
-            pose, vel, bias = init.world_T_body, np.asarray(init.velocity_mps, float), initial_bias(init)
+            pose, bias = init.world_T_body, initial_bias(init)
+            vel = np.asarray(init.velocity_mps, float)
         else:
             bias = self._biases[k - 1]
             pim = self._intervals.preintegrate(self._t_ns[-1], int(t_ns), bias)

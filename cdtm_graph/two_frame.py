@@ -93,7 +93,7 @@ def _raise_or_log(verdict: Degeneracy, settings: TwoFrameSettings) -> None:
         if settings.raise_on_degenerate:
             raise DegenerateGeometryError(f"degenerate geometry: {verdict.message()}",
                                           verdict.reasons)
-        log.warning("degenerate geometry: %s", verdict.message())
+        log.debug("degenerate geometry (flagged): %s", verdict.message())
 
 
 def _optimize(
@@ -309,7 +309,8 @@ def analyze_log_pair(flight, dtm, frame_a: int, frame_b: int, poses_from: str = 
     ray = q_a @ wTc_a[:3, :3].T
     G_E, N, valid = dtm_ray_caster(dtm)(np.broadcast_to(wTc_a[:3, 3], ray.shape), ray)
     cam_cfg = flight.config.camera
-    sigma_h = flight.config.dtm.sigma_h_m if flight.config.dtm.sigma_h_m is not None else dtm.sigma_h()
+    sigma_h = flight.config.dtm.sigma_h_m
+    sigma_h = dtm.sigma_h() if sigma_h is None else sigma_h
     noise = FeatureNoise(camera.sigma_normalized(cam_cfg.pixel_sigma_px), sigma_h)
     unc = pair_uncertainty(poses[0], poses[1], body_T_cam, q_a[valid], q_b[valid], G_E[valid],
                            N[valid], noise, TwoFrameSettings(raise_on_degenerate=False))

@@ -36,7 +36,8 @@ def main(argv: list[str] | None = None) -> dict:
     for k, t_ns in enumerate(t_frames):
         # IMU samples up to (and one past) this frame: the smoother splits boundary samples.
         upto = min(int(np.searchsorted(imu.t_ns, t_ns, side="right")) + 1, len(imu.t_ns))
-        new_imu = ImuSamples(imu.t_ns[sent:upto], imu.gyro_radps[sent:upto], imu.acc_mps2[sent:upto])
+        new_imu = ImuSamples(imu.t_ns[sent:upto], imu.gyro_radps[sent:upto],
+                             imu.acc_mps2[sent:upto])
         sent = upto
         seen = tracks.frame == k
         update = smoother.add_frame(int(t_ns), tracks.track_id[seen], tracks.uv_px[seen], new_imu)
@@ -52,7 +53,8 @@ def main(argv: list[str] | None = None) -> dict:
         print(line)
     smoother.finalize()
     final = smoother.estimate()
-    summary = {"frames": len(final), "median_update_ms": 1e3 * float(np.median(smoother.update_times_s))}
+    summary = {"frames": len(final),
+               "median_update_ms": 1e3 * float(np.median(smoother.update_times_s))}
     if errors:
         summary["filter_rms_error_m"] = float(np.sqrt(np.mean(np.sum(np.square(errors), axis=1))))
     print(summary)

@@ -111,7 +111,8 @@ def test_gtsam_marginal_equals_weighted_eq13_and_unweighted_is_larger(rng):
         a = result.analysis
         np.testing.assert_allclose(result.sigma_theta_gtsam, a.sigma_theta_weighted,
                                    rtol=MARGINAL_RTOL,
-                                   atol=MARGINAL_RTOL * np.abs(np.diag(a.sigma_theta_weighted)).min())
+                                   atol=MARGINAL_RTOL
+                                   * np.abs(np.diag(a.sigma_theta_weighted)).min())
         gap = np.linalg.eigvalsh(a.sigma_theta_unweighted - a.sigma_theta_weighted)
         assert gap.min() > -1e-9 * np.abs(a.sigma_theta_weighted).max()
         gap_c2 = np.linalg.eigvalsh(a.sigma_c2_unweighted - a.sigma_c2_weighted)

@@ -101,7 +101,8 @@ def test_data_jacobians_match_central_differences(rng):
         J_qb, J_G, J_qa = cdtm_math.paper_data_jacobians(
             *args, feats.q_a, feats.q_b, feats.G_E, feats.N)
         for i in range(feats.n):
-            qa, qb, G, N = feats.q_a[i:i + 1], feats.q_b[i:i + 1], feats.G_E[i:i + 1], feats.N[i:i + 1]
+            one = slice(i, i + 1)
+            qa, qb, G, N = feats.q_a[one], feats.q_b[one], feats.G_E[one], feats.N[one]
 
             def f_of(qa=qa, qb=qb, G=G, N=N):
                 return cdtm_math.paper_residual(*args, qa, qb, G, N)[0][0]
@@ -122,7 +123,8 @@ def test_factor_residual_is_paper_residual_in_the_basis(rng):
     wTc_a, wTc_b = Ta @ body_T_cam, Tb @ body_T_cam
     f, _ = cdtm_math.paper_residual(wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3],
                                     feats.q_a, feats.q_b, feats.G_E, feats.N)
-    unwhitened = PairFeatures(feats.q_a, feats.q_b, feats.G_E, feats.N, feats.Sigma_e, feats.Sigma_f,
+    unwhitened = PairFeatures(feats.q_a, feats.q_b, feats.G_E, feats.N, feats.Sigma_e,
+                              feats.Sigma_f,
                               feats.basis_b, np.repeat(np.eye(2)[None], feats.n, 0))
     e = CdtmPairFactor(X(0), X(1), unwhitened, body_T_cam).evaluate(Ta, Tb)[0]
     np.testing.assert_allclose(e, np.einsum("nik,ni->nk", feats.basis_b, f), atol=1e-14)
@@ -183,7 +185,8 @@ def test_noise_model_is_the_projected_feature_covariance(rng):
     wTc_a, wTc_b = Ta @ body_T_cam, Tb @ body_T_cam
     args = (wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3], feats.q_a, feats.q_b,
             feats.G_E, feats.N)
-    Sigma_f = cdtm_math.feature_covariance(*args, NOISE.sigma_q_xy, NOISE.sigma_h_m, NOISE.sigma_qa_xy)
+    Sigma_f = cdtm_math.feature_covariance(*args, NOISE.sigma_q_xy, NOISE.sigma_h_m,
+                                           NOISE.sigma_qa_xy)
     # At a noiseless solution Sigma_f has rank 2 with q_b in its null space.
     np.testing.assert_allclose(np.einsum("nij,nj->ni", Sigma_f, feats.q_b), 0, atol=1e-15)
     B = feats.basis_b

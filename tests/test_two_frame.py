@@ -41,7 +41,8 @@ def test_noiseless_solve_recovers_truth_from_perturbed_start(nominal_terrain):
         s = sample_pair(scenario, nominal_terrain, rng)
         r = solve_two_frame(s.q_a, s.q_b, raycast, s.initial_a, s.initial_b, s.body_T_cam,
                             scenario.noise)
-        for est, truth in ((r.world_T_body_a, s.world_T_body_a), (r.world_T_body_b, s.world_T_body_b)):
+        pairs = ((r.world_T_body_a, s.world_T_body_a), (r.world_T_body_b, s.world_T_body_b))
+        for est, truth in pairs:
             assert np.linalg.norm(est[:3, 3] - truth[:3, 3]) < POSITION_TOL_M
             assert np.linalg.norm(so3_log(est[:3, :3].T @ truth[:3, :3])) < ROTATION_TOL_RAD
         assert r.converged and not r.degenerate

@@ -77,7 +77,8 @@ def to_table(result: LogPairAnalysis) -> str:
         for i, name in enumerate(names):
             angle = name.startswith(("phi", "theta", "psi"))
             unit, scale = ("deg", np.degrees(1.0)) if angle else ("m", 1.0)
-            lines.append(f"{name:<10}{unit:>6}" + "".join(f"{v[i] * scale:>16.4g}" for _, v in cols))
+            values = "".join(f"{v[i] * scale:>16.4g}" for _, v in cols)
+            lines.append(f"{name:<10}{unit:>6}" + values)
 
     rows(THETA_NAMES, cols)
     lines.append("camera 2 pose (eqs. 27-31):")

@@ -66,7 +66,8 @@ def progress_bar(quiet: bool):
             return
         width = 30
         filled = width * done // total
-        sys.stderr.write(f"\rsmoothing [{'#' * filled}{'.' * (width - filled)}] {done}/{total} frames")
+        bar = "#" * filled + "." * (width - filled)
+        sys.stderr.write(f"\rsmoothing [{bar}] {done}/{total} frames")
         if done == total:
             sys.stderr.write("\n")
         sys.stderr.flush()
