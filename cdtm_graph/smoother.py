@@ -426,6 +426,7 @@ class IncrementalSmoother:
         self._seen_ids = np.zeros(0, dtype=np.int64)  # sorted track ids seen so far
         self._seen_frame = np.zeros(0, dtype=np.int64)  # ... their last frame
         self._seen_q = np.zeros((0, 3))  # ... and ray there
+        self._all_tracks: set[int] = set()  # for the count only
         self._factors_by_frame: dict[int, int] = {}
         self.n_features = 0
         self.n_missed = 0
@@ -498,6 +499,7 @@ class IncrementalSmoother:
                   graph: gtsam.NonlinearFactorGraph) -> int:
         q = self._camera.pixels_to_rays(uv_px)
         self._observations += len(track_id)
+        self._all_tracks.update(track_id.tolist())
         # Last sighting of every track, as sorted arrays (vectorized look-up and update).
         ids = self._seen_ids
         idx = np.searchsorted(ids, track_id)
@@ -513,13 +515,16 @@ class IncrementalSmoother:
         new = ~found
         if new.any():
             new_ids, first = np.unique(track_id[new], return_index=True)
-            self._seen_ids = np.r_[ids, new_ids]
-            self._seen_frame = np.r_[self._seen_frame, np.full(new_ids.size, k)]
-            self._seen_q = np.r_[self._seen_q, q[new][first]]
-            order = np.argsort(self._seen_ids, kind="stable")
-            self._seen_ids = self._seen_ids[order]
-            self._seen_frame = self._seen_frame[order]
-            self._seen_q = self._seen_q[order]
+            at = np.searchsorted(ids, new_ids)  # trackers number tracks upwards: usually the end
+            self._seen_ids = np.insert(ids, at, new_ids)
+            self._seen_frame = np.insert(self._seen_frame, at, k)
+            self._seen_q = np.insert(self._seen_q, at, q[new][first], axis=0)
+        if self.lag_s is not None and self._seen_ids.size > 4 * len(track_id):
+            # Tracks last seen before the window can never pair again: forget them.
+            live = self._seen_frame >= self._settled
+            self._seen_ids = self._seen_ids[live]
+            self._seen_frame = self._seen_frame[live]
+            self._seen_q = self._seen_q[live]
         self._pair_count += int(rows.size)
         if self.lag_s is not None:  # X(a) leaves (or left) the window at this update
             too_old = frame_a < self._settled
@@ -665,7 +670,7 @@ class IncrementalSmoother:
         per_frame = np.array([self._factors_by_frame.get(k, 0) for k in range(K)])
         estimate = self.estimate()
         n_out, out_per_frame = count_outliers(self._cdtm, estimate.world_T_body, K)
-        counts = GraphCounts(K, int(self._seen_ids.size), self._observations, self._pair_count,
+        counts = GraphCounts(K, len(self._all_tracks), self._observations, self._pair_count,
                              self.n_features, self.n_missed, self.n_cdtm_factors, K - 1, per_frame,
                              n_out, out_per_frame)
         stats = SolverStats("incremental" if self.lag_s is None else "fixed_lag", K, float("nan"),
