@@ -91,9 +91,10 @@ def plot_writers(out: RunOutput, dtm, flight) -> list:
 
 def summary(out: RunOutput, out_dir: Path) -> str:
     r = out.result
+    total_s = out.report["timings_s"]["total"]
     lines = [f"{r.counts.n_frames} frames, {r.counts.n_cdtm_features} C-DTM features "
-             f"({r.counts.n_missed_dtm} missed the DTM), {r.stats.mode} solve in "
-             f"{r.stats.time_s:.2f} s -> {out_dir}"]
+             f"({r.counts.n_missed_dtm} missed the DTM, {r.counts.n_outliers} beyond the "
+             f"chi-square gate), {r.stats.mode} smoothing in {total_s:.2f} s -> {out_dir}"]
     if out.errors is not None:
         e, f = out.errors, out.free_errors
         fmt = lambda v: " ".join(f"{x:8.2f}" for x in v)  # noqa: E731
