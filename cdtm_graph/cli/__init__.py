@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 
 from cdtm_graph.errors import CdtmError
@@ -48,6 +49,10 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     except (FileNotFoundError, IsADirectoryError, PermissionError) as exc:
         print(f"cdtm {args.command}: error: {exc.strerror}: {exc.filename}", file=sys.stderr)
+        return 1
+    except BrokenPipeError:  # e.g. `cdtm ... | head`: the reader left; stop quietly
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
         return 1
     except KeyboardInterrupt:
         print(f"cdtm {args.command}: interrupted", file=sys.stderr)
