@@ -23,7 +23,8 @@ from cdtm_graph.analysis import (
     geometric_degeneracy,
     theta_jacobian_wrt_body_tangents,
 )
-from cdtm_graph.errors import DegenerateGeometryError
+from cdtm_graph.errors import DegenerateGeometryError, FlightLogError
+from cdtm_graph.graph import dtm_ray_caster
 from factors import CdtmPairFactor, FeatureNoise, PairFeatures, PlaneMode, RayCaster, RobustKernel
 
 log = logging.getLogger(__name__)
@@ -279,9 +280,6 @@ def analyze_log_pair(flight, dtm, frame_a: int, frame_b: int, poses_from: str = 
     Raises:
         FlightLogError: bad frame indices, or the pose source is missing.
     """
-    from cdtm_graph.errors import FlightLogError
-    from cdtm_graph.graph import dtm_ray_caster
-
     K = len(flight.frames)
     for name, k in (("A", frame_a), ("B", frame_b)):
         if not 0 <= k < K:
