@@ -26,9 +26,10 @@ three estimates of the same flight:
 Choices the paper leaves open (documented in docs/navsim.md):
 
 * **IMU**: :data:`TACTICAL_IMU`, a tactical-grade unit (0.15 deg/sqrt(h) angle random
-  walk, 10 deg/h gyro and 1 mg accelerometer turn-on bias), so Free drifts 0.1-2.5 km
-  over a 5-minute flight: the paper's Free rows span 130-4000 m. FLIGHTLOG.md's defaults
-  (an ADIS16448-class MEMS) drift 4-11 km over the same flight.
+  walk, 10 deg/h gyro and 1 mg accelerometer turn-on bias), so Free drifts 0.2-3 km
+  horizontally and 65-430 m vertically over the 5-minute flight (seeds 0-2): the paper's
+  Free rows span 130-4000 m and 180-250 m. FLIGHTLOG.md's defaults (an ADIS16448-class
+  MEMS, EuRoC's numbers) drift 4-11 km horizontally over the same flight.
 * **Initial state**: the aircraft has just lost GNSS: position 5 m, velocity 0.2 m/s,
   attitude 0.1 deg (1 sigma), the biases at their turn-on sigmas.
 * **Frame interval**: the paper's 5-30 s intervals with 30-200 m baselines cannot both

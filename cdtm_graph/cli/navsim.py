@@ -89,6 +89,19 @@ def write_tables(result: NavsimResult, out_dir: Path) -> None:
             (tmp / f"{name}.csv").write_text(table_csv(table))
 
 
+def check_out_dir(out_dir: Path) -> None:
+    """Refuse (before any flight) an --out that is a file or holds files not ours: the
+    directory is replaced as a whole, and e.g. ``--out .`` must not take the cwd with it."""
+    if not out_dir.exists():
+        return
+    if not out_dir.is_dir():
+        raise CdtmError(f"--out {out_dir}: exists and is not a directory")
+    foreign = sorted(p.name for p in out_dir.iterdir() if p.name not in OUTPUT_FILES)
+    if foreign:
+        raise CdtmError(f"--out {out_dir}: holds {foreign[0]!r} and is not a navsim output "
+                        "directory; expected a new, empty or navsim output directory")
+
+
 def _progress(done: int, total: int, case: tuple[float, int]) -> None:
     if done < total:
         alt, res = case
@@ -99,8 +112,7 @@ def _progress(done: int, total: int, case: tuple[float, int]) -> None:
 def run(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
     out_dir = Path(args.out)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise CdtmError(f"--out {out_dir}: exists and is not a directory")
+    check_out_dir(out_dir)
     result = run_navsim(settings, None if args.quiet else _progress)
     write_tables(result, out_dir)
     print(table_markdown(result.table1))
