@@ -48,6 +48,7 @@ class GraphSettings:
     robust_threshold: float | None = None
     imu_hold: SampleHold = SampleHold.MIDPOINT
     first_observation_noise: bool = False
+    shared_dtm_error: bool = True
 
 
 def dtm_ray_caster(dtm: Dtm):
@@ -133,6 +134,7 @@ class FramePairObservations:
         frame_a, frame_b: frame indices.
         q_a, q_b: (n, 3) normalized rays (z = 1).
         track_id: (n,) track ids.
+        track_pair_index: (n,) 1-based rank of this pair among its track's pairs.
     """
 
     frame_a: int
@@ -140,6 +142,7 @@ class FramePairObservations:
     q_a: np.ndarray
     q_b: np.ndarray
     track_id: np.ndarray
+    track_pair_index: np.ndarray | None = None
 
 
 def frame_pair_observations(tracks: Tracks, camera: PinholeCamera) -> list[FramePairObservations]:
@@ -151,15 +154,31 @@ def frame_pair_observations(tracks: Tracks, camera: PinholeCamera) -> list[Frame
     rays = camera.pixels_to_rays(tracks.uv_px)
     rows_a, rows_b = tracks.pairs()
     fa, fb = tracks.frame[rows_a], tracks.frame[rows_b]
+    # rank of each pair within its track, in time order (tracks.pairs() is time-sorted)
+    tid = tracks.track_id[rows_a]
+    by_track = np.lexsort((fa, tid))
+    first = np.r_[True, tid[by_track][1:] != tid[by_track][:-1]]
+    starts = np.maximum.accumulate(np.where(first, np.arange(tid.size), 0))
+    rank = np.empty(tid.size, dtype=np.int64)
+    rank[by_track] = np.arange(tid.size) - starts + 1
     order = np.lexsort((fa, fb))
-    rows_a, rows_b, fa, fb = rows_a[order], rows_b[order], fa[order], fb[order]
+    rows_a, rows_b, fa, fb, rank = rows_a[order], rows_b[order], fa[order], fb[order], rank[order]
     if fa.size == 0:
         return []
     change = np.flatnonzero((np.diff(fa) != 0) | (np.diff(fb) != 0)) + 1
     starts = np.r_[0, change]
     ends = np.r_[change, fa.size]
     return [FramePairObservations(int(fa[s]), int(fb[s]), rays[rows_a[s:e]], rays[rows_b[s:e]],
-                                  tracks.track_id[rows_a[s:e]]) for s, e in zip(starts, ends)]
+                                  tracks.track_id[rows_a[s:e]], rank[s:e])
+            for s, e in zip(starts, ends)]
+
+
+def mean_pairs_per_track(pairs: Sequence[FramePairObservations]) -> float:
+    """Mean number of pairs of the tracks that have at least one pair."""
+    if not pairs:
+        return 1.0
+    ids = np.concatenate([p.track_id for p in pairs])
+    return ids.size / np.unique(ids).size
 
 
 @dataclass
@@ -179,6 +198,7 @@ def cdtm_factors(
     dtm: Dtm,
     noise: FeatureNoise,
     settings: GraphSettings,
+    pairs_per_track: float = 1.0,
 ) -> CdtmBuild:
     """One batched C-DTM factor per frame pair, planes cast from the current pose guesses.
 
@@ -187,6 +207,10 @@ def cdtm_factors(
         world_T_body: current guess of every frame's body pose (index -> (4, 4)).
         body_T_cam: (4, 4) camera mounting.
         dtm: the terrain. noise: data noise. settings: plane mode, robust kernel.
+        pairs_per_track: how many pairs a track's DTM error is shared by, on average
+            (``settings.shared_dtm_error``): each pair's DTM variance is multiplied by
+            ``max(its rank in the track, pairs_per_track)``, the rank covering tracks
+            longer than the mean.
 
     Returns:
         The factors, and the count of features whose ray missed the DTM (dropped).
@@ -202,8 +226,11 @@ def cdtm_factors(
         build.n_missed += int(valid.size - n_valid)
         if n_valid == 0:
             continue
+        scale = None
+        if settings.shared_dtm_error and pair.track_pair_index is not None:
+            scale = np.maximum(pair.track_pair_index[valid], pairs_per_track)
         features = PairFeatures.build(wTc_a, wTc_b, pair.q_a[valid], pair.q_b[valid],
-                                      G_E[valid], N[valid], noise)
+                                      G_E[valid], N[valid], noise, scale)
         build.factors.append(CdtmPairFactor(
             X(pair.frame_a), X(pair.frame_b), features, body_T_cam, settings.plane_mode,
             raycast, settings.robust, settings.robust_threshold))

@@ -38,6 +38,7 @@ from cdtm_graph.graph import (
     imu_factor,
     initial_bias,
     navstate_predict,
+    mean_pairs_per_track,
     prior_factors,
 )
 from cdtm_graph.results import (
@@ -276,7 +277,8 @@ def build_log_graph(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
              if flight.tracks is not None else [])
     poses = [initial.atPose3(X(k)).matrix() for k in range(K)]
     build = cdtm_factors(pairs, poses, flight.config.camera.body_T_cam, dtm,
-                         feature_noise(flight.config, dtm, settings.graph), settings.graph)
+                         feature_noise(flight.config, dtm, settings.graph), settings.graph,
+                         mean_pairs_per_track(pairs))
     for f in build.factors:
         graph.add(f.factor)
     n_tracks, n_obs, n_pairs = _observation_counts(flight, pairs)
@@ -426,6 +428,9 @@ class IncrementalSmoother:
         self._seen_ids = np.zeros(0, dtype=np.int64)  # sorted track ids seen so far
         self._seen_frame = np.zeros(0, dtype=np.int64)  # ... their last frame
         self._seen_q = np.zeros((0, 3))  # ... and ray there
+        self._seen_pairs = np.zeros(0, dtype=np.int64)  # ... and pairs so far
+        self._ended_tracks = 0
+        self._ended_pairs = 0
         self._all_tracks: set[int] = set()  # for the count only
         self._factors_by_frame: dict[int, int] = {}
         self.n_features = 0
@@ -512,6 +517,13 @@ class IncrementalSmoother:
         tid_all = track_id[found]
         self._seen_frame[rows] = k
         self._seen_q[rows] = q[found]
+        self._seen_pairs[rows] += 1
+        pairs_so_far = self._seen_pairs[rows]
+        # Tracks seen last frame but not now have ended: their pair counts teach how many
+        # pairs a track shares its DTM error with (GraphSettings.shared_dtm_error).
+        ended = (self._seen_frame == k - 1) & (self._seen_pairs > 0)
+        self._ended_tracks += int(ended.sum())
+        self._ended_pairs += int(self._seen_pairs[ended].sum())
         new = ~found
         if new.any():
             new_ids, first = np.unique(track_id[new], return_index=True)
@@ -519,28 +531,32 @@ class IncrementalSmoother:
             self._seen_ids = np.insert(ids, at, new_ids)
             self._seen_frame = np.insert(self._seen_frame, at, k)
             self._seen_q = np.insert(self._seen_q, at, q[new][first], axis=0)
+            self._seen_pairs = np.insert(self._seen_pairs, at, 0)
         if self.lag_s is not None and self._seen_ids.size > 4 * len(track_id):
             # Tracks last seen before the window can never pair again: forget them.
             live = self._seen_frame >= self._settled
             self._seen_ids = self._seen_ids[live]
             self._seen_frame = self._seen_frame[live]
             self._seen_q = self._seen_q[live]
+            self._seen_pairs = self._seen_pairs[live]
+
         self._pair_count += int(rows.size)
         if self.lag_s is not None:  # X(a) leaves (or left) the window at this update
             too_old = frame_a < self._settled
             self.n_too_old += int(too_old.sum())
             keep = ~too_old
-            frame_a, q_a_all, q_b_all, tid_all = (frame_a[keep], q_a_all[keep], q_b_all[keep],
-                                                  tid_all[keep])
+            frame_a, q_a_all, q_b_all, tid_all, pairs_so_far = (
+                frame_a[keep], q_a_all[keep], q_b_all[keep], tid_all[keep], pairs_so_far[keep])
         pairs = []
         by_frame = np.unique(frame_a)
         for a in by_frame.tolist():
             sel = frame_a == a
-            pairs.append(FramePairObservations(a, k, q_a_all[sel], q_b_all[sel], tid_all[sel]))
+            pairs.append(FramePairObservations(a, k, q_a_all[sel], q_b_all[sel], tid_all[sel],
+                                               pairs_so_far[sel]))
         for a in by_frame.tolist():  # fetch only the poses these planes need
             self._poses[a] = self._solver.calculateEstimatePose3(X(a)).matrix()
         build = cdtm_factors(pairs, self._poses, self._body_T_cam, self.dtm, self._noise,
-                             self.settings)
+                             self.settings, self.expected_pairs_per_track())
         for f in build.factors:
             graph.add(f.factor)
         self._cdtm.extend(build.factors)
@@ -549,6 +565,18 @@ class IncrementalSmoother:
         self.n_cdtm_factors += len(build.factors)
         self._factors_by_frame[k] = build.n_features
         return build.n_features
+
+    #: Pairs per track assumed until enough tracks have ended to measure it.
+    PRIOR_PAIRS_PER_TRACK = 3.0
+    MIN_ENDED_TRACKS = 20
+
+    def expected_pairs_per_track(self) -> float:
+        """Mean pairs of the tracks that ended so far (a prior guess before there are
+        enough): the DTM variance multiplier of a new pair, since a live track's final
+        length is not known yet."""
+        if self._ended_tracks < self.MIN_ENDED_TRACKS:
+            return self.PRIOR_PAIRS_PER_TRACK
+        return self._ended_pairs / self._ended_tracks
 
     def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, k: int) -> None:
         try:

@@ -128,21 +128,31 @@ class PairFeatures:
         G_E: np.ndarray,
         N: np.ndarray,
         noise: FeatureNoise,
+        dtm_variance_scale: np.ndarray | None = None,
     ) -> PairFeatures:
-        """Features with their noise linearized at the given camera poses (4x4 each)."""
+        """Features with their noise linearized at the given camera poses (4x4 each).
+
+        Args:
+            dtm_variance_scale: (n,) multiplies each feature's DTM height variance
+                (e.g. by the number of pairs sharing its ground point); ``None``: 1.
+        """
         q_a = np.ascontiguousarray(q_a, dtype=float)
         q_b = np.ascontiguousarray(q_b, dtype=float)
         G_E = np.ascontiguousarray(G_E, dtype=float)
         N = np.ascontiguousarray(N, dtype=float)
+        n = q_a.shape[0]
+        sigma_h = np.full(n, float(noise.sigma_h_m))
+        if dtm_variance_scale is not None:
+            sigma_h *= np.sqrt(np.asarray(dtm_variance_scale, dtype=float))
         basis = np.ascontiguousarray(cdtm_math.orthonormal_complement(q_b))
-        Sigma_f = np.empty((q_a.shape[0], 3, 3))
+        Sigma_f = np.empty((n, 3, 3))
         sax, say = noise.sigma_qa_xy if noise.sigma_qa_xy is not None else (0.0, 0.0)
         # numba twin of cdtm_math.feature_covariance (tested equal): ~50x faster
         feature_covariance_kernel(
             np.ascontiguousarray(world_T_cam_a[:3, :3]), world_T_cam_a[:3, 3].copy(),
             np.ascontiguousarray(world_T_cam_b[:3, :3]), world_T_cam_b[:3, 3].copy(),
             q_a, q_b, G_E, N, float(noise.sigma_q_xy[0]), float(noise.sigma_q_xy[1]),
-            float(noise.sigma_h_m), float(sax), float(say), Sigma_f)
+            sigma_h, float(sax), float(say), Sigma_f)
         Sigma_e = cdtm_math.residual_covariance(Sigma_f, basis)
         return cls(q_a, q_b, G_E, N, Sigma_e, Sigma_f, basis,
                    np.ascontiguousarray(cdtm_math.sqrt_information(Sigma_e)))

@@ -174,7 +174,8 @@ def feature_covariance(
 
     Args:
         sigma_q_xy: 1-sigma of ``q_b`` in normalized units (sigma_px/fx, sigma_px/fy), eq. 22.
-        sigma_h_m: 1-sigma DTM height error; eqs. 25-26 move ``G_E`` along the ray.
+        sigma_h_m: 1-sigma DTM height error, scalar or (n,); eqs. 25-26 move ``G_E`` along
+            the ray.
         sigma_qa_xy: 1-sigma of ``q_a``; ``None`` keeps the paper's model (``q_a`` exact).
 
     Returns:
@@ -184,7 +185,8 @@ def feature_covariance(
     Sigma_q = np.diag([sigma_q_xy[0] ** 2, sigma_q_xy[1] ** 2, 0.0])
     ray = q_a @ R_a.T
     dG_dh = ray / np.einsum("ni,ni->n", N, ray)[:, None]  # eq. 25
-    Sigma_G = sigma_h_m**2 * dG_dh[:, :, None] * dG_dh[:, None, :]  # eq. 26
+    sigma_h2 = np.broadcast_to(np.asarray(sigma_h_m, dtype=float) ** 2, dG_dh.shape[:1])
+    Sigma_G = sigma_h2[:, None, None] * dG_dh[:, :, None] * dG_dh[:, None, :]  # eq. 26
     Sigma_f = J_qb @ Sigma_q @ np.swapaxes(J_qb, 1, 2) + J_G @ Sigma_G @ np.swapaxes(J_G, 1, 2)
     if sigma_qa_xy is not None:
         Sigma_qa = np.diag([sigma_qa_xy[0] ** 2, sigma_qa_xy[1] ** 2, 0.0])

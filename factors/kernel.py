@@ -191,6 +191,7 @@ def _np_apply(q, qq, g, gn, x, out):
 @njit(cache=True)
 def feature_covariance_kernel(R_a, p_a, R_b, p_b, q_a, q_b, G_E, N, sx, sy, sigma_h,
                               sax, say, Sigma_out):
+    # sigma_h: (n,) DTM height 1-sigma per feature
     """Sigma_f of eqs. 19-26 per feature, as a sum of rank-one terms (n, 3, 3).
 
     The same formula as :func:`factors.cdtm_math.feature_covariance` (the tested
@@ -235,7 +236,7 @@ def feature_covariance_kernel(R_a, p_a, R_b, p_b, q_a, q_b, G_E, N, sx, sy, sigm
             cols[c, 2] = -(qg * pc2 + q[2] * gp) * scale
         # DTM height: sigma_h N_P R_b^T r / N.r
         for a in range(3):
-            x[a] = (R_b[0, a] * r[0] + R_b[1, a] * r[1] + R_b[2, a] * r[2]) * sigma_h / Nr
+            x[a] = (R_b[0, a] * r[0] + R_b[1, a] * r[1] + R_b[2, a] * r[2]) * sigma_h[i] / Nr
         _np_apply(q, qq, g, gn, x, w)
         cols[2, :] = w
         # q_a columns: lam N_P R_b^T P(r, N) R_a e_c

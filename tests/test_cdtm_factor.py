@@ -203,10 +203,12 @@ def test_numba_feature_covariance_equals_the_paper_formulas(rng):
         for _ in range(20):
             body_T_cam, Ta, Tb, feats = random_pair(rng, pixel_noise=5e-3)
             wTc_a, wTc_b = Ta @ body_T_cam, Tb @ body_T_cam
+            scale = rng.integers(1, 6, feats.n)  # pairs sharing each feature's DTM error
             built = PairFeatures.build(wTc_a, wTc_b, feats.q_a, feats.q_b, feats.G_E, feats.N,
-                                       noise)
+                                       noise, scale)
             reference = cdtm_math.feature_covariance(
                 wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3], feats.q_a, feats.q_b,
-                feats.G_E, feats.N, noise.sigma_q_xy, noise.sigma_h_m, noise.sigma_qa_xy)
+                feats.G_E, feats.N, noise.sigma_q_xy, noise.sigma_h_m * np.sqrt(scale),
+                noise.sigma_qa_xy)
             np.testing.assert_allclose(built.Sigma_f, reference, rtol=1e-10,
                                        atol=1e-14 * np.abs(reference).max())
