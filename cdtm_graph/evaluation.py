@@ -93,8 +93,9 @@ class ErrorReport:
         rmse_attitude_deg, max_attitude_deg: of the attitude error angle.
         position_nees: (M,) with the world-frame position covariance (3 dof), or None.
         pose_nees: (M,) with the 6x6 tangent covariance (6 dof), or None.
-        anees_position, anees_pose: means of the above, or None.
-        anees_position_band, anees_pose_band: 95% chi-square bands for M frames, or None.
+        anees_position, anees_pose: means of the above over the frames that have a
+            covariance (finite NEES), or None.
+        anees_position_band, anees_pose_band: 95% chi-square bands for that many frames.
     """
 
     t_ns: np.ndarray
@@ -196,6 +197,8 @@ def _nees(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
     """(M, d) errors and (M, d, d) covariances -> (M,) ``e^T P^-1 e`` (NaN where P is not PD)."""
     out = np.full(err.shape[0], np.nan)
     for i in range(err.shape[0]):
+        if not np.isfinite(cov[i]).all():
+            continue
         try:
             L = np.linalg.cholesky(cov[i])
         except np.linalg.LinAlgError:
@@ -257,11 +260,16 @@ def trajectory_errors(estimate: TrajectoryEstimate, covariances: StateCovariance
         sigma = np.sqrt(np.clip(np.diagonal(position_cov, axis1=1, axis2=2), 0.0, None))
         position_nees = _nees(-p_err, position_cov)
         pose_nees = _nees(xi, pose_cov)
+        # Frames without a covariance (a fixed-lag smoother's velocity/bias, a matrix that
+        # is not positive definite) have NaN NEES: average and band over the others.
+        n_pos = int(np.isfinite(position_nees).sum())
+        n_pose = int(np.isfinite(pose_nees).sum())
         fields = dict(
             position_nees=position_nees, pose_nees=pose_nees,
-            anees_position=float(np.mean(position_nees)), anees_pose=float(np.mean(pose_nees)),
-            anees_position_band=anees_band(m, POSITION_DOF),
-            anees_pose_band=anees_band(m, POSE_DOF))
+            anees_position=float(np.nanmean(position_nees)) if n_pos else None,
+            anees_pose=float(np.nanmean(pose_nees)) if n_pose else None,
+            anees_position_band=anees_band(n_pos, POSITION_DOF) if n_pos else None,
+            anees_pose_band=anees_band(n_pose, POSE_DOF) if n_pose else None)
 
     return ErrorReport(
         t_ns=t_all[idx], evaluated=inside, n_frames_evaluated=int(m),

@@ -208,9 +208,11 @@ def cdtm_factors(
         body_T_cam: (4, 4) camera mounting.
         dtm: the terrain. noise: data noise. settings: plane mode, robust kernel.
         pairs_per_track: how many pairs a track's DTM error is shared by, on average
-            (``settings.shared_dtm_error``): each pair's DTM variance is multiplied by
-            ``max(its rank in the track, pairs_per_track)``, the rank covering tracks
-            longer than the mean.
+            (``settings.shared_dtm_error``). The j-th pair of a track has its DTM
+            variance multiplied by ``max(pairs_per_track, j (j + 1) / 2)``: a track of
+            the mean length brings about one DTM sample of information, and a longer one
+            at most ~1.2 (``sum 2 / j (j + 1) < 2``, less the mean-length head), while
+            its final length is not known when its pairs arrive.
 
     Returns:
         The factors, and the count of features whose ray missed the DTM (dropped).
@@ -222,13 +224,16 @@ def cdtm_factors(
         wTc_b = world_T_body[pair.frame_b] @ body_T_cam
         ray = pair.q_a @ wTc_a[:3, :3].T
         G_E, N, valid = raycast(np.broadcast_to(wTc_a[:3, 3], ray.shape), ray)
+        # A pixel the distortion model cannot undistort has a NaN ray: no ground point.
+        valid &= np.isfinite(pair.q_a).all(axis=1) & np.isfinite(pair.q_b).all(axis=1)
         n_valid = int(valid.sum())
         build.n_missed += int(valid.size - n_valid)
         if n_valid == 0:
             continue
         scale = None
         if settings.shared_dtm_error and pair.track_pair_index is not None:
-            scale = np.maximum(pair.track_pair_index[valid], pairs_per_track)
+            j = pair.track_pair_index[valid].astype(float)
+            scale = np.maximum(pairs_per_track, j * (j + 1) / 2)
         features = PairFeatures.build(wTc_a, wTc_b, pair.q_a[valid], pair.q_b[valid],
                                       G_E[valid], N[valid], noise, scale)
         build.factors.append(CdtmPairFactor(

@@ -373,8 +373,11 @@ def _read_pose_table(path: str | os.PathLike, n_columns: int
             values = [float(tok) for tok in tokens[1:]]
         except ValueError as exc:
             raise CdtmError(f"{where}: {exc}; expected numbers: {expected}") from None
-        if not all(math.isfinite(v) for v in values):
-            raise CdtmError(f"{where}: non-finite value; expected finite numbers: {expected}")
+        # Pose columns must be finite; a covariance may be "nan" (not available), not inf.
+        if not all(math.isfinite(v) for v in values[:7]) or any(
+                math.isinf(v) for v in values[7:]):
+            raise CdtmError(f"{where}: non-finite value; expected finite numbers (nan allowed "
+                            f"only for a covariance that is not available): {expected}")
         if times and t <= times[-1]:
             raise CdtmError(f"{where}: time {tokens[0]} s does not increase; expected "
                             f"strictly increasing times")

@@ -81,7 +81,7 @@ class SmootherSettings:
     max_iterations: int = 30
     relative_error_tol: float = 1e-6
     lag_s: float | None = None
-    final_iterations: int = 3
+    final_iterations: int = 5
     marginals: bool = True
 
     def as_dict(self) -> dict:
@@ -157,8 +157,9 @@ def levenberg_marquardt(
                 delta = solve(damped)
                 candidate = values.retract(delta)
                 new_error = graph.error(candidate)
-                # predicted decrease of the damped model: linear error at 0 minus at delta
-                predicted = error - linear.error(delta)
+                # predicted decrease of the linear model (its value at zero, not the robust
+                # loss: IRLS rows are sqrt(w)-scaled, so the two differ under a kernel)
+                predicted = linear.error(gtsam.VectorValues.Zero(delta)) - linear.error(delta)
                 rho = (error - new_error) / predicted if predicted > 0 else -1.0
                 if new_error < error and rho > 0:
                     accepted = True
@@ -230,10 +231,24 @@ def _marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
 class _LogGraph:
     """Everything the batch solver builds from a log."""
 
-    graph: gtsam.NonlinearFactorGraph
+    base: gtsam.NonlinearFactorGraph  # priors and IMU factors
     values: gtsam.Values
     counts: GraphCounts
-    cdtm: list
+    cdtm: list  # CdtmPairFactor
+
+    @property
+    def graph(self) -> gtsam.NonlinearFactorGraph:
+        graph = gtsam.NonlinearFactorGraph()
+        graph.push_back(self.base)
+        for f in self.cdtm:
+            graph.add(f.factor)
+        return graph
+
+    def refresh_noise(self, values: gtsam.Values) -> None:
+        """Re-linearize every C-DTM factor's planes and noise at ``values``."""
+        poses = {k: values.atPose3(X(k)).matrix() for k in range(self.counts.n_frames)}
+        self.cdtm = [f.refreshed(poses[int(gtsam.Symbol(f.key_a).index())],
+                                 poses[int(gtsam.Symbol(f.key_b).index())]) for f in self.cdtm]
 
 
 def _observation_counts(flight: FlightLog,
@@ -279,8 +294,6 @@ def build_log_graph(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
     build = cdtm_factors(pairs, poses, flight.config.camera.body_T_cam, dtm,
                          feature_noise(flight.config, dtm, settings.graph), settings.graph,
                          mean_pairs_per_track(pairs))
-    for f in build.factors:
-        graph.add(f.factor)
     n_tracks, n_obs, n_pairs = _observation_counts(flight, pairs)
     per_frame = np.zeros(K, dtype=int)
     for k, n in build.features_per_frame.items():
@@ -325,11 +338,19 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     intervals = ImuIntervals(flight.config, flight.imu, settings.graph.imu_hold)
     initial, source = _initial_values(flight, dtm, settings, intervals, progress)
     built = build_log_graph(flight, dtm, settings, initial, intervals)
-    values, stats = levenberg_marquardt(built.graph, initial, settings.max_iterations,
+    values, first = levenberg_marquardt(built.graph, initial, settings.max_iterations,
                                         settings.relative_error_tol)
+    # The C-DTM noise (eqs. 19-26) was linearized at the initial guess; evaluate it at the
+    # estimate and finish there, so the solution does not depend on the initial guess.
+    built.refresh_noise(values)
+    graph = built.graph
+    values, stats = levenberg_marquardt(graph, values, settings.max_iterations,
+                                        settings.relative_error_tol)
+    stats = replace(stats, iterations=first.iterations + stats.iterations,
+                    initial_error=first.initial_error, time_s=first.time_s + stats.time_s)
     K = len(flight.frames)
     start = time.perf_counter()
-    covariances = (_marginals(built.graph, values, K) if settings.marginals else
+    covariances = (_marginals(graph, values, K) if settings.marginals else
                    StateCovariances(np.full((K, 6, 6), np.nan), np.full((K, 3, 3), np.nan),
                                     np.full((K, 6, 6), np.nan)))
     stats = SolverStats(stats.mode, stats.iterations, stats.initial_error, stats.final_error,
@@ -416,11 +437,20 @@ class IncrementalSmoother:
             self._isam = gtsam.ISAM2(isam2_params())
             self._fls = None
         else:
-            self._fls = gtsam.IncrementalFixedLagSmoother(lag_s, isam2_params())
+            # The fixed-lag smoother marginalizes states at their linearization point and
+            # its update cannot force relinearization: relinearize at every update.
+            params = isam2_params()
+            params.relinearizeSkip = 1
+            self._fls = gtsam.IncrementalFixedLagSmoother(lag_s, params)
             self._isam = None
+        self.final_error = float("nan")
+        self.converged = False
         self._solver = self._isam if self._fls is None else self._fls
         self._settled = 0  # fixed lag: frames before this one have left the window
-        self._cdtm: list = []  # every C-DTM factor, for the outlier count
+        self._left_cov: dict[int, np.ndarray] = {}  # ... and their pose covariance then
+        self._cdtm: list = []  # every C-DTM factor (outlier count, noise refresh)
+        self._cdtm_indices: list[int] = []  # ... their iSAM2 factor slots
+        self._n_new_cdtm = 0
         self._t_ns: list[int] = []
         self._poses: dict[int, np.ndarray] = {}  # latest estimate of every frame
         self._velocities: dict[int, np.ndarray] = {}
@@ -429,6 +459,7 @@ class IncrementalSmoother:
         self._seen_frame = np.zeros(0, dtype=np.int64)  # ... their last frame
         self._seen_q = np.zeros((0, 3))  # ... and ray there
         self._seen_pairs = np.zeros(0, dtype=np.int64)  # ... and pairs so far
+        self._seen_counted = np.zeros(0, dtype=np.int64)  # ... as counted when it ended
         self._ended_tracks = 0
         self._ended_pairs = 0
         self._all_tracks: set[int] = set()  # for the count only
@@ -491,6 +522,7 @@ class IncrementalSmoother:
         if self._fls is not None and k:
             self._settle(k)
         n_new = 0
+        self._n_new_cdtm = 0
         if track_id is not None and len(track_id):
             n_new = self._add_cdtm(k, np.asarray(track_id, dtype=np.int64),
                                    np.asarray(uv_px, dtype=float), graph)
@@ -522,8 +554,11 @@ class IncrementalSmoother:
         # Tracks seen last frame but not now have ended: their pair counts teach how many
         # pairs a track shares its DTM error with (GraphSettings.shared_dtm_error).
         ended = (self._seen_frame == k - 1) & (self._seen_pairs > 0)
-        self._ended_tracks += int(ended.sum())
-        self._ended_pairs += int(self._seen_pairs[ended].sum())
+        # A track that skips a frame "ends" twice: count it once, with its latest length.
+        again = ended & (self._seen_counted > 0)
+        self._ended_tracks += int((ended & ~again).sum())
+        self._ended_pairs += int((self._seen_pairs[ended] - self._seen_counted[ended]).sum())
+        self._seen_counted[ended] = self._seen_pairs[ended]
         new = ~found
         if new.any():
             new_ids, first = np.unique(track_id[new], return_index=True)
@@ -532,6 +567,7 @@ class IncrementalSmoother:
             self._seen_frame = np.insert(self._seen_frame, at, k)
             self._seen_q = np.insert(self._seen_q, at, q[new][first], axis=0)
             self._seen_pairs = np.insert(self._seen_pairs, at, 0)
+            self._seen_counted = np.insert(self._seen_counted, at, 0)
         if self.lag_s is not None and self._seen_ids.size > 4 * len(track_id):
             # Tracks last seen before the window can never pair again: forget them.
             live = self._seen_frame >= self._settled
@@ -539,6 +575,7 @@ class IncrementalSmoother:
             self._seen_frame = self._seen_frame[live]
             self._seen_q = self._seen_q[live]
             self._seen_pairs = self._seen_pairs[live]
+            self._seen_counted = self._seen_counted[live]
 
         self._pair_count += int(rows.size)
         if self.lag_s is not None:  # X(a) leaves (or left) the window at this update
@@ -560,6 +597,7 @@ class IncrementalSmoother:
         for f in build.factors:
             graph.add(f.factor)
         self._cdtm.extend(build.factors)
+        self._n_new_cdtm = len(build.factors)
         self.n_features += build.n_features
         self.n_missed += build.n_missed
         self.n_cdtm_factors += len(build.factors)
@@ -587,7 +625,10 @@ class IncrementalSmoother:
                     stamps.insert((key, t_s))
                 self._fls.update(graph, values, stamps)
             else:
-                self._isam.update(graph, values)
+                result = self._isam.update(graph, values)
+                if self._n_new_cdtm:  # the frame's C-DTM factors are the graph's last ones
+                    self._cdtm_indices.extend(
+                        list(result.getNewFactorsIndices())[-self._n_new_cdtm:])
             # Only the newest state: a full calculateEstimate grows with the flight.
             self._fetch(k)
         except RuntimeError as exc:
@@ -601,6 +642,8 @@ class IncrementalSmoother:
         horizon = self._t_ns[k] - self.lag_s * 1e9 + margin_ns
         while self._settled < k and self._t_ns[self._settled] < horizon:
             self._fetch(self._settled)
+            self._left_cov[self._settled] = np.asarray(
+                self._fls.marginalCovariance(X(self._settled)))
             self._settled += 1
 
     def _fetch(self, k: int) -> None:
@@ -630,16 +673,54 @@ class IncrementalSmoother:
 
     # -- results ----------------------------------------------------------------------
 
-    def finalize(self, iterations: int = 3) -> None:
-        """Extra updates with no new data, so the estimate reaches the optimum."""
+    def finalize(self, iterations: int = 5, relative_tol: float = 1e-6) -> bool:
+        """Relinearize everything and iterate with no new data, so the estimate reaches the
+        optimum (``relinearizeSkip`` otherwise leaves it one step from a stale point).
+
+        Returns:
+            Whether the error stopped decreasing (relatively, by ``relative_tol``).
+        """
+        if self._fls is None and self._cdtm:
+            self._refresh_noise()
+        previous = self._current_error()
         for _ in range(iterations):
             if self._fls is not None:
-                self._fls.update()
-                estimate = self._fls.calculateEstimate()
+                self._fls.update()  # relinearizeSkip is 1 for fixed lag: every update relinearizes
             else:
-                self._isam.update()
-                estimate = self._isam.calculateEstimate()
-            self._refresh(estimate)
+                self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], None, None,
+                                  None, True)
+            error = self._current_error()
+            done = abs(previous - error) <= relative_tol * max(previous, 1e-300)
+            previous = error
+            if done:
+                break
+        self._refresh(self._solver.calculateEstimate())
+        self.final_error = previous
+        self.converged = done
+        return done
+
+    def _refresh_noise(self) -> None:
+        """Full history: swap every C-DTM factor for one whose planes and noise are
+        linearized at the current estimate (they were built at each frame's prediction),
+        so the final estimate solves the same problem as the batch smoother."""
+        estimate = self._isam.calculateEstimate()
+        refreshed = [f.refreshed(estimate.atPose3(f.key_a).matrix(),
+                                 estimate.atPose3(f.key_b).matrix()) for f in self._cdtm]
+        graph = gtsam.NonlinearFactorGraph()
+        for f in refreshed:
+            graph.add(f.factor)
+        try:
+            result = self._isam.update(graph, gtsam.Values(), self._cdtm_indices, None, None,
+                                       None, True)
+        except RuntimeError as exc:
+            raise explain_indeterminant(exc) from None
+        self._cdtm_indices = list(result.getNewFactorsIndices())
+        self._cdtm = refreshed
+
+    def _current_error(self) -> float:
+        factors = (self._fls.getFactors() if self._fls is not None
+                   else self._isam.getFactorsUnsafe())
+        return float(factors.error(self._solver.calculateEstimate()))
 
     def values(self) -> gtsam.Values:
         """Latest estimate of every frame so far (frames out of a lag window keep the
@@ -656,7 +737,8 @@ class IncrementalSmoother:
 
     def covariances(self) -> StateCovariances:
         """Marginals of every frame (full-history iSAM2), or of the frames still in the
-        window (fixed lag; NaN for the others)."""
+        window (fixed lag; older frames keep the pose covariance they left the window
+        with, and NaN for velocity and bias)."""
         K = len(self._t_ns)
         pose = np.full((K, 6, 6), np.nan)
         vel = np.full((K, 3, 3), np.nan)
@@ -667,6 +749,8 @@ class IncrementalSmoother:
         try:
             for k in range(K):
                 if not current.exists(X(k)):
+                    if k in self._left_cov:  # as it left the window (velocity, bias: NaN)
+                        pose[k] = self._left_cov[k]
                     continue
                 pose[k] = source.marginalCovariance(X(k))
                 vel[k] = source.marginalCovariance(V(k))
@@ -702,7 +786,7 @@ class IncrementalSmoother:
                              self.n_features, self.n_missed, self.n_cdtm_factors, K - 1, per_frame,
                              n_out, out_per_frame)
         stats = SolverStats("incremental" if self.lag_s is None else "fixed_lag", K, float("nan"),
-                            float("nan"), True, elapsed, time.perf_counter() - t0,
+                            self.final_error, self.converged, elapsed, time.perf_counter() - t0,
                             tuple(self.update_times_s))
         settings = dict(settings_dict or {})
         settings["n_too_old_for_lag"] = self.n_too_old

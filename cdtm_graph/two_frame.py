@@ -109,19 +109,26 @@ def _optimize(
     gn.setMaxIterations(settings.max_iterations)
     gn.setRelativeErrorTol(settings.relative_error_tol)
     gn.setAbsoluteErrorTol(0.0)
+    start = initial
     try:
         optimizer = gtsam.GaussNewtonOptimizer(graph, initial, gn)
         estimate = optimizer.optimize()
-        if (optimizer.iterations() < settings.max_iterations
-                and graph.error(estimate) <= graph.error(initial)):
+        error = graph.error(estimate)
+        # GN stops when an iteration raises the error and returns that iterate: accept it
+        # only if one more Gauss-Newton step cannot lower the error any further.
+        step = estimate.retract(graph.linearize(estimate).optimize())
+        settled = graph.error(step) >= error * (1 - 10 * settings.relative_error_tol)
+        if optimizer.iterations() < settings.max_iterations and settled:
             return estimate, optimizer.iterations()
+        if error < graph.error(initial):
+            start = estimate  # LM finishes from the better point
     except RuntimeError:
         pass  # LM below either succeeds or reports the indeterminant system
     lm = gtsam.LevenbergMarquardtParams()
     lm.setMaxIterations(settings.max_iterations)
     lm.setRelativeErrorTol(settings.relative_error_tol)
     lm.setAbsoluteErrorTol(0.0)
-    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, lm)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, start, lm)
     estimate = optimizer.optimize()
     return estimate, optimizer.iterations()
 
@@ -157,7 +164,9 @@ def pair_uncertainty(
     wTc_a, wTc_b = world_T_body_a @ body_T_cam, world_T_body_b @ body_T_cam
     features = PairFeatures.build(wTc_a, wTc_b, q_a, q_b, G_E, N, noise)
     graph = gtsam.NonlinearFactorGraph()
-    graph.add(CdtmPairFactor(X(0), X(1), features, body_T_cam).factor)
+    # With a robust kernel the marginal carries its weights at the estimate (outliers count
+    # for little); the closed form below stays the paper's unweighted-by-kernel analysis.
+    graph.add(CdtmPairFactor(X(0), X(1), features, body_T_cam, robust=settings.robust).factor)
     values = gtsam.Values()
     values.insert(X(0), gtsam.Pose3(world_T_body_a))
     values.insert(X(1), gtsam.Pose3(world_T_body_b))

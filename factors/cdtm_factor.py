@@ -113,6 +113,8 @@ class PairFeatures:
     Sigma_f: np.ndarray
     basis_b: np.ndarray
     sqrt_info: np.ndarray
+    noise: FeatureNoise | None = None
+    dtm_variance_scale: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -155,12 +157,15 @@ class PairFeatures:
             sigma_h, float(sax), float(say), Sigma_f)
         Sigma_e = cdtm_math.residual_covariance(Sigma_f, basis)
         return cls(q_a, q_b, G_E, N, Sigma_e, Sigma_f, basis,
-                   np.ascontiguousarray(cdtm_math.sqrt_information(Sigma_e)))
+                   np.ascontiguousarray(cdtm_math.sqrt_information(Sigma_e)), noise,
+                   None if dtm_variance_scale is None else np.asarray(dtm_variance_scale))
 
     def subset(self, index: np.ndarray) -> PairFeatures:
         """The features selected by ``index`` (mask or indices)."""
-        return PairFeatures(*(np.ascontiguousarray(getattr(self, f)[index]) for f in (
-            "q_a", "q_b", "G_E", "N", "Sigma_e", "Sigma_f", "basis_b", "sqrt_info")))
+        arrays = (np.ascontiguousarray(getattr(self, f)[index]) for f in (
+            "q_a", "q_b", "G_E", "N", "Sigma_e", "Sigma_f", "basis_b", "sqrt_info"))
+        scale = None if self.dtm_variance_scale is None else self.dtm_variance_scale[index]
+        return PairFeatures(*arrays, self.noise, scale)
 
 
 def _pose_matrix(values: gtsam.Values, key: int) -> np.ndarray:
@@ -249,6 +254,24 @@ class CdtmPairFactor:
             f.q_a, G_E, N, f.basis_b, f.sqrt_info, self.robust.kernel_id,
             self.robust_threshold, want_jacobians, self._e, self._Ha, self._Hb)
         return self._e, self._Ha, self._Hb
+
+    def refreshed(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray) -> CdtmPairFactor:
+        """The same factor with planes and noise (eqs. 19-26) linearized at these poses.
+
+        The noise model depends on the poses it was computed at; evaluating it at the
+        estimate (as the closed form does) makes batch and incremental solutions solve
+        the same problem whatever their initial guesses were.
+        """
+        f = self.features
+        if f.noise is None:
+            raise ValueError("features built without their noise settings cannot be refreshed")
+        wTc_a = world_T_body_a @ self.body_T_cam
+        wTc_b = world_T_body_b @ self.body_T_cam
+        G_E, N = self.planes(wTc_a)
+        features = PairFeatures.build(wTc_a, wTc_b, f.q_a, f.q_b, G_E, N, f.noise,
+                                      f.dtm_variance_scale)
+        return CdtmPairFactor(self.key_a, self.key_b, features, self.body_T_cam, self.plane_mode,
+                              self.raycast, self.robust, self.robust_threshold)
 
     def whitened_residuals(self, world_T_body_a: np.ndarray,
                            world_T_body_b: np.ndarray) -> np.ndarray:

@@ -92,7 +92,8 @@ def cdtm_linearize(
         Nr = N[i, 0] * r0 + N[i, 1] * r1 + N[i, 2] * r2
         c = N[i, 0] * (G_E[i, 0] - p_a[0]) + N[i, 1] * (G_E[i, 1] - p_a[1]) \
             + N[i, 2] * (G_E[i, 2] - p_a[2])
-        if abs(Nr) < _MIN_RAY_NORMAL_DOT or c / Nr <= 0.0:
+        # (written so that NaN data, which fails every comparison, is inactive too)
+        if not (abs(Nr) >= _MIN_RAY_NORMAL_DOT and c / Nr > 0.0):
             n_inactive += 1
             e_out[i, 0] = 0.0
             e_out[i, 1] = 0.0

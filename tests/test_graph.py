@@ -22,3 +22,29 @@ def test_pairs_are_grouped_by_frame_pair_with_their_rank_in_the_track():
     np.testing.assert_allclose(pair_23.q_a, camera.pixels_to_rays(tracks.uv_px[[0]]))
     np.testing.assert_allclose(pair_23.q_b, camera.pixels_to_rays(tracks.uv_px[[1]]))
     assert mean_pairs_per_track(pairs) == 1.5  # 3 pairs over 2 tracks with pairs
+
+
+def test_features_with_nan_rays_are_dropped_and_counted():
+    """A pixel the distortion model cannot invert has a NaN ray: no factor row, counted."""
+    from cdtm_graph.dtm import Dtm
+    from cdtm_graph.geometry import make_pose
+    from cdtm_graph.graph import FramePairObservations, GraphSettings, cdtm_factors
+    from cdtm_graph.scenario import DOWNWARD_BODY_T_CAM
+    from factors import FeatureNoise
+
+    x = np.arange(0.0, 2000.0, 50.0)
+    elevation = 30.0 * np.sin(x / 300.0)[None, :] * np.cos(x / 400.0)[:, None]
+    dtm = Dtm(elevation, 0.0, 0.0, 50.0, 50.0, sigma_h_m=2.0)
+    rng = np.random.default_rng(5)
+    q_a = np.c_[rng.uniform(-0.3, 0.3, (10, 2)), np.ones(10)]
+    q_b = q_a.copy()
+    q_a[3, 0] = np.nan
+    q_b[7, 1] = np.nan
+    pair = FramePairObservations(0, 1, q_a, q_b, np.arange(10), np.ones(10, dtype=int))
+    poses = [make_pose(np.eye(3), [1000.0, 1000.0, 800.0]),
+             make_pose(np.eye(3), [1040.0, 1000.0, 800.0])]
+    noise = FeatureNoise((1e-3, 1e-3), 2.0)
+    build = cdtm_factors([pair], poses, DOWNWARD_BODY_T_CAM, dtm, noise, GraphSettings())
+    assert build.n_features == 8 and build.n_missed == 2
+    e, _, _ = build.factors[0].evaluate(poses[0], poses[1])
+    assert np.isfinite(e).all()
