@@ -37,8 +37,8 @@ from cdtm_graph.graph import (
     frame_pair_observations,
     imu_factor,
     initial_bias,
-    navstate_predict,
     mean_pairs_per_track,
+    navstate_predict,
     prior_factors,
 )
 from cdtm_graph.results import (

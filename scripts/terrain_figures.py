@@ -46,7 +46,8 @@ def main(argv: list[str] | None = None) -> np.ndarray:
     fig, ax = plt.subplots(figsize=(5.5, 4))
     for c in curves:
         ax.plot(SPACINGS_M, c, color="0.7", lw=1)
-    ax.plot(SPACINGS_M, curves.mean(axis=0), "o-", label=f"measured (mean of {len(SEEDS)} terrains)")
+    ax.plot(SPACINGS_M, curves.mean(axis=0), "o-",
+            label=f"measured (mean of {len(SEEDS)} terrains)")
     ax.plot(SPACINGS_M, model, "k--", label="model 0.08 x spacing (2.4 m at 30 m)")
     ax.set_xlabel("DTM grid spacing, m")
     ax.set_ylabel("DTM height error sigma_h, m")
