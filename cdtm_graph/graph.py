@@ -173,14 +173,6 @@ def frame_pair_observations(tracks: Tracks, camera: PinholeCamera) -> list[Frame
             for s, e in zip(starts, ends)]
 
 
-def mean_pairs_per_track(pairs: Sequence[FramePairObservations]) -> float:
-    """Mean number of pairs of the tracks that have at least one pair."""
-    if not pairs:
-        return 1.0
-    ids = np.concatenate([p.track_id for p in pairs])
-    return ids.size / np.unique(ids).size
-
-
 @dataclass
 class CdtmBuild:
     """C-DTM factors of a set of frame pairs, with what was dropped."""
@@ -191,6 +183,7 @@ class CdtmBuild:
     features_per_frame: dict[int, int] = field(default_factory=dict)
 
 
+
 def cdtm_factors(
     pairs: Sequence[FramePairObservations],
     world_T_body: dict[int, np.ndarray] | Sequence[np.ndarray],
@@ -198,7 +191,6 @@ def cdtm_factors(
     dtm: Dtm,
     noise: FeatureNoise,
     settings: GraphSettings,
-    pairs_per_track: float = 1.0,
 ) -> CdtmBuild:
     """One batched C-DTM factor per frame pair, planes cast from the current pose guesses.
 
@@ -206,13 +198,12 @@ def cdtm_factors(
         pairs: observations grouped by frame pair.
         world_T_body: current guess of every frame's body pose (index -> (4, 4)).
         body_T_cam: (4, 4) camera mounting.
-        dtm: the terrain. noise: data noise. settings: plane mode, robust kernel.
-        pairs_per_track: how many pairs a track's DTM error is shared by, on average
-            (``settings.shared_dtm_error``). The j-th pair of a track has its DTM
-            variance multiplied by ``max(pairs_per_track, j (j + 1) / 2)``: a track of
-            the mean length brings about one DTM sample of information, and a longer one
-            at most ~1.2 (``sum 2 / j (j + 1) < 2``, less the mean-length head), while
-            its final length is not known when its pairs arrive.
+        dtm: the terrain. noise: data noise. settings: plane mode, robust kernel, and
+            ``shared_dtm_error``: the j-th pair of a track (``track_pair_index``) has its
+            DTM variance multiplied by ``j (j + 1) / 2``, so a track of any length m
+            brings ``sum 2 / j (j + 1) = 2 - 2 / (m + 1)`` DTM samples of information (1
+            for a single pair, under 2 however long) instead of m. The rule needs only
+            the rank, known when the pair arrives, so batch and incremental weigh alike.
 
     Returns:
         The factors, and the count of features whose ray missed the DTM (dropped).
@@ -233,7 +224,7 @@ def cdtm_factors(
         scale = None
         if settings.shared_dtm_error and pair.track_pair_index is not None:
             j = pair.track_pair_index[valid].astype(float)
-            scale = np.maximum(pairs_per_track, j * (j + 1) / 2)
+            scale = j * (j + 1) / 2
         features = PairFeatures.build(wTc_a, wTc_b, pair.q_a[valid], pair.q_b[valid],
                                       G_E[valid], N[valid], noise, scale)
         build.factors.append(CdtmPairFactor(
