@@ -41,6 +41,7 @@ from cdtm_graph.graph import (
     navstate_predict,
     prior_factors,
 )
+from cdtm_graph.optimizer import levenberg_marquardt
 from cdtm_graph.results import (
     GraphCounts,
     SmootherResult,
@@ -93,98 +94,6 @@ class SmootherSettings:
 
 
 # -- batch ---------------------------------------------------------------------------
-
-
-def _damping_factors(keys: list[tuple[int, int]], lam: float) -> gtsam.GaussianFactorGraph:
-    """``lambda I`` on every variable, as unit-noise Jacobian factors."""
-    damping = gtsam.GaussianFactorGraph()
-    s = np.sqrt(lam)
-    for key, dim in keys:
-        damping.add(key, s * np.eye(dim), np.zeros(dim), gtsam.noiseModel.Unit.Create(dim))
-    return damping
-
-
-class _LinearSolver:
-    """Cholesky (fast) until it fails once, QR from then on.
-
-    The information of an IMU + C-DTM system spans ~1e-4 (pose prior) to ~1e10 (bias
-    random walk); Cholesky squares that condition number and may lose small pivots.
-    """
-
-    def __init__(self) -> None:
-        self.qr = False
-
-    def __call__(self, damped: gtsam.GaussianFactorGraph) -> gtsam.VectorValues:
-        if not self.qr:
-            try:
-                return damped.optimize()
-            except RuntimeError:
-                self.qr = True
-        return damped.optimize(gtsam.EliminateQR)
-
-
-def levenberg_marquardt(
-    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iterations: int,
-    relative_error_tol: float, lambda_initial: float = 1e-5,
-) -> tuple[gtsam.Values, SolverStats]:
-    """Levenberg-Marquardt driven from Python on ``graph.linearize`` (no per-call copies).
-
-    Damping ``lambda I`` follows Nielsen's rule: on a step with gain ratio rho the
-    damping shrinks by ``max(1/3, 1 - (2 rho - 1)^3)``; on a rejected step it grows by
-    a factor that doubles with each rejection. This rejects far fewer steps than
-    multiplying by ten both ways.
-
-    Raises:
-        SolverError: the linear system is indeterminant (names the variable).
-    """
-    start = time.perf_counter()
-    keys = [(k, _dim_of(k)) for k in values.keys()]
-    error = graph.error(values)
-    initial_error = error
-    lam, nu = lambda_initial, 2.0
-    solve = _LinearSolver()
-    iterations = 0
-    converged = False
-    try:
-        while iterations < max_iterations:
-            iterations += 1
-            linear = graph.linearize(values)
-            accepted = False
-            while lam < 1e12:
-                damped = gtsam.GaussianFactorGraph()
-                damped.push_back(linear)
-                damped.push_back(_damping_factors(keys, lam))
-                delta = solve(damped)
-                candidate = values.retract(delta)
-                new_error = graph.error(candidate)
-                # predicted decrease of the linear model (its value at zero, not the robust
-                # loss: IRLS rows are sqrt(w)-scaled, so the two differ under a kernel)
-                predicted = linear.error(gtsam.VectorValues.Zero(delta)) - linear.error(delta)
-                rho = (error - new_error) / predicted if predicted > 0 else -1.0
-                if new_error < error and rho > 0:
-                    accepted = True
-                    lam *= max(1 / 3, 1 - (2 * rho - 1) ** 3)
-                    nu = 2.0
-                    break
-                lam *= nu
-                nu *= 2
-            if not accepted:
-                converged = True  # no descent left at any damping
-                break
-            decrease = (error - new_error) / max(error, 1e-300)
-            values, error = candidate, new_error
-            log.debug("LM iteration %d: error %.6g (lambda %.1e)", iterations, error, lam)
-            if decrease < relative_error_tol:
-                converged = True
-                break
-    except RuntimeError as exc:
-        raise explain_indeterminant(exc) from None
-    return values, SolverStats("batch", iterations, initial_error, error, converged,
-                               time.perf_counter() - start)
-
-
-def _dim_of(key: int) -> int:
-    return {"x": 6, "v": 3, "b": 6}[chr(gtsam.Symbol(key).chr())]
 
 
 def _estimate_from_values(values: gtsam.Values, t_ns: np.ndarray) -> TrajectoryEstimate:
