@@ -28,7 +28,7 @@ def _damping_factors(keys: list[tuple[int, int]], lam: float) -> gtsam.GaussianF
     return damping
 
 
-class _LinearSolver:
+class LinearSolver:
     """Cholesky (fast) until it fails once, QR from then on.
 
     The information of an IMU + C-DTM system spans ~1e-4 (pose prior) to ~1e10 (bias
@@ -50,6 +50,7 @@ class _LinearSolver:
 def levenberg_marquardt(
     graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iterations: int,
     relative_error_tol: float, lambda_initial: float = 1e-5, mode: str = "batch",
+    solver: LinearSolver | None = None,
 ) -> tuple[gtsam.Values, SolverStats]:
     """Levenberg-Marquardt driven from Python on ``graph.linearize`` (no per-call copies).
 
@@ -66,7 +67,7 @@ def levenberg_marquardt(
     error = graph.error(values)
     initial_error = error
     lam, nu = lambda_initial, 2.0
-    solve = _LinearSolver()
+    solve = solver or LinearSolver()  # pass one along to keep its Cholesky/QR verdict
     iterations = 0
     converged = False
     try:

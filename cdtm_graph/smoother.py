@@ -41,7 +41,7 @@ from cdtm_graph.graph import (
     navstate_predict,
     prior_factors,
 )
-from cdtm_graph.optimizer import levenberg_marquardt
+from cdtm_graph.optimizer import LinearSolver, levenberg_marquardt
 from cdtm_graph.results import (
     GraphCounts,
     SmootherResult,
@@ -239,21 +239,23 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
         raise FlightLogError(f"{flight.root / 'frames.csv'}: {len(flight.frames)} frame(s); "
                              "expected at least 2")
     if settings.mode is SmootherMode.INCREMENTAL:
+        dt_s = float(np.max(np.diff(flight.frames.t_ns))) * 1e-9
         smoother = IncrementalSmoother(flight.config, dtm, settings.graph, lag_s=settings.lag_s,
-                                       imu=flight.imu)
+                                       imu=flight.imu, frame_interval_s=dt_s)
         return smoother.run(flight, progress, final_iterations=settings.final_iterations,
                             settings_dict=settings.as_dict())
     intervals = ImuIntervals(flight.config, flight.imu, settings.graph.imu_hold)
     initial, source = _initial_values(flight, dtm, settings, intervals, progress)
     built = build_log_graph(flight, dtm, settings, initial, intervals)
+    solver = LinearSolver()
     values, first = levenberg_marquardt(built.graph, initial, settings.max_iterations,
-                                        settings.relative_error_tol)
+                                        settings.relative_error_tol, solver=solver)
     # The C-DTM noise (eqs. 19-26) was linearized at the initial guess; evaluate it at the
     # estimate and finish there, so the solution does not depend on the initial guess.
     built.refresh_noise(values)
     graph = built.graph
     values, stats = levenberg_marquardt(graph, values, settings.max_iterations,
-                                        settings.relative_error_tol)
+                                        settings.relative_error_tol, solver=solver)
     stats = replace(stats, iterations=first.iterations + stats.iterations,
                     initial_error=first.initial_error, time_s=first.time_s + stats.time_s)
     K = len(flight.frames)
@@ -331,10 +333,13 @@ class IncrementalSmoother:
         lag_s: use GTSAM's ``IncrementalFixedLagSmoother`` with this lag; ``None`` keeps
             the full history in iSAM2.
         imu: IMU samples known up front (a log); otherwise feed them with ``add_imu``.
+        frame_interval_s: expected time between frames; with a lag, it lets the smoother
+            relinearize less often than every update (still four times per window).
     """
 
     def __init__(self, config: FlightConfig, dtm: Dtm, settings: GraphSettings | None = None,
-                 lag_s: float | None = None, imu: ImuSamples | None = None):
+                 lag_s: float | None = None, imu: ImuSamples | None = None,
+                 frame_interval_s: float | None = None):
         self.config = config
         self.dtm = dtm
         self.settings = settings or GraphSettings()
@@ -349,9 +354,13 @@ class IncrementalSmoother:
             self._fls = None
         else:
             # The fixed-lag smoother marginalizes states at their linearization point and
-            # its update cannot force relinearization: relinearize at every update.
+            # its update cannot force relinearization: every state must be relinearized
+            # well before it leaves the window, so relinearize at least four times per
+            # window (every update when the frame interval is not known).
             params = isam2_params()
             params.relinearizeSkip = 1
+            if frame_interval_s is not None and frame_interval_s > 0:
+                params.relinearizeSkip = int(np.clip(lag_s / frame_interval_s // 4, 1, 10))
             self._fls = gtsam.IncrementalFixedLagSmoother(lag_s, params)
             self._isam = None
         self.final_error = float("nan")
