@@ -47,6 +47,10 @@ class LinearSolver:
         return damped.optimize(gtsam.EliminateQR)
 
 
+#: A rejected step predicted to gain less than this fraction of the error ends the solve.
+_SMALL_STEP_RELATIVE = 1e-4
+
+
 def levenberg_marquardt(
     graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iterations: int,
     relative_error_tol: float, lambda_initial: float = 1e-5, mode: str = "batch",
@@ -81,19 +85,24 @@ def levenberg_marquardt(
                 damped.push_back(linear)
                 damped.push_back(_damping_factors(keys, lam))
                 delta = solve(damped)
-                candidate = values.retract(delta)
-                new_error = graph.error(candidate)
                 # predicted decrease of the linear model (its value at zero, not the robust
                 # loss: IRLS rows are sqrt(w)-scaled, so the two differ under a kernel)
                 if linear_error_at_zero is None:
                     linear_error_at_zero = linear.error(gtsam.VectorValues.Zero(delta))
                 predicted = linear_error_at_zero - linear.error(delta)
+                if predicted <= relative_error_tol * error:
+                    break  # at the optimum: no step can gain more than the tolerance
+                candidate = values.retract(delta)
+                new_error = graph.error(candidate)
                 rho = (error - new_error) / predicted if predicted > 0 else -1.0
                 if new_error < error and rho > 0:
                     accepted = True
                     lam *= max(1 / 3, 1 - (2 * rho - 1) ** 3)
                     nu = 2.0
                     break
+                if predicted <= _SMALL_STEP_RELATIVE * error:
+                    break  # a rejected step this small: the kinks of re-intersected planes
+                    # (or round-off) decide, not curvature; damping more will not gain
                 lam *= nu
                 nu *= 2
             if not accepted:
