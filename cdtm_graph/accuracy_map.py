@@ -32,7 +32,7 @@ from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import CdtmError
 from cdtm_graph.geometry import make_pose, so3_exp
 from cdtm_graph.parallel import ParallelSettings, map_tasks
-from cdtm_graph.scenario import DOWNWARD_BODY_T_CAM
+from cdtm_graph.scenario import DOWNWARD_BODY_T_CAM, visible_from
 from factors import FeatureNoise
 
 #: Candidate feature pixels drawn per requested feature (some leave the second image).
@@ -247,13 +247,7 @@ def accuracy_at(dtm: Dtm, x_m: float, y_m: float,
     hits = dtm.raycast(np.broadcast_to(wTc_a[:3, 3], ray.shape), ray)
     ok = hits.hit
     G = np.where(ok[:, None], hits.point, 0.0)
-    to_b = G - wTc_b[:3, 3]
-    dist_b = np.linalg.norm(to_b, axis=1)
-    back = dtm.raycast(np.broadcast_to(wTc_b[:3, 3], to_b.shape),
-                       np.where(ok[:, None], to_b, [0.0, 0.0, -1.0]))
-    ok &= back.hit & (np.abs(back.t * dist_b - dist_b) < _OCCLUSION_TOLERANCE_M)
-    g_b = to_b @ wTc_b[:3, :3]
-    ok &= g_b[:, 2] > 0
+    ok, g_b = visible_from(dtm, wTc_b, G, ok, _OCCLUSION_TOLERANCE_M)
     ok &= camera.in_image(camera.rays_to_pixels(np.where(ok[:, None], g_b, [0.0, 0.0, 1.0])))
     visible = np.flatnonzero(ok)
     if visible.size > settings.n_features:  # spread the kept ones over the whole overlap

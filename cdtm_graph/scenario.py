@@ -148,6 +148,29 @@ class PairSample:
         return self.q_a.shape[0]
 
 
+def visible_from(occluder: Dtm, world_T_cam: np.ndarray, points: np.ndarray,
+                 candidate: np.ndarray, tolerance_m: float = _OCCLUSION_TOLERANCE_M
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Which ground points a camera sees: in front of it and unoccluded by the terrain.
+
+    Args:
+        occluder: the terrain that may hide points.
+        world_T_cam: (4, 4) the camera.
+        points: (n, 3) world points. candidate: (n,) bool, points worth checking.
+        tolerance_m: how far before the point the first terrain hit may be.
+
+    Returns:
+        ``visible`` (n,) bool and the points in the camera frame (n, 3).
+    """
+    to_cam = points - world_T_cam[:3, 3]
+    dist = np.linalg.norm(to_cam, axis=1)
+    back = occluder.raycast(np.broadcast_to(world_T_cam[:3, 3], to_cam.shape),
+                            np.where(candidate[:, None], to_cam, [0.0, 0.0, -1.0]))
+    visible = candidate & back.hit & (np.abs(back.t * dist - dist) < tolerance_m)
+    p_cam = to_cam @ world_T_cam[:3, :3]
+    return visible & (p_cam[:, 2] > 0), p_cam
+
+
 def _random_unit(rng: np.random.Generator) -> np.ndarray:
     v = rng.normal(size=3)
     return v / np.linalg.norm(v)
@@ -196,14 +219,10 @@ def sample_pair(scenario: PairScenario, terrain: ScenarioTerrain,
         ok = hits.hit
         G = hits.point
         occluder = terrain.truth
-    to_b = G - wTc_b[:3, 3]
-    dist_b = np.linalg.norm(to_b, axis=1)
-    back = occluder.raycast(np.broadcast_to(wTc_b[:3, 3], to_b.shape), np.where(
-        ok[:, None], to_b, [0.0, 0.0, -1.0]))
-    ok &= back.hit & (np.abs(back.t * dist_b - dist_b) < _OCCLUSION_TOLERANCE_M + 3 * abs(
-        scenario.sigma_h) * (scenario.dtm_error is DtmErrorModel.MODEL))
-    g_b = to_b @ wTc_b[:3, :3]
-    ok &= g_b[:, 2] > 0
+    # Off-surface points (the modelled DTM error) may sit a few sigma_h behind the surface.
+    tolerance = _OCCLUSION_TOLERANCE_M + 3 * abs(scenario.sigma_h) * (
+        scenario.dtm_error is DtmErrorModel.MODEL)
+    ok, g_b = visible_from(occluder, wTc_b, G, ok, tolerance)
     uv_b = camera.rays_to_pixels(np.where(ok[:, None], g_b, [0.0, 0.0, 1.0]))
     uv_b = uv_b + rng.normal(0, scenario.sigma_px, uv_b.shape) * (not scenario.noiseless)
     ok &= camera.in_image(uv_b)
