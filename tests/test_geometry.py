@@ -1,0 +1,49 @@
+"""Rotation helpers: property-based round trips (hypothesis), checked against GTSAM."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cdtm_graph.geometry import (
+    quat_wxyz_to_rotation,
+    rotation_to_quat_wxyz,
+    so3_exp,
+    so3_log,
+)
+
+#: Round trips in double precision.
+ROUND_TRIP_TOL = 1e-9
+
+rotation_vectors = st.lists(st.floats(-3.0, 3.0, allow_nan=False), min_size=3, max_size=3).map(
+    np.array).filter(lambda w: np.linalg.norm(w) < np.pi - 1e-3)
+
+
+@settings(max_examples=300, deadline=None)
+@given(rotation_vectors)
+def test_exp_log_round_trip_and_agree_with_gtsam(w):
+    R = so3_exp(w)
+    np.testing.assert_allclose(R, gtsam.Rot3.Expmap(w).matrix(), atol=ROUND_TRIP_TOL)
+    np.testing.assert_allclose(so3_log(R), w, atol=ROUND_TRIP_TOL)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=ROUND_TRIP_TOL)
+
+
+@settings(max_examples=300, deadline=None)
+@given(rotation_vectors)
+def test_quaternion_round_trip_w_first_hamilton(w):
+    R = so3_exp(w)
+    q = rotation_to_quat_wxyz(R)
+    assert q[0] >= 0 and abs(np.linalg.norm(q) - 1) < ROUND_TRIP_TOL
+    np.testing.assert_allclose(quat_wxyz_to_rotation(q), R, atol=ROUND_TRIP_TOL)
+    g = gtsam.Rot3(R).toQuaternion()  # Hamilton, the convention FLIGHTLOG.md names
+    np.testing.assert_allclose(np.abs(q), np.abs([g.w(), g.x(), g.y(), g.z()]),
+                               atol=ROUND_TRIP_TOL)
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.floats(1e-12, 1e-6))
+def test_log_is_accurate_for_tiny_angles(angle):
+    w = np.array([angle, -0.5 * angle, 0.25 * angle])
+    np.testing.assert_allclose(so3_log(so3_exp(w)), w, rtol=1e-6)
