@@ -75,6 +75,8 @@ class SmootherSettings:
         final_iterations: incremental only: extra iSAM2 updates after the last frame
             so the final estimate reaches the optimum.
         marginals: compute per-frame marginal covariances.
+        keep_exit_covariances: fixed lag: keep each frame's pose covariance as it leaves
+            the window (else NaN for frames older than the lag).
     """
 
     graph: GraphSettings = field(default_factory=GraphSettings)
@@ -84,6 +86,7 @@ class SmootherSettings:
     lag_s: float | None = None
     final_iterations: int = 5
     marginals: bool = True
+    keep_exit_covariances: bool = True
 
     def as_dict(self) -> dict:
         d = asdict(self)
@@ -241,7 +244,8 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     if settings.mode is SmootherMode.INCREMENTAL:
         dt_s = float(np.max(np.diff(flight.frames.t_ns))) * 1e-9
         smoother = IncrementalSmoother(flight.config, dtm, settings.graph, lag_s=settings.lag_s,
-                                       imu=flight.imu, frame_interval_s=dt_s)
+                                       imu=flight.imu, frame_interval_s=dt_s,
+                                       keep_exit_covariances=settings.keep_exit_covariances)
         return smoother.run(flight, progress, final_iterations=settings.final_iterations,
                             settings_dict=settings.as_dict())
     intervals = ImuIntervals(flight.config, flight.imu, settings.graph.imu_hold)
@@ -335,15 +339,19 @@ class IncrementalSmoother:
         imu: IMU samples known up front (a log); otherwise feed them with ``add_imu``.
         frame_interval_s: expected time between frames; with a lag, it lets the smoother
             relinearize less often than every update (still four times per window).
+        keep_exit_covariances: with a lag, keep the pose covariance each frame has when it
+            leaves the window (about 1 ms per frame; offline runs want it, a live system
+            needs only the newest covariance).
     """
 
     def __init__(self, config: FlightConfig, dtm: Dtm, settings: GraphSettings | None = None,
                  lag_s: float | None = None, imu: ImuSamples | None = None,
-                 frame_interval_s: float | None = None):
+                 frame_interval_s: float | None = None, keep_exit_covariances: bool = False):
         self.config = config
         self.dtm = dtm
         self.settings = settings or GraphSettings()
         self.lag_s = lag_s
+        self.keep_exit_covariances = keep_exit_covariances
         self._imu = imu or ImuSamples(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
         self._intervals = ImuIntervals(config, self._imu, self.settings.imu_hold)
         self._noise = feature_noise(config, dtm, self.settings)
@@ -539,8 +547,9 @@ class IncrementalSmoother:
         horizon = self._t_ns[k] - self.lag_s * 1e9 + margin_ns
         while self._settled < k and self._t_ns[self._settled] < horizon:
             self._fetch(self._settled)
-            self._left_cov[self._settled] = np.asarray(
-                self._fls.marginalCovariance(X(self._settled)))
+            if self.keep_exit_covariances:  # ~1 ms: a marginal deep in the Bayes tree
+                self._left_cov[self._settled] = np.asarray(
+                    self._fls.marginalCovariance(X(self._settled)))
             self._settled += 1
 
     def _fetch(self, k: int) -> None:
