@@ -11,7 +11,6 @@ from factors.cdtm_factor import (
     PlaneMode,
     RayCaster,
     RobustKernel,
-    add_pair_factors,
     make_feature_factors,
 )
 
@@ -22,6 +21,5 @@ __all__ = [
     "PlaneMode",
     "RayCaster",
     "RobustKernel",
-    "add_pair_factors",
     "make_feature_factors",
 ]

@@ -21,7 +21,7 @@ new hit (which is the exact derivative of the re-intersected residual).
 from __future__ import annotations
 
 import enum
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import gtsam
@@ -328,9 +328,3 @@ def make_feature_factors(
             noise = gtsam.noiseModel.Robust.Create(estimator, noise)
         factors.append(gtsam.CustomFactor(noise, [key_a, key_b], pair._error))
     return factors
-
-
-def add_pair_factors(graph: gtsam.NonlinearFactorGraph, factors: Sequence[CdtmPairFactor]) -> None:
-    """Add the GTSAM factors of several pair factors to a graph."""
-    for f in factors:
-        graph.add(f.factor)
