@@ -355,7 +355,11 @@ class Dtm:
         """
         d = np.ascontiguousarray(directions, dtype=np.float64)
         n = d.shape[0]
-        o = np.ascontiguousarray(np.broadcast_to(np.asarray(origins, dtype=np.float64), d.shape))
+        origins = np.asarray(origins, dtype=np.float64)
+        if origins.shape == (3,):  # one camera: allocation and fill inside numba
+            return _tangent_planes_kernel(self.elevation, self._cell_max, self.x0, self.y0,
+                                          self.dx, self.dy, self._z_top, origins, d)
+        o = np.ascontiguousarray(np.broadcast_to(origins, d.shape))
         point = np.empty((n, 3))
         t = np.empty(n)
         normal = np.empty((n, 3))
@@ -642,6 +646,25 @@ def _raycast_kernel(
             if j < 0 or j > n_cols - 2 or i < 0 or i > n_rows - 2:
                 break
             t_en = t_ex
+
+
+@njit(cache=True)
+def _tangent_planes_kernel(elev, cell_max, x0, y0, dx, dy, z_top, origin, directions):
+    """``_raycast_kernel`` for rays from one origin, returning ``(points, normals, hit)``:
+    the per-linearization caller pays one dispatch, not a dozen numpy calls."""
+    n = directions.shape[0]
+    origins = np.empty((n, 3))
+    for r in range(n):
+        origins[r, 0] = origin[0]
+        origins[r, 1] = origin[1]
+        origins[r, 2] = origin[2]
+    point = np.full((n, 3), np.nan)
+    normal = np.full((n, 3), np.nan)
+    t = np.empty(n)
+    status = np.full(n, np.int8(RayStatus.MISS))
+    _raycast_kernel(elev, cell_max, x0, y0, dx, dy, z_top, origins, directions, point, t,
+                    normal, status)
+    return point, normal, status == np.int8(RayStatus.HIT)
 
 
 # ---------------------------------------------------------------------------------------

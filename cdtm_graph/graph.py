@@ -121,6 +121,18 @@ class ImuIntervals:
         return pim
 
 
+def insert_state(values: gtsam.Values, k: int, world_T_body: np.ndarray,
+                 velocity_mps: np.ndarray, bias: gtsam.imuBias.ConstantBias) -> None:
+    """Insert frame k's ``X(k)``, ``V(k)``, ``B(k)``.
+
+    Keyword arguments select the wrapper's overload by name: positionally, pybind tries
+    ~40 overloads of ``Values.insert`` before the bias one (~40 us a call).
+    """
+    values.insert(j=X(k), pose3=gtsam.Pose3(world_T_body))
+    values.insert(j=V(k), vector=np.asarray(velocity_mps, dtype=float))
+    values.insert(j=B(k), constant_bias=bias)
+
+
 def imu_factor(k: int, pim: gtsam.PreintegratedCombinedMeasurements) -> gtsam.CombinedImuFactor:
     """The IMU factor between frames k and k+1."""
     return gtsam.CombinedImuFactor(X(k), V(k), X(k + 1), V(k + 1), B(k), B(k + 1), pim)
@@ -214,19 +226,22 @@ def cdtm_factors(
         wTc_a = world_T_body[pair.frame_a] @ body_T_cam
         wTc_b = world_T_body[pair.frame_b] @ body_T_cam
         ray = pair.q_a @ wTc_a[:3, :3].T
-        G_E, N, valid = raycast(np.broadcast_to(wTc_a[:3, 3], ray.shape), ray)
+        G_E, N, valid = raycast(wTc_a[:3, 3], ray)
         # A pixel the distortion model cannot undistort has a NaN ray: no ground point.
-        valid &= np.isfinite(pair.q_a).all(axis=1) & np.isfinite(pair.q_b).all(axis=1)
+        valid &= np.isfinite((pair.q_a + pair.q_b).sum(axis=1))
         n_valid = int(valid.sum())
         build.n_missed += int(valid.size - n_valid)
         if n_valid == 0:
             continue
+        q_a, q_b, rank = pair.q_a, pair.q_b, pair.track_pair_index
+        if n_valid < valid.size:
+            q_a, q_b, G_E, N = q_a[valid], q_b[valid], G_E[valid], N[valid]
+            rank = None if rank is None else rank[valid]
         scale = None
-        if settings.shared_dtm_error and pair.track_pair_index is not None:
-            j = pair.track_pair_index[valid].astype(float)
+        if settings.shared_dtm_error and rank is not None:
+            j = rank.astype(float)
             scale = j * (j + 1) / 2
-        features = PairFeatures.build(wTc_a, wTc_b, pair.q_a[valid], pair.q_b[valid],
-                                      G_E[valid], N[valid], noise, scale)
+        features = PairFeatures.build(wTc_a, wTc_b, q_a, q_b, G_E, N, noise, scale)
         build.factors.append(CdtmPairFactor(
             X(pair.frame_a), X(pair.frame_b), features, body_T_cam, settings.plane_mode,
             raycast, settings.robust, settings.robust_threshold))

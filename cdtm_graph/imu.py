@@ -50,8 +50,8 @@ from enum import Enum
 
 import gtsam
 import numpy as np
+from numba import njit
 
-from cdtm_graph.geometry import so3_exp
 from cdtm_graph.trajectory import FlightPlan, Trajectory, evaluate
 
 NS_PER_S = 1_000_000_000
@@ -273,21 +273,79 @@ def hold_segments(t_ns_samples: np.ndarray, t0_ns: int, t1_ns: int,
     # the outermost ones end before t0 / start after t1 in either mode.
     a = max(int(np.searchsorted(t, t0, side="right")) - 2, 0)
     b = min(int(np.searchsorted(t, t1, side="left")) + 2, n)
-    ts = t[a:b].astype(np.int64)
-    if np.any(np.diff(ts) <= 0):
-        raise ValueError("t_ns_samples must be strictly increasing")
-    if hold is SampleHold.ZERO_ORDER:
-        bounds = ts  # sample a+j holds [ts[j], ts[j+1]); the slice's last holds nothing
-    elif hold is SampleHold.MIDPOINT:
-        # Integer half-way points: the pieces still telescope, so their sum stays exact.
-        bounds = np.concatenate([ts[:1], ts[:-1] + np.diff(ts) // 2, ts[-1:]])
-    else:
+    if not isinstance(hold, SampleHold):
         raise ValueError(f"unknown hold {hold!r}")
-    start = np.maximum(bounds[:-1], t0)
-    end = np.minimum(bounds[1:], t1)
-    keep = end > start
-    index = np.arange(a, a + bounds.shape[0] - 1)
-    return index[keep], (end - start)[keep]
+    ts = np.ascontiguousarray(t[a:b], dtype=np.int64)
+    index, dt_ns, increasing = _hold_segments_kernel(ts, t0, t1, hold is SampleHold.MIDPOINT)
+    if not increasing:
+        raise ValueError("t_ns_samples must be strictly increasing")
+    index += a
+    return index, dt_ns
+
+
+@njit(cache=True)
+def _hold_segments_kernel(ts, t0, t1, midpoint):
+    """Pieces of [t0, t1] held by each of the samples ``ts`` (local indices), and whether
+    ``ts`` is strictly increasing. ZERO_ORDER: sample j holds [ts[j], ts[j+1]); MIDPOINT:
+    from the integer half-way point to its previous neighbour to the one to its next (the
+    first from its own time, the last to its own time), so the pieces telescope exactly."""
+    n = ts.shape[0]
+    index = np.empty(n, np.int64)
+    dt_ns = np.empty(n, np.int64)
+    for j in range(n - 1):
+        if ts[j + 1] <= ts[j]:
+            return index[:0], dt_ns[:0], False
+    m = 0
+    for j in range(n if midpoint else n - 1):
+        if midpoint:
+            lo = ts[j] if j == 0 else ts[j - 1] + (ts[j] - ts[j - 1]) // 2
+            hi = ts[j] if j == n - 1 else ts[j] + (ts[j + 1] - ts[j]) // 2
+        else:
+            lo, hi = ts[j], ts[j + 1]
+        start = max(lo, t0)
+        end = min(hi, t1)
+        if end > start:
+            index[m] = j
+            dt_ns[m] = end - start
+            m += 1
+    return index[:m], dt_ns[:m], True
+
+
+@njit(cache=True)
+def _held_measurements(gyro, acc, index, dt_ns, midpoint, b_a, b_g):
+    """What GTSAM integrates per piece: ``(acc (M, 3), gyro (M, 3), dt_s (M,))``; with
+    the midpoint hold, the bias-corrected specific force turned forward by half the
+    piece's rotation, ``Exp((w - b_g) dt/2) (f - b_a) + b_a`` (module docstring)."""
+    m = index.shape[0]
+    f_out = np.empty((m, 3))
+    w_out = np.empty((m, 3))
+    dt_s = np.empty(m)
+    for k in range(m):
+        i = index[k]
+        dt = dt_ns[k] / NS_PER_S
+        dt_s[k] = dt
+        for c in range(3):
+            w_out[k, c] = gyro[i, c]
+            f_out[k, c] = acc[i, c]
+        if not midpoint:
+            continue
+        # Rodrigues: Exp(phi) x = x + a (phi x x) + b phi x (phi x x)
+        p0 = (gyro[i, 0] - b_g[0]) * 0.5 * dt
+        p1 = (gyro[i, 1] - b_g[1]) * 0.5 * dt
+        p2 = (gyro[i, 2] - b_g[2]) * 0.5 * dt
+        x0, x1, x2 = acc[i, 0] - b_a[0], acc[i, 1] - b_a[1], acc[i, 2] - b_a[2]
+        th2 = p0 * p0 + p1 * p1 + p2 * p2
+        th = np.sqrt(th2)
+        if th < 1e-8:
+            a, b = 1.0, 0.5
+        else:
+            a, b = np.sin(th) / th, (1.0 - np.cos(th)) / th2
+        c0, c1, c2 = p1 * x2 - p2 * x1, p2 * x0 - p0 * x2, p0 * x1 - p1 * x0
+        d0, d1, d2 = p1 * c2 - p2 * c1, p2 * c0 - p0 * c2, p0 * c1 - p1 * c0
+        f_out[k, 0] = x0 + a * c0 + b * d0 + b_a[0]
+        f_out[k, 1] = x1 + a * c1 + b * d1 + b_a[1]
+        f_out[k, 2] = x2 + a * c2 + b * d2 + b_a[2]
+    return f_out, w_out, dt_s
 
 
 def integrate_interval(pim: PreintegratedCombined, t_ns_samples: np.ndarray,
@@ -322,14 +380,15 @@ def integrate_interval(pim: PreintegratedCombined, t_ns_samples: np.ndarray,
         raise ValueError(f"gyro {gyro.shape} and acc {acc.shape} must be (N, 3) for "
                          f"t_ns_samples {t.shape}")
     index, dt_ns = hold_segments(t, t0_ns, t1_ns, hold)
-    dt_s = dt_ns.astype(float) / NS_PER_S
-    w, f = gyro[index], acc[index]
-    if hold is SampleHold.MIDPOINT:
-        bias = pim.biasHat()
-        b_a, b_g = np.asarray(bias.accelerometer()), np.asarray(bias.gyroscope())
+    midpoint = hold is SampleHold.MIDPOINT
+    if midpoint:
         # GTSAM rotates the step's specific force with the rotation at the step's start;
         # pre-rotating by half the step makes that the rotation at its middle.
-        half_turn = so3_exp((w - b_g) * (0.5 * dt_s)[:, None])
-        f = np.einsum("nij,nj->ni", half_turn, f - b_a) + b_a
-    for k in range(index.shape[0]):
-        pim.integrateMeasurement(f[k], w[k], dt_s[k])
+        bias = pim.biasHat()
+        b_a, b_g = np.asarray(bias.accelerometer()), np.asarray(bias.gyroscope())
+    else:
+        b_a = b_g = np.zeros(3)
+    f, w, dt_s = _held_measurements(gyro, acc, index, dt_ns, midpoint, b_a, b_g)
+    integrate = pim.integrateMeasurement
+    for f_k, w_k, dt_k in zip(list(f), list(w), dt_s.tolist()):
+        integrate(f_k, w_k, dt_k)

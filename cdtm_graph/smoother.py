@@ -38,6 +38,7 @@ from cdtm_graph.graph import (
     frame_pair_observations,
     imu_factor,
     initial_bias,
+    insert_state,
     navstate_predict,
     prior_factors,
 )
@@ -49,6 +50,7 @@ from cdtm_graph.results import (
     StateCovariances,
     TrajectoryEstimate,
 )
+from cdtm_graph.track_table import TrackTable, check_unique
 
 log = logging.getLogger(__name__)
 
@@ -182,9 +184,7 @@ def _initial_values(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
     if flight.nav is not None:
         poses = flight.nav.world_T_body
         for k in range(K):
-            values.insert(X(k), gtsam.Pose3(poses[k]))
-            values.insert(V(k), np.asarray(flight.nav.velocity_mps[k], dtype=float))
-            values.insert(B(k), bias)
+            insert_state(values, k, poses[k], flight.nav.velocity_mps[k], bias)
         return values, "nav.csv"
     incremental = IncrementalSmoother(flight.config, dtm, settings.graph, imu=flight.imu)
     incremental.run(flight, progress)
@@ -383,11 +383,7 @@ class IncrementalSmoother:
         self._poses: dict[int, np.ndarray] = {}  # latest estimate of every frame
         self._velocities: dict[int, np.ndarray] = {}
         self._biases: dict[int, gtsam.imuBias.ConstantBias] = {}
-        self._seen_ids = np.zeros(0, dtype=np.int64)  # sorted track ids seen so far
-        self._seen_frame = np.zeros(0, dtype=np.int64)  # ... their last frame
-        self._seen_q = np.zeros((0, 3))  # ... and ray there
-        self._seen_pairs = np.zeros(0, dtype=np.int64)  # ... and pairs so far
-        self._all_tracks: set[int] = set()  # for the count only
+        self._tracks = TrackTable()  # last sighting of every live track
         self._factors_by_frame: dict[int, int] = {}
         self.n_features = 0
         self.n_missed = 0
@@ -422,11 +418,18 @@ class IncrementalSmoother:
             The newest frame's estimate and covariance.
         """
         start = time.perf_counter()
-        if imu is not None and len(imu):
-            self.add_imu(imu)
         k = len(self._t_ns)
         if k and t_ns <= self._t_ns[-1]:
             raise FlightLogError(f"frame {k}: time {t_ns} ns is not after the previous frame")
+        if track_id is not None:  # checked before anything changes
+            track_id = np.asarray(track_id, dtype=np.int64)
+            uv_px = np.asarray(uv_px, dtype=float)
+            if track_id.ndim != 1 or uv_px.shape != (track_id.size, 2):
+                raise FlightLogError(f"frame {k}: {track_id.shape} track ids with pixels of "
+                                     f"shape {uv_px.shape}; expected (m,) and (m, 2)")
+            check_unique(k, track_id)
+        if imu is not None and len(imu):
+            self.add_imu(imu)
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         if k == 0:
@@ -439,9 +442,7 @@ class IncrementalSmoother:
             pim = self._intervals.preintegrate(self._t_ns[-1], int(t_ns), bias)
             graph.add(imu_factor(k - 1, pim))
             pose, vel = navstate_predict(pim, self._poses[k - 1], self._velocities[k - 1], bias)
-        values.insert(X(k), gtsam.Pose3(pose))
-        values.insert(V(k), vel)
-        values.insert(B(k), bias)
+        insert_state(values, k, pose, vel, bias)
         self._t_ns.append(int(t_ns))
         self._poses[k], self._velocities[k], self._biases[k] = pose, vel, bias
         if self._fls is not None and k:
@@ -449,8 +450,7 @@ class IncrementalSmoother:
         n_new = 0
         self._n_new_cdtm = 0
         if track_id is not None and len(track_id):
-            n_new = self._add_cdtm(k, np.asarray(track_id, dtype=np.int64),
-                                   np.asarray(uv_px, dtype=float), graph)
+            n_new = self._add_cdtm(k, track_id, uv_px, graph)
         self._update(graph, values, k)
         if self._fls is None and self._n_new_cdtm:
             self._refresh_newest_noise(k, pose)
@@ -463,51 +463,16 @@ class IncrementalSmoother:
                   graph: gtsam.NonlinearFactorGraph) -> int:
         q = self._camera.pixels_to_rays(uv_px)
         self._observations += len(track_id)
-        self._all_tracks.update(track_id.tolist())
-        # Last sighting of every track, as sorted arrays (vectorized look-up and update).
-        ids = self._seen_ids
-        idx = np.searchsorted(ids, track_id)
-        found = idx < ids.size
-        found[found] = ids[idx[found]] == track_id[found]
-        rows = idx[found]
-        frame_a = self._seen_frame[rows]
-        q_a_all = self._seen_q[rows]
-        q_b_all = q[found]
-        tid_all = track_id[found]
-        self._seen_frame[rows] = k
-        self._seen_q[rows] = q[found]
-        self._seen_pairs[rows] += 1
-        pairs_so_far = self._seen_pairs[rows]
-        new = ~found
-        if new.any():
-            new_ids, first = np.unique(track_id[new], return_index=True)
-            at = np.searchsorted(ids, new_ids)  # trackers number tracks upwards: usually the end
-            self._seen_ids = np.insert(ids, at, new_ids)
-            self._seen_frame = np.insert(self._seen_frame, at, k)
-            self._seen_q = np.insert(self._seen_q, at, q[new][first], axis=0)
-            self._seen_pairs = np.insert(self._seen_pairs, at, 0)
-        if self.lag_s is not None and self._seen_ids.size > 4 * len(track_id):
-            # Tracks last seen before the window can never pair again: forget them.
-            live = self._seen_frame >= self._settled
-            self._seen_ids = self._seen_ids[live]
-            self._seen_frame = self._seen_frame[live]
-            self._seen_q = self._seen_q[live]
-            self._seen_pairs = self._seen_pairs[live]
-
-        self._pair_count += int(rows.size)
-        if self.lag_s is not None:  # X(a) leaves (or left) the window at this update
-            too_old = frame_a < self._settled
-            self.n_too_old += int(too_old.sum())
-            keep = ~too_old
-            frame_a, q_a_all, q_b_all, tid_all, pairs_so_far = (
-                frame_a[keep], q_a_all[keep], q_b_all[keep], tid_all[keep], pairs_so_far[keep])
-        pairs = []
-        by_frame = np.unique(frame_a)
-        for a in by_frame.tolist():
-            sel = frame_a == a
-            pairs.append(FramePairObservations(a, k, q_a_all[sel], q_b_all[sel], tid_all[sel],
-                                               pairs_so_far[sel]))
-        for a in by_frame.tolist():  # fetch only the poses these planes need
+        # A fixed lag has let go of frames before the window: their pairs are dropped
+        # (counted), and tracks last seen there can never pair again.
+        oldest = self._settled if self.lag_s is not None else 0
+        pairs, n_too_old = self._tracks.add_frame(k, track_id, q, oldest)
+        self.n_too_old += n_too_old
+        self._pair_count += sum(p.q_a.shape[0] for p in pairs) + n_too_old
+        if self.lag_s is not None and len(self._tracks) > 4 * len(track_id):
+            self._tracks.forget_before(self._settled)
+        for pair in pairs:  # fetch only the poses these planes need
+            a = pair.frame_a
             self._poses[a] = self._solver.calculateEstimatePose3(X(a)).matrix()
         build = cdtm_factors(pairs, self._poses, self._body_T_cam, self.dtm, self._noise,
                              self.settings)
@@ -642,9 +607,7 @@ class IncrementalSmoother:
         estimate they had when they left it)."""
         values = gtsam.Values()
         for k in range(len(self._t_ns)):
-            values.insert(X(k), gtsam.Pose3(self._poses[k]))
-            values.insert(V(k), self._velocities[k])
-            values.insert(B(k), self._biases[k])
+            insert_state(values, k, self._poses[k], self._velocities[k], self._biases[k])
         return values
 
     def estimate(self) -> TrajectoryEstimate:
@@ -697,7 +660,7 @@ class IncrementalSmoother:
         per_frame = np.array([self._factors_by_frame.get(k, 0) for k in range(K)])
         estimate = self.estimate()
         n_out, out_per_frame = count_outliers(self._cdtm, estimate.world_T_body, K)
-        counts = GraphCounts(K, len(self._all_tracks), self._observations, self._pair_count,
+        counts = GraphCounts(K, self._tracks.n_tracks, self._observations, self._pair_count,
                              self.n_features, self.n_missed, self.n_cdtm_factors, K - 1, per_frame,
                              n_out, out_per_frame)
         stats = SolverStats("incremental" if self.lag_s is None else "fixed_lag", K, float("nan"),

@@ -11,6 +11,9 @@ Two forms with the same linearization:
   rather than per feature. Wrapping it in ``noiseModel.Robust`` would treat all its
   rows as one residual, hence the internal reweighting; its error-only evaluation
   returns rows whose half squared norm is the robust loss, as GTSAM's Robust does.
+  A pair of more than six features hands GTSAM a 13-row square root of its 2n rows
+  (:func:`factors.kernel.triangularize`): the same linear system, and eliminating it
+  no longer costs in proportion to the feature count.
 
 Both use the tangent plane in one of two ways (:class:`PlaneMode`): FIXED keeps
 ``G_E, N`` from construction (the paper); REINTERSECT casts the ray again from the
@@ -21,6 +24,7 @@ new hit (which is the exact derivative of the re-intersected residual).
 from __future__ import annotations
 
 import enum
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -33,8 +37,11 @@ from factors.kernel import (
     KERNEL_HUBER,
     KERNEL_NONE,
     KERNEL_TUKEY,
+    COMPRESSED_ROWS,
     cdtm_linearize,
     feature_covariance_kernel,
+    residual_noise_kernel,
+    triangularize,
 )
 
 #: ``raycast(origin (3,) or (n,3), directions (n,3)) -> (points, normals, valid)``, fresh
@@ -143,22 +150,26 @@ class PairFeatures:
         G_E = np.ascontiguousarray(G_E, dtype=float)
         N = np.ascontiguousarray(N, dtype=float)
         n = q_a.shape[0]
-        sigma_h = np.full(n, float(noise.sigma_h_m))
-        if dtm_variance_scale is not None:
-            sigma_h *= np.sqrt(np.asarray(dtm_variance_scale, dtype=float))
-        basis = np.ascontiguousarray(cdtm_math.orthonormal_complement(q_b))
+        if dtm_variance_scale is None:
+            sigma_h = np.full(n, float(noise.sigma_h_m))
+        else:
+            dtm_variance_scale = np.asarray(dtm_variance_scale, dtype=float)
+            sigma_h = float(noise.sigma_h_m) * np.sqrt(dtm_variance_scale)
         Sigma_f = np.empty((n, 3, 3))
         sax, say = noise.sigma_qa_xy if noise.sigma_qa_xy is not None else (0.0, 0.0)
-        # numba twin of cdtm_math.feature_covariance (tested equal): ~50x faster
+        # numba twins of cdtm_math's feature_covariance, orthonormal_complement,
+        # residual_covariance and sqrt_information (tested equal): ~10x faster
         feature_covariance_kernel(
             np.ascontiguousarray(world_T_cam_a[:3, :3]), world_T_cam_a[:3, 3].copy(),
             np.ascontiguousarray(world_T_cam_b[:3, :3]), world_T_cam_b[:3, 3].copy(),
             q_a, q_b, G_E, N, float(noise.sigma_q_xy[0]), float(noise.sigma_q_xy[1]),
             sigma_h, float(sax), float(say), Sigma_f)
-        Sigma_e = cdtm_math.residual_covariance(Sigma_f, basis)
-        return cls(q_a, q_b, G_E, N, Sigma_e, Sigma_f, basis,
-                   np.ascontiguousarray(cdtm_math.sqrt_information(Sigma_e)), noise,
-                   None if dtm_variance_scale is None else np.asarray(dtm_variance_scale))
+        basis = np.empty((n, 3, 2))
+        Sigma_e = np.empty((n, 2, 2))
+        sqrt_info = np.empty((n, 2, 2))
+        residual_noise_kernel(q_b, Sigma_f, basis, Sigma_e, sqrt_info)
+        return cls(q_a, q_b, G_E, N, Sigma_e, Sigma_f, basis, sqrt_info, noise,
+                   dtm_variance_scale)
 
     def subset(self, index: np.ndarray) -> PairFeatures:
         """The features selected by ``index`` (mask or indices)."""
@@ -166,6 +177,19 @@ class PairFeatures:
             "q_a", "q_b", "G_E", "N", "Sigma_e", "Sigma_f", "basis_b", "sqrt_info"))
         scale = None if self.dtm_variance_scale is None else self.dtm_variance_scale[index]
         return PairFeatures(*arrays, self.noise, scale)
+
+
+@functools.lru_cache(maxsize=8)
+def _adjoint_of(body_T_cam_bytes: bytes) -> np.ndarray:
+    Ad = cdtm_math.body_to_cam_adjoint(np.frombuffer(body_T_cam_bytes).reshape(4, 4))
+    Ad = np.ascontiguousarray(Ad)
+    Ad.flags.writeable = False
+    return Ad
+
+
+def _adjoint(body_T_cam: np.ndarray) -> np.ndarray:
+    """``Ad(cam_T_body)``, computed once per mounting (a log has one)."""
+    return _adjoint_of(np.ascontiguousarray(body_T_cam, dtype=float).tobytes())
 
 
 def _pose_matrix(values: gtsam.Values, key: int) -> np.ndarray:
@@ -185,8 +209,11 @@ class CdtmPairFactor:
         robust: per-feature M-estimator; ``robust_threshold`` defaults to the kernel's.
 
     Attributes:
-        factor: the ``gtsam.CustomFactor`` to add to a graph (dimension 2n, unit
-            noise: whitening happens inside).
+        factor: the ``gtsam.CustomFactor`` to add to a graph, unit noise (whitening
+            happens inside). Its dimension is 2n for up to six features, otherwise 13:
+            a linearization returns the QR triangle of the whitened ``[Ha Hb | e]``
+            (same Hessian, gradient and error), and an error evaluation returns 13 rows
+            of which only the norm means anything (the last entry; the rest are zero).
     """
 
     def __init__(
@@ -210,15 +237,25 @@ class CdtmPairFactor:
         self.robust = robust
         self.robust_threshold = (robust.default_threshold if robust_threshold is None
                                  else float(robust_threshold))
-        self._Ad = np.ascontiguousarray(cdtm_math.body_to_cam_adjoint(self.body_T_cam))
+        self._Ad = _adjoint(self.body_T_cam)
         n = features.n
         self._e = np.empty((n, 2))
         self._Ha = np.empty((n, 2, 6))
         self._Hb = np.empty((n, 2, 6))
         self.n_inactive = 0
         self._planes_cache: tuple[bytes, np.ndarray, np.ndarray] | None = None
+        # Tall pairs reach GTSAM as a 13-row triangle: QR elimination of the raw 2n rows
+        # was most of a fixed-lag update, and the batch's memory.
+        self._compressed = 2 * n > COMPRESSED_ROWS
+        rows = 2 * n
+        if self._compressed:
+            rows = COMPRESSED_ROWS
+            self._work = np.empty((COMPRESSED_ROWS, max(2 * n, COMPRESSED_ROWS)))
+            self._Ja = np.empty((COMPRESSED_ROWS, 6))
+            self._Jb = np.empty((COMPRESSED_ROWS, 6))
+            self._z = np.empty(COMPRESSED_ROWS)
         self.factor = gtsam.CustomFactor(
-            gtsam.noiseModel.Unit.Create(2 * n), [key_a, key_b], self._error)
+            gtsam.noiseModel.Unit.Create(rows), [key_a, key_b], self._error)
 
     def planes(self, world_T_cam_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The tangent planes ``(G_E, N)`` used at this camera-a pose."""
@@ -292,10 +329,19 @@ class CdtmPairFactor:
     def _error(self, this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
         e, Ha, Hb = self.evaluate(_pose_matrix(values, self.key_a),
                                   _pose_matrix(values, self.key_b), jacobians is not None)
-        if jacobians is not None:
-            jacobians[0] = Ha.reshape(-1, 6)
-            jacobians[1] = Hb.reshape(-1, 6)
-        return e.reshape(-1)
+        if not self._compressed:
+            if jacobians is not None:
+                jacobians[0] = Ha.reshape(-1, 6)
+                jacobians[1] = Hb.reshape(-1, 6)
+            return e.reshape(-1)
+        if jacobians is None:  # an error evaluation: only the norm counts
+            out = np.zeros(COMPRESSED_ROWS)
+            out[-1] = np.sqrt(np.einsum("ij,ij->", e, e))
+            return out
+        triangularize(e, Ha, Hb, self._work, self._Ja, self._Jb, self._z)
+        jacobians[0] = self._Ja
+        jacobians[1] = self._Jb
+        return self._z
 
 
 def make_feature_factors(

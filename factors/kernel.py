@@ -178,6 +178,124 @@ def cdtm_linearize(
     return n_inactive
 
 
+#: Rows of a compressed pair factor: 12 pose columns plus the residual column.
+COMPRESSED_ROWS = 13
+
+
+#: Below this fraction of its squared norm left as a Cholesky pivot, a column has lost
+#: too many digits to the normal equations (~1e-16 / fraction relative error in that
+#: direction's information): Householder redoes the triangle.
+_MIN_PIVOT_FRACTION = 1e-6
+
+
+@njit(cache=True)
+def triangularize(e, Ha, Hb, work, Ja_out, Jb_out, z_out):
+    """The 13 x 13 triangle ``[Ja Jb | z]`` of the stacked ``[Ha Hb | e]`` (2n, 13).
+
+    ``[Ja Jb | z]^T [Ja Jb | z] = [Ha Hb | e]^T [Ha Hb | e]``, so
+    ``|Ja da + Jb db + z|^2 = |Ha da + Hb db + e|^2`` for every step: the square-root
+    information form of the pair, and a factor of 2n rows becomes one of 13 (GTSAM's
+    elimination never sees the tall block). Cholesky of the 13 x 13 Gram matrix is
+    ~3x cheaper than Householder QR; when a pose column's pivot keeps less than
+    ``_MIN_PIVOT_FRACTION`` of its norm (rank-deficient or ill-conditioned pairs, e.g.
+    flat ground) the triangle comes from Householder QR instead.
+
+    Args:
+        e: (n, 2) residuals. Ha, Hb: (n, 2, 6) Jacobians; 2n >= 13.
+        work: (13, max(13, 2n)) scratch.
+        Ja_out, Jb_out: (13, 6) outputs. z_out: (13,) output; its last entry is the
+            residual left outside the Jacobians' range, so ``|z| = |e|`` (to rounding).
+    """
+    if not _gram_triangle(e, Ha, Hb, work, Ja_out, Jb_out, z_out):
+        _householder_triangle(e, Ha, Hb, work, Ja_out, Jb_out, z_out)
+
+
+@njit(cache=True)
+def _gram_triangle(e, Ha, Hb, work, Ja_out, Jb_out, z_out):
+    """Upper Cholesky factor of the Gram matrix; False if a pose column lost its pivot."""
+    c = COMPRESSED_ROWS
+    G = work[:, :c]
+    G[:, :] = 0.0
+    row = np.empty(c)
+    for i in range(e.shape[0]):
+        for k in range(2):
+            for j in range(6):
+                row[j] = Ha[i, k, j]
+                row[6 + j] = Hb[i, k, j]
+            row[12] = e[i, k]
+            for p in range(c):
+                rp = row[p]
+                for q in range(p, c):
+                    G[p, q] += rp * row[q]
+    for j in range(c):
+        norm2 = G[j, j]
+        d = norm2
+        for m in range(j):
+            d -= G[m, j] * G[m, j]
+        if j < c - 1 and not d > _MIN_PIVOT_FRACTION * norm2:
+            return False
+        # The residual column's pivot only sets the constant |e|^2 - |z|^2.
+        r = np.sqrt(d) if d > 0.0 else 0.0
+        G[j, j] = r
+        for q in range(j + 1, c):
+            s = G[j, q]
+            for m in range(j):
+                s -= G[m, j] * G[m, q]
+            G[j, q] = s / r if r > 0.0 else 0.0
+    _copy_triangle(G, Ja_out, Jb_out, z_out, False)
+    return True
+
+
+@njit(cache=True)
+def _householder_triangle(e, Ha, Hb, work, Ja_out, Jb_out, z_out):
+    """Householder QR of the stacked rows (their columns held as rows of ``work``)."""
+    n = e.shape[0]
+    m = 2 * n
+    c = COMPRESSED_ROWS
+    for i in range(n):
+        for k in range(2):
+            row = 2 * i + k
+            for j in range(6):
+                work[j, row] = Ha[i, k, j]
+                work[6 + j, row] = Hb[i, k, j]
+            work[12, row] = e[i, k]
+    for j in range(c):
+        x = work[j]
+        norm2 = 0.0
+        for i in range(j, m):
+            norm2 += x[i] * x[i]
+        norm = np.sqrt(norm2)
+        if norm == 0.0:
+            continue  # a zero column below the diagonal: nothing to reflect
+        alpha = -norm if x[j] >= 0.0 else norm
+        v0 = x[j] - alpha
+        vtv = v0 * v0 + norm2 - x[j] * x[j]
+        if vtv > 0.0:
+            beta = 2.0 / vtv
+            for k in range(j + 1, c):
+                y = work[k]
+                s = v0 * y[j]
+                for i in range(j + 1, m):
+                    s += x[i] * y[i]
+                s *= beta
+                y[j] -= s * v0
+                for i in range(j + 1, m):
+                    y[i] -= s * x[i]
+        x[j] = alpha
+    _copy_triangle(work, Ja_out, Jb_out, z_out, True)
+
+
+@njit(cache=True)
+def _copy_triangle(T, Ja_out, Jb_out, z_out, transposed):
+    for r in range(COMPRESSED_ROWS):
+        for j in range(6):
+            a = T[j, r] if transposed else T[r, j]
+            b = T[6 + j, r] if transposed else T[r, 6 + j]
+            Ja_out[r, j] = a if j >= r else 0.0
+            Jb_out[r, j] = b if 6 + j >= r else 0.0
+        z_out[r] = T[12, r] if transposed else T[r, 12]
+
+
 @njit(cache=True)
 def _np_apply(q, qq, g, gn, x, out):
     """out = N_P(q, g) x = P(q, q) P(g, g) x / |g| (eq. 14)."""
@@ -262,3 +380,40 @@ def feature_covariance_kernel(R_a, p_a, R_b, p_b, q_a, q_b, G_E, N, sx, sy, sigm
                 for k in range(m):
                     acc += cols[k, a] * cols[k, b]
                 Sigma_out[i, a, b] = acc
+
+
+@njit(cache=True)
+def residual_noise_kernel(q_b, Sigma_f, basis_out, Sigma_e_out, sqrt_info_out):
+    """Per feature: the basis ``B`` of q_b's complement, ``Sigma_e = B^T Sigma_f B`` and
+    its upper-triangular whitening ``S`` (``S^T S = Sigma_e^-1``).
+
+    numba twin of :func:`factors.cdtm_math.orthonormal_complement`,
+    :func:`~factors.cdtm_math.residual_covariance` and
+    :func:`~factors.cdtm_math.sqrt_information` (tested equal).
+    """
+    for i in range(q_b.shape[0]):
+        qn = np.sqrt(q_b[i, 0] ** 2 + q_b[i, 1] ** 2 + q_b[i, 2] ** 2)
+        x, y, z = q_b[i, 0] / qn, q_b[i, 1] / qn, q_b[i, 2] / qn
+        s = 1.0 / np.sqrt(x * x + z * z)
+        b00, b10, b20 = z * s, 0.0, -x * s  # e_y x q / |.|
+        b01, b11, b21 = y * b20, z * b00 - x * b20, -y * b00  # q x b1
+        basis_out[i, 0, 0], basis_out[i, 1, 0], basis_out[i, 2, 0] = b00, b10, b20
+        basis_out[i, 0, 1], basis_out[i, 1, 1], basis_out[i, 2, 1] = b01, b11, b21
+        F = Sigma_f[i]
+        f0 = F[0, 0] * b00 + F[0, 1] * b10 + F[0, 2] * b20  # Sigma_f b1
+        f1 = F[1, 0] * b00 + F[1, 1] * b10 + F[1, 2] * b20
+        f2 = F[2, 0] * b00 + F[2, 1] * b10 + F[2, 2] * b20
+        g0 = F[0, 0] * b01 + F[0, 1] * b11 + F[0, 2] * b21  # Sigma_f b2
+        g1 = F[1, 0] * b01 + F[1, 1] * b11 + F[1, 2] * b21
+        g2 = F[2, 0] * b01 + F[2, 1] * b11 + F[2, 2] * b21
+        s00 = b00 * f0 + b10 * f1 + b20 * f2
+        s01 = b00 * g0 + b10 * g1 + b20 * g2
+        s10 = b01 * f0 + b11 * f1 + b21 * f2
+        s11 = b01 * g0 + b11 * g1 + b21 * g2
+        Sigma_e_out[i, 0, 0], Sigma_e_out[i, 0, 1] = s00, s01
+        Sigma_e_out[i, 1, 0], Sigma_e_out[i, 1, 1] = s10, s11
+        det = s00 * s11 - s01 * s01
+        a = np.sqrt(s11 / det)
+        b = -s01 / det / a
+        sqrt_info_out[i, 0, 0], sqrt_info_out[i, 0, 1] = a, b
+        sqrt_info_out[i, 1, 0], sqrt_info_out[i, 1, 1] = 0.0, np.sqrt(s00 / det - b * b)

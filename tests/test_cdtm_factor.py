@@ -17,6 +17,7 @@ from factors import (
     cdtm_math,
     make_feature_factors,
 )
+from factors.kernel import _gram_triangle, _householder_triangle, triangularize
 from tests.manifold import (
     WavyTerrain,
     downward_body_T_cam,
@@ -162,6 +163,66 @@ def test_batched_and_per_feature_factors_linearize_identically(rng, robust, mode
             assert np.any(np.linalg.norm(e_plain, axis=1) > robust.default_threshold)
 
 
+@pytest.mark.parametrize("n", [3, 6, 7, 40])
+def test_pair_factor_rows_are_the_triangle_of_its_features(rng, n):
+    """More than six features reach GTSAM as 13 rows, with the raw rows' linear system.
+
+    The linearized factor equals the one built from the 2n raw rows, constant term
+    included (``|z| = |e|``), and an error evaluation still gives ``|e|^2 / 2``.
+    """
+    body_T_cam, Ta, Tb, feats = random_pair(rng, n=n, pixel_noise=5e-3)
+    moved = Ta @ make_pose(random_rotation(rng, 0.002), [2.0, -1.0, 0.5])
+    factor = CdtmPairFactor(X(0), X(1), feats, body_T_cam)
+    e, Ha, Hb = (a.copy() for a in factor.evaluate(moved, Tb))
+    raw = gtsam.JacobianFactor(X(0), Ha.reshape(-1, 6), X(1), Hb.reshape(-1, 6), -e.reshape(-1),
+                               gtsam.noiseModel.Unit.Create(2 * n))
+    values = gtsam.Values()
+    values.insert(X(0), gtsam.Pose3(moved))
+    values.insert(X(1), gtsam.Pose3(Tb))
+    linear = factor.factor.linearize(values)
+    assert linear.rows() == (2 * n if n <= 6 else 13)
+    H = linear.augmentedInformation()
+    np.testing.assert_allclose(H, raw.augmentedInformation(), rtol=1e-10,
+                               atol=1e-12 * np.abs(H).max())
+    np.testing.assert_allclose(factor.factor.error(values), 0.5 * np.sum(e * e), rtol=1e-12)
+
+
+def _triangle(method, e, Ha, Hb):
+    Ja, Jb, z = np.empty((13, 6)), np.empty((13, 6)), np.empty(13)
+    ok = method(e, Ha, Hb, np.empty((13, max(13, 2 * e.shape[0]))), Ja, Jb, z)
+    return ok, np.c_[Ja, Jb, z]
+
+
+def test_triangularize_handles_rank_deficient_rows(rng):
+    """Zero and repeated columns (no information on a direction, as over flat ground)
+    make the Cholesky path give up, and Householder's triangle has the same Gram matrix."""
+    n = 20
+    Ha, Hb = rng.normal(size=(n, 2, 6)), rng.normal(size=(n, 2, 6))
+    Ha[:, :, 2] = 0.0
+    Hb[:, :, 4] = Ha[:, :, 0]
+    Hb[:, :, 5] = 0.0
+    e = rng.normal(size=(n, 2))
+    assert not _triangle(_gram_triangle, e, Ha, Hb)[0]
+    _, T = _triangle(triangularize, e, Ha, Hb)
+    A = np.c_[Ha.reshape(-1, 6), Hb.reshape(-1, 6), e.reshape(-1)]
+    assert np.all(np.tril(T, -1) == 0.0)
+    np.testing.assert_allclose(T.T @ T, A.T @ A, atol=1e-12 * np.abs(A.T @ A).max())
+
+
+def test_cholesky_and_householder_triangles_agree(rng):
+    """On well-posed rows (columns scaled 1e3 apart, as rotation vs translation) the fast
+    Cholesky path is taken and gives Householder's triangle up to row signs."""
+    n = 170
+    Ha, Hb = rng.normal(size=(n, 2, 6)), rng.normal(size=(n, 2, 6))
+    Ha[:, :, :3] *= 1e3
+    e = rng.normal(size=(n, 2))
+    ok, T_chol = _triangle(_gram_triangle, e, Ha, Hb)
+    assert ok
+    _, T_qr = _triangle(_householder_triangle, e, Ha, Hb)
+    np.testing.assert_allclose(np.abs(T_chol), np.abs(T_qr), rtol=1e-9,
+                               atol=1e-12 * np.abs(T_qr).max())
+
+
 def test_robust_kernel_downweights_outliers(rng):
     """An outlier's rows shrink under Huber and vanish under Tukey beyond the threshold."""
     body_T_cam, Ta, Tb, feats = random_pair(rng, n=10, pixel_noise=0.0)
@@ -197,7 +258,8 @@ def test_noise_model_is_the_projected_feature_covariance(rng):
 
 
 def test_numba_feature_covariance_equals_the_paper_formulas(rng):
-    """PairFeatures.build's numba Sigma_f equals cdtm_math.feature_covariance (eqs. 19-26)."""
+    """PairFeatures.build's numba noise equals cdtm_math's formulas: Sigma_f (eqs. 19-26),
+    the basis, Sigma_e and its whitening."""
     for qa_noise in (NOISE.sigma_qa_xy, None):
         noise = FeatureNoise(NOISE.sigma_q_xy, NOISE.sigma_h_m, qa_noise)
         for _ in range(20):
@@ -212,3 +274,10 @@ def test_numba_feature_covariance_equals_the_paper_formulas(rng):
                 noise.sigma_qa_xy)
             np.testing.assert_allclose(built.Sigma_f, reference, rtol=1e-10,
                                        atol=1e-14 * np.abs(reference).max())
+            basis = cdtm_math.orthonormal_complement(feats.q_b)
+            Sigma_e = cdtm_math.residual_covariance(reference, basis)
+            np.testing.assert_allclose(built.basis_b, basis, rtol=1e-12, atol=1e-15)
+            np.testing.assert_allclose(built.Sigma_e, Sigma_e, rtol=1e-10,
+                                       atol=1e-14 * np.abs(Sigma_e).max())
+            np.testing.assert_allclose(built.sqrt_info, cdtm_math.sqrt_information(Sigma_e),
+                                       rtol=1e-8)

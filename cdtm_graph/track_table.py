@@ -1,0 +1,209 @@
+"""The last sighting of every live track, for pairing observations as frames arrive.
+
+The incremental smoother pairs each new observation of a track with the track's
+previous one (the consecutive pairs of :func:`cdtm_graph.graph.frame_pair_observations`).
+:class:`TrackTable` holds, per track id, the frame and ray of its last sighting and
+how many pairs it has made, as arrays sorted by id; a frame's look-up, update and
+grouping by earlier frame run in one numba call.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from cdtm_graph.errors import FlightLogError
+from cdtm_graph.graph import FramePairObservations
+
+
+class TrackTable:
+    """Last sighting of each track: frame, ray (z = 1) and pairs made so far.
+
+    Rows ``[:len(self)]`` of growable buffers, sorted by track id; new tracks are
+    appended in place when their ids exceed every known one (trackers number tracks
+    upwards), else merged in.
+    """
+
+    def __init__(self, capacity: int = 1024) -> None:
+        self._ids = np.zeros(capacity, dtype=np.int64)
+        self._frame = np.zeros(capacity, dtype=np.int64)
+        self._q = np.zeros((capacity, 3))
+        self._pairs = np.zeros(capacity, dtype=np.int64)
+        self._n = 0
+        self.n_tracks = 0  # distinct tracks ever added
+
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def ids(self) -> np.ndarray:
+        return self._ids[:self._n]
+
+    @property
+    def frame(self) -> np.ndarray:
+        return self._frame[:self._n]
+
+    @property
+    def q(self) -> np.ndarray:
+        return self._q[:self._n]
+
+    @property
+    def pairs(self) -> np.ndarray:
+        return self._pairs[:self._n]
+
+    def add_frame(self, k: int, track_id: np.ndarray, q: np.ndarray,
+                  oldest_frame: int = 0) -> tuple[list[FramePairObservations], int]:
+        """Record frame k's sightings and return the pairs they close.
+
+        Args:
+            k: frame index (larger than any recorded). track_id: (m,) int64 ids.
+            q: (m, 3) their rays.
+            oldest_frame: pairs whose earlier frame is older are not returned (a
+                fixed-lag window has let that frame go); they are counted.
+
+        Returns:
+            One :class:`FramePairObservations` per earlier frame (ascending), with each
+            pair's 1-based rank among its track's pairs, and the number of pairs dropped
+            as too old.
+
+        Raises:
+            FlightLogError: a track id appears twice in the frame.
+        """
+        track_id = np.ascontiguousarray(track_id, dtype=np.int64)
+        q = np.ascontiguousarray(q, dtype=float)
+        check_unique(k, track_id)  # before anything changes
+        new_rows, order, frame_a, q_a, rank, starts, n_too_old = _match(
+            self.ids, self.frame, self.q, self.pairs, track_id, q, k, oldest_frame)
+        if new_rows.size:
+            self._insert(k, track_id[new_rows], q[new_rows])
+        pairs = []
+        for s, e in zip(starts[:-1].tolist(), starts[1:].tolist()):
+            rows = order[s:e]
+            pairs.append(FramePairObservations(int(frame_a[s]), k, q_a[s:e], q[rows],
+                                               track_id[rows], rank[s:e]))
+        return pairs, n_too_old
+
+    def forget_before(self, frame: int) -> None:
+        """Drop tracks last seen before ``frame`` (they can only pair with older frames)."""
+        self._n = _compact(self._ids, self._frame, self._q, self._pairs, self._n, frame)
+
+    def _insert(self, k: int, new_ids: np.ndarray, q_new: np.ndarray) -> None:
+        self.n_tracks += new_ids.size
+        n = _append(self._ids, self._frame, self._q, self._pairs, self._n, new_ids, q_new, k)
+        if n >= 0:
+            self._n = n
+            return
+        # Out of room, or ids below known ones: merge into fresh buffers.
+        order = np.argsort(new_ids, kind="stable")
+        at = np.searchsorted(self.ids, new_ids[order])
+        ids = np.insert(self.ids, at, new_ids[order])
+        frame = np.insert(self.frame, at, k)
+        q = np.insert(self.q, at, q_new[order], axis=0)
+        pairs = np.insert(self.pairs, at, 0)
+        capacity = max(2 * ids.size, 1024)
+        self._ids = np.resize(ids, capacity)
+        self._frame = np.resize(frame, capacity)
+        self._q = np.resize(q, (capacity, 3))
+        self._pairs = np.resize(pairs, capacity)
+        self._n = ids.size
+
+
+def check_unique(k: int, track_id: np.ndarray) -> None:
+    """Raise ``FlightLogError`` if a track id appears twice in frame k."""
+    repeated, value = _first_repeat(np.ascontiguousarray(track_id, dtype=np.int64))
+    if repeated:
+        raise FlightLogError(f"frame {k}: track {value} is seen twice")
+
+
+@njit(cache=True)
+def _first_repeat(track_id):
+    if track_id.shape[0] < 2:
+        return False, 0
+    s = np.sort(track_id)
+    for i in range(1, s.shape[0]):
+        if s[i] == s[i - 1]:
+            return True, s[i]
+    return False, 0
+
+
+@njit(cache=True)
+def _match(ids, frame, q_seen, pairs, track_id, q, k, oldest_frame):
+    """Look up, pair and update a frame's tracks in the sorted table (in place).
+
+    Returns the rows of the frame's new tracks; for the pairs kept, sorted by earlier
+    frame: the rows of the frame's arrays, the earlier frame, its ray, the pair's rank
+    and the bounds of each earlier frame's group; then the count of pairs too old.
+    Track ids must be unique within the frame.
+    """
+    m = track_id.shape[0]
+    new_rows = np.empty(m, dtype=np.int64)
+    rows = np.empty(m, dtype=np.int64)
+    frame_a = np.empty(m, dtype=np.int64)
+    q_a = np.empty((m, 3))
+    rank = np.empty(m, dtype=np.int64)
+    n_new = 0
+    n_kept = 0
+    n_too_old = 0
+    for i in range(m):
+        at = np.searchsorted(ids, track_id[i])
+        if at >= ids.shape[0] or ids[at] != track_id[i]:
+            new_rows[n_new] = i
+            n_new += 1
+            continue
+        a = frame[at]
+        pairs[at] += 1
+        if a >= oldest_frame:
+            rows[n_kept] = i
+            frame_a[n_kept] = a
+            q_a[n_kept, :] = q_seen[at, :]
+            rank[n_kept] = pairs[at]
+            n_kept += 1
+        else:
+            n_too_old += 1
+        frame[at] = k
+        q_seen[at, :] = q[i, :]
+    order = np.argsort(frame_a[:n_kept], kind="mergesort")
+    frame_a = frame_a[:n_kept][order]
+    starts = np.empty(n_kept + 1, dtype=np.int64)
+    n_groups = 0
+    for j in range(n_kept):
+        if j == 0 or frame_a[j] != frame_a[j - 1]:
+            starts[n_groups] = j
+            n_groups += 1
+    starts[n_groups] = n_kept
+    return (new_rows[:n_new], rows[:n_kept][order], frame_a, q_a[:n_kept][order],
+            rank[:n_kept][order], starts[:n_groups + 1], n_too_old)
+
+
+@njit(cache=True)
+def _append(ids, frame, q_seen, pairs, n, new_ids, q_new, k):
+    """Append tracks whose ids are increasing and above every known id, in place, if the
+    buffers have room: the new length, else -1."""
+    m = new_ids.shape[0]
+    if n + m > ids.shape[0]:
+        return -1
+    last = ids[n - 1] if n > 0 else new_ids[0] - 1
+    for i in range(m):
+        if new_ids[i] <= last:
+            return -1
+        last = new_ids[i]
+    for i in range(m):
+        ids[n + i] = new_ids[i]
+        frame[n + i] = k
+        q_seen[n + i, :] = q_new[i, :]
+        pairs[n + i] = 0
+    return n + m
+
+
+@njit(cache=True)
+def _compact(ids, frame, q_seen, pairs, n, oldest_frame):
+    """Keep the rows last seen at or after ``oldest_frame``, in order: the new length."""
+    j = 0
+    for i in range(n):
+        if frame[i] >= oldest_frame:
+            ids[j] = ids[i]
+            frame[j] = frame[i]
+            q_seen[j, :] = q_seen[i, :]
+            pairs[j] = pairs[i]
+            j += 1
+    return j

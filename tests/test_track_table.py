@@ -1,0 +1,81 @@
+"""TrackTable: frame-by-frame pairing equals the whole-log pairing of graph.py."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cdtm_graph.camera import PinholeCamera
+from cdtm_graph.errors import FlightLogError
+from cdtm_graph.flightlog import Tracks
+from cdtm_graph.graph import frame_pair_observations
+from cdtm_graph.track_table import TrackTable
+
+CAMERA = PinholeCamera(width=640, height=480, fx=400.0, fy=400.0, cx=320.0, cy=240.0)
+
+
+def random_tracks(rng, n_frames=30, n_tracks=120) -> Tracks:
+    """Tracks with gaps, unsorted ids within frames, and ids that arrive out of order."""
+    rows = []
+    for tid in rng.permutation(np.arange(n_tracks) * 7 - 50):
+        first = rng.integers(0, n_frames - 1)
+        frames = first + np.cumsum(rng.integers(1, 4, rng.integers(1, 8))) - 1
+        rows += [(f, tid) for f in frames if f < n_frames]
+    rows = np.array(sorted(rows, key=lambda r: (r[0], rng.random())))
+    uv = rng.uniform([0, 0], [640, 480], (len(rows), 2))
+    return Tracks(rows[:, 0], rows[:, 1], uv)
+
+
+def feed(table, tracks, oldest_of=lambda k: 0):
+    got, too_old = {}, 0
+    bounds = np.searchsorted(tracks.frame, np.arange(tracks.frame.max() + 2))
+    for k in range(tracks.frame.max() + 1):
+        s, e = bounds[k], bounds[k + 1]
+        q = CAMERA.pixels_to_rays(tracks.uv_px[s:e])
+        pairs, dropped = table.add_frame(k, tracks.track_id[s:e], q, oldest_of(k))
+        too_old += dropped
+        got.update({(p.frame_a, p.frame_b): p for p in pairs})
+    return got, too_old
+
+
+def _by_track(pair):
+    order = np.argsort(pair.track_id)
+    return (pair.track_id[order], pair.q_a[order], pair.q_b[order],
+            pair.track_pair_index[order])
+
+
+def test_frame_by_frame_pairs_equal_the_whole_log_pairs(rng):
+    tracks = random_tracks(rng)
+    got, too_old = feed(TrackTable(), tracks)
+    want = {(p.frame_a, p.frame_b): p for p in frame_pair_observations(tracks, CAMERA)}
+    assert too_old == 0
+    assert got.keys() == want.keys()
+    for key, pair in want.items():
+        for a, b in zip(_by_track(got[key]), _by_track(pair)):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_pairs_reaching_before_the_window_are_dropped_and_counted(rng):
+    tracks = random_tracks(rng)
+    lag = 2  # gaps reach 3 frames
+    table = TrackTable()
+    got, too_old = feed(table, tracks, lambda k: max(k - lag, 0))
+    want = frame_pair_observations(tracks, CAMERA)
+    kept = [p for p in want if p.frame_a >= max(p.frame_b - lag, 0)]
+    assert set(got) == {(p.frame_a, p.frame_b) for p in kept}
+    assert too_old == sum(p.q_a.shape[0] for p in want) - sum(p.q_a.shape[0] for p in kept)
+    assert too_old > 0
+    assert table.n_tracks == np.unique(tracks.track_id).size
+    table.forget_before(tracks.frame.max())
+    assert np.all(table.frame >= tracks.frame.max()) and len(table) > 0
+
+
+def test_a_repeated_track_is_refused_before_the_table_changes(rng):
+    table = TrackTable()
+    q = CAMERA.pixels_to_rays(rng.uniform(0, 400, (3, 2)))
+    table.add_frame(0, np.array([5, 9, 2]), q)
+    before = (table.ids.copy(), table.frame.copy(), table.q.copy(), table.pairs.copy())
+    with pytest.raises(FlightLogError, match="frame 1: track 9 is seen twice"):
+        table.add_frame(1, np.array([9, 4, 9]), q)
+    for a, b in zip(before, (table.ids, table.frame, table.q, table.pairs)):
+        np.testing.assert_array_equal(a, b)
