@@ -33,11 +33,11 @@ import numpy as np
 
 from factors import cdtm_math
 from factors.kernel import (
+    COMPRESSED_ROWS,
     KERNEL_CAUCHY,
     KERNEL_HUBER,
     KERNEL_NONE,
     KERNEL_TUKEY,
-    COMPRESSED_ROWS,
     cdtm_linearize,
     feature_covariance_kernel,
     residual_noise_kernel,
