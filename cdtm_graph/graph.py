@@ -107,17 +107,83 @@ class ImuIntervals:
         Raises:
             SolverError: the samples do not cover the interval.
         """
+        pim = gtsam.PreintegratedCombinedMeasurements(self.params, bias)
+        self.integrate(pim, t0_ns, t1_ns)
+        return pim
+
+    def integrate(self, pim: gtsam.PreintegratedCombinedMeasurements, t0_ns: int,
+                  t1_ns: int) -> None:
+        """Add the IMU over exactly [t0, t1] to ``pim``. Stopping and resuming on a hold
+        boundary (:meth:`newest_hold_boundary`) feeds GTSAM the same pieces as one call.
+
+        Raises:
+            SolverError: the samples do not cover the interval.
+        """
         t = self.imu.t_ns
         # A window of samples around the interval (neighbours matter to the holds).
         i0 = max(int(np.searchsorted(t, t0_ns, side="right")) - 2, 0)
         i1 = min(int(np.searchsorted(t, t1_ns, side="left")) + 2, t.shape[0])
-        pim = gtsam.PreintegratedCombinedMeasurements(self.params, bias)
         try:
             integrate_interval(pim, t[i0:i1], self.imu.gyro_radps[i0:i1],
                                self.imu.acc_mps2[i0:i1], int(t0_ns), int(t1_ns), self.hold)
         except ValueError as exc:
             raise SolverError(f"imu.csv does not cover the frame interval "
                               f"[{t0_ns}, {t1_ns}] ns: {exc}") from None
+
+    def newest_hold_boundary(self) -> int | None:
+        """The latest time up to which the samples held fix every hold piece (the
+        newest sample's own hold needs the sample after it); ``None`` below two samples."""
+        t = self.imu.t_ns
+        if t.shape[0] < 2:
+            return None
+        if self.hold is SampleHold.MIDPOINT:
+            return int(t[-2] + (t[-1] - t[-2]) // 2)
+        return int(t[-1])
+
+
+class ImuStream:
+    """The preintegration after the newest frame, advanced as IMU samples arrive.
+
+    A live system receives ~100 IMU samples between two frames at 2 fps. Each hold
+    piece can be integrated once the sample after it is known, which leaves the frame
+    update one or two pieces. Integration only ever stops on hold boundaries, so the
+    result is exactly :meth:`ImuIntervals.preintegrate` over the frame interval; if
+    samples ran past the next frame time before that frame arrived, :meth:`finish`
+    redoes the interval from the samples instead.
+    """
+
+    def __init__(self, intervals: ImuIntervals):
+        self.intervals = intervals
+        self._pim: gtsam.PreintegratedCombinedMeasurements | None = None
+        self._bias = gtsam.imuBias.ConstantBias()
+        self._t0_ns = self._done_ns = 0
+
+    def start(self, t0_ns: int, bias: gtsam.imuBias.ConstantBias) -> None:
+        """Begin the interval after a frame at ``t0_ns``, linearized at ``bias``."""
+        self._pim = gtsam.PreintegratedCombinedMeasurements(self.intervals.params, bias)
+        self._bias = bias
+        self._t0_ns = self._done_ns = int(t0_ns)
+
+    def advance(self) -> None:
+        """Integrate every piece the samples held so far fix."""
+        horizon = self.intervals.newest_hold_boundary()
+        if self._pim is not None and horizon is not None and horizon > self._done_ns:
+            self.intervals.integrate(self._pim, self._done_ns, horizon)
+            self._done_ns = horizon
+
+    def finish(self, t1_ns: int) -> gtsam.PreintegratedCombinedMeasurements:
+        """The preintegration over [t0, t1], t1 the next frame's time.
+
+        Raises:
+            SolverError: the samples do not cover the interval.
+        """
+        if self._pim is None:
+            raise ValueError("ImuStream.finish before start")
+        pim, self._pim = self._pim, None
+        if self._done_ns > t1_ns:  # integrated past the frame: redo the interval
+            return self.intervals.preintegrate(self._t0_ns, t1_ns, self._bias)
+        if t1_ns > self._done_ns:
+            self.intervals.integrate(pim, self._done_ns, t1_ns)
         return pim
 
 

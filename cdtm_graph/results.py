@@ -54,7 +54,12 @@ class StateCovariances:
 
 @dataclass(frozen=True)
 class SolverStats:
-    """What the optimizer did."""
+    """What the optimizer did.
+
+    Attributes (incremental runs): update_times_s: each frame's update (``add_frame``);
+    imu_times_s: the IMU preintegration of each frame interval done as its samples
+    arrived (``add_imu``), before that frame's update.
+    """
 
     mode: str
     iterations: int
@@ -64,6 +69,7 @@ class SolverStats:
     time_s: float
     marginals_time_s: float = 0.0
     update_times_s: tuple[float, ...] = ()
+    imu_times_s: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)

@@ -31,6 +31,7 @@ from cdtm_graph.graph import (
     FramePairObservations,
     GraphSettings,
     ImuIntervals,
+    ImuStream,
     cdtm_factors,
     count_outliers,
     explain_indeterminant,
@@ -186,7 +187,7 @@ def _initial_values(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
         for k in range(K):
             insert_state(values, k, poses[k], flight.nav.velocity_mps[k], bias)
         return values, "nav.csv"
-    incremental = IncrementalSmoother(flight.config, dtm, settings.graph, imu=flight.imu)
+    incremental = IncrementalSmoother(flight.config, dtm, settings.graph)
     incremental.run(flight, progress)
     return incremental.values(), "incremental pass"
 
@@ -244,7 +245,7 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     if settings.mode is SmootherMode.INCREMENTAL:
         dt_s = float(np.max(np.diff(flight.frames.t_ns))) * 1e-9
         smoother = IncrementalSmoother(flight.config, dtm, settings.graph, lag_s=settings.lag_s,
-                                       imu=flight.imu, frame_interval_s=dt_s,
+                                       frame_interval_s=dt_s,
                                        keep_exit_covariances=settings.keep_exit_covariances)
         return smoother.run(flight, progress, final_iterations=settings.final_iterations,
                             settings_dict=settings.as_dict())
@@ -290,6 +291,8 @@ class FrameUpdate:
         world_T_body: (4, 4) its current estimate. velocity_mps: (3,).
         pose_covariance: (6, 6) its marginal, GTSAM tangent order [rot, trans], body frame.
         n_features: C-DTM features that arrived with it. update_time_s: the update's cost.
+        imu_time_s: time spent preintegrating this frame's interval as its IMU samples
+            arrived (``add_imu``), before this update.
     """
 
     frame: int
@@ -299,6 +302,7 @@ class FrameUpdate:
     pose_covariance: np.ndarray
     n_features: int
     update_time_s: float
+    imu_time_s: float = 0.0
 
 
 def isam2_params() -> gtsam.ISAM2Params:
@@ -354,6 +358,9 @@ class IncrementalSmoother:
         self.keep_exit_covariances = keep_exit_covariances
         self._imu = imu or ImuSamples(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
         self._intervals = ImuIntervals(config, self._imu, self.settings.imu_hold)
+        self._stream = ImuStream(self._intervals)  # the interval after the newest frame
+        self._imu_time_s = 0.0  # spent preintegrating samples since the newest frame
+        self.imu_times_s: list[float] = []  # ... per frame interval
         self._noise = feature_noise(config, dtm, self.settings)
         self._camera = config.camera.camera
         self._body_T_cam = config.camera.body_T_cam
@@ -396,12 +403,29 @@ class IncrementalSmoother:
     # -- input ------------------------------------------------------------------------
 
     def add_imu(self, imu: ImuSamples) -> None:
-        """Append IMU samples (times after the ones already held)."""
+        """Append IMU samples (times after the ones already held) as they arrive.
+
+        They are preintegrated at once, as far as they fix the hold pieces, so a frame
+        update is left with the last piece or two of its interval. The time this takes
+        is kept per frame interval (``imu_times_s``).
+        """
+        start = time.perf_counter()
+        self._append_imu(imu)
+        self._stream.advance()
+        self._imu_time_s += time.perf_counter() - start
+
+    def _append_imu(self, imu: ImuSamples) -> None:
         old = self._imu
         if old.t_ns.size and imu.t_ns.size and imu.t_ns[0] <= old.t_ns[-1]:
             raise FlightLogError("IMU samples must arrive in increasing time order")
-        self._imu = ImuSamples(np.r_[old.t_ns, imu.t_ns], np.r_[old.gyro_radps, imu.gyro_radps],
-                               np.r_[old.acc_mps2, imu.acc_mps2])
+        # Samples before the newest frame's are never needed again (two kept for the
+        # holds), so a live feed does not grow without bound.
+        keep = 0
+        if self._t_ns:
+            keep = max(int(np.searchsorted(old.t_ns, self._t_ns[-1], side="right")) - 2, 0)
+        self._imu = ImuSamples(np.r_[old.t_ns[keep:], imu.t_ns],
+                               np.r_[old.gyro_radps[keep:], imu.gyro_radps],
+                               np.r_[old.acc_mps2[keep:], imu.acc_mps2])
         self._intervals.imu = self._imu
 
     def add_frame(self, t_ns: int, track_id: np.ndarray | None = None,
@@ -429,7 +453,8 @@ class IncrementalSmoother:
                                      f"shape {uv_px.shape}; expected (m,) and (m, 2)")
             check_unique(k, track_id)
         if imu is not None and len(imu):
-            self.add_imu(imu)
+            # Samples that come with the frame may run past it: held, not yet integrated.
+            self._append_imu(imu)
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         if k == 0:
@@ -438,8 +463,8 @@ class IncrementalSmoother:
             pose, bias = init.world_T_body, initial_bias(init)
             vel = np.asarray(init.velocity_mps, float)
         else:
-            bias = self._biases[k - 1]
-            pim = self._intervals.preintegrate(self._t_ns[-1], int(t_ns), bias)
+            bias = self._biases[k - 1]  # the stream's linearization point too
+            pim = self._stream.finish(int(t_ns))
             graph.add(imu_factor(k - 1, pim))
             pose, vel = navstate_predict(pim, self._poses[k - 1], self._velocities[k - 1], bias)
         insert_state(values, k, pose, vel, bias)
@@ -455,9 +480,13 @@ class IncrementalSmoother:
         if self._fls is None and self._n_new_cdtm:
             self._refresh_newest_noise(k, pose)
         cov = self._marginal(k)
+        self._stream.start(int(t_ns), self._biases[k])
         elapsed = time.perf_counter() - start
         self.update_times_s.append(elapsed)
-        return FrameUpdate(k, int(t_ns), self._poses[k], self._velocities[k], cov, n_new, elapsed)
+        self.imu_times_s.append(self._imu_time_s)
+        self._imu_time_s = 0.0
+        return FrameUpdate(k, int(t_ns), self._poses[k], self._velocities[k], cov, n_new,
+                           elapsed, self.imu_times_s[-1])
 
     def _add_cdtm(self, k: int, track_id: np.ndarray, uv_px: np.ndarray,
                   graph: gtsam.NonlinearFactorGraph) -> int:
@@ -639,18 +668,40 @@ class IncrementalSmoother:
 
     def run(self, flight: FlightLog, progress: Progress | None = None, final_iterations: int = 3,
             settings_dict: dict | None = None) -> SmootherResult:
-        """Feed a whole log frame by frame; return the result like :func:`smooth`."""
+        """Feed a whole log frame by frame; return the result like :func:`smooth`.
+
+        Unless the smoother was given the IMU up front, the log's samples are fed as they
+        would arrive live: those before each frame through :meth:`add_imu`, then the
+        frame with the sample that closes its interval.
+        """
         start = time.perf_counter()
         K = len(flight.frames)
+        t_frames = flight.frames.t_ns
         tracks = flight.tracks
         if tracks is not None:
             bounds = np.searchsorted(tracks.frame, np.arange(K + 1))
+        imu = flight.imu
+        live_imu = self._imu.t_ns.size == 0
+        first_after = np.searchsorted(imu.t_ns, t_frames, side="left")  # first >= frame time
+        sent = 0
+
+        def samples(a: int, b: int) -> ImuSamples:
+            return ImuSamples(imu.t_ns[a:b], imu.gyro_radps[a:b], imu.acc_mps2[a:b])
+
         for k in range(K):
+            frame_imu = None
+            if live_imu:
+                before = int(first_after[k])
+                if before > sent:
+                    self.add_imu(samples(sent, before))
+                    sent = before
+                upto = max(min(before + 1, len(imu)), sent)
+                frame_imu, sent = samples(sent, upto), upto
+            ids = uv = None
             if tracks is not None:
-                s, e = bounds[k], bounds[k + 1]
-                self.add_frame(int(flight.frames.t_ns[k]), tracks.track_id[s:e], tracks.uv_px[s:e])
-            else:
-                self.add_frame(int(flight.frames.t_ns[k]))
+                rows = slice(bounds[k], bounds[k + 1])
+                ids, uv = tracks.track_id[rows], tracks.uv_px[rows]
+            self.add_frame(int(t_frames[k]), ids, uv, frame_imu)
             if progress is not None:
                 progress(k + 1, K)
         self.finalize(final_iterations)
@@ -665,7 +716,7 @@ class IncrementalSmoother:
                              n_out, out_per_frame)
         stats = SolverStats("incremental" if self.lag_s is None else "fixed_lag", K, float("nan"),
                             self.final_error, self.converged, elapsed, time.perf_counter() - t0,
-                            tuple(self.update_times_s))
+                            tuple(self.update_times_s), tuple(self.imu_times_s))
         settings = dict(settings_dict or {})
         settings["n_too_old_for_lag"] = self.n_too_old
         return SmootherResult(estimate, covariances, stats, counts, settings,

@@ -1,12 +1,17 @@
-"""Graph builders: pairing of track observations, shared DTM error, priors."""
+"""Graph builders: pairing of track observations, shared DTM error, priors, the IMU stream."""
 
 from __future__ import annotations
 
+import gtsam
 import numpy as np
+import pytest
 
 from cdtm_graph.camera import PinholeCamera
-from cdtm_graph.flightlog import Tracks
-from cdtm_graph.graph import frame_pair_observations
+from cdtm_graph.flightlog import ImuSamples, Tracks
+from cdtm_graph.graph import ImuIntervals, ImuStream, frame_pair_observations
+from cdtm_graph.imu import SampleHold
+from cdtm_graph.simulate import SimulationSettings, simulate_flight
+from cdtm_graph.smoother import IncrementalSmoother
 
 
 def test_pairs_are_grouped_by_frame_pair_with_their_rank_in_the_track():
@@ -47,3 +52,47 @@ def test_features_with_nan_rays_are_dropped_and_counted():
     assert build.n_features == 8 and build.n_missed == 2
     e, _, _ = build.factors[0].evaluate(poses[0], poses[1])
     assert np.isfinite(e).all()
+
+
+def _pim_state(pim):
+    return np.r_[pim.deltaRij().matrix().ravel(), pim.deltaPij(), pim.deltaVij(),
+                 pim.preintMeasCov().ravel(), pim.deltaTij()]
+
+
+@pytest.mark.parametrize("hold", list(SampleHold))
+def test_imu_stream_gives_the_interval_preintegration_exactly(hold, rng):
+    """Samples fed in random chunks, integrated as far as they fix the holds, give the
+    same preintegration as the whole interval at once, also when they ran past the frame."""
+    flight, _ = simulate_flight(SimulationSettings(frames=4, features=10, seed=3))
+    imu, t_frames = flight.imu, flight.frames.t_ns
+    reference = ImuIntervals(flight.config, imu, hold)
+    bias = gtsam.imuBias.ConstantBias(np.array([0.01, -0.02, 0.03]), np.array([1e-3, 0, -2e-3]))
+    stream_intervals = ImuIntervals(flight.config, ImuSamples(imu.t_ns[:0], imu.gyro_radps[:0],
+                                                              imu.acc_mps2[:0]), hold)
+    stream = ImuStream(stream_intervals)
+    sent = 0
+    for k in range(len(t_frames) - 1):
+        stream.start(int(t_frames[k]), bias)
+        # live: chunks up to the next frame; the last interval also overshoots it
+        end = int(np.searchsorted(imu.t_ns, t_frames[k + 1])) + (1 if k < 2 else 40)
+        while sent < end:
+            step = min(int(rng.integers(1, 30)), end - sent)
+            stream_intervals.imu = ImuSamples(imu.t_ns[:sent + step], imu.gyro_radps[:sent + step],
+                                              imu.acc_mps2[:sent + step])
+            sent += step
+            stream.advance()
+        got = stream.finish(int(t_frames[k + 1]))
+        want = reference.preintegrate(int(t_frames[k]), int(t_frames[k + 1]), bias)
+        np.testing.assert_array_equal(_pim_state(got), _pim_state(want))
+
+
+def test_live_fed_incremental_run_equals_imu_given_up_front():
+    """run() feeds the IMU as it would arrive (add_imu between frames): same estimates and
+    covariances as a smoother given the whole IMU at construction."""
+    flight, dtm = simulate_flight(SimulationSettings(frames=8, features=40, seed=4))
+    live = IncrementalSmoother(flight.config, dtm).run(flight)
+    upfront = IncrementalSmoother(flight.config, dtm, imu=flight.imu).run(flight)
+    np.testing.assert_array_equal(live.estimate.world_T_body, upfront.estimate.world_T_body)
+    np.testing.assert_array_equal(live.covariances.pose, upfront.covariances.pose)
+    assert all(t > 0 for t in live.stats.imu_times_s[1:])
+    assert all(t == 0 for t in upfront.stats.imu_times_s)
