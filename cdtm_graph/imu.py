@@ -312,6 +312,19 @@ def _hold_segments_kernel(ts, t0, t1, midpoint):
 
 
 @njit(cache=True)
+def _interval_measurements(t, gyro, acc, t0, t1, midpoint, b_a, b_g):
+    """``hold_segments`` then ``_held_measurements`` for covered intervals, in one call;
+    ``ok`` is False if the samples near the interval are not strictly increasing."""
+    n = t.shape[0]
+    a = max(np.searchsorted(t, t0, side="right") - 2, 0)
+    b = min(np.searchsorted(t, t1, side="left") + 2, n)
+    index, dt_ns, increasing = _hold_segments_kernel(t[a:b], t0, t1, midpoint)
+    index += a
+    f, w, dt_s = _held_measurements(gyro, acc, index, dt_ns, midpoint, b_a, b_g)
+    return f, w, dt_s, increasing
+
+
+@njit(cache=True)
 def _held_measurements(gyro, acc, index, dt_ns, midpoint, b_a, b_g):
     """What GTSAM integrates per piece: ``(acc (M, 3), gyro (M, 3), dt_s (M,))``; with
     the midpoint hold, the bias-corrected specific force turned forward by half the
@@ -379,16 +392,24 @@ def integrate_interval(pim: PreintegratedCombined, t_ns_samples: np.ndarray,
     if t.ndim != 1 or gyro.shape != (t.shape[0], 3) or acc.shape != (t.shape[0], 3):
         raise ValueError(f"gyro {gyro.shape} and acc {acc.shape} must be (N, 3) for "
                          f"t_ns_samples {t.shape}")
-    index, dt_ns = hold_segments(t, t0_ns, t1_ns, hold)
     midpoint = hold is SampleHold.MIDPOINT
     if midpoint:
         # GTSAM rotates the step's specific force with the rotation at the step's start;
         # pre-rotating by half the step makes that the rotation at its middle.
-        bias = pim.biasHat()
-        b_a, b_g = np.asarray(bias.accelerometer()), np.asarray(bias.gyroscope())
+        b = pim.biasHatVector()  # (accelerometer, gyroscope)
+        b_a, b_g = np.ascontiguousarray(b[:3]), np.ascontiguousarray(b[3:])
     else:
         b_a = b_g = np.zeros(3)
-    f, w, dt_s = _held_measurements(gyro, acc, index, dt_ns, midpoint, b_a, b_g)
+    if np.issubdtype(t.dtype, np.integer) and t.shape[0] >= 2 and int(t1_ns) > int(t0_ns) \
+            and t[0] <= t0_ns and t1_ns <= t[-1] and isinstance(hold, SampleHold):
+        # the usual case in one numba call; hold_segments explains what is wrong otherwise
+        f, w, dt_s, ok = _interval_measurements(t.astype(np.int64, copy=False), gyro, acc,
+                                                int(t0_ns), int(t1_ns), midpoint, b_a, b_g)
+    else:
+        ok = False
+    if not ok:
+        index, dt_ns = hold_segments(t, t0_ns, t1_ns, hold)
+        f, w, dt_s = _held_measurements(gyro, acc, index, dt_ns, midpoint, b_a, b_g)
     integrate = pim.integrateMeasurement
     for f_k, w_k, dt_k in zip(list(f), list(w), dt_s.tolist()):
         integrate(f_k, w_k, dt_k)

@@ -18,6 +18,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
+from typing import NamedTuple
 
 import gtsam
 import numpy as np
@@ -325,6 +326,14 @@ def isam2_params() -> gtsam.ISAM2Params:
     return params
 
 
+class _ImuBuffer(NamedTuple):
+    """IMU samples already checked (the fields of ``ImuSamples``)."""
+
+    t_ns: np.ndarray
+    gyro_radps: np.ndarray
+    acc_mps2: np.ndarray
+
+
 class IncrementalSmoother:
     """Feed one frame at a time; get the current estimate and the newest covariance.
 
@@ -423,9 +432,10 @@ class IncrementalSmoother:
         keep = 0
         if self._t_ns:
             keep = max(int(np.searchsorted(old.t_ns, self._t_ns[-1], side="right")) - 2, 0)
-        self._imu = ImuSamples(np.r_[old.t_ns[keep:], imu.t_ns],
-                               np.r_[old.gyro_radps[keep:], imu.gyro_radps],
-                               np.r_[old.acc_mps2[keep:], imu.acc_mps2])
+        # (validated on the way in: a plain tuple of the joined arrays will do)
+        self._imu = _ImuBuffer(np.concatenate((old.t_ns[keep:], imu.t_ns)),
+                               np.concatenate((old.gyro_radps[keep:], imu.gyro_radps)),
+                               np.concatenate((old.acc_mps2[keep:], imu.acc_mps2)))
         self._intervals.imu = self._imu
 
     def add_frame(self, t_ns: int, track_id: np.ndarray | None = None,
