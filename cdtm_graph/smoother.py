@@ -79,8 +79,8 @@ class SmootherSettings:
         final_iterations: incremental only: extra iSAM2 updates after the last frame
             so the final estimate reaches the optimum.
         marginals: compute per-frame marginal covariances.
-        keep_exit_covariances: fixed lag: keep each frame's pose covariance as it leaves
-            the window (else NaN for frames older than the lag).
+        keep_exit_covariances: fixed lag: keep each frame's pose, velocity and bias
+            covariances as it leaves the window (else NaN for frames older than the lag).
     """
 
     graph: GraphSettings = field(default_factory=GraphSettings)
@@ -352,9 +352,9 @@ class IncrementalSmoother:
         imu: IMU samples known up front (a log); otherwise feed them with ``add_imu``.
         frame_interval_s: expected time between frames; with a lag, it lets the smoother
             relinearize less often than every update (still four times per window).
-        keep_exit_covariances: with a lag, keep the pose covariance each frame has when it
-            leaves the window (about 1 ms per frame; offline runs want it, a live system
-            needs only the newest covariance).
+        keep_exit_covariances: with a lag, keep the covariances each frame has when it
+            leaves the window (about 1.5 ms per frame; offline runs want them, a live
+            system needs only the newest covariance).
     """
 
     def __init__(self, config: FlightConfig, dtm: Dtm, settings: GraphSettings | None = None,
@@ -391,7 +391,7 @@ class IncrementalSmoother:
         self.converged = False
         self._solver = self._isam if self._fls is None else self._fls
         self._settled = 0  # fixed lag: frames before this one have left the window
-        self._left_cov: dict[int, np.ndarray] = {}  # ... and their pose covariance then
+        self._left_cov: dict[int, tuple] = {}  # ... and their covariances then (X, V, B)
         self._cdtm: list = []  # every C-DTM factor (outlier count, noise refresh)
         self._cdtm_indices: list[int] = []  # ... their iSAM2 factor slots
         self._n_new_cdtm = 0
@@ -551,9 +551,10 @@ class IncrementalSmoother:
         horizon = self._t_ns[k] - self.lag_s * 1e9 + margin_ns
         while self._settled < k and self._t_ns[self._settled] < horizon:
             self._fetch(self._settled)
-            if self.keep_exit_covariances:  # ~1 ms: a marginal deep in the Bayes tree
-                self._left_cov[self._settled] = np.asarray(
-                    self._fls.marginalCovariance(X(self._settled)))
+            if self.keep_exit_covariances:  # ~1 ms: marginals deep in the Bayes tree
+                j = self._settled
+                self._left_cov[j] = tuple(np.asarray(self._fls.marginalCovariance(key))
+                                          for key in (X(j), V(j), B(j)))
             self._settled += 1
 
     def _fetch(self, k: int) -> None:
@@ -654,8 +655,8 @@ class IncrementalSmoother:
 
     def covariances(self) -> StateCovariances:
         """Marginals of every frame (full-history iSAM2), or of the frames still in the
-        window (fixed lag; older frames keep the pose covariance they left the window
-        with, and NaN for velocity and bias)."""
+        window (fixed lag; older frames keep the covariances they left the window with
+        if ``keep_exit_covariances``, else NaN)."""
         K = len(self._t_ns)
         pose = np.full((K, 6, 6), np.nan)
         vel = np.full((K, 3, 3), np.nan)
@@ -666,8 +667,8 @@ class IncrementalSmoother:
         try:
             for k in range(K):
                 if not current.exists(X(k)):
-                    if k in self._left_cov:  # as it left the window (velocity, bias: NaN)
-                        pose[k] = self._left_cov[k]
+                    if k in self._left_cov:  # as it left the window
+                        pose[k], vel[k], bias[k] = self._left_cov[k]
                     continue
                 pose[k] = source.marginalCovariance(X(k))
                 vel[k] = source.marginalCovariance(V(k))
