@@ -114,7 +114,7 @@ class ImuIntervals:
     def integrate(self, pim: gtsam.PreintegratedCombinedMeasurements, t0_ns: int,
                   t1_ns: int) -> None:
         """Add the IMU over exactly [t0, t1] to ``pim``. Stopping and resuming on a hold
-        boundary (:meth:`newest_hold_boundary`) feeds GTSAM the same pieces as one call.
+        boundary (:meth:`hold_boundary_before`) feeds GTSAM the same pieces as one call.
 
         Raises:
             SolverError: the samples do not cover the interval.
@@ -130,15 +130,21 @@ class ImuIntervals:
             raise SolverError(f"imu.csv does not cover the frame interval "
                               f"[{t0_ns}, {t1_ns}] ns: {exc}") from None
 
-    def newest_hold_boundary(self) -> int | None:
-        """The latest time up to which the samples held fix every hold piece (the
-        newest sample's own hold needs the sample after it); ``None`` below two samples."""
+    def hold_boundary_before(self, limit_ns: int) -> int | None:
+        """The latest hold boundary at or before ``limit_ns`` up to which the samples held
+        fix every hold piece (the newest sample's own hold needs the sample after it);
+        ``None`` if there is none."""
         t = self.imu.t_ns
-        if t.shape[0] < 2:
+        n = t.shape[0]
+        j = int(np.searchsorted(t, limit_ns, side="right")) - 1  # t[j] <= limit
+        if n < 2 or j < 0:
             return None
-        if self.hold is SampleHold.MIDPOINT:
-            return int(t[-2] + (t[-1] - t[-2]) // 2)
-        return int(t[-1])
+        if self.hold is SampleHold.ZERO_ORDER:
+            return int(t[j])
+        # MIDPOINT: boundaries are the integer half-way points between neighbours
+        if j + 1 <= n - 1 and t[j] + (t[j + 1] - t[j]) // 2 <= limit_ns:
+            return int(t[j] + (t[j + 1] - t[j]) // 2)
+        return int(t[j - 1] + (t[j] - t[j - 1]) // 2) if j >= 1 else None
 
 
 class ImuStream:
@@ -147,9 +153,10 @@ class ImuStream:
     A live system receives ~100 IMU samples between two frames at 2 fps. Each hold
     piece can be integrated once the sample after it is known, which leaves the frame
     update one or two pieces. Integration only ever stops on hold boundaries, so the
-    result is exactly :meth:`ImuIntervals.preintegrate` over the frame interval; if
-    samples ran past the next frame time before that frame arrived, :meth:`finish`
-    redoes the interval from the samples instead.
+    result is exactly :meth:`ImuIntervals.preintegrate` over the frame interval. If
+    samples ran past the next frame time before that frame arrived (camera latency),
+    :meth:`finish` redoes the interval from the samples, and from then on the stream
+    holds back by that lead so it does not happen again.
     """
 
     def __init__(self, intervals: ImuIntervals):
@@ -157,6 +164,7 @@ class ImuStream:
         self._pim: gtsam.PreintegratedCombinedMeasurements | None = None
         self._bias = gtsam.imuBias.ConstantBias()
         self._t0_ns = self._done_ns = 0
+        self.holdback_ns = 0  # how far the IMU has been seen to run ahead of a frame
 
     def start(self, t0_ns: int, bias: gtsam.imuBias.ConstantBias) -> None:
         """Begin the interval after a frame at ``t0_ns``, linearized at ``bias``."""
@@ -165,25 +173,33 @@ class ImuStream:
         self._t0_ns = self._done_ns = int(t0_ns)
 
     def advance(self) -> None:
-        """Integrate every piece the samples held so far fix."""
-        horizon = self.intervals.newest_hold_boundary()
-        if self._pim is not None and horizon is not None and horizon > self._done_ns:
+        """Integrate every piece the samples held so far fix (less the hold-back)."""
+        t = self.intervals.imu.t_ns
+        if self._pim is None or t.shape[0] < 2 or t[0] > self._done_ns:
+            return  # nothing to do yet, or a gap that finish() will report
+        horizon = self.intervals.hold_boundary_before(int(t[-1]) - self.holdback_ns)
+        if horizon is not None and horizon > self._done_ns:
             self.intervals.integrate(self._pim, self._done_ns, horizon)
             self._done_ns = horizon
 
     def finish(self, t1_ns: int) -> gtsam.PreintegratedCombinedMeasurements:
-        """The preintegration over [t0, t1], t1 the next frame's time.
+        """The preintegration over [t0, t1], t1 the next frame's time. The stream is
+        spent on success only: after an error (samples missing), feed them and retry.
 
         Raises:
             SolverError: the samples do not cover the interval.
         """
         if self._pim is None:
             raise ValueError("ImuStream.finish before start")
-        pim, self._pim = self._pim, None
+        t1_ns = int(t1_ns)
         if self._done_ns > t1_ns:  # integrated past the frame: redo the interval
-            return self.intervals.preintegrate(self._t0_ns, t1_ns, self._bias)
-        if t1_ns > self._done_ns:
-            self.intervals.integrate(pim, self._done_ns, t1_ns)
+            pim = self.intervals.preintegrate(self._t0_ns, t1_ns, self._bias)
+            self.holdback_ns = max(self.holdback_ns, int(self.intervals.imu.t_ns[-1]) - t1_ns)
+        else:
+            pim = self._pim
+            if t1_ns > self._done_ns:  # checks everything before it integrates
+                self.intervals.integrate(pim, self._done_ns, t1_ns)
+        self._pim = None
         return pim
 
 

@@ -455,7 +455,7 @@ class IncrementalSmoother:
         k = len(self._t_ns)
         if k and t_ns <= self._t_ns[-1]:
             raise FlightLogError(f"frame {k}: time {t_ns} ns is not after the previous frame")
-        if track_id is not None:  # checked before anything changes
+        if track_id is not None and len(track_id):  # checked before anything changes
             track_id = np.asarray(track_id, dtype=np.int64)
             uv_px = np.asarray(uv_px, dtype=float)
             if track_id.ndim != 1 or uv_px.shape != (track_id.size, 2):
@@ -604,6 +604,9 @@ class IncrementalSmoother:
             if done:
                 break
         self._refresh(self._solver.calculateEstimate())
+        if self._t_ns:  # more frames may follow: the next interval at the new bias estimate
+            self._stream.start(self._t_ns[-1], self._biases[len(self._t_ns) - 1])
+            self._stream.advance()
         self.final_error = previous
         self.converged = done
         return done

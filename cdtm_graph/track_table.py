@@ -30,7 +30,12 @@ class TrackTable:
         self._q = np.zeros((capacity, 3))
         self._pairs = np.zeros(capacity, dtype=np.int64)
         self._n = 0
-        self.n_tracks = 0  # distinct tracks ever added
+        self._ever: set[int] = set()  # every id added (one forgotten may come back)
+
+    @property
+    def n_tracks(self) -> int:
+        """Distinct track ids ever added."""
+        return len(self._ever)
 
     def __len__(self) -> int:
         return self._n
@@ -71,6 +76,9 @@ class TrackTable:
         """
         track_id = np.ascontiguousarray(track_id, dtype=np.int64)
         q = np.ascontiguousarray(q, dtype=float)
+        if track_id.ndim != 1 or q.shape != (track_id.size, 3):
+            raise ValueError(f"frame {k}: {track_id.shape} track ids with rays of shape "
+                             f"{q.shape}; expected (m,) and (m, 3)")
         check_unique(k, track_id)  # before anything changes
         new_rows, order, frame_a, q_a, rank, starts, n_too_old = _match(
             self.ids, self.frame, self.q, self.pairs, track_id, q, k, oldest_frame)
@@ -88,7 +96,7 @@ class TrackTable:
         self._n = _compact(self._ids, self._frame, self._q, self._pairs, self._n, frame)
 
     def _insert(self, k: int, new_ids: np.ndarray, q_new: np.ndarray) -> None:
-        self.n_tracks += new_ids.size
+        self._ever.update(new_ids.tolist())
         n = _append(self._ids, self._frame, self._q, self._pairs, self._n, new_ids, q_new, k)
         if n >= 0:
             self._n = n

@@ -179,6 +179,18 @@ class PairFeatures:
         return PairFeatures(*arrays, self.noise, scale)
 
 
+_SCRATCH = [np.empty((COMPRESSED_ROWS, 512))]
+
+
+def _scratch(rows: int) -> np.ndarray:
+    """Work space of ``triangularize`` (13 x at least ``rows``), shared by all pair
+    factors: a callback uses it and is done before the next one runs (they hold the GIL
+    throughout)."""
+    if _SCRATCH[0].shape[1] < rows:
+        _SCRATCH[0] = np.empty((COMPRESSED_ROWS, 2 * rows))
+    return _SCRATCH[0]
+
+
 @functools.lru_cache(maxsize=8)
 def _adjoint_of(body_T_cam_bytes: bytes) -> np.ndarray:
     Ad = cdtm_math.body_to_cam_adjoint(np.frombuffer(body_T_cam_bytes).reshape(4, 4))
@@ -250,7 +262,6 @@ class CdtmPairFactor:
         rows = 2 * n
         if self._compressed:
             rows = COMPRESSED_ROWS
-            self._work = np.empty((COMPRESSED_ROWS, max(2 * n, COMPRESSED_ROWS)))
             self._Ja = np.empty((COMPRESSED_ROWS, 6))
             self._Jb = np.empty((COMPRESSED_ROWS, 6))
             self._z = np.empty(COMPRESSED_ROWS)
@@ -338,7 +349,7 @@ class CdtmPairFactor:
             out = np.zeros(COMPRESSED_ROWS)
             out[-1] = np.sqrt(np.einsum("ij,ij->", e, e))
             return out
-        triangularize(e, Ha, Hb, self._work, self._Ja, self._Jb, self._z)
+        triangularize(e, Ha, Hb, _scratch(2 * self.features.n), self._Ja, self._Jb, self._z)
         jacobians[0] = self._Ja
         jacobians[1] = self._Jb
         return self._z

@@ -202,7 +202,7 @@ def triangularize(e, Ha, Hb, work, Ja_out, Jb_out, z_out):
 
     Args:
         e: (n, 2) residuals. Ha, Hb: (n, 2, 6) Jacobians; 2n >= 13.
-        work: (13, max(13, 2n)) scratch.
+        work: (13, >= max(13, 2n)) scratch.
         Ja_out, Jb_out: (13, 6) outputs. z_out: (13,) output; its last entry is the
             residual left outside the Jacobians' range, so ``|z| = |e|`` (to rounding).
     """

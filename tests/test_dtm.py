@@ -389,6 +389,22 @@ def test_raycast_broadcasts_and_returns_ray_hits(rng):
         dtm.raycast(np.zeros((4, 2)), np.zeros((4, 2)))
 
 
+def test_tangent_planes_from_one_origin_equal_the_general_caster(rng):
+    """The single-camera fast path of Dtm.tangent_planes (the re-intersecting factor's)
+    gives the (N, 3)-origin path's points, normals and hits, misses and NaN rays included."""
+    x = np.arange(0.0, 3000.0, 30.0)
+    dtm = Dtm(80 * np.sin(x / 210)[None, :] * np.cos(x / 330)[:, None], 0.0, 0.0, 30.0, 30.0)
+    origin = np.array([1500.0, 1400.0, 600.0])
+    directions = np.c_[rng.uniform(-1.5, 1.5, (300, 2)), -np.ones(300)]
+    directions[0] = np.nan
+    directions[1] = (1.0, 0.0, 0.0)  # horizontal, above the terrain: a miss
+    one = dtm.tangent_planes(origin, directions)
+    many = dtm.tangent_planes(np.tile(origin, (300, 1)), directions)
+    assert 0 < one[2].sum() < 300
+    for a, b in zip(one, many):
+        np.testing.assert_array_equal(a, b)
+
+
 # ---------------------------------------------------------------------------------------
 # Mesh and resampling
 # ---------------------------------------------------------------------------------------

@@ -7,11 +7,13 @@ import numpy as np
 import pytest
 
 from cdtm_graph.camera import PinholeCamera
+from cdtm_graph.errors import SolverError
 from cdtm_graph.flightlog import ImuSamples, Tracks
 from cdtm_graph.graph import ImuIntervals, ImuStream, frame_pair_observations
 from cdtm_graph.imu import SampleHold
 from cdtm_graph.simulate import SimulationSettings, simulate_flight
 from cdtm_graph.smoother import IncrementalSmoother
+from cdtm_graph.track_table import TrackTable
 
 
 def test_pairs_are_grouped_by_frame_pair_with_their_rank_in_the_track():
@@ -96,3 +98,72 @@ def test_live_fed_incremental_run_equals_imu_given_up_front():
     np.testing.assert_array_equal(live.covariances.pose, upfront.covariances.pose)
     assert all(t > 0 for t in live.stats.imu_times_s[1:])
     assert all(t == 0 for t in upfront.stats.imu_times_s)
+
+
+def _samples(imu, a, b):
+    return ImuSamples(imu.t_ns[a:b], imu.gyro_radps[a:b], imu.acc_mps2[a:b])
+
+
+def test_a_frame_ahead_of_its_imu_can_be_retried():
+    """A frame whose interval the IMU does not yet cover is refused with nothing changed;
+    fed the missing samples, the same frame goes through and the run equals a normal one."""
+    flight, dtm = simulate_flight(SimulationSettings(frames=5, features=40, seed=4))
+    imu, t = flight.imu, flight.frames.t_ns
+    reference = IncrementalSmoother(flight.config, dtm, imu=flight.imu).run(flight)
+    smoother = IncrementalSmoother(flight.config, dtm)
+    tracks = flight.tracks
+    sent = 0
+    for k in range(len(t)):
+        rows = tracks.frame == k
+        cover = int(np.searchsorted(imu.t_ns, t[k])) + 1
+        if k == 2:  # three samples short of the frame time
+            smoother.add_imu(_samples(imu, sent, cover - 3))
+            sent = cover - 3
+            with pytest.raises(SolverError, match="does not cover"):
+                smoother.add_frame(int(t[k]), tracks.track_id[rows], tracks.uv_px[rows])
+        smoother.add_frame(int(t[k]), tracks.track_id[rows], tracks.uv_px[rows],
+                           _samples(imu, sent, cover))
+        sent = cover
+    smoother.finalize(3)
+    np.testing.assert_array_equal(smoother.estimate().world_T_body,
+                                  reference.estimate.world_T_body)
+
+
+def test_imu_running_ahead_of_the_camera_is_held_back():
+    """With camera latency the IMU arrives past each frame before the frame does: the
+    stream learns the lead and stops integrating into the next interval; the estimates
+    stay those of the IMU given up front."""
+    flight, dtm = simulate_flight(SimulationSettings(frames=6, features=40, seed=4))
+    imu, t = flight.imu, flight.frames.t_ns
+    reference = IncrementalSmoother(flight.config, dtm, imu=flight.imu).run(flight)
+    smoother = IncrementalSmoother(flight.config, dtm)
+    tracks = flight.tracks
+    lead = 7  # samples past the frame time that arrive before the frame
+    sent, redone = 0, []
+    for k in range(len(t)):
+        upto = int(np.searchsorted(imu.t_ns, t[k])) + lead
+        smoother.add_imu(_samples(imu, sent, upto))
+        sent = upto
+        redone.append(smoother._stream._done_ns > t[k])  # integrated past this frame?
+        rows = tracks.frame == k
+        smoother.add_frame(int(t[k]), tracks.track_id[rows], tracks.uv_px[rows])
+    assert redone[1] and not any(redone[2:])
+    assert smoother._stream.holdback_ns >= imu.t_ns[lead - 1] - imu.t_ns[0]
+    smoother.finalize(3)
+    np.testing.assert_array_equal(smoother.estimate().world_T_body,
+                                  reference.estimate.world_T_body)
+
+
+def test_frames_without_tracks_and_returning_track_ids():
+    """A frame with no tracks may come as empty lists; a track id forgotten by the fixed
+    lag and seen again counts once among the log's tracks."""
+    flight, dtm = simulate_flight(SimulationSettings(frames=4, features=30, seed=4))
+    smoother = IncrementalSmoother(flight.config, dtm, imu=flight.imu)
+    update = smoother.add_frame(int(flight.frames.t_ns[0]), [], [])
+    assert update.n_features == 0
+    table = TrackTable()
+    q = np.c_[np.zeros((2, 2)), np.ones(2)]
+    table.add_frame(0, np.array([3, 4]), q)
+    table.forget_before(1)
+    table.add_frame(1, np.array([4, 5]), q)
+    assert table.n_tracks == 3
