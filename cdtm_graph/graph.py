@@ -333,6 +333,27 @@ def cdtm_factors(
     return build
 
 
+def chi2_2dof_quantile(p: float) -> float:
+    """The p-quantile of chi-square with 2 degrees of freedom: ``-2 ln(1 - p)``."""
+    if not 0.0 < p < 1.0:
+        raise ValueError(f"gate probability {p}: expected 0 < p < 1")
+    return float(-2.0 * np.log1p(-p))
+
+
+def innovation_mahalanobis(e: np.ndarray, H_a: np.ndarray, H_b: np.ndarray,
+                           P: np.ndarray) -> np.ndarray:
+    """Squared Mahalanobis distance of each feature's innovation, (n,).
+
+    ``d_i = e_i^T S_i^-1 e_i`` with ``S_i = I + H_i P H_i^T``: the rows are whitened (the
+    measurement noise is I) and ``H_i = [H_a,i H_b,i]`` maps the 12-dim joint tangent of
+    ``(X(a), X(b))``, whose prior covariance is ``P`` (12, 12), into the residual.
+    Chi-square with 2 degrees of freedom for an inlier whose prior is honest.
+    """
+    H = np.concatenate([H_a, H_b], axis=2)
+    S = np.eye(2) + H @ P @ np.swapaxes(H, 1, 2)
+    return np.einsum("ni,ni->n", e, np.linalg.solve(S, e[..., None])[..., 0])
+
+
 #: Inlier gate without a robust kernel: chi-square with 2 dof, 99.9%.
 CHI2_2DOF_999 = 13.815510557964274
 

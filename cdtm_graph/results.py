@@ -89,6 +89,9 @@ class GraphCounts:
         n_outliers: features whose whitened residual at the solution fails the
             chi-square(2) 99.9% gate (flagged; the robust kernel, if any, weights them).
         outliers_per_frame: (K,) the same, by the frame the feature pair ends at.
+        n_gated: features rejected before entering the graph because their innovation
+            failed the chi-square gate against the prior (incremental, when asked for).
+        gated_per_frame: (K,) the same, by frame.
     """
 
     n_frames: int
@@ -102,6 +105,8 @@ class GraphCounts:
     features_per_frame: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
     n_outliers: int = 0
     outliers_per_frame: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+    n_gated: int = 0
+    gated_per_frame: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
 
 
 @dataclass(frozen=True)

@@ -34,12 +34,14 @@ from cdtm_graph.graph import (
     ImuIntervals,
     ImuStream,
     cdtm_factors,
+    chi2_2dof_quantile,
     count_outliers,
     explain_indeterminant,
     feature_noise,
     frame_pair_observations,
     imu_factor,
     initial_bias,
+    innovation_mahalanobis,
     insert_state,
     navstate_predict,
     prior_factors,
@@ -53,6 +55,7 @@ from cdtm_graph.results import (
     TrajectoryEstimate,
 )
 from cdtm_graph.track_table import TrackTable, check_unique
+from factors import CdtmPairFactor
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +84,9 @@ class SmootherSettings:
         marginals: compute per-frame marginal covariances.
         keep_exit_covariances: fixed lag: keep each frame's pose, velocity and bias
             covariances as it leaves the window (else NaN for frames older than the lag).
+        innovation_gate: incremental only: drop each C-DTM feature whose innovation,
+            against the prior covariance of its two poses, fails the chi-square(2) gate
+            of this probability (e.g. 0.999); ``None`` gates nothing.
     """
 
     graph: GraphSettings = field(default_factory=GraphSettings)
@@ -91,6 +97,7 @@ class SmootherSettings:
     final_iterations: int = 5
     marginals: bool = True
     keep_exit_covariances: bool = True
+    innovation_gate: float | None = None
 
     def as_dict(self) -> dict:
         d = asdict(self)
@@ -240,6 +247,9 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
         FlightLogError: the log has fewer than two frames.
     """
     settings = settings or SmootherSettings()
+    if settings.innovation_gate is not None and settings.mode is not SmootherMode.INCREMENTAL:
+        raise ValueError("the innovation gate needs the incremental smoother (a prior "
+                         "covariance for each frame as it arrives)")
     if len(flight.frames) < 2:
         raise FlightLogError(f"{flight.root / 'frames.csv'}: {len(flight.frames)} frame(s); "
                              "expected at least 2")
@@ -247,7 +257,8 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
         dt_s = float(np.max(np.diff(flight.frames.t_ns))) * 1e-9
         smoother = IncrementalSmoother(flight.config, dtm, settings.graph, lag_s=settings.lag_s,
                                        frame_interval_s=dt_s,
-                                       keep_exit_covariances=settings.keep_exit_covariances)
+                                       keep_exit_covariances=settings.keep_exit_covariances,
+                                       innovation_gate=settings.innovation_gate)
         return smoother.run(flight, progress, final_iterations=settings.final_iterations,
                             settings_dict=settings.as_dict())
     intervals = ImuIntervals(flight.config, flight.imu, settings.graph.imu_hold)
@@ -355,12 +366,18 @@ class IncrementalSmoother:
         keep_exit_covariances: with a lag, keep the covariances each frame has when it
             leaves the window (about 1.5 ms per frame; offline runs want them, a live
             system needs only the newest covariance).
+        innovation_gate: chi-square(2) gate probability (e.g. 0.999) on each feature's
+            innovation against the prior covariance of its two poses (the state after
+            the frame's IMU factor, one more update per frame); ``None``: no gate.
     """
 
     def __init__(self, config: FlightConfig, dtm: Dtm, settings: GraphSettings | None = None,
                  lag_s: float | None = None, imu: ImuSamples | None = None,
-                 frame_interval_s: float | None = None, keep_exit_covariances: bool = False):
+                 frame_interval_s: float | None = None, keep_exit_covariances: bool = False,
+                 innovation_gate: float | None = None):
         self.config = config
+        # A feature's innovation against the prior must pass this chi-square(2) bound.
+        self._gate = None if innovation_gate is None else chi2_2dof_quantile(innovation_gate)
         self.dtm = dtm
         self.settings = settings or GraphSettings()
         self.lag_s = lag_s
@@ -404,6 +421,8 @@ class IncrementalSmoother:
         self.n_features = 0
         self.n_missed = 0
         self.n_too_old = 0
+        self.n_gated = 0
+        self._gated_by_frame: dict[int, int] = {}
         self.n_cdtm_factors = 0
         self.update_times_s: list[float] = []
         self._pair_count = 0
@@ -484,8 +503,16 @@ class IncrementalSmoother:
             self._settle(k)
         n_new = 0
         self._n_new_cdtm = 0
+        new_factors: list[CdtmPairFactor] = []
         if track_id is not None and len(track_id):
-            n_new = self._add_cdtm(k, track_id, uv_px, graph)
+            new_factors = self._add_cdtm(k, track_id, uv_px)
+        if self._gate is not None and new_factors:
+            # The prior the innovations are gated against: everything up to this frame's
+            # IMU factor. The features that pass go in with a second update.
+            self._update(graph, values, k)
+            new_factors = self._gated(k, new_factors)
+            graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        n_new = self._commit_cdtm(k, new_factors, graph)
         self._update(graph, values, k)
         if self._fls is None and self._n_new_cdtm:
             self._refresh_newest_noise(k, pose)
@@ -498,8 +525,8 @@ class IncrementalSmoother:
         return FrameUpdate(k, int(t_ns), self._poses[k], self._velocities[k], cov, n_new,
                            elapsed, self.imu_times_s[-1])
 
-    def _add_cdtm(self, k: int, track_id: np.ndarray, uv_px: np.ndarray,
-                  graph: gtsam.NonlinearFactorGraph) -> int:
+    def _add_cdtm(self, k: int, track_id: np.ndarray, uv_px: np.ndarray) -> list[CdtmPairFactor]:
+        """The C-DTM factors frame k's sightings close (counted, not yet in the graph)."""
         q = self._camera.pixels_to_rays(uv_px)
         self._observations += len(track_id)
         # A fixed lag has let go of frames before the window: their pairs are dropped
@@ -515,15 +542,44 @@ class IncrementalSmoother:
             self._poses[a] = self._solver.calculateEstimatePose3(X(a)).matrix()
         build = cdtm_factors(pairs, self._poses, self._body_T_cam, self.dtm, self._noise,
                              self.settings)
-        for f in build.factors:
-            graph.add(f.factor)
-        self._cdtm.extend(build.factors)
-        self._n_new_cdtm = len(build.factors)
-        self.n_features += build.n_features
         self.n_missed += build.n_missed
-        self.n_cdtm_factors += len(build.factors)
-        self._factors_by_frame[k] = build.n_features
-        return build.n_features
+        return build.factors
+
+    def _gated(self, k: int, factors: list[CdtmPairFactor]) -> list[CdtmPairFactor]:
+        """The factors with only the features whose innovation passes the chi-square gate
+        against the current (prior) joint covariance of their two poses."""
+        isam = self._isam if self._fls is None else self._fls.getISAM2()
+        self._fetch(k)
+        kept, n_gated = [], 0
+        for f in factors:
+            a = int(gtsam.Symbol(f.key_a).index())
+            self._poses[a] = self._solver.calculateEstimatePose3(f.key_a).matrix()
+            try:
+                P = isam.jointMarginalCovariance([f.key_a, f.key_b]).fullMatrix()
+            except RuntimeError as exc:
+                raise explain_indeterminant(exc) from None
+            e, H_a, H_b = f.innovations(self._poses[a], self._poses[k])
+            passed = innovation_mahalanobis(e, H_a, H_b, P) <= self._gate
+            n_gated += int(f.features.n - passed.sum())
+            if passed.all():
+                kept.append(f)
+            elif passed.any():
+                kept.append(f.with_features(passed))
+        self.n_gated += n_gated
+        self._gated_by_frame[k] = n_gated
+        return kept
+
+    def _commit_cdtm(self, k: int, factors: list[CdtmPairFactor],
+                     graph: gtsam.NonlinearFactorGraph) -> int:
+        n_features = sum(f.features.n for f in factors)
+        for f in factors:
+            graph.add(f.factor)
+        self._cdtm.extend(factors)
+        self._n_new_cdtm = len(factors)
+        self.n_features += n_features
+        self.n_cdtm_factors += len(factors)
+        self._factors_by_frame[k] = n_features
+        return n_features
 
     def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, k: int) -> None:
         try:
@@ -725,9 +781,10 @@ class IncrementalSmoother:
         per_frame = np.array([self._factors_by_frame.get(k, 0) for k in range(K)])
         estimate = self.estimate()
         n_out, out_per_frame = count_outliers(self._cdtm, estimate.world_T_body, K)
+        gated = np.array([self._gated_by_frame.get(k, 0) for k in range(K)])
         counts = GraphCounts(K, self._tracks.n_tracks, self._observations, self._pair_count,
                              self.n_features, self.n_missed, self.n_cdtm_factors, K - 1, per_frame,
-                             n_out, out_per_frame)
+                             n_out, out_per_frame, self.n_gated, gated)
         stats = SolverStats("incremental" if self.lag_s is None else "fixed_lag", K, float("nan"),
                             self.final_error, self.converged, elapsed, time.perf_counter() - t0,
                             tuple(self.update_times_s), tuple(self.imu_times_s))

@@ -327,15 +327,29 @@ class CdtmPairFactor:
 
         ``|r|^2`` is chi-square with 2 degrees of freedom for an inlier.
         """
+        return self.innovations(world_T_body_a, world_T_body_b, want_jacobians=False)[0]
+
+    def innovations(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray,
+                    want_jacobians: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Whitened residuals (n, 2) and Jacobians (n, 2, 6) w.r.t. X(a), X(b) with no
+        robust reweighting, as fresh arrays (an innovation and its measurement matrix)."""
         wTc_a = world_T_body_a @ self.body_T_cam
         wTc_b = world_T_body_b @ self.body_T_cam
         G_E, N = self.planes(wTc_a)
         f = self.features
         e = np.empty((f.n, 2))
+        Ha = np.empty((f.n, 2, 6)) if want_jacobians else self._Ha
+        Hb = np.empty((f.n, 2, 6)) if want_jacobians else self._Hb
         cdtm_linearize(wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3], self._Ad,
-                       f.q_a, G_E, N, f.basis_b, f.sqrt_info, KERNEL_NONE, 0.0, False, e,
-                       self._Ha, self._Hb)
-        return e
+                       f.q_a, G_E, N, f.basis_b, f.sqrt_info, KERNEL_NONE, 0.0, want_jacobians,
+                       e, Ha, Hb)
+        return e, Ha, Hb
+
+    def with_features(self, keep: np.ndarray) -> CdtmPairFactor:
+        """The same factor over the features selected by ``keep`` (mask or indices)."""
+        return CdtmPairFactor(self.key_a, self.key_b, self.features.subset(keep),
+                              self.body_T_cam, self.plane_mode, self.raycast, self.robust,
+                              self.robust_threshold)
 
     def _error(self, this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
         e, Ha, Hb = self.evaluate(_pose_matrix(values, self.key_a),

@@ -149,3 +149,25 @@ def test_terrain_figures_script_reproduces_fig6(tmp_path, capsys):
     assert 0.06 < slope < 0.1  # the paper's 2.4 m at 30 m is 0.08 per metre
     assert (tmp_path / "fig6_sigma_h.png").stat().st_size > 0
     assert (tmp_path / "fig12_cloned_cell.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("args, must_name", [
+    (["--gate", "0.999"], "--gate needs --mode incremental"),
+    (["--mode", "incremental", "--gate", "1.5"], "--gate 1.5"),
+    (["--lag-s", "5"], "--lag-s needs --mode incremental"),
+])
+def test_bad_smoothing_options_give_one_line(tmp_path, capsys, args, must_name):
+    out = tmp_path / "out"
+    assert main(["smooth", str(SAMPLE), "--out", str(out), "--quiet", *args]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and must_name in err, err
+    assert not out.exists()
+
+
+def test_gated_incremental_run_reports_rejections(tmp_path):
+    out = tmp_path / "out"
+    assert main(["smooth", str(SAMPLE), "--out", str(out), "--quiet", "--mode", "incremental",
+                 "--gate", "0.999"]) == 0
+    counts = json.loads((out / "report.json").read_text())["counts"]
+    assert counts["n_gated"] == sum(counts["gated_per_frame"]) > 0
+    assert counts["n_cdtm_features"] > 10 * counts["n_gated"]

@@ -9,7 +9,13 @@ import pytest
 from cdtm_graph.camera import PinholeCamera
 from cdtm_graph.errors import SolverError
 from cdtm_graph.flightlog import ImuSamples, Tracks
-from cdtm_graph.graph import ImuIntervals, ImuStream, frame_pair_observations
+from cdtm_graph.graph import (
+    ImuIntervals,
+    ImuStream,
+    chi2_2dof_quantile,
+    frame_pair_observations,
+    innovation_mahalanobis,
+)
 from cdtm_graph.imu import SampleHold
 from cdtm_graph.simulate import SimulationSettings, simulate_flight
 from cdtm_graph.smoother import IncrementalSmoother
@@ -167,3 +173,47 @@ def test_frames_without_tracks_and_returning_track_ids():
     table.forget_before(1)
     table.add_frame(1, np.array([4, 5]), q)
     assert table.n_tracks == 3
+
+
+def test_innovation_distance_is_chi_square_2_for_a_linear_gaussian_model(rng):
+    """e = H dx + v with dx ~ N(0, P), v ~ N(0, I): d is chi-square(2), and the gate of
+    probability p passes a fraction p."""
+    n = 20000
+    L = rng.normal(size=(12, 12))
+    P = L @ L.T * 0.01 + np.diag(rng.uniform(0.001, 0.1, 12))
+    H_a, H_b = rng.normal(size=(n, 2, 6)), rng.normal(size=(n, 2, 6))
+    dx = rng.multivariate_normal(np.zeros(12), P, n)
+    e = np.einsum("nij,nj->ni", np.concatenate([H_a, H_b], axis=2), dx) + rng.normal(size=(n, 2))
+    d = innovation_mahalanobis(e, H_a, H_b, P)
+    assert abs(d.mean() - 2.0) < 4 * 2.0 / np.sqrt(n)  # chi2_2: mean 2, std 2
+    for p in (0.9, 0.99):
+        passed = np.mean(d <= chi2_2dof_quantile(p))
+        assert abs(passed - p) < 4 * np.sqrt(p * (1 - p) / n)
+    with pytest.raises(ValueError):
+        chi2_2dof_quantile(1.0)
+
+
+def test_the_innovation_gate_drops_gross_outliers_before_they_enter():
+    """Bad matches (2% of observations moved 15-25 px) are gated out as they arrive: the
+    incremental run stays near the clean one, where without a gate it does not."""
+    import dataclasses
+
+    from cdtm_graph.run import smooth_and_evaluate
+    from cdtm_graph.smoother import SmootherMode, SmootherSettings
+
+    flight, dtm = simulate_flight(SimulationSettings(frames=30, features=80, seed=6))
+    rng = np.random.default_rng(8)
+    uv = flight.tracks.uv_px.copy()
+    bad = rng.random(len(uv)) < 0.02
+    angle = rng.uniform(0, 2 * np.pi, int(bad.sum()))
+    shift = rng.uniform(15, 25, angle.size)[:, None] * np.c_[np.cos(angle), np.sin(angle)]
+    uv[bad] = np.clip(uv[bad] + shift, 0, 399)
+    corrupted = dataclasses.replace(flight, tracks=dataclasses.replace(flight.tracks, uv_px=uv))
+    runs = {gate: smooth_and_evaluate(corrupted, dtm, SmootherSettings(
+        mode=SmootherMode.INCREMENTAL, innovation_gate=gate)) for gate in (None, 0.999)}
+    clean = smooth_and_evaluate(flight, dtm, SmootherSettings(mode=SmootherMode.INCREMENTAL))
+    gated = runs[0.999].result.counts
+    assert gated.n_gated == gated.gated_per_frame.sum() >= bad.sum()  # each enters <= 2 pairs
+    rmse = {g: np.linalg.norm(r.errors.rmse_position_m) for g, r in runs.items()}
+    assert rmse[0.999] < 0.5 * rmse[None]
+    assert rmse[0.999] < 2 * np.linalg.norm(clean.errors.rmse_position_m)

@@ -14,7 +14,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="smooth the bundled sample log into ./cdtm-demo-out")
     p.add_argument("--out", default="cdtm-demo-out", help="output directory")
     p.set_defaults(func=run, mode="batch", plane="reintersect", robust="none", lag_s=None,
-                   plots=True, quiet=False)
+                   gate=None, plots=True, quiet=False)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -29,6 +29,9 @@ def add_smoothing_options(p: argparse.ArgumentParser) -> None:
                    help="per-feature M-estimator")
     p.add_argument("--lag-s", type=float, default=None,
                    help="incremental mode: fixed-lag smoother with this lag (seconds)")
+    p.add_argument("--gate", type=float, default=None, metavar="P",
+                   help="incremental mode: drop features whose innovation against the "
+                        "prior fails the chi-square gate of probability P (e.g. 0.9999)")
     p.add_argument("--plots", action="store_true",
                    help="also write trajectory.png (over the DTM, 3-sigma ellipses) and "
                         "errors.png (errors inside +-3 sigma)")
@@ -51,9 +54,13 @@ def settings_from_args(args: argparse.Namespace) -> SmootherSettings:
         raise CdtmError(f"--lag-s {args.lag_s}: expected a lag > 0 seconds")
     if args.lag_s is not None and args.mode != "incremental":
         raise CdtmError("--lag-s needs --mode incremental")
+    if args.gate is not None and not 0.0 < args.gate < 1.0:
+        raise CdtmError(f"--gate {args.gate}: expected a probability strictly between 0 and 1")
+    if args.gate is not None and args.mode != "incremental":
+        raise CdtmError("--gate needs --mode incremental (a prior for each frame as it arrives)")
     return SmootherSettings(
         graph=GraphSettings(plane_mode=PlaneMode(args.plane), robust=RobustKernel(args.robust)),
-        mode=SmootherMode(args.mode), lag_s=args.lag_s)
+        mode=SmootherMode(args.mode), lag_s=args.lag_s, innovation_gate=args.gate)
 
 
 def progress_bar(quiet: bool):
