@@ -186,7 +186,9 @@ def _floats(values: Any) -> Any:
     if values is None:
         return None
     arr = np.asarray(values, dtype=float)
-    return np.where(np.isfinite(arr), arr, None).tolist()
+    out = arr.astype(object)
+    out[~np.isfinite(arr)] = None
+    return out.tolist()
 
 
 def _rmse(e: np.ndarray, axis: int = 0) -> np.ndarray:

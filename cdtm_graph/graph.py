@@ -10,6 +10,7 @@ from __future__ import annotations
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import gtsam
 import numpy as np
@@ -18,7 +19,7 @@ from gtsam.symbol_shorthand import B, V, X
 from cdtm_graph.camera import PinholeCamera
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import SolverError
-from cdtm_graph.flightlog import FlightConfig, ImuSamples, InitialState, Tracks
+from cdtm_graph.flightlog import FlightConfig, InitialState, Tracks
 from cdtm_graph.imu import ImuNoise, SampleHold, integrate_interval, preintegration_params
 from factors import CdtmPairFactor, FeatureNoise, PairFeatures, PlaneMode, RobustKernel
 
@@ -91,10 +92,23 @@ def prior_factors(initial: InitialState, key: int = 0) -> gtsam.NonlinearFactorG
     return graph
 
 
+class ImuArrays(Protocol):
+    """IMU samples as arrays (``ImuSamples`` or any object with its three fields)."""
+
+    @property
+    def t_ns(self) -> np.ndarray: ...
+
+    @property
+    def gyro_radps(self) -> np.ndarray: ...
+
+    @property
+    def acc_mps2(self) -> np.ndarray: ...
+
+
 class ImuIntervals:
     """Preintegrates the IMU over frame intervals of one flight."""
 
-    def __init__(self, config: FlightConfig, imu: ImuSamples, hold: SampleHold):
+    def __init__(self, config: FlightConfig, imu: ImuArrays, hold: SampleHold):
         self.params = preintegration_params(imu_noise(config), config.gravity_mps2,
                                             config.imu.rate_hz)
         self.imu = imu
@@ -358,7 +372,8 @@ def innovation_mahalanobis(e: np.ndarray, H_a: np.ndarray, H_b: np.ndarray,
 CHI2_2DOF_999 = 13.815510557964274
 
 
-def count_outliers(factors: Sequence[CdtmPairFactor], world_T_body: Sequence[np.ndarray],
+def count_outliers(factors: Sequence[CdtmPairFactor],
+                   world_T_body: Sequence[np.ndarray] | np.ndarray,
                    n_frames: int) -> tuple[int, np.ndarray]:
     """Features whose whitened residual fails the chi-square(2) 99.9% gate at given poses.
 

@@ -52,8 +52,9 @@ import io
 import logging
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from typing import Any, cast
 
 import numpy as np
 
@@ -124,7 +125,7 @@ PAPER_TABLE1_M: dict[float, dict[tuple[str, str], float]] = {
 
 #: Paper, Table 2 (maximum |error| of the compensated solution, m): image side (px) ->
 #: axis. The paper gives no Free rows here.
-PAPER_TABLE2_M: dict[int, dict[tuple[str, str], float]] = {
+PAPER_TABLE2_M: dict[float, dict[tuple[str, str], float]] = {
     500: {("Compensated", "x"): 50.0, ("Compensated", "y"): 50.0, ("Compensated", "z"): 35.0},
     1000: {("Compensated", "x"): 20.0, ("Compensated", "y"): 20.0, ("Compensated", "z"): 20.0},
     4000: {("Compensated", "x"): 10.0, ("Compensated", "y"): 10.0, ("Compensated", "z"): 10.0},
@@ -425,7 +426,7 @@ def as_arrived_estimate(flight: FlightLog, dtm: Dtm,
     bounds = (np.searchsorted(tracks.frame, np.arange(k_frames + 1)) if tracks is not None
               else None)
     for k in range(k_frames):
-        if bounds is None:
+        if bounds is None or tracks is None:
             update = smoother.add_frame(int(t_ns[k]))
         else:
             rows = slice(bounds[k], bounds[k + 1])
@@ -467,13 +468,15 @@ def run_case(settings: NavsimSettings, altitude_m: float, resolution_px: int) ->
     batch = dataclasses.replace(settings.smoother, mode=SmootherMode.BATCH)
     run = smooth_and_evaluate(flight, dtm, batch)
     timings["batch"] = time.perf_counter() - start
-    if run.errors is None or run.free_errors is None:  # simulate always writes ground truth
+    truth = flight.groundtruth
+    if run.errors is None or run.free_errors is None or truth is None:
+        # (simulate always writes ground truth)
         raise SimulationError("the simulated flight has no ground truth to evaluate")
 
     start = time.perf_counter()
     arrived = as_arrived_estimate(flight, dtm, settings.smoother)
     as_arrived = trajectory_errors(_frames_from(arrived, settings.as_arrived_skip_frames),
-                                   None, flight.groundtruth)
+                                   None, truth)
     timings["incremental"] = time.perf_counter() - start
 
     pairs = sim.stats.pairs_per_frame
@@ -608,7 +611,7 @@ def table_csv(table: NavsimTable) -> str:
 def _positive_tuple(name: str, values: object, kind: type) -> tuple:
     """``values`` as a non-empty tuple of distinct finite positive ``kind`` numbers."""
     try:
-        items = tuple(values)  # type: ignore[call-overload]
+        items: tuple[Any, ...] = tuple(cast(Iterable[Any], values))
     except TypeError:
         raise SimulationError(f"{name} = {values!r}, expected a sequence of numbers") from None
     check = _is_int if kind is int else _is_number

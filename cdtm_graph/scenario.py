@@ -192,7 +192,7 @@ def sample_pair(scenario: PairScenario, terrain: ScenarioTerrain,
     mean_h = float(np.nanmean(dtm.elevation))
     heading = rng.uniform(0, 2 * np.pi)
     R_a = so3_exp(np.array([0.0, 0.0, heading])) @ so3_exp(rng.normal(0, np.radians(3), 3))
-    Ta = make_pose(R_a, [x, y, mean_h + scenario.altitude_m])
+    Ta = make_pose(R_a, np.array([x, y, mean_h + scenario.altitude_m]))
     # Ego-motion: along track (mostly), rotation of the requested magnitude.
     step = np.array([1.0, 0.0, 0.0]) + rng.normal(0, 0.15, 3)
     step *= scenario.baseline_m / np.linalg.norm(step)

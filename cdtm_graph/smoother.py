@@ -18,7 +18,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import gtsam
 import numpy as np
@@ -382,7 +382,8 @@ class IncrementalSmoother:
         self.settings = settings or GraphSettings()
         self.lag_s = lag_s
         self.keep_exit_covariances = keep_exit_covariances
-        self._imu = imu or ImuSamples(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
+        self._imu: ImuSamples | _ImuBuffer = imu or ImuSamples(
+            np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
         self._intervals = ImuIntervals(config, self._imu, self.settings.imu_hold)
         self._stream = ImuStream(self._intervals)  # the interval after the newest frame
         self._imu_time_s = 0.0  # spent preintegrating samples since the newest frame
@@ -390,9 +391,11 @@ class IncrementalSmoother:
         self._noise = feature_noise(config, dtm, self.settings)
         self._camera = config.camera.camera
         self._body_T_cam = config.camera.body_T_cam
+        self._isam: gtsam.ISAM2 | None = None  # full history
+        self._fls: gtsam.IncrementalFixedLagSmoother | None = None  # or a fixed lag
+        self._relinearize_skip = 10
         if lag_s is None:
             self._isam = gtsam.ISAM2(isam2_params())
-            self._fls = None
         else:
             # The fixed-lag smoother marginalizes states at their linearization point and
             # its update cannot force relinearization: every state must be relinearized
@@ -402,11 +405,11 @@ class IncrementalSmoother:
             params.relinearizeSkip = 1
             if frame_interval_s is not None and frame_interval_s > 0:
                 params.relinearizeSkip = int(np.clip(lag_s / frame_interval_s // 4, 1, 10))
+            self._relinearize_skip = params.relinearizeSkip
             self._fls = gtsam.IncrementalFixedLagSmoother(lag_s, params)
-            self._isam = None
         self.final_error = float("nan")
         self.converged = False
-        self._solver = self._isam if self._fls is None else self._fls
+        self._solver: Any = self._isam if self._fls is None else self._fls
         self._settled = 0  # fixed lag: frames before this one have left the window
         self._left_cov: dict[int, tuple] = {}  # ... and their covariances then (X, V, B)
         self._cdtm: list = []  # every C-DTM factor (outlier count, noise refresh)
@@ -474,13 +477,15 @@ class IncrementalSmoother:
         k = len(self._t_ns)
         if k and t_ns <= self._t_ns[-1]:
             raise FlightLogError(f"frame {k}: time {t_ns} ns is not after the previous frame")
+        seen: tuple[np.ndarray, np.ndarray] | None = None  # (track ids, pixels)
         if track_id is not None and len(track_id):  # checked before anything changes
-            track_id = np.asarray(track_id, dtype=np.int64)
-            uv_px = np.asarray(uv_px, dtype=float)
-            if track_id.ndim != 1 or uv_px.shape != (track_id.size, 2):
-                raise FlightLogError(f"frame {k}: {track_id.shape} track ids with pixels of "
-                                     f"shape {uv_px.shape}; expected (m,) and (m, 2)")
-            check_unique(k, track_id)
+            ids = np.asarray(track_id, dtype=np.int64)
+            uv = np.asarray(uv_px, dtype=float)
+            if ids.ndim != 1 or uv.shape != (ids.size, 2):
+                raise FlightLogError(f"frame {k}: {ids.shape} track ids with pixels of "
+                                     f"shape {uv.shape}; expected (m,) and (m, 2)")
+            check_unique(k, ids)
+            seen = ids, uv
         if imu is not None and len(imu):
             # Samples that come with the frame may run past it: held, not yet integrated.
             self._append_imu(imu)
@@ -504,8 +509,8 @@ class IncrementalSmoother:
         n_new = 0
         self._n_new_cdtm = 0
         new_factors: list[CdtmPairFactor] = []
-        if track_id is not None and len(track_id):
-            new_factors = self._add_cdtm(k, track_id, uv_px)
+        if seen is not None:
+            new_factors = self._add_cdtm(k, *seen)
         if self._gate is not None and new_factors:
             # The prior the innovations are gated against: everything up to this frame's
             # IMU factor. The features that pass go in with a second update.
@@ -548,7 +553,7 @@ class IncrementalSmoother:
     def _gated(self, k: int, factors: list[CdtmPairFactor]) -> list[CdtmPairFactor]:
         """The factors with only the features whose innovation passes the chi-square gate
         against the current (prior) joint covariance of their two poses."""
-        isam = self._isam if self._fls is None else self._fls.getISAM2()
+        isam = self._isam2()
         self._fetch(k)
         kept, n_gated = [], 0
         for f in factors:
@@ -590,7 +595,7 @@ class IncrementalSmoother:
                     stamps.insert((key, t_s))
                 self._fls.update(graph, values, stamps)
             else:
-                result = self._isam.update(graph, values)
+                result = self._isam2().update(graph, values)
                 if self._n_new_cdtm:  # the frame's C-DTM factors are the graph's last ones
                     self._cdtm_indices.extend(
                         list(result.getNewFactorsIndices())[-self._n_new_cdtm:])
@@ -603,15 +608,25 @@ class IncrementalSmoother:
         """Fixed lag: fetch, for the last time, the frames that frame k's update may
         marginalize (older than the lag, with one frame interval of margin so float
         timestamps cannot race the smoother); they keep that estimate."""
+        fls, lag_s = self._fls, self.lag_s
+        if fls is None or lag_s is None:
+            return
         margin_ns = self._t_ns[k] - self._t_ns[k - 1]
-        horizon = self._t_ns[k] - self.lag_s * 1e9 + margin_ns
+        horizon = self._t_ns[k] - lag_s * 1e9 + margin_ns
         while self._settled < k and self._t_ns[self._settled] < horizon:
             self._fetch(self._settled)
             if self.keep_exit_covariances:  # ~1 ms: marginals deep in the Bayes tree
                 j = self._settled
-                self._left_cov[j] = tuple(np.asarray(self._fls.marginalCovariance(key))
+                self._left_cov[j] = tuple(np.asarray(fls.marginalCovariance(key))
                                           for key in (X(j), V(j), B(j)))
             self._settled += 1
+
+    def _isam2(self) -> gtsam.ISAM2:
+        """The iSAM2 underneath (the fixed-lag smoother's own, by reference)."""
+        if self._fls is not None:
+            return self._fls.getISAM2()
+        assert self._isam is not None  # one of the two exists from __init__ on
+        return self._isam
 
     def _fetch(self, k: int) -> None:
         """Current estimate of frame k's states."""
@@ -632,9 +647,7 @@ class IncrementalSmoother:
 
     def _marginal(self, k: int) -> np.ndarray:
         try:
-            if self._fls is not None:
-                return np.asarray(self._fls.marginalCovariance(X(k)))
-            return np.asarray(self._isam.marginalCovariance(X(k)))
+            return np.asarray(self._solver.marginalCovariance(X(k)))
         except RuntimeError as exc:
             raise explain_indeterminant(exc) from None
 
@@ -650,10 +663,12 @@ class IncrementalSmoother:
         previous = self._current_error()
         for _ in range(iterations):
             if self._fls is not None:
-                self._fls.update()  # relinearizeSkip is 1 for fixed lag: every update relinearizes
+                # its update cannot force relinearization: run as many as it skips
+                for _ in range(self._relinearize_skip):
+                    self._fls.update()
             else:
-                self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], None, None,
-                                  None, True)
+                self._isam2().update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], None,
+                                     None, None, True)
             error = self._current_error()
             done = abs(previous - error) <= relative_tol * max(previous, 1e-300)
             previous = error
@@ -683,13 +698,14 @@ class IncrementalSmoother:
             return
         n = self._n_new_cdtm
         old, slots = self._cdtm[-n:], self._cdtm_indices[-n:]
-        refreshed = [f.refreshed(self._isam.calculateEstimatePose3(f.key_a).matrix(),
+        isam = self._isam2()
+        refreshed = [f.refreshed(isam.calculateEstimatePose3(f.key_a).matrix(),
                                  self._poses[k]) for f in old]
         graph = gtsam.NonlinearFactorGraph()
         for f in refreshed:
             graph.add(f.factor)
         try:
-            result = self._isam.update(graph, gtsam.Values(), slots)
+            result = isam.update(graph, gtsam.Values(), slots)
         except RuntimeError as exc:
             raise explain_indeterminant(exc) from None
         self._cdtm[-n:] = refreshed
@@ -698,7 +714,7 @@ class IncrementalSmoother:
 
     def _current_error(self) -> float:
         factors = (self._fls.getFactors() if self._fls is not None
-                   else self._isam.getFactorsUnsafe())
+                   else self._isam2().getFactorsUnsafe())
         return float(factors.error(self._solver.calculateEstimate()))
 
     def values(self) -> gtsam.Values:
@@ -720,9 +736,8 @@ class IncrementalSmoother:
         pose = np.full((K, 6, 6), np.nan)
         vel = np.full((K, 3, 3), np.nan)
         bias = np.full((K, 6, 6), np.nan)
-        source = self._fls if self._fls is not None else self._isam
-        current = (self._fls.calculateEstimate() if self._fls is not None
-                   else self._isam.calculateEstimate())
+        source = self._solver
+        current = self._solver.calculateEstimate()
         try:
             for k in range(K):
                 if not current.exists(X(k)):

@@ -27,6 +27,7 @@ import enum
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -80,8 +81,8 @@ class RobustKernel(enum.Enum):
         if self is RobustKernel.NONE:
             return None
         m = gtsam.noiseModel.mEstimator
-        return {"huber": m.Huber, "cauchy": m.Cauchy, "tukey": m.Tukey}[self.value].Create(
-            threshold)
+        estimator: Any = {"huber": m.Huber, "cauchy": m.Cauchy, "tukey": m.Tukey}[self.value]
+        return estimator.Create(threshold)
 
 
 @dataclass(frozen=True)
@@ -173,10 +174,13 @@ class PairFeatures:
 
     def subset(self, index: np.ndarray) -> PairFeatures:
         """The features selected by ``index`` (mask or indices)."""
-        arrays = (np.ascontiguousarray(getattr(self, f)[index]) for f in (
-            "q_a", "q_b", "G_E", "N", "Sigma_e", "Sigma_f", "basis_b", "sqrt_info"))
+        def pick(a: np.ndarray) -> np.ndarray:
+            return np.ascontiguousarray(a[index])
+
         scale = None if self.dtm_variance_scale is None else self.dtm_variance_scale[index]
-        return PairFeatures(*arrays, self.noise, scale)
+        return PairFeatures(pick(self.q_a), pick(self.q_b), pick(self.G_E), pick(self.N),
+                            pick(self.Sigma_e), pick(self.Sigma_f), pick(self.basis_b),
+                            pick(self.sqrt_info), self.noise, scale)
 
 
 _SCRATCH = [np.empty((COMPRESSED_ROWS, 512))]
@@ -279,6 +283,7 @@ class CdtmPairFactor:
         if self._planes_cache is not None and self._planes_cache[0] == key:
             return self._planes_cache[1], self._planes_cache[2]
         ray = f.q_a @ world_T_cam_a[:3, :3].T
+        assert self.raycast is not None  # checked at construction for REINTERSECT
         points, normals, valid = self.raycast(world_T_cam_a[:3, 3], ray)
         if not valid.all():
             points[~valid] = f.G_E[~valid]
@@ -394,7 +399,7 @@ def make_feature_factors(
         pair = CdtmPairFactor(key_a, key_b, single, body_T_cam, plane_mode, raycast)
         # smart=False: GTSAM's "smart" constructor would round a covariance with small
         # off-diagonal terms (~1e-10 rad^2 here) to a diagonal one.
-        noise = gtsam.noiseModel.Gaussian.SqrtInformation(features.sqrt_info[i], False)
+        noise: Any = gtsam.noiseModel.Gaussian.SqrtInformation(features.sqrt_info[i], False)
         if estimator is not None:
             noise = gtsam.noiseModel.Robust.Create(estimator, noise)
         factors.append(gtsam.CustomFactor(noise, [key_a, key_b], pair._error))

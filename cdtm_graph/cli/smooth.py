@@ -89,27 +89,30 @@ def plot_writers(out: RunOutput, dtm, flight) -> list:
     _, pos_cov = pose_covariance_in_world(est.world_T_body, out.result.covariances.pose)
     writers = [("trajectory.png",
                 lambda p: plot_trajectory_over_dtm(p, dtm, est, pos_cov, flight.groundtruth))]
-    if out.errors is not None:
-        e = out.errors
+    e = out.errors
+    if e is not None and e.position_sigma_world_m is not None:
+        sigma = e.position_sigma_world_m
         writers.append(("errors.png", lambda p: plot_errors(
-            p, (e.t_ns - e.t_ns[0]) * 1e-9, e.position_error_world_m, e.position_sigma_world_m)))
+            p, (e.t_ns - e.t_ns[0]) * 1e-9, e.position_error_world_m, sigma)))
     return writers
 
 
 def summary(out: RunOutput, out_dir: Path) -> str:
     r = out.result
     total_s = out.report["timings_s"]["total"]
+    gated = f", {r.counts.n_gated} gated on arrival" if r.counts.n_gated else ""
     lines = [f"{r.counts.n_frames} frames, {r.counts.n_cdtm_features} C-DTM features "
              f"({r.counts.n_missed_dtm} missed the DTM, {r.counts.n_outliers} beyond the "
-             f"chi-square gate), {r.stats.mode} smoothing in {total_s:.2f} s -> {out_dir}"]
-    if out.errors is not None:
-        e, f = out.errors, out.free_errors
+             f"chi-square gate{gated}), {r.stats.mode} smoothing in {total_s:.2f} s -> "
+             f"{out_dir}"]
+    e, f = out.errors, out.free_errors
+    if e is not None and f is not None:
         fmt = lambda v: " ".join(f"{x:8.2f}" for x in v)  # noqa: E731
         lines += [f"{'':24}{'x':>8} {'y':>8} {'z':>8}   (m, world)",
                   f"{'RMSE compensated':24}{fmt(e.rmse_position_m)}",
                   f"{'max error compensated':24}{fmt(e.max_abs_position_error_m)}",
                   f"{'max error free (IMU)':24}{fmt(f.max_abs_position_error_m)}"]
-        if e.anees_position is not None:
+        if e.anees_position is not None and e.anees_position_band is not None:
             lo, hi = e.anees_position_band
             lines.append(f"position ANEES {e.anees_position:.2f} (3 dof; 95% band "
                          f"{lo:.2f}-{hi:.2f}), pose ANEES {e.anees_pose:.2f} (6 dof)")
