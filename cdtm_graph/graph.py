@@ -354,17 +354,18 @@ def chi2_2dof_quantile(p: float) -> float:
     return float(-2.0 * np.log1p(-p))
 
 
-def innovation_mahalanobis(e: np.ndarray, H_a: np.ndarray, H_b: np.ndarray,
-                           P: np.ndarray) -> np.ndarray:
+def innovation_mahalanobis(e: np.ndarray, H_a: np.ndarray, H_b: np.ndarray, P: np.ndarray,
+                           R: np.ndarray | None = None) -> np.ndarray:
     """Squared Mahalanobis distance of each feature's innovation, (n,).
 
-    ``d_i = e_i^T S_i^-1 e_i`` with ``S_i = I + H_i P H_i^T``: the rows are whitened (the
-    measurement noise is I) and ``H_i = [H_a,i H_b,i]`` maps the 12-dim joint tangent of
-    ``(X(a), X(b))``, whose prior covariance is ``P`` (12, 12), into the residual.
-    Chi-square with 2 degrees of freedom for an inlier whose prior is honest.
+    ``d_i = e_i^T S_i^-1 e_i`` with ``S_i = R_i + H_i P H_i^T``: ``e`` (n, 2) are the
+    whitened residuals, ``R`` (n, 2, 2) their measurement covariance in the same whitened
+    coordinates (the identity if ``None``) and ``H_i = [H_a,i H_b,i]`` (n, 2, 12) maps the
+    joint tangent of ``(X(a), X(b))``, whose prior covariance is ``P`` (12, 12), into the
+    residual. Chi-square with 2 degrees of freedom for an inlier whose prior is honest.
     """
     H = np.concatenate([H_a, H_b], axis=2)
-    S = np.eye(2) + H @ P @ np.swapaxes(H, 1, 2)
+    S = H @ P @ np.swapaxes(H, 1, 2) + (np.eye(2) if R is None else R)
     return np.einsum("ni,ni->n", e, np.linalg.solve(S, e[..., None])[..., 0])
 
 

@@ -425,6 +425,7 @@ class IncrementalSmoother:
         self.n_missed = 0
         self.n_too_old = 0
         self.n_gated = 0
+        self._converging = True  # the newest update moved its frame far from the prediction
         self._gated_by_frame: dict[int, int] = {}
         self.n_cdtm_factors = 0
         self.update_times_s: list[float] = []
@@ -513,14 +514,18 @@ class IncrementalSmoother:
             new_factors = self._add_cdtm(k, *seen)
         if self._gate is not None and new_factors:
             # The prior the innovations are gated against: everything up to this frame's
-            # IMU factor. The features that pass go in with a second update.
-            self._update(graph, values, k)
+            # IMU factor, relinearized now while the solution is still converging (a prior
+            # linearized tens of metres away misjudges them). The features that pass go
+            # in with a second update.
+            self._update(graph, values, k, relinearize=self._converging)
             new_factors = self._gated(k, new_factors)
             graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         n_new = self._commit_cdtm(k, new_factors, graph)
         self._update(graph, values, k)
         if self._fls is None and self._n_new_cdtm:
             self._refresh_newest_noise(k, pose)
+        # Still converging from a loose prior: the frame's update moved it far.
+        self._converging = self._moved_far(k, pose)
         cov = self._marginal(k)
         self._stream.start(int(t_ns), self._biases[k])
         elapsed = time.perf_counter() - start
@@ -555,6 +560,9 @@ class IncrementalSmoother:
         against the current (prior) joint covariance of their two poses."""
         isam = self._isam2()
         self._fetch(k)
+        # The factors leave the first observation's pixel noise out (each observation is
+        # the second of one pair and the first of the next); a fresh innovation has it.
+        noise = replace(self._noise, sigma_qa_xy=self._noise.sigma_q_xy)
         kept, n_gated = [], 0
         for f in factors:
             a = int(gtsam.Symbol(f.key_a).index())
@@ -564,7 +572,8 @@ class IncrementalSmoother:
             except RuntimeError as exc:
                 raise explain_indeterminant(exc) from None
             e, H_a, H_b = f.innovations(self._poses[a], self._poses[k])
-            passed = innovation_mahalanobis(e, H_a, H_b, P) <= self._gate
+            R = f.whitened_noise(self._poses[a], self._poses[k], noise)
+            passed = innovation_mahalanobis(e, H_a, H_b, P, R) <= self._gate
             n_gated += int(f.features.n - passed.sum())
             if passed.all():
                 kept.append(f)
@@ -586,7 +595,10 @@ class IncrementalSmoother:
         self._factors_by_frame[k] = n_features
         return n_features
 
-    def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, k: int) -> None:
+    def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, k: int,
+                relinearize: bool = False) -> None:
+        """One solver update with frame k's new factors and states; ``relinearize``
+        (full history) relinearizes every state that moved past its threshold now."""
         try:
             if self._fls is not None:
                 stamps = gtsam.FixedLagSmootherKeyTimestampMap()
@@ -595,7 +607,7 @@ class IncrementalSmoother:
                     stamps.insert((key, t_s))
                 self._fls.update(graph, values, stamps)
             else:
-                result = self._isam2().update(graph, values)
+                result = self._isam2().update(graph, values, [], None, None, None, relinearize)
                 if self._n_new_cdtm:  # the frame's C-DTM factors are the graph's last ones
                     self._cdtm_indices.extend(
                         list(result.getNewFactorsIndices())[-self._n_new_cdtm:])
@@ -687,14 +699,18 @@ class IncrementalSmoother:
     NOISE_REFRESH_POSITION_M = 2.0
     NOISE_REFRESH_ROTATION_RAD = np.radians(0.2)
 
+    def _moved_far(self, k: int, predicted: np.ndarray) -> bool:
+        """Whether frame k's estimate is past the refresh thresholds from ``predicted``."""
+        moved = np.linalg.inv(predicted) @ self._poses[k]
+        return bool(np.linalg.norm(moved[:3, 3]) >= self.NOISE_REFRESH_POSITION_M
+                    or np.linalg.norm(so3_log(moved[:3, :3])) >= self.NOISE_REFRESH_ROTATION_RAD)
+
     def _refresh_newest_noise(self, k: int, predicted: np.ndarray) -> None:
         """Full history: when frame k's update moved it far from its IMU prediction (early
         frames under a loose prior), swap its new C-DTM factors for ones whose planes and
         noise (eqs. 19-26) are linearized at the updated estimate, as the batch smoother
         does at its solution. Only the newest factors change: a local re-elimination."""
-        moved = np.linalg.inv(predicted) @ self._poses[k]
-        if (np.linalg.norm(moved[:3, 3]) < self.NOISE_REFRESH_POSITION_M
-                and np.linalg.norm(so3_log(moved[:3, :3])) < self.NOISE_REFRESH_ROTATION_RAD):
+        if not self._moved_far(k, predicted):
             return
         n = self._n_new_cdtm
         old, slots = self._cdtm[-n:], self._cdtm_indices[-n:]

@@ -350,6 +350,20 @@ class CdtmPairFactor:
                        e, Ha, Hb)
         return e, Ha, Hb
 
+    def whitened_noise(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray,
+                       noise: FeatureNoise) -> np.ndarray:
+        """Covariance (n, 2, 2) of the residuals under ``noise`` (eqs. 19-26 at these
+        poses), in the coordinates this factor whitens to: the identity when ``noise`` is
+        the factor's own, more when it adds terms (the first observation's pixel noise)."""
+        f = self.features
+        wTc_a = world_T_body_a @ self.body_T_cam
+        wTc_b = world_T_body_b @ self.body_T_cam
+        G_E, N = self.planes(wTc_a)
+        Sigma_e = PairFeatures.build(wTc_a, wTc_b, f.q_a, f.q_b, G_E, N, noise,
+                                     f.dtm_variance_scale).Sigma_e
+        W = f.sqrt_info
+        return W @ Sigma_e @ np.swapaxes(W, 1, 2)
+
     def with_features(self, keep: np.ndarray) -> CdtmPairFactor:
         """The same factor over the features selected by ``keep`` (mask or indices)."""
         return CdtmPairFactor(self.key_a, self.key_b, self.features.subset(keep),

@@ -205,3 +205,16 @@ def test_robust_kernels_resist_mismatched_tracks(nominal_log):
     assert np.linalg.norm(huber.errors.rmse_position_m) < 0.5 * np.linalg.norm(
         plain.errors.rmse_position_m)
     assert np.all(huber.errors.rmse_position_m <= MAX_RMSE_M)
+
+
+def test_innovation_gate_keeps_nearly_every_good_feature(nominal_log):
+    """On a clean log the innovations are chi-square(2) (the first observation's pixel
+    noise counted), so a 99.9% gate drops well under 1% of the features and the run
+    keeps the ungated accuracy."""
+    flight, dtm = nominal_log
+    runs = {gate: smooth_and_evaluate(flight, dtm, SmootherSettings(
+        mode=SmootherMode.INCREMENTAL, innovation_gate=gate)) for gate in (None, 0.999)}
+    counts = runs[0.999].result.counts
+    assert 0 < counts.n_gated < 0.01 * (counts.n_cdtm_features + counts.n_gated)
+    rmse = {g: np.linalg.norm(r.errors.rmse_position_m) for g, r in runs.items()}
+    assert rmse[0.999] < 1.5 * rmse[None]
