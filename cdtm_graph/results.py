@@ -58,7 +58,9 @@ class SolverStats:
 
     Attributes (incremental runs): update_times_s: each frame's update (``add_frame``);
     imu_times_s: the IMU preintegration of each frame interval done as its samples
-    arrived (``add_imu``), before that frame's update.
+    arrived (``add_imu``), before that frame's update; innovation_nis_median,
+    innovation_nis_mean: of the squared Mahalanobis distances of the innovations the gate
+    tested (chi-square(2): 1.39 and 2 when the model is honest; NaN without a gate).
     """
 
     mode: str
@@ -70,6 +72,8 @@ class SolverStats:
     marginals_time_s: float = 0.0
     update_times_s: tuple[float, ...] = ()
     imu_times_s: tuple[float, ...] = ()
+    innovation_nis_median: float = float("nan")
+    innovation_nis_mean: float = float("nan")
 
 
 @dataclass(frozen=True)

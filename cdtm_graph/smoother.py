@@ -219,7 +219,9 @@ def build_log_graph(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
     for k, n in build.features_per_frame.items():
         per_frame[k] = n
     counts = GraphCounts(K, n_tracks, n_obs, n_pairs, build.n_features, build.n_missed,
-                         len(build.factors), K - 1, per_frame)
+                         len(build.factors), K - 1, per_frame,
+                         outliers_per_frame=np.zeros(K, dtype=int),
+                         gated_per_frame=np.zeros(K, dtype=int))
     return _LogGraph(graph, initial, counts, build.factors)
 
 
@@ -245,6 +247,7 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     Raises:
         SolverError: indeterminant system (names the variable and the likely cause).
         FlightLogError: the log has fewer than two frames.
+        ValueError: ``innovation_gate`` with the batch smoother.
     """
     settings = settings or SmootherSettings()
     if settings.innovation_gate is not None and settings.mode is not SmootherMode.INCREMENTAL:
@@ -394,8 +397,14 @@ class IncrementalSmoother:
         self._isam: gtsam.ISAM2 | None = None  # full history
         self._fls: gtsam.IncrementalFixedLagSmoother | None = None  # or a fixed lag
         self._relinearize_skip = 10
+        # A gate updates twice per frame (IMU, then the features that pass): relinearize
+        # every other update as often, in frames.
+        updates_per_frame = 1 if innovation_gate is None else 2
         if lag_s is None:
-            self._isam = gtsam.ISAM2(isam2_params())
+            params = isam2_params()
+            params.relinearizeSkip *= updates_per_frame
+            self._relinearize_skip = params.relinearizeSkip
+            self._isam = gtsam.ISAM2(params)
         else:
             # The fixed-lag smoother marginalizes states at their linearization point and
             # its update cannot force relinearization: every state must be relinearized
@@ -405,6 +414,7 @@ class IncrementalSmoother:
             params.relinearizeSkip = 1
             if frame_interval_s is not None and frame_interval_s > 0:
                 params.relinearizeSkip = int(np.clip(lag_s / frame_interval_s // 4, 1, 10))
+            params.relinearizeSkip *= updates_per_frame
             self._relinearize_skip = params.relinearizeSkip
             self._fls = gtsam.IncrementalFixedLagSmoother(lag_s, params)
         self.final_error = float("nan")
@@ -425,6 +435,7 @@ class IncrementalSmoother:
         self.n_missed = 0
         self.n_too_old = 0
         self.n_gated = 0
+        self._innovation_nis: list[np.ndarray] = []  # squared Mahalanobis distances tested
         self._converging = True  # the newest update moved its frame far from the prediction
         self._gated_by_frame: dict[int, int] = {}
         self.n_cdtm_factors = 0
@@ -514,10 +525,12 @@ class IncrementalSmoother:
             new_factors = self._add_cdtm(k, *seen)
         if self._gate is not None and new_factors:
             # The prior the innovations are gated against: everything up to this frame's
-            # IMU factor, relinearized now while the solution is still converging (a prior
-            # linearized tens of metres away misjudges them). The features that pass go
-            # in with a second update.
+            # IMU factor. The features that pass go in with a second update. While the
+            # solution is still converging from its initial prior (the last update moved
+            # its frame far), the linearized test would misjudge good features: all pass.
             self._update(graph, values, k, relinearize=self._converging)
+            if self._converging:
+                self._settle_prior(k)
             new_factors = self._gated(k, new_factors)
             graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         n_new = self._commit_cdtm(k, new_factors, graph)
@@ -555,6 +568,22 @@ class IncrementalSmoother:
         self.n_missed += build.n_missed
         return build.factors
 
+    def _settle_prior(self, k: int) -> None:
+        """A few relinearizing Gauss-Newton steps before the gate uses the prior: one
+        iSAM2 update is one step, and while the solution converges from its initial prior
+        the linearized test would misjudge good features."""
+        try:
+            for _ in range(self.GATE_SETTLE_UPDATES):
+                if self._fls is not None:  # its update cannot force relinearization
+                    for _ in range(self._relinearize_skip):
+                        self._fls.update()
+                else:
+                    self._isam2().update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [],
+                                         None, None, None, True)
+        except RuntimeError as exc:
+            raise explain_indeterminant(exc) from None
+        self._fetch(k)
+
     def _gated(self, k: int, factors: list[CdtmPairFactor]) -> list[CdtmPairFactor]:
         """The factors with only the features whose innovation passes the chi-square gate
         against the current (prior) joint covariance of their two poses."""
@@ -563,6 +592,9 @@ class IncrementalSmoother:
         # The factors leave the first observation's pixel noise out (each observation is
         # the second of one pair and the first of the next); a fresh innovation has it.
         noise = replace(self._noise, sigma_qa_xy=self._noise.sigma_q_xy)
+        # Where the new pose is still uncertain by more than a DTM cell (the first frame
+        # under its initial prior), the tangent-plane linearization cannot judge a feature.
+        spacing_m = max(abs(self.dtm.dx), abs(self.dtm.dy))
         kept, n_gated = [], 0
         for f in factors:
             a = int(gtsam.Symbol(f.key_a).index())
@@ -571,9 +603,14 @@ class IncrementalSmoother:
                 P = isam.jointMarginalCovariance([f.key_a, f.key_b]).fullMatrix()
             except RuntimeError as exc:
                 raise explain_indeterminant(exc) from None
+            if np.sqrt(np.linalg.eigvalsh(P[9:, 9:]).max()) > spacing_m:
+                kept.append(f)  # the DTM plane at the guess means nothing a cell away
+                continue
             e, H_a, H_b = f.innovations(self._poses[a], self._poses[k])
             R = f.whitened_noise(self._poses[a], self._poses[k], noise)
-            passed = innovation_mahalanobis(e, H_a, H_b, P, R) <= self._gate
+            d = innovation_mahalanobis(e, H_a, H_b, P, R)
+            self._innovation_nis.append(d)
+            passed = d <= self._gate
             n_gated += int(f.features.n - passed.sum())
             if passed.all():
                 kept.append(f)
@@ -582,6 +619,13 @@ class IncrementalSmoother:
         self.n_gated += n_gated
         self._gated_by_frame[k] = n_gated
         return kept
+
+    @property
+    def innovation_nis(self) -> np.ndarray:
+        """Squared Mahalanobis distance of every innovation the gate tested, (n,):
+        chi-square(2) (median 1.39, mean 2) when the noise model and the prior are honest."""
+        return (np.concatenate(self._innovation_nis) if self._innovation_nis
+                else np.zeros(0))
 
     def _commit_cdtm(self, k: int, factors: list[CdtmPairFactor],
                      graph: gtsam.NonlinearFactorGraph) -> int:
@@ -670,9 +714,13 @@ class IncrementalSmoother:
         optimum (``relinearizeSkip`` otherwise leaves it one step from a stale point).
 
         Returns:
-            Whether the error stopped decreasing (relatively, by ``relative_tol``).
+            Whether it settled: the error stopped decreasing (relatively, by
+            ``relative_tol``) within ``CONVERGED_SPREAD`` of the lowest error seen. Near
+            the optimum, relinearizing only the states past their thresholds makes the
+            error wander by ~1e-5 relative: it stops at the first step that does not gain.
         """
-        previous = self._current_error()
+        previous = best = self._current_error()
+        done = False
         for _ in range(iterations):
             if self._fls is not None:
                 # its update cannot force relinearization: run as many as it skips
@@ -682,7 +730,8 @@ class IncrementalSmoother:
                 self._isam2().update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [], None,
                                      None, None, True)
             error = self._current_error()
-            done = abs(previous - error) <= relative_tol * max(previous, 1e-300)
+            best = min(best, error)
+            done = error >= previous * (1.0 - relative_tol)  # no gain left (or a loss)
             previous = error
             if done:
                 break
@@ -691,8 +740,14 @@ class IncrementalSmoother:
             self._stream.start(self._t_ns[-1], self._biases[len(self._t_ns) - 1])
             self._stream.advance()
         self.final_error = previous
-        self.converged = done
-        return done
+        self.converged = done and previous <= best * (1.0 + self.CONVERGED_SPREAD)
+        return self.converged
+
+    #: Gate, while converging: relinearizing steps before the prior is used.
+    GATE_SETTLE_UPDATES = 2
+
+    #: finalize(): a settled error within this relative spread of the lowest one is converged.
+    CONVERGED_SPREAD = 1e-4
 
     #: The newest C-DTM factors are rebuilt once when the update moved their frame this
     #: far from the prediction their noise was linearized at (metres, radians).
@@ -816,9 +871,12 @@ class IncrementalSmoother:
         counts = GraphCounts(K, self._tracks.n_tracks, self._observations, self._pair_count,
                              self.n_features, self.n_missed, self.n_cdtm_factors, K - 1, per_frame,
                              n_out, out_per_frame, self.n_gated, gated)
+        nis = self.innovation_nis
         stats = SolverStats("incremental" if self.lag_s is None else "fixed_lag", K, float("nan"),
                             self.final_error, self.converged, elapsed, time.perf_counter() - t0,
-                            tuple(self.update_times_s), tuple(self.imu_times_s))
+                            tuple(self.update_times_s), tuple(self.imu_times_s),
+                            float(np.median(nis)) if nis.size else float("nan"),
+                            float(np.mean(nis)) if nis.size else float("nan"))
         settings = dict(settings_dict or {})
         settings["n_too_old_for_lag"] = self.n_too_old
         return SmootherResult(estimate, covariances, stats, counts, settings,

@@ -332,17 +332,22 @@ class CdtmPairFactor:
 
         ``|r|^2`` is chi-square with 2 degrees of freedom for an inlier.
         """
-        return self.innovations(world_T_body_a, world_T_body_b, want_jacobians=False)[0]
+        return self._unweighted(world_T_body_a, world_T_body_b, False)[0]
 
-    def innovations(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray,
-                    want_jacobians: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def innovations(self, world_T_body_a: np.ndarray,
+                    world_T_body_b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Whitened residuals (n, 2) and Jacobians (n, 2, 6) w.r.t. X(a), X(b) with no
         robust reweighting, as fresh arrays (an innovation and its measurement matrix)."""
+        return self._unweighted(world_T_body_a, world_T_body_b, True)
+
+    def _unweighted(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray,
+                    want_jacobians: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         wTc_a = world_T_body_a @ self.body_T_cam
         wTc_b = world_T_body_b @ self.body_T_cam
         G_E, N = self.planes(wTc_a)
         f = self.features
         e = np.empty((f.n, 2))
+        # (without Jacobians the kernel leaves the factor's own buffers untouched)
         Ha = np.empty((f.n, 2, 6)) if want_jacobians else self._Ha
         Hb = np.empty((f.n, 2, 6)) if want_jacobians else self._Hb
         cdtm_linearize(wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3], self._Ad,

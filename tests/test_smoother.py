@@ -25,6 +25,9 @@ POSITION_ANEES_RANGE = (1.5, 6.0)  # 3 dof: consistent within a factor 2
 INCREMENTAL_VS_BATCH_SIGMA = 0.3
 NOISELESS_TOL_M = 0.02  # "centimetres"
 NOISELESS_TOL_DEG = 1e-3
+#: chi-square(2) has median 2 ln 2 = 1.39; the model is honest to about 15%.
+NIS_MEDIAN_RANGE = (1.15, 1.65)
+GATE_RATE_TOL = 0.03
 
 
 @pytest.fixture(scope="module")
@@ -208,9 +211,8 @@ def test_robust_kernels_resist_mismatched_tracks(nominal_log):
 
 
 def test_innovation_gate_keeps_nearly_every_good_feature(nominal_log):
-    """On a clean log the innovations are chi-square(2) (the first observation's pixel
-    noise counted), so a 99.9% gate drops well under 1% of the features and the run
-    keeps the ungated accuracy."""
+    """On a clean log a 99.9% gate drops well under 1% of the features and the run keeps
+    the ungated accuracy."""
     flight, dtm = nominal_log
     runs = {gate: smooth_and_evaluate(flight, dtm, SmootherSettings(
         mode=SmootherMode.INCREMENTAL, innovation_gate=gate)) for gate in (None, 0.999)}
@@ -218,3 +220,19 @@ def test_innovation_gate_keeps_nearly_every_good_feature(nominal_log):
     assert 0 < counts.n_gated < 0.01 * (counts.n_cdtm_features + counts.n_gated)
     rmse = {g: np.linalg.norm(r.errors.rmse_position_m) for g, r in runs.items()}
     assert rmse[0.999] < 1.5 * rmse[None]
+
+
+def test_innovations_of_a_clean_log_are_chi_square_2(nominal_log):
+    """The gate's test statistic (the first observation's pixel noise counted, the prior
+    from iSAM2) follows chi-square(2) on a clean log: median near 1.39, and a 90% gate
+    drops about 10% of the features tested."""
+    flight, dtm = nominal_log
+    smoother = IncrementalSmoother(flight.config, dtm, innovation_gate=0.9)
+    result = smoother.run(flight)
+    nis = smoother.innovation_nis
+    assert nis.size > 5000
+    assert NIS_MEDIAN_RANGE[0] < np.median(nis) < NIS_MEDIAN_RANGE[1]
+    assert result.stats.innovation_nis_median == np.median(nis)
+    dropped = np.mean(nis > -2 * np.log(0.1))
+    assert abs(dropped - 0.1) < GATE_RATE_TOL, dropped
+    assert result.counts.n_gated == int(np.sum(nis > -2 * np.log(0.1)))
