@@ -268,19 +268,25 @@ def hold_segments(t_ns_samples: np.ndarray, t0_ns: int, t1_ns: int,
     if t0 < t[0] or t1 > t[-1]:
         raise ValueError(f"IMU samples span [{t[0]}, {t[-1]}] ns, which does not cover "
                          f"the interval [{t0}, {t1}] ns")
-    # Work on the samples near the interval only, so a per-frame call on a long log
-    # costs O(samples in the interval). Two extra samples on each side: the holds of
-    # the outermost ones end before t0 / start after t1 in either mode.
-    a = max(int(np.searchsorted(t, t0, side="right")) - 2, 0)
-    b = min(int(np.searchsorted(t, t1, side="left")) + 2, n)
     if not isinstance(hold, SampleHold):
         raise ValueError(f"unknown hold {hold!r}")
-    ts = np.ascontiguousarray(t[a:b], dtype=np.int64)
-    index, dt_ns, increasing = _hold_segments_kernel(ts, t0, t1, hold is SampleHold.MIDPOINT)
+    index, dt_ns, increasing = _segments_near(t.astype(np.int64, copy=False), t0, t1,
+                                              hold is SampleHold.MIDPOINT)
     if not increasing:
         raise ValueError("t_ns_samples must be strictly increasing")
-    index += a
     return index, dt_ns
+
+
+@njit(cache=True)
+def _segments_near(t, t0, t1, midpoint):
+    """``_hold_segments_kernel`` on the samples near [t0, t1] only, so a per-frame call on
+    a long log costs O(samples in the interval); indices into ``t``. Two extra samples on
+    each side: the holds of the outermost ones end before t0 / start after t1."""
+    a = max(np.searchsorted(t, t0, side="right") - 2, 0)
+    b = min(np.searchsorted(t, t1, side="left") + 2, t.shape[0])
+    index, dt_ns, increasing = _hold_segments_kernel(t[a:b], t0, t1, midpoint)
+    index += a
+    return index, dt_ns, increasing
 
 
 @njit(cache=True)
@@ -315,11 +321,7 @@ def _hold_segments_kernel(ts, t0, t1, midpoint):
 def _interval_measurements(t, gyro, acc, t0, t1, midpoint, b_a, b_g):
     """``hold_segments`` then ``_held_measurements`` for covered intervals, in one call;
     ``ok`` is False if the samples near the interval are not strictly increasing."""
-    n = t.shape[0]
-    a = max(np.searchsorted(t, t0, side="right") - 2, 0)
-    b = min(np.searchsorted(t, t1, side="left") + 2, n)
-    index, dt_ns, increasing = _hold_segments_kernel(t[a:b], t0, t1, midpoint)
-    index += a
+    index, dt_ns, increasing = _segments_near(t, t0, t1, midpoint)
     f, w, dt_s = _held_measurements(gyro, acc, index, dt_ns, midpoint, b_a, b_g)
     return f, w, dt_s, increasing
 

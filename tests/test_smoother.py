@@ -8,7 +8,7 @@ import pytest
 from gtsam.symbol_shorthand import X
 
 from cdtm_graph.errors import SolverError
-from cdtm_graph.graph import explain_indeterminant
+from cdtm_graph.graph import chi2_2dof_quantile, explain_indeterminant
 from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.simulate import SimulationSettings, simulate_flight
 from cdtm_graph.smoother import (
@@ -233,6 +233,7 @@ def test_innovations_of_a_clean_log_are_chi_square_2(nominal_log):
     assert nis.size > 5000
     assert NIS_MEDIAN_RANGE[0] < np.median(nis) < NIS_MEDIAN_RANGE[1]
     assert result.stats.innovation_nis_median == np.median(nis)
-    dropped = np.mean(nis > -2 * np.log(0.1))
+    limit = chi2_2dof_quantile(0.9)
+    dropped = np.mean(nis > limit)
     assert abs(dropped - 0.1) < GATE_RATE_TOL, dropped
-    assert result.counts.n_gated == int(np.sum(nis > -2 * np.log(0.1)))
+    assert result.counts.n_gated == int(np.sum(nis > limit))
