@@ -270,23 +270,20 @@ def hold_segments(t_ns_samples: np.ndarray, t0_ns: int, t1_ns: int,
                          f"the interval [{t0}, {t1}] ns")
     if not isinstance(hold, SampleHold):
         raise ValueError(f"unknown hold {hold!r}")
-    index, dt_ns, increasing = _segments_near(t.astype(np.int64, copy=False), t0, t1,
-                                              hold is SampleHold.MIDPOINT)
+    a, b = _near(t, t0, t1)
+    index, dt_ns, increasing = _hold_segments_kernel(
+        np.ascontiguousarray(t[a:b], dtype=np.int64), t0, t1, hold is SampleHold.MIDPOINT)
     if not increasing:
         raise ValueError("t_ns_samples must be strictly increasing")
-    return index, dt_ns
+    return index + a, dt_ns
 
 
-@njit(cache=True)
-def _segments_near(t, t0, t1, midpoint):
-    """``_hold_segments_kernel`` on the samples near [t0, t1] only, so a per-frame call on
-    a long log costs O(samples in the interval); indices into ``t``. Two extra samples on
-    each side: the holds of the outermost ones end before t0 / start after t1."""
-    a = max(np.searchsorted(t, t0, side="right") - 2, 0)
-    b = min(np.searchsorted(t, t1, side="left") + 2, t.shape[0])
-    index, dt_ns, increasing = _hold_segments_kernel(t[a:b], t0, t1, midpoint)
-    index += a
-    return index, dt_ns, increasing
+def _near(t: np.ndarray, t0: int, t1: int) -> tuple[int, int]:
+    """The slice of samples near [t0, t1], so a per-frame call on a long log costs
+    O(samples in the interval). Two extra samples on each side: the holds of the
+    outermost ones end before t0 / start after t1 in either mode."""
+    return (max(int(np.searchsorted(t, t0, side="right")) - 2, 0),
+            min(int(np.searchsorted(t, t1, side="left")) + 2, t.shape[0]))
 
 
 @njit(cache=True)
@@ -319,9 +316,9 @@ def _hold_segments_kernel(ts, t0, t1, midpoint):
 
 @njit(cache=True)
 def _interval_measurements(t, gyro, acc, t0, t1, midpoint, b_a, b_g):
-    """``hold_segments`` then ``_held_measurements`` for covered intervals, in one call;
-    ``ok`` is False if the samples near the interval are not strictly increasing."""
-    index, dt_ns, increasing = _segments_near(t, t0, t1, midpoint)
+    """``hold_segments`` then ``_held_measurements`` for a covered interval (the samples
+    near it), in one call; ``ok`` is False if they are not strictly increasing."""
+    index, dt_ns, increasing = _hold_segments_kernel(t, t0, t1, midpoint)
     f, w, dt_s = _held_measurements(gyro, acc, index, dt_ns, midpoint, b_a, b_g)
     return f, w, dt_s, increasing
 
@@ -398,15 +395,17 @@ def integrate_interval(pim: PreintegratedCombined, t_ns_samples: np.ndarray,
     if midpoint:
         # GTSAM rotates the step's specific force with the rotation at the step's start;
         # pre-rotating by half the step makes that the rotation at its middle.
-        b = pim.biasHatVector()  # (accelerometer, gyroscope)
-        b_a, b_g = np.ascontiguousarray(b[:3]), np.ascontiguousarray(b[3:])
+        bias = pim.biasHatVector()  # (accelerometer, gyroscope)
+        b_a, b_g = np.ascontiguousarray(bias[:3]), np.ascontiguousarray(bias[3:])
     else:
         b_a = b_g = np.zeros(3)
     if np.issubdtype(t.dtype, np.integer) and t.shape[0] >= 2 and int(t1_ns) > int(t0_ns) \
             and t[0] <= t0_ns and t1_ns <= t[-1] and isinstance(hold, SampleHold):
         # the usual case in one numba call; hold_segments explains what is wrong otherwise
-        f, w, dt_s, ok = _interval_measurements(t.astype(np.int64, copy=False), gyro, acc,
-                                                int(t0_ns), int(t1_ns), midpoint, b_a, b_g)
+        lo, hi = _near(t, int(t0_ns), int(t1_ns))
+        f, w, dt_s, ok = _interval_measurements(
+            np.ascontiguousarray(t[lo:hi], dtype=np.int64), gyro[lo:hi], acc[lo:hi],
+            int(t0_ns), int(t1_ns), midpoint, b_a, b_g)
     else:
         ok = False
     if not ok:

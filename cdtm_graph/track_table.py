@@ -4,7 +4,7 @@ The incremental smoother pairs each new observation of a track with the track's
 previous one (the consecutive pairs of :func:`cdtm_graph.graph.frame_pair_observations`).
 :class:`TrackTable` holds, per track id, the frame and ray of its last sighting and
 how many pairs it has made, as arrays sorted by id; a frame's look-up, update and
-grouping by earlier frame run in one numba call.
+grouping by earlier frame take one numba call and a small sort.
 """
 
 from __future__ import annotations
@@ -80,15 +80,20 @@ class TrackTable:
             raise ValueError(f"frame {k}: {track_id.shape} track ids with rays of shape "
                              f"{q.shape}; expected (m,) and (m, 3)")
         check_unique(k, track_id)  # before anything changes
-        new_rows, order, frame_a, q_a, rank, starts, n_too_old = _match(
+        new_rows, rows, frame_a, q_a, rank, n_too_old = _match(
             self.ids, self.frame, self.q, self.pairs, track_id, q, k, oldest_frame)
         if new_rows.size:
             self._insert(k, track_id[new_rows], q[new_rows])
+        if not frame_a.size:
+            return [], n_too_old
+        # Group by earlier frame (numpy here: a sort inside numba costs seconds to compile).
+        order = np.argsort(frame_a, kind="stable")
+        rows, frame_a, q_a, rank = rows[order], frame_a[order], q_a[order], rank[order]
+        bounds = np.r_[0, np.flatnonzero(frame_a[1:] != frame_a[:-1]) + 1, frame_a.size]
         pairs = []
-        for s, e in zip(starts[:-1].tolist(), starts[1:].tolist()):
-            rows = order[s:e]
-            pairs.append(FramePairObservations(int(frame_a[s]), k, q_a[s:e], q[rows],
-                                               track_id[rows], rank[s:e]))
+        for s, e in zip(bounds[:-1].tolist(), bounds[1:].tolist()):
+            pairs.append(FramePairObservations(int(frame_a[s]), k, q_a[s:e], q[rows[s:e]],
+                                               track_id[rows[s:e]], rank[s:e]))
         return pairs, n_too_old
 
     def forget_before(self, frame: int) -> None:
@@ -118,30 +123,19 @@ class TrackTable:
 
 def check_unique(k: int, track_id: np.ndarray) -> None:
     """Raise ``FlightLogError`` if a track id appears twice in frame k."""
-    repeated, value = _first_repeat(np.ascontiguousarray(track_id, dtype=np.int64))
-    if repeated:
-        raise FlightLogError(f"frame {k}: track {value} is seen twice")
-
-
-@njit(cache=True)
-def _first_repeat(track_id):
-    if track_id.shape[0] < 2:
-        return False, 0
-    s = np.sort(track_id)
-    for i in range(1, s.shape[0]):
-        if s[i] == s[i - 1]:
-            return True, s[i]
-    return False, 0
+    ids = np.sort(np.asarray(track_id))
+    repeated = ids[1:][ids[1:] == ids[:-1]]
+    if repeated.size:
+        raise FlightLogError(f"frame {k}: track {int(repeated[0])} is seen twice")
 
 
 @njit(cache=True)
 def _match(ids, frame, q_seen, pairs, track_id, q, k, oldest_frame):
     """Look up, pair and update a frame's tracks in the sorted table (in place).
 
-    Returns the rows of the frame's new tracks; for the pairs kept, sorted by earlier
-    frame: the rows of the frame's arrays, the earlier frame, its ray, the pair's rank
-    and the bounds of each earlier frame's group; then the count of pairs too old.
-    Track ids must be unique within the frame.
+    Returns the rows of the frame's new tracks; for the pairs kept, in the frame's order:
+    the rows of the frame's arrays, the earlier frame, its ray and the pair's rank; then
+    the count of pairs too old. Track ids must be unique within the frame.
     """
     m = track_id.shape[0]
     new_rows = np.empty(m, dtype=np.int64)
@@ -170,17 +164,8 @@ def _match(ids, frame, q_seen, pairs, track_id, q, k, oldest_frame):
             n_too_old += 1
         frame[at] = k
         q_seen[at, :] = q[i, :]
-    order = np.argsort(frame_a[:n_kept], kind="mergesort")
-    frame_a = frame_a[:n_kept][order]
-    starts = np.empty(n_kept + 1, dtype=np.int64)
-    n_groups = 0
-    for j in range(n_kept):
-        if j == 0 or frame_a[j] != frame_a[j - 1]:
-            starts[n_groups] = j
-            n_groups += 1
-    starts[n_groups] = n_kept
-    return (new_rows[:n_new], rows[:n_kept][order], frame_a, q_a[:n_kept][order],
-            rank[:n_kept][order], starts[:n_groups + 1], n_too_old)
+    return (new_rows[:n_new], rows[:n_kept], frame_a[:n_kept], q_a[:n_kept], rank[:n_kept],
+            n_too_old)
 
 
 @njit(cache=True)

@@ -212,10 +212,10 @@ def triangularize(e, Ha, Hb, work, Ja_out, Jb_out, z_out):
 
 @njit(cache=True)
 def _gram_triangle(e, Ha, Hb, work, Ja_out, Jb_out, z_out):
-    """Upper Cholesky factor of the Gram matrix; False if a pose column lost its pivot."""
+    """Upper Cholesky factor of the Gram matrix; False if a pose column lost its pivot.
+    (``work`` is unused: the signature is Householder's.)"""
     c = COMPRESSED_ROWS
-    G = work[:, :c]
-    G[:, :] = 0.0
+    G = np.zeros((c, c))
     row = np.empty(c)
     for i in range(e.shape[0]):
         for k in range(2):
