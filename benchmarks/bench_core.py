@@ -16,9 +16,9 @@ from gtsam.symbol_shorthand import X
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from cdtm_graph.analysis.two_frame import solve_two_frame  # noqa: E402
 from cdtm_graph.graph import dtm_ray_caster  # noqa: E402
-from cdtm_graph.scenario import PairScenario, make_terrain, sample_pair  # noqa: E402
-from cdtm_graph.two_frame import solve_two_frame  # noqa: E402
+from cdtm_graph.sim.scenario import PairScenario, make_terrain, sample_pair  # noqa: E402
 from factors import CdtmPairFactor, PairFeatures, PlaneMode  # noqa: E402
 
 N_PAIRS = 200

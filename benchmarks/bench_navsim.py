@@ -1,7 +1,7 @@
 """Cost of one ``cdtm navsim`` case: simulate, batch smooth (+ Free), incremental as-arrived.
 
 Run: ``python benchmarks/bench_navsim.py --altitude 1000 --resolution 1000``. Flies one
-case of the paper's section VI.A (:mod:`cdtm_graph.navsim`, default 300 s) after a short
+case of the paper's section VI.A (:mod:`cdtm_graph.studies.navsim`, default 300 s) after a short
 warm-up (numba caches, imports), then ends with one line:
 ``frames=... simulate_s=... batch_s=... incremental_s=... total_s=... peak_mb=...``
 """
@@ -16,7 +16,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from cdtm_graph.navsim import (  # noqa: E402
+from cdtm_graph.studies.navsim import (  # noqa: E402
     QUICK_DURATION_S,
     Estimator,
     NavsimSettings,

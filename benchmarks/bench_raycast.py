@@ -22,7 +22,7 @@ except ImportError:  # run from a checkout without `pip install -e .`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from cdtm_graph.dtm import Dtm, RayStatus  # noqa: E402
-from cdtm_graph.terrain import fractal_terrain  # noqa: E402
+from cdtm_graph.sim.terrain import fractal_terrain  # noqa: E402
 
 GRID_SAMPLES = 1000
 SPACING_M = 3.0

@@ -21,7 +21,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from cdtm_graph.simulate import SimulationSettings, simulate_flight  # noqa: E402
+from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight  # noqa: E402
 from cdtm_graph.smoother import SmootherMode, SmootherSettings, smooth  # noqa: E402
 
 #: iSAM2 figures are taken around the end of the flight ("around frame 1000"), fixed-lag

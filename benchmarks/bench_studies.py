@@ -17,7 +17,7 @@ import numpy as np
 
 from cdtm_graph.cli.study import format_table, write_study_csv, write_study_figure
 from cdtm_graph.parallel import ParallelSettings
-from cdtm_graph.studies import StudyParameter, StudySettings, run_studies
+from cdtm_graph.studies.sweeps import StudyParameter, StudySettings, run_studies
 
 
 def main() -> None:

@@ -34,6 +34,11 @@ UNDISTORT_CHECK_TOL_PX = 1e-6
 _ALLOWED_DISTORTION_LENGTHS = (0, 4, 5)
 
 
+#: A downward camera on a level body (body x forward, y left, z up): cam x = body x,
+#: cam y = -body y, cam z (optical axis) = -body z.
+DOWNWARD_BODY_T_CAM = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
 @dataclass(frozen=True)
 class PinholeCamera:
     """Intrinsics of a pinhole camera with optional OpenCV radtan distortion.

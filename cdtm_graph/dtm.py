@@ -51,7 +51,7 @@ SIGMA_H_PER_GRID_SPACING = 0.08
 
 The paper reports sigma_h of about 2.4 m for its 30 m grid over a 3x3 km terrain with
 300 m relief, and that sigma_h grows linearly with grid spacing (10..190 m): k = 2.4/30.
-``cdtm_graph.terrain.sigma_h_vs_grid_spacing`` measures the same curve on our synthetic
+``cdtm_graph.sim.terrain.sigma_h_vs_grid_spacing`` measures the same curve on our synthetic
 nominal terrain (``terrain.fractal_terrain()``), and its tests check it stays close to this
 line. The formula lives here (not in ``terrain``) so that ``dtm`` imports nothing from the
 package but ``errors``.
@@ -63,7 +63,7 @@ def sigma_h_from_grid_spacing(spacing_m: float) -> float:
 
     ``sigma_h = SIGMA_H_PER_GRID_SPACING * spacing_m`` (0.08 m per metre of spacing, i.e.
     2.4 m at 30 m). Calibrated on the paper's nominal terrain (3x3 km, 300 m relief); see
-    ``cdtm_graph.terrain.sigma_h_vs_grid_spacing`` for the measurement that backs it.
+    ``cdtm_graph.sim.terrain.sigma_h_vs_grid_spacing`` for the measurement that backs it.
 
     Args:
         spacing_m: DTM grid spacing in metres (> 0).
@@ -670,6 +670,33 @@ def _tangent_planes_kernel(elev, cell_max, x0, y0, dx, dy, z_top, origin, direct
 # ---------------------------------------------------------------------------------------
 # Readers and writer
 # ---------------------------------------------------------------------------------------
+
+
+#: A point counts as visible if the first terrain hit toward it lies within this of it (m).
+OCCLUSION_TOLERANCE_M = 1.0
+
+
+def visible_from(occluder: Dtm, world_T_cam: np.ndarray, points: np.ndarray,
+                 candidate: np.ndarray, tolerance_m: float = OCCLUSION_TOLERANCE_M
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Which ground points a camera sees: in front of it and unoccluded by the terrain.
+
+    Args:
+        occluder: the terrain that may hide points.
+        world_T_cam: (4, 4) the camera.
+        points: (n, 3) world points. candidate: (n,) bool, points worth checking.
+        tolerance_m: how far before the point the first terrain hit may be.
+
+    Returns:
+        ``visible`` (n,) bool and the points in the camera frame (n, 3).
+    """
+    to_cam = points - world_T_cam[:3, 3]
+    dist = np.linalg.norm(to_cam, axis=1)
+    back = occluder.raycast(np.broadcast_to(world_T_cam[:3, 3], to_cam.shape),
+                            np.where(candidate[:, None], to_cam, [0.0, 0.0, -1.0]))
+    visible = candidate & back.hit & (np.abs(back.t * dist - dist) < tolerance_m)
+    p_cam = to_cam @ world_T_cam[:3, :3]
+    return visible & (p_cam[:, 2] > 0), p_cam
 
 
 def load_dtm(

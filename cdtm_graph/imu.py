@@ -47,12 +47,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from enum import Enum
+from typing import Protocol
 
 import gtsam
 import numpy as np
 from numba import njit
 
-from cdtm_graph.trajectory import FlightPlan, Trajectory, evaluate
+from cdtm_graph.errors import SolverError
+from cdtm_graph.flightlog import FlightConfig, InitialState
 
 NS_PER_S = 1_000_000_000
 
@@ -89,115 +91,11 @@ class ImuNoise:
                 raise ValueError(f"{name} must be finite and >= 0, got {value}")
 
 
-@dataclass(frozen=True)
-class ImuData:
-    """IMU samples with the true biases that corrupted them.
-
-    Attributes:
-        t_ns: (N,) int64 sample times, ns, strictly increasing.
-        gyro_radps: (N, 3) measured angular rate, body frame.
-        acc_mps2: (N, 3) measured specific force, body frame.
-        gyro_bias: (N, 3) true gyro bias at each sample, rad/s (ground truth).
-        accel_bias: (N, 3) true accelerometer bias at each sample, m/s^2 (ground truth).
-    """
-
-    t_ns: np.ndarray
-    gyro_radps: np.ndarray
-    acc_mps2: np.ndarray
-    gyro_bias: np.ndarray
-    accel_bias: np.ndarray
-
-    def __post_init__(self) -> None:
-        n = self.t_ns.shape[0]
-        for name in ("gyro_radps", "acc_mps2", "gyro_bias", "accel_bias"):
-            shape = getattr(self, name).shape
-            if shape != (n, 3):
-                raise ValueError(f"ImuData.{name} must have shape ({n}, 3), got {shape}")
-
-
 class SampleHold(Enum):
     """How an IMU sample stands for time in ``integrate_interval`` (module docstring)."""
 
     ZERO_ORDER = "zero_order"  # sample k over [t_k, t_k+1), given to GTSAM as is
     MIDPOINT = "midpoint"      # sample k over the half-way points; half-step rotation
-
-
-def ideal_imu(traj: Trajectory, gravity_mps2: float) -> tuple[np.ndarray, np.ndarray]:
-    """Exact, noiseless, bias-free IMU readings along a trajectory.
-
-    Args:
-        traj: true body states, N samples.
-        gravity_mps2: gravity magnitude; gravity points along -z of world.
-
-    Returns:
-        gyro_radps (N, 3): body angular rate in body.
-        acc_mps2 (N, 3): specific force ``R^T (a_world + g e_z)`` in body.
-    """
-    R = traj.rotation_world_body
-    f_world = traj.accel_world_mps2 + np.array([0.0, 0.0, gravity_mps2])
-    acc = np.einsum("nji,nj->ni", R, f_world)
-    return traj.omega_body_radps.copy(), acc
-
-
-def _check_times_ns(t_ns: np.ndarray, name: str) -> np.ndarray:
-    t = np.asarray(t_ns)
-    if t.ndim != 1 or not np.issubdtype(t.dtype, np.integer):
-        raise ValueError(f"{name} must be a 1-D integer array of ns, got {t.dtype} {t.shape}")
-    t = t.astype(np.int64)
-    if t.size >= 2 and np.any(np.diff(t) <= 0):
-        raise ValueError(f"{name} must be strictly increasing")
-    return t
-
-
-def simulate_imu(
-    plan: FlightPlan,
-    t_ns: np.ndarray,
-    gravity_mps2: float,
-    noise: ImuNoise | None,
-    rng: np.random.Generator,
-    initial_gyro_bias: tuple[float, float, float] = (0.0, 0.0, 0.0),
-    initial_accel_bias: tuple[float, float, float] = (0.0, 0.0, 0.0),
-) -> ImuData:
-    """IMU samples along a flight plan: exact instantaneous values plus bias and noise.
-
-    Args:
-        plan: the flight plan.
-        t_ns: (N,) int sample times, ns, strictly increasing.
-        gravity_mps2: gravity magnitude the accelerometer senses.
-        noise: noise densities; None gives noiseless samples whose biases stay at
-            their initial values (still added to the measurements).
-        rng: source of all randomness; draws are made in a fixed order (gyro white
-            noise, accel white noise, gyro bias steps, accel bias steps).
-        initial_gyro_bias: gyro bias at the first sample, rad/s.
-        initial_accel_bias: accelerometer bias at the first sample, m/s^2.
-
-    Returns:
-        The samples and the true biases. White noise sigma = density * sqrt(rate) with
-        rate = 1 / median sample spacing; the bias steps from sample k-1 to k have
-        sigma = random_walk * sqrt(t_k - t_k-1).
-    """
-    t = _check_times_ns(t_ns, "t_ns")
-    n = t.shape[0]
-    traj = evaluate(plan, t.astype(float) / NS_PER_S)
-    gyro, acc = ideal_imu(traj, gravity_mps2)
-    gyro_bias = np.tile(np.asarray(initial_gyro_bias, dtype=float), (n, 1))
-    accel_bias = np.tile(np.asarray(initial_accel_bias, dtype=float), (n, 1))
-    if noise is not None:
-        if n < 2:
-            raise ValueError("simulating IMU noise needs at least two samples (for the rate)")
-        dt_s = np.diff(t).astype(float) / NS_PER_S
-        sqrt_rate = 1.0 / math.sqrt(float(np.median(dt_s)))
-        gyro_white = rng.standard_normal((n, 3)) * noise.gyroscope_noise_density * sqrt_rate
-        acc_white = rng.standard_normal((n, 3)) * noise.accelerometer_noise_density * sqrt_rate
-        step_scale = np.sqrt(dt_s)[:, None]
-        gyro_steps = rng.standard_normal((n - 1, 3)) * noise.gyroscope_random_walk * step_scale
-        acc_steps = rng.standard_normal((n - 1, 3)) * noise.accelerometer_random_walk * step_scale
-        gyro_bias[1:] += np.cumsum(gyro_steps, axis=0)
-        accel_bias[1:] += np.cumsum(acc_steps, axis=0)
-        gyro = gyro + gyro_white
-        acc = acc + acc_white
-    return ImuData(t_ns=t, gyro_radps=gyro + gyro_bias, acc_mps2=acc + accel_bias,
-                   gyro_bias=gyro_bias, accel_bias=accel_bias)
 
 
 def preintegration_params(noise: ImuNoise, gravity_mps2: float,
@@ -414,3 +312,144 @@ def integrate_interval(pim: PreintegratedCombined, t_ns_samples: np.ndarray,
     integrate = pim.integrateMeasurement
     for f_k, w_k, dt_k in zip(list(f), list(w), dt_s.tolist()):
         integrate(f_k, w_k, dt_k)
+
+
+def imu_noise(config: FlightConfig) -> ImuNoise:
+    imu = config.imu
+    return ImuNoise(imu.gyroscope_noise_density, imu.accelerometer_noise_density,
+                    imu.gyroscope_random_walk, imu.accelerometer_random_walk)
+
+
+def initial_bias(initial: InitialState) -> gtsam.imuBias.ConstantBias:
+    return gtsam.imuBias.ConstantBias(np.asarray(initial.accel_bias, dtype=float),
+                                      np.asarray(initial.gyro_bias, dtype=float))
+
+
+class ImuArrays(Protocol):
+    """IMU samples as arrays (``ImuSamples`` or any object with its three fields)."""
+
+    @property
+    def t_ns(self) -> np.ndarray: ...
+
+    @property
+    def gyro_radps(self) -> np.ndarray: ...
+
+    @property
+    def acc_mps2(self) -> np.ndarray: ...
+
+
+class ImuIntervals:
+    """Preintegrates the IMU over frame intervals of one flight."""
+
+    def __init__(self, config: FlightConfig, imu: ImuArrays, hold: SampleHold):
+        self.params = preintegration_params(imu_noise(config), config.gravity_mps2,
+                                            config.imu.rate_hz)
+        self.imu = imu
+        self.hold = hold
+
+    def preintegrate(self, t0_ns: int, t1_ns: int,
+                     bias: gtsam.imuBias.ConstantBias) -> gtsam.PreintegratedCombinedMeasurements:
+        """IMU over exactly [t0, t1], linearized at ``bias``.
+
+        Raises:
+            SolverError: the samples do not cover the interval.
+        """
+        pim = gtsam.PreintegratedCombinedMeasurements(self.params, bias)
+        self.integrate(pim, t0_ns, t1_ns)
+        return pim
+
+    def integrate(self, pim: gtsam.PreintegratedCombinedMeasurements, t0_ns: int,
+                  t1_ns: int) -> None:
+        """Add the IMU over exactly [t0, t1] to ``pim``. Stopping and resuming on a hold
+        boundary (:meth:`hold_boundary_before`) feeds GTSAM the same pieces as one call.
+
+        Raises:
+            SolverError: the samples do not cover the interval.
+        """
+        try:  # (it works on the samples near the interval only)
+            integrate_interval(pim, self.imu.t_ns, self.imu.gyro_radps, self.imu.acc_mps2,
+                               int(t0_ns), int(t1_ns), self.hold)
+        except ValueError as exc:
+            raise SolverError(f"imu.csv does not cover the frame interval "
+                              f"[{t0_ns}, {t1_ns}] ns: {exc}") from None
+
+    def hold_boundary_before(self, limit_ns: int) -> int | None:
+        """The latest hold boundary at or before ``limit_ns`` up to which the samples held
+        fix every hold piece (the newest sample's own hold needs the sample after it);
+        ``None`` if there is none."""
+        t = self.imu.t_ns
+        n = t.shape[0]
+        j = int(np.searchsorted(t, limit_ns, side="right")) - 1  # t[j] <= limit
+        if n < 2 or j < 0:
+            return None
+        if self.hold is SampleHold.ZERO_ORDER:
+            return int(t[j])
+        # MIDPOINT: boundaries are the integer half-way points between neighbours
+        if j + 1 <= n - 1 and t[j] + (t[j + 1] - t[j]) // 2 <= limit_ns:
+            return int(t[j] + (t[j + 1] - t[j]) // 2)
+        return int(t[j - 1] + (t[j] - t[j - 1]) // 2) if j >= 1 else None
+
+
+class ImuStream:
+    """The preintegration after the newest frame, advanced as IMU samples arrive.
+
+    A live system receives ~100 IMU samples between two frames at 2 fps. Each hold
+    piece can be integrated once the sample after it is known, which leaves the frame
+    update one or two pieces. Integration only ever stops on hold boundaries, so the
+    result is exactly :meth:`ImuIntervals.preintegrate` over the frame interval. If
+    samples ran past the next frame time before that frame arrived (camera latency),
+    :meth:`finish` redoes the interval from the samples, and from then on the stream
+    holds back by that lead so it does not happen again.
+    """
+
+    def __init__(self, intervals: ImuIntervals):
+        self.intervals = intervals
+        self._pim: gtsam.PreintegratedCombinedMeasurements | None = None
+        self._bias = gtsam.imuBias.ConstantBias()
+        self._t0_ns = self._done_ns = 0
+        self.holdback_ns = 0  # how far the IMU has been seen to run ahead of a frame
+
+    def start(self, t0_ns: int, bias: gtsam.imuBias.ConstantBias) -> None:
+        """Begin the interval after a frame at ``t0_ns``, linearized at ``bias``."""
+        self._pim = gtsam.PreintegratedCombinedMeasurements(self.intervals.params, bias)
+        self._bias = bias
+        self._t0_ns = self._done_ns = int(t0_ns)
+
+    def advance(self) -> None:
+        """Integrate every piece the samples held so far fix (less the hold-back)."""
+        t = self.intervals.imu.t_ns
+        if self._pim is None or t.shape[0] < 2 or t[0] > self._done_ns:
+            return  # nothing to do yet, or a gap that finish() will report
+        horizon = self.intervals.hold_boundary_before(int(t[-1]) - self.holdback_ns)
+        if horizon is not None and horizon > self._done_ns:
+            self.intervals.integrate(self._pim, self._done_ns, horizon)
+            self._done_ns = horizon
+
+    def finish(self, t1_ns: int) -> gtsam.PreintegratedCombinedMeasurements:
+        """The preintegration over [t0, t1], t1 the next frame's time. The stream is
+        spent on success only: after an error (samples missing), feed them and retry.
+
+        Raises:
+            SolverError: the samples do not cover the interval.
+        """
+        if self._pim is None:
+            raise ValueError("ImuStream.finish before start")
+        t1_ns = int(t1_ns)
+        if self._done_ns > t1_ns:  # integrated past the frame: redo the interval
+            pim = self.intervals.preintegrate(self._t0_ns, t1_ns, self._bias)
+            self.holdback_ns = max(self.holdback_ns, int(self.intervals.imu.t_ns[-1]) - t1_ns)
+        else:
+            pim = self._pim
+            if t1_ns > self._done_ns:  # checks everything before it integrates
+                self.intervals.integrate(pim, self._done_ns, t1_ns)
+        self._pim = None
+        return pim
+
+
+def navstate_predict(pim: gtsam.PreintegratedCombinedMeasurements, world_T_body: np.ndarray,
+                     velocity: np.ndarray, bias: gtsam.imuBias.ConstantBias
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Propagate a body state over one preintegrated interval."""
+    state = pim.predict(gtsam.NavState(gtsam.Pose3(world_T_body), np.asarray(velocity)), bias)
+    return state.pose().matrix(), np.asarray(state.velocity())
+

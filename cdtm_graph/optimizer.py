@@ -8,15 +8,35 @@ makes an iteration quadratic in the flight length (DESIGN.md, "Performance notes
 from __future__ import annotations
 
 import logging
+import re
 import time
 
 import gtsam
 import numpy as np
 
-from cdtm_graph.graph import explain_indeterminant
+from cdtm_graph.errors import SolverError
 from cdtm_graph.results import SolverStats
 
 log = logging.getLogger(__name__)
+
+
+_SYMBOL = re.compile(r"Symbol:\s*([a-zA-Z])(\d+)")
+
+
+def explain_indeterminant(exc: RuntimeError) -> SolverError:
+    """Turn GTSAM's 'indeterminant system near variable ...' into one clear line."""
+    text = " ".join(str(exc).split())
+    match = _SYMBOL.search(text)
+    if not match:
+        return SolverError(f"GTSAM could not solve the system: {text}")
+    char, index = match.group(1).upper(), int(match.group(2))
+    cause = {
+        "X": "the pose is unobservable: no C-DTM features near this frame, flat terrain "
+             "under it, or an IMU gap",
+        "V": "the velocity is unobservable: check the IMU samples around this frame",
+        "B": "the IMU bias is unobservable: check the IMU samples and the bias priors",
+    }.get(char, "check the inputs around this variable")
+    return SolverError(f"indeterminant system near {char}({index}): {cause}")
 
 
 def _damping_factors(keys: list[tuple[int, int]], lam: float) -> gtsam.GaussianFactorGraph:

@@ -27,26 +27,18 @@ from gtsam.symbol_shorthand import B, V, X
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import FlightConfig, FlightLog, ImuSamples
+from cdtm_graph.gating import chi2_2dof_quantile, count_outliers, innovation_mahalanobis
 from cdtm_graph.geometry import so3_log
 from cdtm_graph.graph import (
-    FramePairObservations,
     GraphSettings,
-    ImuIntervals,
-    ImuStream,
     cdtm_factors,
-    chi2_2dof_quantile,
-    count_outliers,
-    explain_indeterminant,
     feature_noise,
-    frame_pair_observations,
     imu_factor,
-    initial_bias,
-    innovation_mahalanobis,
     insert_state,
-    navstate_predict,
     prior_factors,
 )
-from cdtm_graph.optimizer import LinearSolver, levenberg_marquardt
+from cdtm_graph.imu import ImuIntervals, ImuStream, initial_bias, navstate_predict
+from cdtm_graph.optimizer import LinearSolver, explain_indeterminant, levenberg_marquardt
 from cdtm_graph.results import (
     GraphCounts,
     SmootherResult,
@@ -54,7 +46,12 @@ from cdtm_graph.results import (
     StateCovariances,
     TrajectoryEstimate,
 )
-from cdtm_graph.track_table import TrackTable, check_unique
+from cdtm_graph.tracks import (
+    FramePairObservations,
+    TrackTable,
+    check_unique,
+    frame_pair_observations,
+)
 from factors import CdtmPairFactor
 
 log = logging.getLogger(__name__)

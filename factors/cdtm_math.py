@@ -1,7 +1,7 @@
 """The C-DTM constraint as plain numpy math: residual, Jacobians and noise.
 
 One formula, one place: the GTSAM factors (:mod:`factors.cdtm_factor`), the
-closed-form analysis (``cdtm_graph.analysis``) and the tests all call these.
+closed-form analysis (``cdtm_graph.analysis.closed_form``) and the tests all call these.
 
 Notation follows the paper (Kupervasser, Lerner, Rivlin, Rotstein) and DESIGN.md.
 For one feature observed at frames a < b, with camera poses

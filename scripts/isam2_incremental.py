@@ -15,8 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cdtm_graph.flightlog import ImuSamples
-from cdtm_graph.loading import load_log_and_dtm
+from cdtm_graph.flightlog import ImuSamples, load_log_and_dtm
 from cdtm_graph.smoother import IncrementalSmoother
 
 SAMPLE_LOG = Path(__file__).resolve().parents[1] / "data" / "sample_flight"

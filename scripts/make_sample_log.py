@@ -16,7 +16,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from cdtm_graph.simulate import SimulationSettings, write_simulated_log
+from cdtm_graph.sim.simulate import SimulationSettings, write_simulated_log
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "data" / "sample_flight"

@@ -18,7 +18,7 @@ import numpy as np  # noqa: E402
 from matplotlib.colors import LightSource  # noqa: E402
 
 from cdtm_graph.dtm import sigma_h_from_grid_spacing  # noqa: E402
-from cdtm_graph.terrain import (  # noqa: E402
+from cdtm_graph.sim.terrain import (  # noqa: E402
     clone_basic_cell,
     fractal_terrain,
     sigma_h_vs_grid_spacing,

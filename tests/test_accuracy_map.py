@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from cdtm_graph.accuracy_map import (
+from cdtm_graph.analysis.accuracy_map import (
     DEGENERACY_CODE_NAMES,
     AccuracyMapSettings,
     AltitudeReference,
@@ -16,13 +16,13 @@ from cdtm_graph.accuracy_map import (
     accuracy_map,
     map_nodes,
 )
-from cdtm_graph.analysis import analyze_pair
+from cdtm_graph.analysis.closed_form import analyze_pair
 from cdtm_graph.cli import main as cdtm_main
 from cdtm_graph.dtm import Dtm, save_dtm_npz
 from cdtm_graph.errors import CdtmError
 from cdtm_graph.geometry import so3_log
 from cdtm_graph.parallel import ParallelSettings
-from cdtm_graph.terrain import fractal_terrain
+from cdtm_graph.sim.terrain import fractal_terrain
 from tests.conftest import TEST_SEED
 
 #: The map stores exactly what analyze_pair returns (same inputs, same arithmetic).

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cdtm_graph import analysis
+from cdtm_graph.analysis import closed_form as analysis
+from cdtm_graph.analysis.two_frame import TwoFrameSettings, solve_two_frame
 from cdtm_graph.geometry import make_pose
-from cdtm_graph.two_frame import TwoFrameSettings, solve_two_frame
 from factors import FeatureNoise, cdtm_math
 from tests.manifold import (
     WavyTerrain,

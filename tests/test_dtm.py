@@ -718,7 +718,8 @@ def test_tif_reader_with_rasterio(tmp_path):
     rasterio = pytest.importorskip("rasterio")
     from rasterio.transform import from_origin
 
-    values = np.array([[1.0, 2.0, 3.0], [4.0, -1.0, 6.0]], dtype=np.float32)
+    # no data in the south-east pixel: the western cell keeps four valid corners
+    values = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, -1.0]], dtype=np.float32)
     path = tmp_path / "dtm.tif"
     with rasterio.open(
         path, "w", driver="GTiff", height=2, width=3, count=1, dtype="float32",
@@ -727,8 +728,8 @@ def test_tif_reader_with_rasterio(tmp_path):
         dst.write(values, 1)
     dtm = load_dtm(path, origin_enu_m=(500000.0, 4000000.0, 0.0))
     assert dtm.height(5.0, 15.0) == pytest.approx(1.0)  # centre of the north-west pixel
-    assert dtm.height(25.0, 5.0) == pytest.approx(6.0)
-    assert np.isnan(dtm.elevation[1, 1])
+    assert dtm.height(10.0, 10.0) == pytest.approx(3.0)  # bilinear: mean of 1, 2, 4, 5
+    assert np.isnan(dtm.elevation[1, 2])
 
 
 class _FakeRasterioDataset:

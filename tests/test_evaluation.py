@@ -32,9 +32,10 @@ from cdtm_graph.flightlog import (
     States,
 )
 from cdtm_graph.geometry import make_pose, rotation_to_quat_wxyz, so3_exp, so3_log
-from cdtm_graph.imu import SampleHold, simulate_imu
+from cdtm_graph.imu import SampleHold
 from cdtm_graph.results import StateCovariances, TrajectoryEstimate
-from cdtm_graph.trajectory import STANDARD_GRAVITY_MPS2, FlightPlan, evaluate
+from cdtm_graph.sim.imu import simulate_imu
+from cdtm_graph.sim.trajectory import STANDARD_GRAVITY_MPS2, FlightPlan, evaluate
 from tests.manifold import random_rotation
 
 NS_PER_S = 1_000_000_000

@@ -12,7 +12,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cdtm_graph import flightlog as fl
 from cdtm_graph.camera import PinholeCamera
 from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import (
@@ -29,6 +28,7 @@ from cdtm_graph.flightlog import (
     read_flightlog,
     write_flightlog,
 )
+from cdtm_graph.flightlog import tables as fl
 from cdtm_graph.geometry import make_pose, quat_wxyz_to_rotation, so3_exp, so3_log
 
 T0_NS = 1_403_636_579_758_555_392  # a EuRoC MH_01 epoch: needs int64, not float64

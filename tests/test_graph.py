@@ -9,17 +9,11 @@ import pytest
 from cdtm_graph.camera import PinholeCamera
 from cdtm_graph.errors import SolverError
 from cdtm_graph.flightlog import ImuSamples, Tracks
-from cdtm_graph.graph import (
-    ImuIntervals,
-    ImuStream,
-    chi2_2dof_quantile,
-    frame_pair_observations,
-    innovation_mahalanobis,
-)
-from cdtm_graph.imu import SampleHold
-from cdtm_graph.simulate import SimulationSettings, simulate_flight
+from cdtm_graph.gating import chi2_2dof_quantile, innovation_mahalanobis
+from cdtm_graph.imu import ImuIntervals, ImuStream, SampleHold
+from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
 from cdtm_graph.smoother import IncrementalSmoother
-from cdtm_graph.track_table import TrackTable
+from cdtm_graph.tracks import TrackTable, frame_pair_observations
 
 
 def test_pairs_are_grouped_by_frame_pair_with_their_rank_in_the_track():
@@ -38,10 +32,11 @@ def test_pairs_are_grouped_by_frame_pair_with_their_rank_in_the_track():
 
 def test_features_with_nan_rays_are_dropped_and_counted():
     """A pixel the distortion model cannot invert has a NaN ray: no factor row, counted."""
+    from cdtm_graph.camera import DOWNWARD_BODY_T_CAM
     from cdtm_graph.dtm import Dtm
     from cdtm_graph.geometry import make_pose
-    from cdtm_graph.graph import FramePairObservations, GraphSettings, cdtm_factors
-    from cdtm_graph.scenario import DOWNWARD_BODY_T_CAM
+    from cdtm_graph.graph import GraphSettings, cdtm_factors
+    from cdtm_graph.tracks import FramePairObservations
     from factors import FeatureNoise
 
     x = np.arange(0.0, 2000.0, 50.0)

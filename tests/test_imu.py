@@ -26,16 +26,14 @@ import pytest
 
 from cdtm_graph.imu import (
     NS_PER_S,
-    ImuData,
     ImuNoise,
     SampleHold,
     hold_segments,
-    ideal_imu,
     integrate_interval,
     preintegration_params,
-    simulate_imu,
 )
-from cdtm_graph.trajectory import FlightPlan, evaluate, plan_trajectory
+from cdtm_graph.sim.imu import ImuData, ideal_imu, simulate_imu
+from cdtm_graph.sim.trajectory import FlightPlan, evaluate, plan_trajectory
 
 G_MPS2 = 9.80665
 RATE_HZ = 200.0

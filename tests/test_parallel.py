@@ -11,7 +11,7 @@ import pytest
 from cdtm_graph import parallel
 from cdtm_graph.errors import CdtmError
 from cdtm_graph.parallel import ParallelBackend, ParallelSettings, map_tasks
-from cdtm_graph.studies import StudyParameter, StudySettings, run_study
+from cdtm_graph.studies.sweeps import StudyParameter, StudySettings, run_study
 from tests.conftest import TEST_SEED
 
 #: A small study: two values, trials on two terrains, several tasks per worker.

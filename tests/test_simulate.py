@@ -1,4 +1,4 @@
-"""Tests of cdtm_graph.simulate and ``cdtm simulate``: logs that read back, exact noiseless
+"""Tests of cdtm_graph.sim.simulate and ``cdtm simulate``: logs that read back, exact noiseless
 geometry, occlusion, IMU and pixel noise statistics, feature counts, CLI errors.
 
 Occlusion is checked independently of the ray caster: the segment from the camera to
@@ -19,8 +19,9 @@ import pytest
 from cdtm_graph.cli import main
 from cdtm_graph.dtm import Dtm, load_dtm, save_dtm_npz
 from cdtm_graph.flightlog import read_flightlog
-from cdtm_graph.imu import NS_PER_S, ideal_imu
-from cdtm_graph.simulate import (
+from cdtm_graph.imu import NS_PER_S
+from cdtm_graph.sim.imu import ideal_imu
+from cdtm_graph.sim.simulate import (
     DTM_FILENAME,
     EXACT_DTM_SIGMA_H_M,
     NavMode,
@@ -33,7 +34,7 @@ from cdtm_graph.simulate import (
     write_simulated_log,
     write_simulation,
 )
-from cdtm_graph.trajectory import evaluate
+from cdtm_graph.sim.trajectory import evaluate
 from tests.conftest import TEST_SEED
 
 REPO = Path(__file__).resolve().parents[1]
@@ -417,12 +418,8 @@ def test_sample_log_residuals_match_its_stated_noise():
     import gtsam
     from gtsam.symbol_shorthand import X
 
-    from cdtm_graph.graph import (
-        GraphSettings,
-        cdtm_factors,
-        feature_noise,
-        frame_pair_observations,
-    )
+    from cdtm_graph.graph import GraphSettings, cdtm_factors, feature_noise
+    from cdtm_graph.tracks import frame_pair_observations
 
     log = read_flightlog(SAMPLE_LOG)
     dtm = load_dtm(log.config.dtm.path, sigma_h_m=log.config.dtm.sigma_h_m)

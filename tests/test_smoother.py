@@ -8,9 +8,10 @@ import pytest
 from gtsam.symbol_shorthand import X
 
 from cdtm_graph.errors import SolverError
-from cdtm_graph.graph import chi2_2dof_quantile, explain_indeterminant
+from cdtm_graph.gating import chi2_2dof_quantile
+from cdtm_graph.optimizer import explain_indeterminant
 from cdtm_graph.run import smooth_and_evaluate
-from cdtm_graph.simulate import SimulationSettings, simulate_flight
+from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
 from cdtm_graph.smoother import (
     IncrementalSmoother,
     SmootherMode,
@@ -162,7 +163,7 @@ def test_incremental_api_one_frame_at_a_time(nominal_log):
 
 def test_marginals_match_gtsam_with_cholesky_and_with_qr(nominal_log, batch_run):
     """Our Bayes-tree marginals (Cholesky, or the QR fallback) equal gtsam.Marginals."""
-    from cdtm_graph.graph import ImuIntervals
+    from cdtm_graph.imu import ImuIntervals
     from cdtm_graph.smoother import _marginals, build_log_graph
 
     flight, dtm = nominal_log

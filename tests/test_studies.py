@@ -18,7 +18,7 @@ import pytest
 from cdtm_graph.cli import main as cdtm_main
 from cdtm_graph.errors import CdtmError
 from cdtm_graph.parallel import ParallelSettings
-from cdtm_graph.studies import (
+from cdtm_graph.studies.sweeps import (
     NEES_FAILURE_THRESHOLD,
     STUDY_COLUMNS,
     StudyParameter,

@@ -1,4 +1,4 @@
-"""Tests of cdtm_graph.terrain: synthetic terrain, basic-cell cloning, the sigma_h model."""
+"""Tests of cdtm_graph.sim.terrain: synthetic terrain, basic-cell cloning, the sigma_h model."""
 
 from __future__ import annotations
 
@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from cdtm_graph import dtm as dtm_module
-from cdtm_graph import terrain
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import DtmError
-from cdtm_graph.terrain import (
+from cdtm_graph.sim import terrain
+from cdtm_graph.sim.terrain import (
     clone_basic_cell,
     fractal_terrain,
     sigma_h_from_grid_spacing,

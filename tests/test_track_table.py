@@ -8,8 +8,7 @@ import pytest
 from cdtm_graph.camera import PinholeCamera
 from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import Tracks
-from cdtm_graph.graph import frame_pair_observations
-from cdtm_graph.track_table import TrackTable
+from cdtm_graph.tracks import TrackTable, frame_pair_observations
 
 CAMERA = PinholeCamera(width=640, height=480, fx=400.0, fy=400.0, cx=320.0, cy=240.0)
 

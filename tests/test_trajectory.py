@@ -9,7 +9,7 @@ import pytest
 from scipy.integrate import quad
 
 from cdtm_graph.geometry import quat_wxyz_to_rotation, so3_log
-from cdtm_graph.trajectory import FlightPlan, Trajectory, evaluate, plan_trajectory
+from cdtm_graph.sim.trajectory import FlightPlan, Trajectory, evaluate, plan_trajectory
 
 G_MPS2 = 9.80665
 

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from cdtm_graph.analysis import THETA_NAMES, theta_from_cameras
+from cdtm_graph.analysis.closed_form import THETA_NAMES, theta_from_cameras
+from cdtm_graph.analysis.two_frame import TwoFrameSettings, solve_two_frame
 from cdtm_graph.geometry import so3_log
-from cdtm_graph.scenario import PairScenario, dtm_ray_caster, make_terrain, sample_pair
-from cdtm_graph.two_frame import TwoFrameSettings, solve_two_frame
+from cdtm_graph.sim.scenario import PairScenario, dtm_ray_caster, make_terrain, sample_pair
 from factors import PlaneMode
 
 #: Noiseless recovery bounds of the issue (metres, radians).

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cdtm_graph.accuracy_map import (
+from cdtm_graph.analysis.accuracy_map import (
     DEGENERACY_CODE_NAMES,
     AccuracyMap,
     AccuracyMapSettings,

@@ -1,6 +1,6 @@
 """``cdtm navsim``: the paper's navigation simulation, Tables 1 and 2 (section VI.A).
 
-Flies every case (:mod:`cdtm_graph.navsim`), writes ``table1.md``, ``table1.csv``,
+Flies every case (:mod:`cdtm_graph.studies.navsim`), writes ``table1.md``, ``table1.csv``,
 ``table2.md`` and ``table2.csv`` into ``--out`` (the directory appears complete or not at
 all) and prints the two markdown tables.
 """
@@ -14,7 +14,7 @@ from pathlib import Path
 
 from cdtm_graph.atomic import atomic_output_dir
 from cdtm_graph.errors import CdtmError
-from cdtm_graph.navsim import (
+from cdtm_graph.studies.navsim import (
     QUICK_DURATION_S,
     NavsimResult,
     NavsimSettings,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from cdtm_graph.simulate import NavMode, SimulationSettings, simulate, write_simulation
+from cdtm_graph.sim.simulate import NavMode, SimulationSettings, simulate, write_simulation
 
 _DEFAULTS = SimulationSettings()
 

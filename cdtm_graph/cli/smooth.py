@@ -7,8 +7,8 @@ import sys
 from pathlib import Path
 
 from cdtm_graph.errors import CdtmError
+from cdtm_graph.flightlog import load_log_and_dtm
 from cdtm_graph.graph import GraphSettings
-from cdtm_graph.loading import load_log_and_dtm
 from cdtm_graph.outputs import write_run
 from cdtm_graph.results import pose_covariance_in_world
 from cdtm_graph.run import RunOutput, smooth_and_evaluate

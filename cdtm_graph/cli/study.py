@@ -14,7 +14,7 @@ from pathlib import Path
 
 from cdtm_graph.atomic import atomic_output_file
 from cdtm_graph.parallel import ParallelSettings
-from cdtm_graph.studies import (
+from cdtm_graph.studies.sweeps import (
     STUDY_COLUMNS,
     StudyParameter,
     StudyResult,

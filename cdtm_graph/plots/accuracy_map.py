@@ -12,7 +12,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 from matplotlib.ticker import FormatStrFormatter
 
-from cdtm_graph.accuracy_map import DEGENERACY_CODE_NAMES, AccuracyMap
+from cdtm_graph.analysis.accuracy_map import DEGENERACY_CODE_NAMES, AccuracyMap
 from cdtm_graph.dtm import Dtm
 
 #: Opacity of the heat map over the hillshade.

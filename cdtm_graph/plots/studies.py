@@ -14,7 +14,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.ticker import FormatStrFormatter
 
-from cdtm_graph.studies import StudyResult
+from cdtm_graph.studies.sweeps import StudyResult
 
 #: Values with fewer good trials than this are left out of the curves (too noisy to show).
 MIN_GOOD_TRIALS_PLOTTED = 10

@@ -26,19 +26,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cdtm_graph.analysis import ClosedFormAnalysis, DegeneracySettings, analyze_pair
-from cdtm_graph.camera import PinholeCamera
-from cdtm_graph.dtm import Dtm
+from cdtm_graph.analysis.closed_form import ClosedFormAnalysis, DegeneracySettings, analyze_pair
+from cdtm_graph.camera import DOWNWARD_BODY_T_CAM, PinholeCamera
+from cdtm_graph.dtm import Dtm, visible_from
 from cdtm_graph.errors import CdtmError
 from cdtm_graph.geometry import make_pose, so3_exp
 from cdtm_graph.parallel import ParallelSettings, map_tasks
-from cdtm_graph.scenario import DOWNWARD_BODY_T_CAM, visible_from
 from factors import FeatureNoise
 
 #: Candidate feature pixels drawn per requested feature (some leave the second image).
 _CANDIDATES_PER_FEATURE = 3
-#: A feature is visible from camera b if the DTM hit toward it lies within this of it.
-_OCCLUSION_TOLERANCE_M = 1.0
 #: Grid nodes along the longer side of the DTM when no step is given.
 DEFAULT_NODES_PER_SIDE = 40
 #: Body axis of the inter-frame rotation: equal roll, pitch and yaw.
@@ -53,7 +50,7 @@ class AltitudeReference(enum.Enum):
 
 
 class DegeneracyCode(enum.IntFlag):
-    """Bit codes of the degeneracy reasons of :mod:`cdtm_graph.analysis` in the map."""
+    """Bit codes of the degeneracy reasons of :mod:`cdtm_graph.analysis.closed_form` in the map."""
 
     FEW_FEATURES = 1
     NARROW_FOV = 2
@@ -247,7 +244,7 @@ def accuracy_at(dtm: Dtm, x_m: float, y_m: float,
     hits = dtm.raycast(np.broadcast_to(wTc_a[:3, 3], ray.shape), ray)
     ok = hits.hit
     G = np.where(ok[:, None], hits.point, 0.0)
-    ok, g_b = visible_from(dtm, wTc_b, G, ok, _OCCLUSION_TOLERANCE_M)
+    ok, g_b = visible_from(dtm, wTc_b, G, ok)
     ok &= camera.in_image(camera.rays_to_pixels(np.where(ok[:, None], g_b, [0.0, 0.0, 1.0])))
     visible = np.flatnonzero(ok)
     if visible.size > settings.n_features:  # spread the kept ones over the whole overlap

@@ -10,7 +10,7 @@ pair, and reports the **maximum** absolute position error per axis of IMU-only n
 * Table 2: resolutions 500x500, 1000x1000, 4000x4000 (altitude not stated; 1000 m
   assumed, for the same reason).
 
-:func:`run_navsim` flies each case with :func:`cdtm_graph.simulate.simulate` and reports
+:func:`run_navsim` flies each case with :func:`cdtm_graph.sim.simulate.simulate` and reports
 three estimates of the same flight:
 
 * **Free**: IMU dead reckoning from the initial state (:func:`~cdtm_graph.evaluation.
@@ -65,7 +65,7 @@ from cdtm_graph.flightlog import FlightLog
 from cdtm_graph.imu import ImuNoise
 from cdtm_graph.results import TrajectoryEstimate
 from cdtm_graph.run import smooth_and_evaluate
-from cdtm_graph.simulate import SimulationSettings, simulate
+from cdtm_graph.sim.simulate import SimulationSettings, simulate
 from cdtm_graph.smoother import IncrementalSmoother, SmootherMode, SmootherSettings
 
 logger = logging.getLogger(__name__)

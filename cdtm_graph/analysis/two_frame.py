@@ -15,7 +15,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import X
 
-from cdtm_graph.analysis import (
+from cdtm_graph.analysis.closed_form import (
     ClosedFormAnalysis,
     Degeneracy,
     DegeneracySettings,

@@ -9,11 +9,62 @@ grouping by earlier frame take one numba call and a small sort.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from numba import njit
 
+from cdtm_graph.camera import PinholeCamera
 from cdtm_graph.errors import FlightLogError
-from cdtm_graph.graph import FramePairObservations
+from cdtm_graph.flightlog import Tracks
+
+
+@dataclass(frozen=True)
+class FramePairObservations:
+    """Consecutive observations of tracks between frames a < b (one batched factor).
+
+    Attributes:
+        frame_a, frame_b: frame indices.
+        q_a, q_b: (n, 3) normalized rays (z = 1).
+        track_id: (n,) track ids.
+        track_pair_index: (n,) 1-based rank of this pair among its track's pairs.
+    """
+
+    frame_a: int
+    frame_b: int
+    q_a: np.ndarray
+    q_b: np.ndarray
+    track_id: np.ndarray
+    track_pair_index: np.ndarray | None = None
+
+
+def frame_pair_observations(tracks: Tracks, camera: PinholeCamera) -> list[FramePairObservations]:
+    """Group the consecutive observation pairs of every track by frame pair, vectorized.
+
+    Returns:
+        One entry per distinct (frame_a, frame_b), sorted by (frame_b, frame_a).
+    """
+    rays = camera.pixels_to_rays(tracks.uv_px)
+    rows_a, rows_b = tracks.pairs()
+    fa, fb = tracks.frame[rows_a], tracks.frame[rows_b]
+    # rank of each pair within its track, in time order (tracks.pairs() is time-sorted)
+    tid = tracks.track_id[rows_a]
+    by_track = np.lexsort((fa, tid))
+    first = np.r_[True, tid[by_track][1:] != tid[by_track][:-1]]
+    starts = np.maximum.accumulate(np.where(first, np.arange(tid.size), 0))
+    rank = np.empty(tid.size, dtype=np.int64)
+    rank[by_track] = np.arange(tid.size) - starts + 1
+    order = np.lexsort((fa, fb))
+    rows_a, rows_b, fa, fb, rank = rows_a[order], rows_b[order], fa[order], fb[order], rank[order]
+    if fa.size == 0:
+        return []
+    change = np.flatnonzero((np.diff(fa) != 0) | (np.diff(fb) != 0)) + 1
+    starts = np.r_[0, change]
+    ends = np.r_[change, fa.size]
+    return [FramePairObservations(int(fa[s]), int(fb[s]), rays[rows_a[s:e]], rays[rows_b[s:e]],
+                                  tracks.track_id[rows_a[s:e]], rank[s:e])
+            for s, e in zip(starts, ends)]
+
 
 
 class TrackTable:

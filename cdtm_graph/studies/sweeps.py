@@ -42,17 +42,17 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from cdtm_graph.analysis import euler_from_rotation, theta_from_cameras
+from cdtm_graph.analysis.closed_form import euler_from_rotation, theta_from_cameras
+from cdtm_graph.analysis.two_frame import TwoFrameSettings, solve_two_frame
 from cdtm_graph.errors import CdtmError, DegenerateGeometryError, SolverError
 from cdtm_graph.parallel import ParallelSettings, map_tasks
-from cdtm_graph.scenario import (
+from cdtm_graph.sim.scenario import (
     PairScenario,
     ScenarioTerrain,
     dtm_ray_caster,
     make_terrain,
     sample_pair,
 )
-from cdtm_graph.two_frame import TwoFrameSettings, solve_two_frame
 
 log = logging.getLogger(__name__)
 

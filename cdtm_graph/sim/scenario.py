@@ -23,19 +23,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from cdtm_graph.camera import PinholeCamera
-from cdtm_graph.dtm import Dtm, sigma_h_from_grid_spacing
+from cdtm_graph.camera import DOWNWARD_BODY_T_CAM, PinholeCamera
+from cdtm_graph.dtm import OCCLUSION_TOLERANCE_M, Dtm, sigma_h_from_grid_spacing, visible_from
 from cdtm_graph.geometry import make_pose, so3_exp
-from cdtm_graph.graph import dtm_ray_caster  # noqa: F401  (re-exported for scenario users)
-from cdtm_graph.terrain import fractal_terrain
+from cdtm_graph.graph import dtm_ray_caster  # noqa: F401  (re-exported for scenario users
+from cdtm_graph.sim.terrain import fractal_terrain
 from factors import FeatureNoise
-
-#: A downward camera on a level body (body x forward, y left, z up): cam x = body x,
-#: cam y = -body y, cam z (optical axis) = -body z.
-DOWNWARD_BODY_T_CAM = make_pose(np.diag([1.0, -1.0, -1.0]), np.zeros(3))
-
-#: A feature is visible from camera b if the DTM hit toward it lies within this of it.
-_OCCLUSION_TOLERANCE_M = 1.0
 
 
 class DtmErrorModel(enum.Enum):
@@ -148,29 +141,6 @@ class PairSample:
         return self.q_a.shape[0]
 
 
-def visible_from(occluder: Dtm, world_T_cam: np.ndarray, points: np.ndarray,
-                 candidate: np.ndarray, tolerance_m: float = _OCCLUSION_TOLERANCE_M
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Which ground points a camera sees: in front of it and unoccluded by the terrain.
-
-    Args:
-        occluder: the terrain that may hide points.
-        world_T_cam: (4, 4) the camera.
-        points: (n, 3) world points. candidate: (n,) bool, points worth checking.
-        tolerance_m: how far before the point the first terrain hit may be.
-
-    Returns:
-        ``visible`` (n,) bool and the points in the camera frame (n, 3).
-    """
-    to_cam = points - world_T_cam[:3, 3]
-    dist = np.linalg.norm(to_cam, axis=1)
-    back = occluder.raycast(np.broadcast_to(world_T_cam[:3, 3], to_cam.shape),
-                            np.where(candidate[:, None], to_cam, [0.0, 0.0, -1.0]))
-    visible = candidate & back.hit & (np.abs(back.t * dist - dist) < tolerance_m)
-    p_cam = to_cam @ world_T_cam[:3, :3]
-    return visible & (p_cam[:, 2] > 0), p_cam
-
-
 def _random_unit(rng: np.random.Generator) -> np.ndarray:
     v = rng.normal(size=3)
     return v / np.linalg.norm(v)
@@ -220,7 +190,7 @@ def sample_pair(scenario: PairScenario, terrain: ScenarioTerrain,
         G = hits.point
         occluder = terrain.truth
     # Off-surface points (the modelled DTM error) may sit a few sigma_h behind the surface.
-    tolerance = _OCCLUSION_TOLERANCE_M + 3 * abs(scenario.sigma_h) * (
+    tolerance = OCCLUSION_TOLERANCE_M + 3 * abs(scenario.sigma_h) * (
         scenario.dtm_error is DtmErrorModel.MODEL)
     ok, g_b = visible_from(occluder, wTc_b, G, ok, tolerance)
     uv_b = camera.rays_to_pixels(np.where(ok[:, None], g_b, [0.0, 0.0, 1.0]))

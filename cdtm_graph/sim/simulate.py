@@ -7,13 +7,13 @@ features per frame pair. :func:`simulate` builds the same kind of flight and ret
 as a ``cdtm-flightlog/1`` log (FLIGHTLOG.md) plus the DTM to ship with it:
 
 * **Terrain** (the truth). By default a 3x3 km fractal cell with the paper's 300 m of
-  relief (:func:`cdtm_graph.terrain.fractal_terrain`), tiled over the region the flight
-  and its camera footprint cover (:func:`cdtm_graph.terrain.clone_basic_cell`; the cell
+  relief (:func:`cdtm_graph.sim.terrain.fractal_terrain`), tiled over the region the flight
+  and its camera footprint cover (:func:`cdtm_graph.sim.terrain.clone_basic_cell`; the cell
   is periodic, so plain tiling is seamless) and cropped to it. Or a DTM file given by
   the user, which is then both the truth and the log's DTM.
 * **The log's DTM**. The truth resampled to ``dtm_spacing_m`` (30 m, as the paper) with
   ``sigma_h`` from the Fig. 6 model, or the truth itself (``exact_dtm``, ``noiseless``).
-* **Flight**. A :class:`~cdtm_graph.trajectory.FlightPlan` at constant altitude above
+* **Flight**. A :class:`~cdtm_graph.sim.trajectory.FlightPlan` at constant altitude above
   the terrain's mean height: straight legs joined by alternating coordinated turns (the
   course zig-zags about east, so the flight region stays a band), with a small attitude
   wobble so the camera is never exactly level.
@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from cdtm_graph.atomic import atomic_output_dir
-from cdtm_graph.camera import PinholeCamera
+from cdtm_graph.camera import DOWNWARD_BODY_T_CAM, PinholeCamera
 from cdtm_graph.dtm import Dtm, RayStatus, load_dtm, save_dtm_npz, sigma_h_from_grid_spacing
 from cdtm_graph.errors import CdtmError, SimulationError  # noqa: F401  (re-exported)
 from cdtm_graph.flightlog import (
@@ -64,10 +64,10 @@ from cdtm_graph.flightlog import (
     write_flightlog,
 )
 from cdtm_graph.geometry import make_pose, rotation_to_quat_wxyz, so3_exp
-from cdtm_graph.imu import NS_PER_S, ImuData, ImuNoise, SampleHold, simulate_imu
-from cdtm_graph.scenario import DOWNWARD_BODY_T_CAM
-from cdtm_graph.terrain import NOMINAL_CORRELATION_LENGTH_M, clone_basic_cell, fractal_terrain
-from cdtm_graph.trajectory import STANDARD_GRAVITY_MPS2, FlightPlan, Trajectory, evaluate
+from cdtm_graph.imu import NS_PER_S, ImuNoise, SampleHold
+from cdtm_graph.sim.imu import ImuData, simulate_imu
+from cdtm_graph.sim.terrain import NOMINAL_CORRELATION_LENGTH_M, clone_basic_cell, fractal_terrain
+from cdtm_graph.sim.trajectory import STANDARD_GRAVITY_MPS2, FlightPlan, Trajectory, evaluate
 
 logger = logging.getLogger(__name__)
 
@@ -799,7 +799,7 @@ def _initial_state(settings: SimulationSettings, truth_frames: Trajectory, rng: 
 def _dead_reckoning(config: FlightConfig, imu: ImuSamples, frame_t_ns: np.ndarray) -> States:
     """IMU-only propagation of the prior mean to every frame, by GTSAM preintegration."""
     # Imported here: graph pulls in GTSAM and the factor kernels, which only this mode needs.
-    from cdtm_graph.graph import ImuIntervals, initial_bias, navstate_predict
+    from cdtm_graph.imu import ImuIntervals, initial_bias, navstate_predict
 
     intervals = ImuIntervals(config, imu, SampleHold.MIDPOINT)
     bias = initial_bias(config.initial_state)

@@ -1,0 +1,277 @@
+"""flight.yaml: walked node by node, so every message names the offending line."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, NoReturn
+
+import numpy as np
+import yaml
+
+from cdtm_graph.camera import PinholeCamera
+from cdtm_graph.flightlog.model import (
+    DTM_SUFFIXES,
+    FORMAT,
+    QUATERNION_EXACT_TOL,
+    QUATERNION_UNIT_TOL,
+    CameraConfig,
+    DtmConfig,
+    FlightConfig,
+    ImuConfig,
+    InitialState,
+    normalized_path,
+)
+from cdtm_graph.flightlog.problems import _fail, _show
+from cdtm_graph.flightlog.tables import _parse_float
+from cdtm_graph.geometry import make_pose, quat_wxyz_to_rotation
+
+
+class _Yaml:
+    """flight.yaml walked node by node, so every message can name the offending line."""
+
+    def __init__(self, shown: str, loader: yaml.SafeLoader):
+        self.shown = shown
+        self.loader = loader
+
+    @staticmethod
+    def line(node: yaml.Node) -> int:
+        return node.start_mark.line + 1
+
+    def fail(self, node_or_line: yaml.Node | int, what: str, expected: str) -> NoReturn:
+        line = node_or_line if isinstance(node_or_line, int) else self.line(node_or_line)
+        _fail(self.shown, line, what, expected)
+
+    def pairs(self, node: yaml.Node, name: str,
+              line: int) -> dict[str, tuple[yaml.Node, yaml.Node]]:
+        """Key -> (key node, value node) of a mapping; duplicate keys are an error."""
+        if not isinstance(node, yaml.MappingNode):
+            label = name or "the document"
+            self.fail(line, f"{label} is not a mapping", f"a mapping of {label}'s keys")
+        out: dict[str, tuple[yaml.Node, yaml.Node]] = {}
+        for key_node, value_node in node.value:
+            key = self.loader.construct_object(key_node) if isinstance(
+                key_node, yaml.ScalarNode) else None
+            if not isinstance(key, str):
+                self.fail(key_node, f"key {key!r} in {name} is not a name", "string keys")
+            if key in out:
+                self.fail(key_node, f"duplicate key '{_dotted(name, key)}'",
+                          f"each key once (first on line {self.line(out[key][0])})")
+            out[key] = (key_node, value_node)
+        return out
+
+    def keys(self, pairs: dict[str, tuple[yaml.Node, yaml.Node]], name: str, line: int,
+             required: Sequence[str], optional: Sequence[str] = ()) -> dict[str, yaml.Node]:
+        """Value nodes by key, after rejecting unknown keys and reporting missing ones."""
+        allowed = tuple(required) + tuple(optional)
+        for key, (key_node, _) in pairs.items():
+            if key not in allowed:
+                self.fail(key_node, f"unknown key '{_dotted(name, key)}'",
+                          f"one of {', '.join(allowed)}"
+                          + ("; free-form keys belong under extra:" if not name else ""))
+        for key in required:
+            if key not in pairs:
+                self.fail(line, f"missing key '{_dotted(name, key)}'",
+                          f"every required key of {name or 'the top level'}: "
+                          f"{', '.join(required)}")
+        return {key: value for key, (_, value) in pairs.items()}
+
+    def value(self, node: yaml.Node) -> Any:
+        return self.loader.construct_object(node, deep=True)
+
+    def scalar(self, node: yaml.Node, name: str, expected: str) -> Any:
+        if not isinstance(node, yaml.ScalarNode):
+            kind = "a list" if isinstance(node, yaml.SequenceNode) else "a mapping"
+            self.fail(node, f"{name} is {kind}", expected)
+        return self.value(node)
+
+    def number(self, node: yaml.Node, name: str, *, positive: bool = False) -> float:
+        value = self.scalar(node, name, "a finite number")
+        number: float | None = None
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            number = float(value)
+        elif isinstance(value, str):
+            # PyYAML (YAML 1.1) reads 1e-4 as a string; it is a number to anyone else.
+            number = _parse_float(value)
+        if number is None or not math.isfinite(number):
+            self.fail(node, f"{name} is {_show(str(value))}", "a finite number")
+        if positive and not number > 0.0:
+            self.fail(node, f"{name} is {number!r}", "a positive number")
+        return number
+
+    def integer(self, node: yaml.Node, name: str) -> int:
+        value = self.scalar(node, name, "a positive integer")
+        if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+            self.fail(node, f"{name} is {_show(str(value))}", "a positive integer")
+        return value
+
+    def text(self, node: yaml.Node, name: str) -> str:
+        value = self.scalar(node, name, "a non-empty string")
+        if not isinstance(value, str) or not value.strip():
+            self.fail(node, f"{name} is {_show(str(value))}", "a non-empty string")
+        return value
+
+    def vector(self, node: yaml.Node, name: str, lengths: Sequence[int]) -> np.ndarray:
+        want = " or ".join(str(n) for n in lengths)
+        expected = f"a list of {want} finite numbers"
+        if not isinstance(node, yaml.SequenceNode):
+            self.fail(node, f"{name} is {_show(str(self.scalar(node, name, expected)))}",
+                      expected)
+        if len(node.value) not in lengths:
+            self.fail(node, f"{name} has {len(node.value)} values", expected)
+        return np.array([self.number(item, f"{name}[{i}]") for i, item in enumerate(node.value)])
+
+    def quaternion(self, node: yaml.Node, name: str) -> np.ndarray:
+        quat = self.vector(node, name, (4,))
+        norm = float(np.linalg.norm(quat))
+        if not abs(norm - 1.0) <= QUATERNION_UNIT_TOL:
+            self.fail(node, f"{name} has norm {norm:.6g}",
+                      f"a unit quaternion w,x,y,z (|norm - 1| <= {QUATERNION_UNIT_TOL:g})")
+        return quat / norm if abs(norm - 1.0) > QUATERNION_EXACT_TOL else quat
+
+
+def _dotted(parent: str, key: str) -> str:
+    return f"{parent}.{key}" if parent else key
+
+
+def _parse_flight_yaml(path: Path, shown: str, root: Path) -> FlightConfig:
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as exc:
+        _fail(shown, 1 + path.read_bytes()[: exc.start].count(b"\n"), "not UTF-8 text",
+              "a UTF-8 YAML file")
+    loader = yaml.SafeLoader(text)
+    try:
+        return _parse_flight_document(loader, shown, root)
+    except yaml.YAMLError as exc:
+        # Syntax errors, and constructor errors such as an unknown !tag.
+        mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
+        problem = getattr(exc, "problem", None) or str(exc)
+        _fail(shown, mark.line + 1 if mark else 1, f"YAML error: {problem}", "valid YAML")
+    finally:
+        loader.dispose()
+
+
+def _parse_flight_document(loader: yaml.SafeLoader, shown: str, root: Path) -> FlightConfig:
+    document = loader.get_single_node()
+    y = _Yaml(shown, loader)
+    if document is None:
+        _fail(shown, 1, "empty file", f"a mapping starting with format: {FORMAT}")
+    top_pairs = y.pairs(document, "", 1)
+    if "format" not in top_pairs:
+        _fail(shown, 1, "missing key 'format'", f"format: {FORMAT}")
+    format_node = top_pairs["format"][1]
+    if y.value(format_node) != FORMAT:
+        y.fail(format_node, f"format is {_show(str(y.value(format_node)))}", f"{FORMAT!r}")
+    top = y.keys(top_pairs, "", 1,
+                 ("format", "gravity_mps2", "dtm", "camera", "imu", "initial_state"),
+                 ("extra",))
+    line_of = {key: y.line(key_node) for key, (key_node, _) in top_pairs.items()}
+
+    gravity = y.number(top["gravity_mps2"], "gravity_mps2", positive=True)
+    dtm = _parse_dtm(y, top["dtm"], line_of["dtm"], root)
+    camera = _parse_camera(y, top["camera"], line_of["camera"])
+    imu = _parse_imu(y, top["imu"], line_of["imu"])
+    initial = _parse_initial_state(y, top["initial_state"], line_of["initial_state"])
+    extra: dict = {}
+    if "extra" in top:
+        value = y.value(top["extra"])
+        if value is not None and not isinstance(value, dict):
+            y.fail(top["extra"], "extra is not a mapping", "extra: a mapping (or nothing)")
+        extra = value or {}
+    return FlightConfig(gravity, dtm, camera, imu, initial, extra)
+
+
+def _parse_dtm(y: _Yaml, node: yaml.Node, line: int, root: Path) -> DtmConfig:
+    m = y.keys(y.pairs(node, "dtm", line), "dtm", line, ("path",), ("sigma_h_m", "origin_enu_m"))
+    text = y.text(m["path"], "dtm.path")
+    given = Path(text)
+    resolved = normalized_path(given if given.is_absolute() else root / given)
+    if resolved.suffix.lower() not in DTM_SUFFIXES:
+        y.fail(m["path"], f"dtm.path {_show(text)} has suffix {_show(resolved.suffix)}",
+               f"a {', '.join(DTM_SUFFIXES[:-1])} or {DTM_SUFFIXES[-1]} file")
+    if not resolved.is_file():
+        y.fail(m["path"], f"dtm.path {_show(text)} does not exist ({resolved})",
+               "an existing DTM file, relative to the log directory or absolute")
+    sigma_h = None
+    if "sigma_h_m" in m and y.value(m["sigma_h_m"]) is not None:
+        sigma_h = y.number(m["sigma_h_m"], "dtm.sigma_h_m", positive=True)
+    origin = (0.0, 0.0, 0.0)
+    if "origin_enu_m" in m:
+        origin = tuple(y.vector(m["origin_enu_m"], "dtm.origin_enu_m", (3,)).tolist())
+    return DtmConfig(resolved, sigma_h, origin)  # type: ignore[arg-type]
+
+
+def _parse_camera(y: _Yaml, node: yaml.Node, line: int) -> CameraConfig:
+    pairs = y.pairs(node, "camera", line)
+    m = y.keys(pairs, "camera", line,
+               ("resolution", "intrinsics", "pixel_sigma_px", "body_T_cam"),
+               ("distortion_model", "distortion_coeffs"))
+    res_node = m["resolution"]
+    if not isinstance(res_node, yaml.SequenceNode) or len(res_node.value) != 2:
+        y.fail(res_node, "camera.resolution is not two values", "[width, height] in pixels")
+    width = y.integer(res_node.value[0], "camera.resolution width")
+    height = y.integer(res_node.value[1], "camera.resolution height")
+    fx, fy, cx, cy = y.vector(m["intrinsics"], "camera.intrinsics", (4,)).tolist()
+
+    model_node = m.get("distortion_model")
+    model = None if model_node is None else y.value(model_node)
+    distortion: tuple[float, ...] = ()
+    if model == "radtan":
+        if "distortion_coeffs" not in m:
+            y.fail(model_node, "distortion_model radtan without distortion_coeffs",
+                   "camera.distortion_coeffs: [k1, k2, p1, p2] or [k1, k2, p1, p2, k3]")
+        distortion = tuple(y.vector(m["distortion_coeffs"], "camera.distortion_coeffs",
+                                    (4, 5)).tolist())
+    elif model is None or model == "none":
+        if "distortion_coeffs" in m:
+            y.fail(m["distortion_coeffs"], "distortion_coeffs given without a distortion model",
+                   "camera.distortion_model: radtan, or no distortion_coeffs")
+    else:
+        y.fail(model_node, f"distortion_model {_show(str(model))} is not supported",
+               "radtan (OpenCV k1 k2 p1 p2 [k3]) or none")
+    try:
+        camera = PinholeCamera(width, height, fx, fy, cx, cy, distortion)
+    except ValueError as exc:
+        y.fail(m["intrinsics"], f"invalid camera: {exc}",
+               "positive focal lengths fx, fy and a finite principal point cx, cy")
+    sigma = y.number(m["pixel_sigma_px"], "camera.pixel_sigma_px", positive=True)
+
+    mount_line = y.line(pairs["body_T_cam"][0])
+    mount = y.keys(y.pairs(m["body_T_cam"], "camera.body_T_cam", mount_line),
+                   "camera.body_T_cam", mount_line, ("translation_m", "quaternion_wxyz"))
+    translation = y.vector(mount["translation_m"], "camera.body_T_cam.translation_m", (3,))
+    quat = y.quaternion(mount["quaternion_wxyz"], "camera.body_T_cam.quaternion_wxyz")
+    return CameraConfig(camera, sigma, make_pose(quat_wxyz_to_rotation(quat), translation))
+
+
+_IMU_KEYS = ("rate_hz", "gyroscope_noise_density", "accelerometer_noise_density",
+             "gyroscope_random_walk", "accelerometer_random_walk")
+
+
+def _parse_imu(y: _Yaml, node: yaml.Node, line: int) -> ImuConfig:
+    m = y.keys(y.pairs(node, "imu", line), "imu", line, _IMU_KEYS)
+    # Zero noise would make the IMU factors' information infinite: positive required.
+    return ImuConfig(*(y.number(m[key], f"imu.{key}", positive=True) for key in _IMU_KEYS))
+
+
+_INITIAL_VECTORS = (("position_m", 3), ("quaternion_wxyz", 4), ("velocity_mps", 3),
+                    ("gyro_bias", 3), ("accel_bias", 3))
+_INITIAL_SIGMAS = ("sigma_position_m", "sigma_attitude_deg", "sigma_velocity_mps",
+                   "sigma_gyro_bias", "sigma_accel_bias")
+
+
+def _parse_initial_state(y: _Yaml, node: yaml.Node, line: int) -> InitialState:
+    keys = tuple(name for name, _ in _INITIAL_VECTORS) + _INITIAL_SIGMAS
+    m = y.keys(y.pairs(node, "initial_state", line), "initial_state", line, keys)
+    values: dict[str, Any] = {}
+    for name, n in _INITIAL_VECTORS:
+        dotted = f"initial_state.{name}"
+        values[name] = (y.quaternion(m[name], dotted) if name == "quaternion_wxyz"
+                        else y.vector(m[name], dotted, (n,)))
+    for name in _INITIAL_SIGMAS:
+        values[name] = y.number(m[name], f"initial_state.{name}", positive=True)
+    return InitialState(**values)
+
+
