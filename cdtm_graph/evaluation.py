@@ -1,9 +1,8 @@
 """Errors against ground truth, consistency (NEES), and IMU-only "Free" navigation.
 
 Pure: no file I/O. ``trajectory_errors`` compares an estimate with ground truth at the
-frame times; ``dead_reckoning`` propagates the IMU alone from the initial state (the
-paper's "Free" navigation of Table 1); ``free_vs_compensated`` puts the two side by side
-as Table 1 does.
+frame times; ``free_vs_compensated`` puts it beside IMU-only navigation
+(:func:`cdtm_graph.imu.dead_reckoning`, the paper's "Free") as Table 1 does.
 
 Sign and frame conventions:
 
@@ -33,10 +32,8 @@ import gtsam
 import numpy as np
 from scipy.stats import chi2
 
-from cdtm_graph.errors import FlightLogError
-from cdtm_graph.flightlog import FlightLog, States
+from cdtm_graph.flightlog import States
 from cdtm_graph.geometry import so3_log
-from cdtm_graph.imu import ImuNoise, SampleHold, integrate_interval, preintegration_params
 from cdtm_graph.results import StateCovariances, TrajectoryEstimate, pose_covariance_in_world
 
 NS_PER_S = 1_000_000_000
@@ -285,58 +282,6 @@ def trajectory_errors(estimate: TrajectoryEstimate, covariances: StateCovariance
         rmse_attitude_deg=float(np.sqrt(np.mean(att_deg**2))) if m else math.nan,
         max_attitude_deg=float(np.max(att_deg)) if m else math.nan,
         **fields)
-
-
-def dead_reckoning(log: FlightLog, hold: SampleHold = SampleHold.MIDPOINT
-                   ) -> TrajectoryEstimate:
-    """IMU-only navigation from the initial state, no corrections: the paper's "Free".
-
-    From ``initial_state`` (position, attitude, velocity, biases) at the first frame, each
-    frame interval is preintegrated with GTSAM's combined preintegration
-    (``integrate_interval``) and predicted with ``pim.predict(NavState, bias)``; the
-    biases stay at their initial values.
-
-    Args:
-        log: the flight log (its IMU must cover the frame times).
-        hold: how an IMU sample stands for time; the default is the smoother's
-            (``GraphSettings.imu_hold`` in :mod:`cdtm_graph.graph`), so "Free" and
-            "Compensated" integrate the same IMU model.
-
-    Returns:
-        K states at the frame times (biases constant).
-
-    Raises:
-        FlightLogError: the IMU samples do not cover the frames.
-    """
-    cfg = log.config
-    init = cfg.initial_state
-    t_frames = np.asarray(log.frames.t_ns, dtype=np.int64)
-    k = t_frames.shape[0]
-    t_imu = np.asarray(log.imu.t_ns, dtype=np.int64)
-    if k and (t_imu.size < 2 or t_frames[0] < t_imu[0] or t_frames[-1] > t_imu[-1]):
-        span = f"[{t_imu[0]}, {t_imu[-1]}]" if t_imu.size else "nothing"
-        raise FlightLogError(f"imu.csv: samples span {span} ns; expected them to cover the "
-                             f"frames [{t_frames[0]}, {t_frames[-1]}] ns")
-    noise = ImuNoise(cfg.imu.gyroscope_noise_density, cfg.imu.accelerometer_noise_density,
-                     cfg.imu.gyroscope_random_walk, cfg.imu.accelerometer_random_walk)
-    params = preintegration_params(noise, cfg.gravity_mps2, cfg.imu.rate_hz)
-    bias = gtsam.imuBias.ConstantBias(np.asarray(init.accel_bias, dtype=float),
-                                      np.asarray(init.gyro_bias, dtype=float))
-    state = gtsam.NavState(gtsam.Pose3(init.world_T_body), np.asarray(init.velocity_mps, float))
-    poses = np.empty((k, 4, 4))
-    velocities = np.empty((k, 3))
-    for i in range(k):
-        if i:
-            pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
-            integrate_interval(pim, t_imu, log.imu.gyro_radps, log.imu.acc_mps2,
-                               int(t_frames[i - 1]), int(t_frames[i]), hold)
-            state = pim.predict(state, bias)
-        poses[i] = state.pose().matrix()
-        velocities[i] = state.velocity()
-    return TrajectoryEstimate(
-        t_ns=t_frames, world_T_body=poses, velocity_mps=velocities,
-        gyro_bias=np.tile(np.asarray(init.gyro_bias, dtype=float), (k, 1)),
-        accel_bias=np.tile(np.asarray(init.accel_bias, dtype=float), (k, 1)))
 
 
 def free_vs_compensated(smoothed_errors: ErrorReport, free_errors: ErrorReport

@@ -7,12 +7,13 @@ count at a solution (``count_outliers``).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import replace
 
 import gtsam
 import numpy as np
 
-from factors import CdtmPairFactor
+from factors import CdtmPairFactor, FeatureNoise
 
 
 def chi2_2dof_quantile(p: float) -> float:
@@ -61,3 +62,73 @@ def count_outliers(factors: Sequence[CdtmPairFactor],
     return int(per_frame.sum()), per_frame
 
 
+
+
+class InnovationGate:
+    """Drops each new feature whose innovation fails a chi-square(2) gate against the prior.
+
+    The prior is the joint covariance of the feature's two poses after the frame's IMU
+    factor (before its C-DTM factors), from the incremental solver. The factors leave the
+    first observation's pixel noise out (each observation is the second of one pair and
+    the first of the next); a fresh innovation has it, so the gate counts it (without it
+    the innovations were 1.8x over-dispersed: docs/design.md).
+
+    Args:
+        probability: gate probability, e.g. 0.999.
+        noise: the factors' data noise.
+        dtm_spacing_m: the DTM's grid spacing. Where the newer pose is uncertain by more
+            than a cell (the first frame under its initial prior), the tangent-plane
+            linearization cannot judge a feature: such pairs pass untested.
+
+    Attributes:
+        nis: squared Mahalanobis distance of every innovation tested, per call.
+        n_gated: features dropped so far. gated_per_frame: frame -> features dropped.
+    """
+
+    def __init__(self, probability: float, noise: FeatureNoise, dtm_spacing_m: float):
+        self.threshold = chi2_2dof_quantile(probability)
+        self._noise = replace(noise, sigma_qa_xy=noise.sigma_q_xy)
+        self._spacing_m = float(dtm_spacing_m)
+        self.nis: list[np.ndarray] = []
+        self.n_gated = 0
+        self.gated_per_frame: dict[int, int] = {}
+
+    def apply(self, k: int, factors: Sequence[CdtmPairFactor],
+              pose: Callable[[int], np.ndarray],
+              joint_covariance: Callable[[int, int], np.ndarray]) -> list[CdtmPairFactor]:
+        """The factors of frame k with only the features that pass.
+
+        Args:
+            k: the newest frame (every factor's later pose).
+            factors: its new C-DTM factors.
+            pose: frame -> current (4, 4) ``world_T_body`` estimate.
+            joint_covariance: (key_a, key_b) -> (12, 12) prior covariance of the two poses.
+        """
+        kept: list[CdtmPairFactor] = []
+        n_gated = 0
+        pose_k = pose(k)
+        for f in factors:
+            P = joint_covariance(f.key_a, f.key_b)
+            if np.sqrt(np.linalg.eigvalsh(P[9:, 9:]).max()) > self._spacing_m:
+                kept.append(f)  # the DTM plane at the guess means nothing a cell away
+                continue
+            pose_a = pose(int(gtsam.Symbol(f.key_a).index()))
+            e, H_a, H_b = f.innovations(pose_a, pose_k)
+            R = f.whitened_noise(pose_a, pose_k, self._noise)
+            d = innovation_mahalanobis(e, H_a, H_b, P, R)
+            self.nis.append(d)
+            passed = d <= self.threshold
+            n_gated += int(f.features.n - passed.sum())
+            if passed.all():
+                kept.append(f)
+            elif passed.any():
+                kept.append(f.with_features(passed))
+        self.n_gated += n_gated
+        self.gated_per_frame[k] = n_gated
+        return kept
+
+    @property
+    def all_nis(self) -> np.ndarray:
+        """Every distance tested, (n,): chi-square(2) (median 1.39, mean 2) when the noise
+        model and the prior are honest."""
+        return np.concatenate(self.nis) if self.nis else np.zeros(0)

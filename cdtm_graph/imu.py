@@ -1,4 +1,4 @@
-"""IMU synthesis, IMU noise, and feeding samples to GTSAM's preintegration.
+"""The IMU in the estimator: noise, sample holds, preintegration as samples arrive, dead reckoning.
 
 Measurement model (body frame, FLIGHTLOG.md units)::
 
@@ -45,16 +45,18 @@ this against the analytic trajectory.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 from enum import Enum
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 import gtsam
 import numpy as np
 from numba import njit
 
-from cdtm_graph.errors import SolverError
+from cdtm_graph.errors import FlightLogError, SolverError
 from cdtm_graph.flightlog import FlightConfig, InitialState
+from cdtm_graph.results import TrajectoryEstimate
 
 NS_PER_S = 1_000_000_000
 
@@ -315,12 +317,14 @@ def integrate_interval(pim: PreintegratedCombined, t_ns_samples: np.ndarray,
 
 
 def imu_noise(config: FlightConfig) -> ImuNoise:
+    """The log's continuous-time noise densities (flight.yaml ``imu:``)."""
     imu = config.imu
     return ImuNoise(imu.gyroscope_noise_density, imu.accelerometer_noise_density,
                     imu.gyroscope_random_walk, imu.accelerometer_random_walk)
 
 
 def initial_bias(initial: InitialState) -> gtsam.imuBias.ConstantBias:
+    """The prior mean of the biases, as GTSAM's (accel, gyro) bias."""
     return gtsam.imuBias.ConstantBias(np.asarray(initial.accel_bias, dtype=float),
                                       np.asarray(initial.gyro_bias, dtype=float))
 
@@ -409,6 +413,11 @@ class ImuStream:
         self._t0_ns = self._done_ns = 0
         self.holdback_ns = 0  # how far the IMU has been seen to run ahead of a frame
 
+    @property
+    def done_ns(self) -> int:
+        """How far the current interval is integrated (ns)."""
+        return self._done_ns
+
     def start(self, t0_ns: int, bias: gtsam.imuBias.ConstantBias) -> None:
         """Begin the interval after a frame at ``t0_ns``, linearized at ``bias``."""
         self._pim = gtsam.PreintegratedCombinedMeasurements(self.intervals.params, bias)
@@ -446,6 +455,94 @@ class ImuStream:
         return pim
 
 
+
+class _HeldSamples(NamedTuple):
+    """IMU samples already checked (the fields of ``ImuSamples``, without re-validation)."""
+
+    t_ns: np.ndarray
+    gyro_radps: np.ndarray
+    acc_mps2: np.ndarray
+
+
+class ImuFeed:
+    """IMU samples as a live system receives them: held, preintegrated ahead, closed per frame.
+
+    Samples come in with :meth:`add` (integrated at once as far as they fix the hold
+    pieces) or :meth:`hold` (kept, not yet integrated: samples that come with a frame
+    may run past it). :meth:`start` opens the interval after a frame, :meth:`finish`
+    closes it at the next frame (``ImuStream``). Samples before the newest frame are
+    dropped as new ones arrive (two kept for the holds), so a live feed does not grow.
+
+    Attributes:
+        time_s: time spent preintegrating (``add`` only) since :meth:`take_time_s`.
+    """
+
+    def __init__(self, config: FlightConfig, hold: SampleHold, imu: ImuArrays | None = None):
+        empty = _HeldSamples(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
+        self.intervals = ImuIntervals(config, imu if imu is not None else empty, hold)
+        self.stream = ImuStream(self.intervals)
+        self.given_up_front = imu is not None and len(imu.t_ns) > 0
+        self._frame_ns: int | None = None  # the newest frame's time
+        self.time_s = 0.0
+
+    @property
+    def samples(self) -> ImuArrays:
+        return self.intervals.imu
+
+    def add(self, imu: ImuArrays) -> None:
+        """Append samples (after the ones held) and preintegrate what they fix.
+
+        Raises:
+            FlightLogError: the samples do not come after the ones already held.
+        """
+        start = time.perf_counter()
+        self.hold(imu)
+        self.stream.advance()
+        self.time_s += time.perf_counter() - start
+
+    def hold(self, imu: ImuArrays) -> None:
+        """Append samples without integrating them.
+
+        Raises:
+            FlightLogError: the samples do not come after the ones already held.
+        """
+        old = self.intervals.imu
+        if not len(imu.t_ns):
+            return
+        if old.t_ns.size and imu.t_ns[0] <= old.t_ns[-1]:
+            raise FlightLogError("IMU samples must arrive in increasing time order")
+        keep = 0
+        if self._frame_ns is not None:
+            keep = max(int(np.searchsorted(old.t_ns, self._frame_ns, side="right")) - 2, 0)
+        self.intervals.imu = _HeldSamples(
+            np.concatenate((old.t_ns[keep:], np.asarray(imu.t_ns, dtype=np.int64))),
+            np.concatenate((old.gyro_radps[keep:], imu.gyro_radps)),
+            np.concatenate((old.acc_mps2[keep:], imu.acc_mps2)))
+
+    def start(self, t_ns: int, bias: gtsam.imuBias.ConstantBias) -> None:
+        """Open the interval after the frame at ``t_ns``, linearized at ``bias``."""
+        self._frame_ns = int(t_ns)
+        self.stream.start(t_ns, bias)
+
+    def advance(self) -> None:
+        """Integrate what the samples held already fix (e.g. after a restart)."""
+        self.stream.advance()
+
+    def take_time_s(self) -> float:
+        """The preintegration time spent since the last call (``add`` only)."""
+        spent, self.time_s = self.time_s, 0.0
+        return spent
+
+    def finish(self, t_ns: int) -> gtsam.PreintegratedCombinedMeasurements:
+        """The preintegration from the newest frame to the next one at ``t_ns``.
+
+        Raises:
+            SolverError: the samples do not cover the interval (nothing changes: feed
+                the missing samples and retry).
+        """
+        return self.stream.finish(t_ns)
+
+
 def navstate_predict(pim: gtsam.PreintegratedCombinedMeasurements, world_T_body: np.ndarray,
                      velocity: np.ndarray, bias: gtsam.imuBias.ConstantBias
                      ) -> tuple[np.ndarray, np.ndarray]:
@@ -453,3 +550,47 @@ def navstate_predict(pim: gtsam.PreintegratedCombinedMeasurements, world_T_body:
     state = pim.predict(gtsam.NavState(gtsam.Pose3(world_T_body), np.asarray(velocity)), bias)
     return state.pose().matrix(), np.asarray(state.velocity())
 
+
+def dead_reckoning(config: FlightConfig, imu: ImuArrays, t_ns: np.ndarray,
+                   hold: SampleHold = SampleHold.MIDPOINT) -> TrajectoryEstimate:
+    """IMU-only navigation from the initial state, no corrections: the paper's "Free".
+
+    From ``initial_state`` (position, attitude, velocity, biases) at the first frame,
+    each frame interval is preintegrated (``ImuIntervals``, the smoother's own) and
+    predicted with ``pim.predict(NavState, bias)``; the biases stay at their prior means.
+
+    Args:
+        config: flight.yaml (initial state, IMU noise, gravity).
+        imu: the samples; they must cover the frame times.
+        t_ns: (K,) frame times.
+        hold: how a sample stands for time; the default is the smoother's
+            (``GraphSettings.imu_hold``), so "Free" and "Compensated" integrate alike.
+
+    Returns:
+        K states at the frame times (biases constant).
+
+    Raises:
+        FlightLogError: the IMU samples do not cover the frames.
+    """
+    init = config.initial_state
+    t_frames = np.asarray(t_ns, dtype=np.int64)
+    k_frames = t_frames.shape[0]
+    t_imu = np.asarray(imu.t_ns, dtype=np.int64)
+    if k_frames and (t_imu.size < 2 or t_frames[0] < t_imu[0] or t_frames[-1] > t_imu[-1]):
+        span = f"[{t_imu[0]}, {t_imu[-1]}]" if t_imu.size else "nothing"
+        raise FlightLogError(f"imu.csv: samples span {span} ns; expected them to cover the "
+                             f"frames [{t_frames[0]}, {t_frames[-1]}] ns")
+    intervals = ImuIntervals(config, imu, hold)
+    bias = initial_bias(init)
+    poses = np.empty((k_frames, 4, 4))
+    velocities = np.empty((k_frames, 3))
+    pose, velocity = init.world_T_body, np.asarray(init.velocity_mps, dtype=float)
+    for k in range(k_frames):
+        if k:
+            pim = intervals.preintegrate(int(t_frames[k - 1]), int(t_frames[k]), bias)
+            pose, velocity = navstate_predict(pim, pose, velocity, bias)
+        poses[k], velocities[k] = pose, velocity
+    return TrajectoryEstimate(
+        t_ns=t_frames, world_T_body=poses, velocity_mps=velocities,
+        gyro_bias=np.tile(np.asarray(init.gyro_bias, dtype=float), (k_frames, 1)),
+        accel_bias=np.tile(np.asarray(init.accel_bias, dtype=float), (k_frames, 1)))

@@ -15,7 +15,7 @@ import gtsam
 import numpy as np
 
 from cdtm_graph.errors import SolverError
-from cdtm_graph.results import SolverStats
+from cdtm_graph.results import Solver, SolverStats
 
 log = logging.getLogger(__name__)
 
@@ -73,7 +73,7 @@ _SMALL_STEP_RELATIVE = 1e-4
 
 def levenberg_marquardt(
     graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iterations: int,
-    relative_error_tol: float, lambda_initial: float = 1e-5, mode: str = "batch",
+    relative_error_tol: float, lambda_initial: float = 1e-5,
     solver: LinearSolver | None = None,
 ) -> tuple[gtsam.Values, SolverStats]:
     """Levenberg-Marquardt driven from Python on ``graph.linearize`` (no per-call copies).
@@ -136,8 +136,8 @@ def levenberg_marquardt(
                 break
     except RuntimeError as exc:
         raise explain_indeterminant(exc) from None
-    return values, SolverStats(mode, iterations, initial_error, error, converged,
-                               time.perf_counter() - start)
+    return values, SolverStats(Solver.LEVENBERG_MARQUARDT, iterations, initial_error, error,
+                               converged, time.perf_counter() - start)
 
 
 #: Tangent dimension of each key type (DESIGN.md keys).

@@ -7,6 +7,7 @@ that need world-frame blocks rotate them with :func:`pose_covariance_in_world`.
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -52,6 +53,14 @@ class StateCovariances:
     bias: np.ndarray
 
 
+class Solver(enum.Enum):
+    """The solver that produced a result."""
+
+    LEVENBERG_MARQUARDT = "batch"  # batch LM over the whole log
+    ISAM2 = "incremental"          # full-history iSAM2
+    FIXED_LAG = "fixed_lag"        # GTSAM's incremental fixed-lag smoother
+
+
 @dataclass(frozen=True)
 class SolverStats:
     """What the optimizer did.
@@ -63,7 +72,7 @@ class SolverStats:
     tested (chi-square(2): 1.39 and 2 when the model is honest; NaN without a gate).
     """
 
-    mode: str
+    solver: Solver
     iterations: int
     initial_error: float
     final_error: float
@@ -132,6 +141,15 @@ class SmootherResult:
     counts: GraphCounts
     settings: dict = field(default_factory=dict)
     flags: dict = field(default_factory=dict)
+
+
+def frame_flags(counts: GraphCounts) -> dict[int, list[str]]:
+    """Per-frame warnings from what went into the graph: ``{k: ["no_features"]}``."""
+    flags: dict[int, list[str]] = {}
+    for k in range(1, counts.n_frames):
+        if counts.features_per_frame[k] == 0:
+            flags.setdefault(k, []).append("no_features")
+    return flags
 
 
 def pose_covariance_in_world(world_T_body: np.ndarray, pose_cov: np.ndarray

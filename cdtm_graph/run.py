@@ -9,13 +9,9 @@ import time
 from dataclasses import dataclass
 
 from cdtm_graph.dtm import Dtm
-from cdtm_graph.evaluation import (
-    ErrorReport,
-    dead_reckoning,
-    free_vs_compensated,
-    trajectory_errors,
-)
+from cdtm_graph.evaluation import ErrorReport, free_vs_compensated, trajectory_errors
 from cdtm_graph.flightlog import FlightLog
+from cdtm_graph.imu import dead_reckoning
 from cdtm_graph.results import SmootherResult, TrajectoryEstimate
 from cdtm_graph.smoother import Progress, SmootherSettings, smooth
 
@@ -48,7 +44,8 @@ def smooth_and_evaluate(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
     errors = free = free_errors = None
     if flight.groundtruth is not None:
         errors = trajectory_errors(result.estimate, result.covariances, flight.groundtruth)
-        free = dead_reckoning(flight, settings.graph.imu_hold)
+        free = dead_reckoning(flight.config, flight.imu, flight.frames.t_ns,
+                              settings.graph.imu_hold)
         free_errors = trajectory_errors(free, None, flight.groundtruth)
         report["evaluation"] = {
             "compensated": errors.to_dict(),

@@ -1,9 +1,10 @@
 """Incremental smoothing, one frame at a time, with the IncrementalSmoother API.
 
-Feeds the bundled sample log as a live system would: IMU samples as they arrive
-(``add_imu`` preintegrates them at once), then each frame with its tracked features and
-the sample that closes its interval. ``add_frame`` returns the newest pose with its
-covariance (iSAM2 underneath; pass ``--lag-s`` for GTSAM's incremental fixed-lag smoother).
+Feeds the bundled sample log as a live system would (:func:`cdtm_graph.replay.replay`):
+IMU samples as they arrive (``add_imu`` preintegrates them at once), then each frame with
+its tracked features and the sample that closes its interval. ``add_frame`` returns the
+newest pose with its covariance (iSAM2 underneath; pass ``--lag-s`` for GTSAM's
+incremental fixed-lag smoother).
 
 Run: ``python scripts/isam2_incremental.py [LOG] [--lag-s 10]``
 """
@@ -15,8 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from cdtm_graph.flightlog import ImuSamples, load_log_and_dtm
-from cdtm_graph.smoother import IncrementalSmoother
+from cdtm_graph.flightlog import load_log_and_dtm
+from cdtm_graph.replay import replay
+from cdtm_graph.smoother import IncrementalSmoother, SmootherSettings
 
 SAMPLE_LOG = Path(__file__).resolve().parents[1] / "data" / "sample_flight"
 
@@ -28,36 +30,24 @@ def main(argv: list[str] | None = None) -> dict:
     args = parser.parse_args(argv)
 
     flight, dtm = load_log_and_dtm(args.log)
-    imu, tracks, t_frames = flight.imu, flight.tracks, flight.frames.t_ns
-    # The camera rate lets a fixed lag relinearize a few times per window, not every frame.
-    frame_interval_s = float(np.median(np.diff(t_frames))) * 1e-9
-    smoother = IncrementalSmoother(flight.config, dtm, lag_s=args.lag_s,
+    # A live system needs only the newest covariance; the camera rate lets a fixed lag
+    # relinearize a few times per window, not every frame.
+    settings = SmootherSettings(lag_s=args.lag_s, keep_exit_covariances=False)
+    frame_interval_s = float(np.median(np.diff(flight.frames.t_ns))) * 1e-9
+    smoother = IncrementalSmoother(flight.config, dtm, settings,
                                    frame_interval_s=frame_interval_s)
-    sent = 0  # IMU samples handed over so far
-
-    def samples(a: int, b: int) -> ImuSamples:
-        return ImuSamples(imu.t_ns[a:b], imu.gyro_radps[a:b], imu.acc_mps2[a:b])
-
     errors = []
-    for k, t_ns in enumerate(t_frames):
-        # The samples before the frame arrive first, one by one in a live system (here
-        # in one call); the frame then comes with the sample at or after its time, which
-        # the smoother splits between the two intervals.
-        before = int(np.searchsorted(imu.t_ns, t_ns, side="left"))
-        if before > sent:
-            smoother.add_imu(samples(sent, before))
-            sent = before
-        upto = max(min(before + 1, len(imu.t_ns)), sent)
-        closing, sent = samples(sent, upto), upto
-        seen = tracks.frame == k
-        update = smoother.add_frame(int(t_ns), tracks.track_id[seen], tracks.uv_px[seen], closing)
+    for frame in replay(flight):
+        if len(frame.imu_before):  # one by one in a live system (here in one call)
+            smoother.add_imu(frame.imu_before)
+        update = smoother.add_frame(frame.t_ns, frame.track_id, frame.uv_px, frame.imu_closing)
         sigma_pos = np.sqrt(np.diag(update.pose_covariance)[3:])
-        line = (f"frame {k:3d}: {update.n_features:3d} features, position "
+        line = (f"frame {frame.k:3d}: {update.n_features:3d} features, position "
                 f"{np.array2string(update.world_T_body[:3, 3], precision=1)} m, "
                 f"1-sigma {np.array2string(sigma_pos, precision=2)} m (body axes), "
                 f"{1e3 * update.update_time_s:.1f} ms (+ IMU {1e3 * update.imu_time_s:.1f} ms)")
         if flight.groundtruth is not None:
-            truth = flight.groundtruth.interpolate(np.array([t_ns])).position_m[0]
+            truth = flight.groundtruth.interpolate(np.array([frame.t_ns])).position_m[0]
             errors.append(update.world_T_body[:3, 3] - truth)
             line += f", error {np.linalg.norm(errors[-1]):.2f} m"
         print(line)

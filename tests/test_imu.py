@@ -24,15 +24,19 @@ import gtsam
 import numpy as np
 import pytest
 
+from cdtm_graph.flightlog import ImuSamples
 from cdtm_graph.imu import (
     NS_PER_S,
+    ImuIntervals,
     ImuNoise,
+    ImuStream,
     SampleHold,
     hold_segments,
     integrate_interval,
     preintegration_params,
 )
 from cdtm_graph.sim.imu import ImuData, ideal_imu, simulate_imu
+from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
 from cdtm_graph.sim.trajectory import FlightPlan, evaluate, plan_trajectory
 
 G_MPS2 = 9.80665
@@ -449,3 +453,35 @@ def test_split_inside_a_hold_composes_to_gtsam_step_accuracy(hold):
         assert vel == pytest.approx(step_gap, rel=0.05)
     else:
         assert vel < 0.01 * step_gap
+
+
+def _pim_state(pim):
+    return np.r_[pim.deltaRij().matrix().ravel(), pim.deltaPij(), pim.deltaVij(),
+                 pim.preintMeasCov().ravel(), pim.deltaTij()]
+
+
+@pytest.mark.parametrize("hold", list(SampleHold))
+def test_imu_stream_gives_the_interval_preintegration_exactly(hold, rng):
+    """Samples fed in random chunks, integrated as far as they fix the holds, give the
+    same preintegration as the whole interval at once, also when they ran past the frame."""
+    flight, _ = simulate_flight(SimulationSettings(frames=4, features=10, seed=3))
+    imu, t_frames = flight.imu, flight.frames.t_ns
+    reference = ImuIntervals(flight.config, imu, hold)
+    bias = gtsam.imuBias.ConstantBias(np.array([0.01, -0.02, 0.03]), np.array([1e-3, 0, -2e-3]))
+    stream_intervals = ImuIntervals(flight.config, ImuSamples(imu.t_ns[:0], imu.gyro_radps[:0],
+                                                              imu.acc_mps2[:0]), hold)
+    stream = ImuStream(stream_intervals)
+    sent = 0
+    for k in range(len(t_frames) - 1):
+        stream.start(int(t_frames[k]), bias)
+        # live: chunks up to the next frame; the last interval also overshoots it
+        end = int(np.searchsorted(imu.t_ns, t_frames[k + 1])) + (1 if k < 2 else 40)
+        while sent < end:
+            step = min(int(rng.integers(1, 30)), end - sent)
+            stream_intervals.imu = ImuSamples(imu.t_ns[:sent + step], imu.gyro_radps[:sent + step],
+                                              imu.acc_mps2[:sent + step])
+            sent += step
+            stream.advance()
+        got = stream.finish(int(t_frames[k + 1]))
+        want = reference.preintegrate(int(t_frames[k]), int(t_frames[k + 1]), bias)
+        np.testing.assert_array_equal(_pim_state(got), _pim_state(want))

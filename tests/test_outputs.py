@@ -30,6 +30,7 @@ from cdtm_graph.outputs import (
 from cdtm_graph.results import (
     GraphCounts,
     SmootherResult,
+    Solver,
     SolverStats,
     StateCovariances,
     TrajectoryEstimate,
@@ -71,7 +72,7 @@ def _synthetic_result(rng: np.random.Generator, k: int = K) -> SmootherResult:
         bias=_random_spd(rng, 6, k, np.array([1e-2, 1e-2, 1e-2, 1e-5, 1e-5, 1e-5])))
     return SmootherResult(
         estimate=estimate, covariances=covariances,
-        stats=SolverStats(mode="batch", iterations=4, initial_error=1.5e6,
+        stats=SolverStats(solver=Solver.LEVENBERG_MARQUARDT, iterations=4, initial_error=1.5e6,
                           final_error=float("nan"), converged=True, time_s=0.25,
                           update_times_s=(0.1, float("inf"))),
         counts=GraphCounts(n_frames=k, n_tracks=12, n_observations=300, n_feature_pairs=250,

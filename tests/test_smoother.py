@@ -8,12 +8,10 @@ import pytest
 from gtsam.symbol_shorthand import X
 
 from cdtm_graph.errors import SolverError
-from cdtm_graph.gating import chi2_2dof_quantile
 from cdtm_graph.optimizer import explain_indeterminant
 from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
 from cdtm_graph.smoother import (
-    IncrementalSmoother,
     SmootherMode,
     SmootherSettings,
     smooth,
@@ -26,15 +24,6 @@ POSITION_ANEES_RANGE = (1.5, 6.0)  # 3 dof: consistent within a factor 2
 INCREMENTAL_VS_BATCH_SIGMA = 0.3
 NOISELESS_TOL_M = 0.02  # "centimetres"
 NOISELESS_TOL_DEG = 1e-3
-#: chi-square(2) has median 2 ln 2 = 1.39; the model is honest to about 15%.
-NIS_MEDIAN_RANGE = (1.15, 1.65)
-GATE_RATE_TOL = 0.03
-
-
-@pytest.fixture(scope="module")
-def nominal_log():
-    """60 frames at 1 fps, ~1000 m above 300 m-relief fractal terrain, 30 m DTM."""
-    return simulate_flight(SimulationSettings(frames=60, alt_m=1000.0, relief_m=300.0, seed=1))
 
 
 @pytest.fixture(scope="module")
@@ -64,24 +53,6 @@ def test_incremental_final_estimate_matches_batch(nominal_log, batch_run):
             gtsam.Pose3(inc.estimate.world_T_body[k]))
         worst = max(worst, float(np.max(np.abs(xi) / sigma[k])))
     assert worst <= INCREMENTAL_VS_BATCH_SIGMA, worst
-
-
-def test_fixed_lag_smoother_tracks_the_flight(nominal_log):
-    flight, dtm = nominal_log
-    result = smooth(flight, dtm, SmootherSettings(mode=SmootherMode.INCREMENTAL, lag_s=10.0))
-    truth = flight.groundtruth.interpolate(flight.frames.t_ns).position_m
-    err = result.estimate.position_m - truth
-    assert np.sqrt(np.mean(err**2, axis=0)).max() <= MAX_RMSE_M
-    # frames that left the window keep the covariances they left with: SPD, and no
-    # smaller than the final smoothed ones of the frames still in the window
-    for block in (result.covariances.pose, result.covariances.velocity,
-                  result.covariances.bias):
-        assert np.isfinite(block).all()
-        assert np.all(np.linalg.eigvalsh(block) > 0)
-    dt_s = float(np.max(np.diff(flight.frames.t_ns))) * 1e-9  # as smooth() passes it
-    live = IncrementalSmoother(flight.config, dtm, lag_s=10.0, frame_interval_s=dt_s).run(flight)
-    assert np.isnan(live.covariances.velocity[0]).all()  # a live run keeps none
-    np.testing.assert_allclose(live.covariances.pose[-1], result.covariances.pose[-1])
 
 
 def test_short_logs_incremental_and_fixed_lag_reach_the_batch_solution():
@@ -138,33 +109,9 @@ def test_indeterminant_system_names_the_variable():
     assert "\n" not in message
 
 
-def test_incremental_api_one_frame_at_a_time(nominal_log):
-    """The API a live system uses: IMU samples arrive with each frame."""
-    from cdtm_graph.flightlog import ImuSamples
-
-    flight, dtm = nominal_log
-    smoother = IncrementalSmoother(flight.config, dtm)
-    imu, tracks = flight.imu, flight.tracks
-    sent = 0
-    sigmas = []
-    for k, t_ns in enumerate(flight.frames.t_ns[:15]):
-        upto = min(int(np.searchsorted(imu.t_ns, t_ns, side="right")) + 1, len(imu.t_ns))
-        chunk = ImuSamples(imu.t_ns[sent:upto], imu.gyro_radps[sent:upto], imu.acc_mps2[sent:upto])
-        sent = upto
-        seen = tracks.frame == k
-        update = smoother.add_frame(int(t_ns), tracks.track_id[seen], tracks.uv_px[seen], chunk)
-        assert update.frame == k and update.pose_covariance.shape == (6, 6)
-        sigmas.append(np.sqrt(np.diag(update.pose_covariance)[3:]).max())
-        if k:
-            assert update.n_features > 0
-    # C-DTM updates pull the 50 m prior down to metres within a few frames
-    assert sigmas[0] > 20 and sigmas[-1] < 5
-
-
 def test_marginals_match_gtsam_with_cholesky_and_with_qr(nominal_log, batch_run):
     """Our Bayes-tree marginals (Cholesky, or the QR fallback) equal gtsam.Marginals."""
-    from cdtm_graph.imu import ImuIntervals
-    from cdtm_graph.smoother import _marginals, build_log_graph
+    from cdtm_graph.smoother.batch import build_log_graph, marginals
 
     flight, dtm = nominal_log
     settings = SmootherSettings()
@@ -176,11 +123,10 @@ def test_marginals_match_gtsam_with_cholesky_and_with_qr(nominal_log, batch_run)
         values.insert(X(k), gtsam.Pose3(est.world_T_body[k]))
         values.insert(V(k), est.velocity_mps[k])
         values.insert(B(k), gtsam.imuBias.ConstantBias(est.accel_bias[k], est.gyro_bias[k]))
-    graph = build_log_graph(flight, dtm, settings, values,
-                            ImuIntervals(flight.config, flight.imu, settings.graph.imu_hold)).graph
+    graph = build_log_graph(flight, dtm, settings, values).graph
     reference = gtsam.Marginals(graph, values)
     for qr_only in (False, True):
-        ours = _marginals(graph, values, len(est), qr_only=qr_only)
+        ours = marginals(graph, values, len(est), qr_only=qr_only)
         for k in (0, len(est) // 2, len(est) - 1):
             ref = reference.marginalCovariance(X(k))
             np.testing.assert_allclose(ours.pose[k], ref, rtol=1e-6, atol=1e-9 * np.abs(ref).max())
@@ -209,32 +155,3 @@ def test_robust_kernels_resist_mismatched_tracks(nominal_log):
     assert np.linalg.norm(huber.errors.rmse_position_m) < 0.5 * np.linalg.norm(
         plain.errors.rmse_position_m)
     assert np.all(huber.errors.rmse_position_m <= MAX_RMSE_M)
-
-
-def test_innovation_gate_keeps_nearly_every_good_feature(nominal_log):
-    """On a clean log a 99.9% gate drops well under 1% of the features and the run keeps
-    the ungated accuracy."""
-    flight, dtm = nominal_log
-    runs = {gate: smooth_and_evaluate(flight, dtm, SmootherSettings(
-        mode=SmootherMode.INCREMENTAL, innovation_gate=gate)) for gate in (None, 0.999)}
-    counts = runs[0.999].result.counts
-    assert 0 < counts.n_gated < 0.01 * (counts.n_cdtm_features + counts.n_gated)
-    rmse = {g: np.linalg.norm(r.errors.rmse_position_m) for g, r in runs.items()}
-    assert rmse[0.999] < 1.5 * rmse[None]
-
-
-def test_innovations_of_a_clean_log_are_chi_square_2(nominal_log):
-    """The gate's test statistic (the first observation's pixel noise counted, the prior
-    from iSAM2) follows chi-square(2) on a clean log: median near 1.39, and a 90% gate
-    drops about 10% of the features tested."""
-    flight, dtm = nominal_log
-    smoother = IncrementalSmoother(flight.config, dtm, innovation_gate=0.9)
-    result = smoother.run(flight)
-    nis = smoother.innovation_nis
-    assert nis.size > 5000
-    assert NIS_MEDIAN_RANGE[0] < np.median(nis) < NIS_MEDIAN_RANGE[1]
-    assert result.stats.innovation_nis_median == np.median(nis)
-    limit = chi2_2dof_quantile(0.9)
-    dropped = np.mean(nis > limit)
-    assert abs(dropped - 0.1) < GATE_RATE_TOL, dropped
-    assert result.counts.n_gated == int(np.sum(nis > limit))

@@ -116,8 +116,7 @@ def _optimize(pair: CdtmPairFactor, initial: gtsam.Values,
     def solve(factor: CdtmPairFactor, start: gtsam.Values, tol: float):
         graph = gtsam.NonlinearFactorGraph()
         graph.add(factor.factor)
-        return levenberg_marquardt(graph, start, settings.max_iterations, tol,
-                                   mode="two_frame")
+        return levenberg_marquardt(graph, start, settings.max_iterations, tol)
 
     if pair.plane_mode is PlaneMode.FIXED:
         estimate, stats = solve(pair, initial, settings.relative_error_tol)

@@ -103,7 +103,7 @@ def summary(out: RunOutput, out_dir: Path) -> str:
     gated = f", {r.counts.n_gated} gated on arrival" if r.counts.n_gated else ""
     lines = [f"{r.counts.n_frames} frames, {r.counts.n_cdtm_features} C-DTM features "
              f"({r.counts.n_missed_dtm} missed the DTM, {r.counts.n_outliers} beyond the "
-             f"chi-square gate{gated}), {r.stats.mode} smoothing in {total_s:.2f} s -> "
+             f"chi-square gate{gated}), {r.stats.solver.value} smoothing in {total_s:.2f} s -> "
              f"{out_dir}"]
     e, f = out.errors, out.free_errors
     if e is not None and f is not None:

@@ -64,7 +64,7 @@ from cdtm_graph.flightlog import (
     write_flightlog,
 )
 from cdtm_graph.geometry import make_pose, rotation_to_quat_wxyz, so3_exp
-from cdtm_graph.imu import NS_PER_S, ImuNoise, SampleHold
+from cdtm_graph.imu import NS_PER_S, ImuNoise, dead_reckoning
 from cdtm_graph.sim.imu import ImuData, simulate_imu
 from cdtm_graph.sim.terrain import NOMINAL_CORRELATION_LENGTH_M, clone_basic_cell, fractal_terrain
 from cdtm_graph.sim.trajectory import STANDARD_GRAVITY_MPS2, FlightPlan, Trajectory, evaluate
@@ -797,25 +797,10 @@ def _initial_state(settings: SimulationSettings, truth_frames: Trajectory, rng: 
 
 
 def _dead_reckoning(config: FlightConfig, imu: ImuSamples, frame_t_ns: np.ndarray) -> States:
-    """IMU-only propagation of the prior mean to every frame, by GTSAM preintegration."""
-    # Imported here: graph pulls in GTSAM and the factor kernels, which only this mode needs.
-    from cdtm_graph.imu import ImuIntervals, initial_bias, navstate_predict
-
-    intervals = ImuIntervals(config, imu, SampleHold.MIDPOINT)
-    bias = initial_bias(config.initial_state)
-    k_frames = frame_t_ns.shape[0]
-    position = np.empty((k_frames, 3))
-    quaternion = np.empty((k_frames, 4))
-    velocity = np.empty((k_frames, 3))
-    pose = config.initial_state.world_T_body
-    vel = np.asarray(config.initial_state.velocity_mps, dtype=float)
-    for k in range(k_frames):
-        if k > 0:
-            pim = intervals.preintegrate(int(frame_t_ns[k - 1]), int(frame_t_ns[k]), bias)
-            pose, vel = navstate_predict(pim, pose, vel, bias)
-        position[k], quaternion[k], velocity[k] = pose[:3, 3], rotation_to_quat_wxyz(
-            pose[:3, :3]), vel
-    return States(frame_t_ns, position, quaternion, velocity)
+    """IMU-only propagation of the prior mean to every frame, as nav.csv rows."""
+    free = dead_reckoning(config, imu, frame_t_ns)
+    return States(frame_t_ns, free.position_m, rotation_to_quat_wxyz(free.world_T_body[:, :3, :3]),
+                  free.velocity_mps)
 
 
 def _noisy_truth(settings: SimulationSettings, truth_frames: Trajectory, frame_t_ns: np.ndarray,

@@ -63,6 +63,7 @@ from cdtm_graph.errors import SimulationError
 from cdtm_graph.evaluation import AXES, ErrorReport, trajectory_errors
 from cdtm_graph.flightlog import FlightLog
 from cdtm_graph.imu import ImuNoise
+from cdtm_graph.replay import replay
 from cdtm_graph.results import TrajectoryEstimate
 from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.sim.simulate import SimulationSettings, simulate
@@ -416,22 +417,13 @@ def as_arrived_estimate(flight: FlightLog, dtm: Dtm,
         K frames; biases are the smoother's final estimate (not evaluated here).
     """
     settings = settings or SmootherSettings()
-    smoother = IncrementalSmoother(flight.config, dtm, settings.graph, lag_s=settings.lag_s,
-                                   imu=flight.imu)
+    smoother = IncrementalSmoother(flight.config, dtm, settings, imu=flight.imu)
     t_ns = np.asarray(flight.frames.t_ns, dtype=np.int64)
-    k_frames = t_ns.shape[0]
-    poses = np.empty((k_frames, 4, 4))
-    velocities = np.empty((k_frames, 3))
-    tracks = flight.tracks
-    bounds = (np.searchsorted(tracks.frame, np.arange(k_frames + 1)) if tracks is not None
-              else None)
-    for k in range(k_frames):
-        if bounds is None or tracks is None:
-            update = smoother.add_frame(int(t_ns[k]))
-        else:
-            rows = slice(bounds[k], bounds[k + 1])
-            update = smoother.add_frame(int(t_ns[k]), tracks.track_id[rows], tracks.uv_px[rows])
-        poses[k], velocities[k] = update.world_T_body, update.velocity_mps
+    poses = np.empty((t_ns.shape[0], 4, 4))
+    velocities = np.empty((t_ns.shape[0], 3))
+    for frame in replay(flight):
+        update = smoother.add_frame(frame.t_ns, frame.track_id, frame.uv_px)
+        poses[frame.k], velocities[frame.k] = update.world_T_body, update.velocity_mps
     final = smoother.estimate()
     return TrajectoryEstimate(t_ns=t_ns, world_T_body=poses, velocity_mps=velocities,
                               gyro_bias=final.gyro_bias, accel_bias=final.accel_bias)

@@ -1,4 +1,4 @@
-"""TrackTable: frame-by-frame pairing equals the whole-log pairing of graph.py."""
+"""Pairing of track sightings: the whole-log grouping, and TrackTable frame by frame."""
 
 from __future__ import annotations
 
@@ -78,3 +78,27 @@ def test_a_repeated_track_is_refused_before_the_table_changes(rng):
         table.add_frame(1, np.array([9, 4, 9]), q)
     for a, b in zip(before, (table.ids, table.frame, table.q, table.pairs)):
         np.testing.assert_array_equal(a, b)
+
+
+def test_pairs_are_grouped_by_frame_pair_with_their_rank_in_the_track():
+    # track 7 seen in frames 2, 3 and 7; track 9 in 3 and 7; track 4 only once
+    tracks = Tracks(frame=np.array([2, 3, 3, 4, 7, 7]), track_id=np.array([7, 7, 9, 4, 7, 9]),
+                    uv_px=np.arange(12, dtype=float).reshape(6, 2) * 10)
+    camera = PinholeCamera.from_fov(400, 400, 60)
+    pairs = frame_pair_observations(tracks, camera)
+    got = {(p.frame_a, p.frame_b): (p.track_id.tolist(), p.track_pair_index.tolist())
+           for p in pairs}
+    assert got == {(2, 3): ([7], [1]), (3, 7): ([7, 9], [2, 1])}
+    pair_23 = pairs[0]
+    np.testing.assert_allclose(pair_23.q_a, camera.pixels_to_rays(tracks.uv_px[[0]]))
+    np.testing.assert_allclose(pair_23.q_b, camera.pixels_to_rays(tracks.uv_px[[1]]))
+
+
+def test_a_returning_track_id_counts_once():
+    """A track id forgotten by the fixed lag and seen again counts once among the tracks."""
+    table = TrackTable()
+    q = np.c_[np.zeros((2, 2)), np.ones(2)]
+    table.add_frame(0, np.array([3, 4]), q)
+    table.forget_before(1)
+    table.add_frame(1, np.array([4, 5]), q)
+    assert table.n_tracks == 3

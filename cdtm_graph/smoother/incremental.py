@@ -1,0 +1,456 @@
+"""Incremental smoothing: one frame at a time, the current estimate and its covariance.
+
+:class:`IncrementalSmoother` is a small front over a solver backend (full-history iSAM2
+or a fixed lag, :mod:`cdtm_graph.smoother.backends`) with three collaborators: the IMU
+feed (:class:`~cdtm_graph.imu.ImuFeed`: samples preintegrated as they arrive), the
+pairing of track sightings (:class:`~cdtm_graph.tracks.TrackTable`) and, if asked for,
+the innovation gate (:class:`~cdtm_graph.gating.InnovationGate`). Its pass over a log is
+also the batch smoother's initializer when the log has no ``nav.csv``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import X
+
+from cdtm_graph.dtm import Dtm
+from cdtm_graph.errors import FlightLogError
+from cdtm_graph.flightlog import FlightConfig, FlightLog
+from cdtm_graph.gating import InnovationGate, count_outliers
+from cdtm_graph.geometry import so3_log
+from cdtm_graph.graph import (
+    cdtm_factors,
+    feature_noise,
+    imu_factor,
+    insert_state,
+    prior_factors,
+)
+from cdtm_graph.imu import ImuArrays, ImuFeed, initial_bias, navstate_predict
+from cdtm_graph.replay import replay
+from cdtm_graph.results import (
+    GraphCounts,
+    SmootherResult,
+    Solver,
+    SolverStats,
+    StateCovariances,
+    TrajectoryEstimate,
+    frame_flags,
+)
+from cdtm_graph.smoother.backends import Backend, FixedLag, FullHistory, frame_keys
+from cdtm_graph.smoother.settings import Progress, SmootherSettings
+from cdtm_graph.tracks import TrackTable, check_unique
+from factors import CdtmPairFactor
+
+
+@dataclass(frozen=True)
+class FrameUpdate:
+    """What the incremental smoother knows right after a frame.
+
+    Attributes:
+        frame: index of the newest frame. t_ns: its time.
+        world_T_body: (4, 4) its current estimate. velocity_mps: (3,).
+        pose_covariance: (6, 6) its marginal, GTSAM tangent order [rot, trans], body frame.
+        n_features: C-DTM features that arrived with it. update_time_s: the update's cost.
+        imu_time_s: time spent preintegrating this frame's interval as its IMU samples
+            arrived (``add_imu``), before this update.
+    """
+
+    frame: int
+    t_ns: int
+    world_T_body: np.ndarray
+    velocity_mps: np.ndarray
+    pose_covariance: np.ndarray
+    n_features: int
+    update_time_s: float
+    imu_time_s: float = 0.0
+
+
+class IncrementalSmoother:
+    """Feed one frame at a time; get the current estimate and the newest covariance.
+
+    Example::
+
+        smoother = IncrementalSmoother(flight.config, dtm)
+        smoother.add_imu(imu_samples)                  # as they arrive
+        update = smoother.add_frame(t_ns, track_ids, uv_px, closing_imu_samples)
+
+    Args:
+        config: the log's flight.yaml (camera, IMU noise, initial state).
+        dtm: the terrain.
+        settings: the run's settings; the incremental smoother uses ``graph``, ``lag_s``
+            (a fixed lag instead of the full history), ``keep_exit_covariances``,
+            ``innovation_gate`` and ``final_iterations``.
+        imu: IMU samples known up front (a log); otherwise feed them with ``add_imu``.
+        frame_interval_s: expected time between frames; with a lag, it lets the smoother
+            relinearize less often than every update (still four times per window).
+    """
+
+    def __init__(self, config: FlightConfig, dtm: Dtm, settings: SmootherSettings | None = None,
+                 imu: ImuArrays | None = None, frame_interval_s: float | None = None):
+        self.config = config
+        self.dtm = dtm
+        self.settings = settings = settings or SmootherSettings()
+        graph = settings.graph
+        self._noise = feature_noise(config, dtm, graph)
+        self._imu = ImuFeed(config, graph.imu_hold, imu)
+        self._tracks = TrackTable()
+        self._gate = (None if settings.innovation_gate is None else InnovationGate(
+            settings.innovation_gate, self._noise, max(abs(dtm.dx), abs(dtm.dy))))
+        # A gate updates twice per frame (IMU, then the features that pass): relinearize
+        # every other update as often, in frames.
+        updates = 1 if self._gate is None else 2
+        self._backend: Backend = (
+            FullHistory(updates) if settings.lag_s is None
+            else FixedLag(settings.lag_s, frame_interval_s, updates))
+        self._camera = config.camera.camera
+        self._body_T_cam = config.camera.body_T_cam
+        self._t_ns: list[int] = []
+        # latest estimate of every frame (frames out of a lag window keep their last)
+        self._poses: dict[int, np.ndarray] = {}
+        self._velocities: dict[int, np.ndarray] = {}
+        self._biases: dict[int, gtsam.imuBias.ConstantBias] = {}
+        self._settled = 0  # fixed lag: frames before this one have left the window
+        self._exit_cov: dict[int, tuple[np.ndarray, ...]] = {}  # ... their (X, V, B) then
+        self._cdtm: list[CdtmPairFactor] = []  # every C-DTM factor (outliers, refresh)
+        self._cdtm_slots: list[int] = []  # ... their solver slots (full history)
+        self._converging = True  # the newest update moved its frame far from the prediction
+        self._features_per_frame: dict[int, int] = {}
+        self.n_features = self.n_missed = self.n_too_old = self.n_cdtm_factors = 0
+        self._n_pairs = self._n_observations = 0
+        self.update_times_s: list[float] = []
+        self.imu_times_s: list[float] = []
+        self.final_error = float("nan")
+        self.converged = False
+
+    #: Gate, while converging: relinearizing steps before the prior is used.
+    GATE_SETTLE_UPDATES = 2
+
+    #: finalize(): a settled error within this relative spread of the lowest one is converged.
+    CONVERGED_SPREAD = 1e-4
+
+    #: The newest C-DTM factors are rebuilt once when the update moved their frame this
+    #: far from the prediction their noise was linearized at (metres, radians).
+    NOISE_REFRESH_POSITION_M = 2.0
+    NOISE_REFRESH_ROTATION_RAD = np.radians(0.2)
+
+    # -- input ------------------------------------------------------------------------
+
+    def add_imu(self, imu: ImuArrays) -> None:
+        """Append IMU samples (times after the ones already held) as they arrive.
+
+        They are preintegrated at once, as far as they fix the hold pieces, so a frame
+        update is left with the last piece or two of its interval. The time this takes
+        is kept per frame interval (``imu_times_s``).
+        """
+        self._imu.add(imu)
+
+    def add_frame(self, t_ns: int, track_id: np.ndarray | None = None,
+                  uv_px: np.ndarray | None = None, imu: ImuArrays | None = None) -> FrameUpdate:
+        """Add the next frame: its time, its tracked features, and new IMU samples.
+
+        Args:
+            t_ns: frame time (after the previous frame's).
+            track_id: (m,) ids of the features seen in this frame.
+            uv_px: (m, 2) their pixels.
+            imu: IMU samples since the last call (optional if given at construction);
+                they may run past the frame (held, not yet integrated).
+
+        Returns:
+            The newest frame's estimate and covariance.
+
+        Raises:
+            FlightLogError: inconsistent input (time order, shapes, repeated ids); nothing
+                changes. SolverError: the IMU does not cover the interval yet (feed the
+                missing samples and retry the frame) or the system is unsolvable.
+        """
+        start = time.perf_counter()
+        k = len(self._t_ns)
+        if k and t_ns <= self._t_ns[-1]:
+            raise FlightLogError(f"frame {k}: time {t_ns} ns is not after the previous frame")
+        seen = self._checked_sightings(k, track_id, uv_px)  # before anything changes
+        if imu is not None:
+            self._imu.hold(imu)
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        if k == 0:
+            init = self.config.initial_state
+            graph.push_back(prior_factors(init, 0))
+            predicted, bias = init.world_T_body, initial_bias(init)
+            velocity = np.asarray(init.velocity_mps, float)
+        else:
+            bias = self._biases[k - 1]  # the IMU feed's linearization point too
+            pim = self._imu.finish(int(t_ns))
+            graph.add(imu_factor(k - 1, pim))
+            predicted, velocity = navstate_predict(pim, self._poses[k - 1],
+                                                   self._velocities[k - 1], bias)
+        insert_state(values, k, predicted, velocity, bias)
+        self._t_ns.append(int(t_ns))
+        self._poses[k], self._velocities[k], self._biases[k] = predicted, velocity, bias
+        if k:
+            self._leave_window(k)
+        new = self._new_cdtm(k, *seen) if seen is not None else []
+        if self._gate is not None and new:
+            # The prior the innovations are gated against: everything up to this frame's
+            # IMU factor; the features that pass go in with a second update. While the
+            # solution still converges from its initial prior the linearized test would
+            # misjudge good features, so the prior gets relinearizing steps first.
+            self._update(graph, values, k, relinearize=self._converging)
+            if self._converging:
+                self._settle_prior(k)
+            new = self._gate.apply(k, new, self._current_pose, self._backend.joint_marginal)
+            graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        n_new = sum(f.features.n for f in new)
+        for f in new:
+            graph.add(f.factor)
+        slots = self._update(graph, values, k)
+        self._commit(k, new, slots[len(slots) - len(new):] if slots else [])
+        if new and self._backend.can_replace:
+            self._refresh_newest_noise(k, predicted, len(new))
+        self._converging = self._moved_far(k, predicted)
+        covariance = self._backend.marginal(X(k))
+        self._imu.start(int(t_ns), self._biases[k])
+        elapsed = time.perf_counter() - start
+        self.update_times_s.append(elapsed)
+        self.imu_times_s.append(self._imu.take_time_s())
+        return FrameUpdate(k, int(t_ns), self._poses[k], self._velocities[k], covariance, n_new,
+                           elapsed, self.imu_times_s[-1])
+
+    def _checked_sightings(self, k: int, track_id: np.ndarray | None, uv_px: np.ndarray | None
+                           ) -> tuple[np.ndarray, np.ndarray] | None:
+        if track_id is None or not len(track_id):
+            return None
+        ids = np.asarray(track_id, dtype=np.int64)
+        uv = np.asarray(uv_px, dtype=float)
+        if ids.ndim != 1 or uv.shape != (ids.size, 2):
+            raise FlightLogError(f"frame {k}: {ids.shape} track ids with pixels of "
+                                 f"shape {uv.shape}; expected (m,) and (m, 2)")
+        check_unique(k, ids)
+        return ids, uv
+
+    def _new_cdtm(self, k: int, track_id: np.ndarray, uv_px: np.ndarray
+                  ) -> list[CdtmPairFactor]:
+        """The C-DTM factors frame k's sightings close (counted, not yet in the graph)."""
+        q = self._camera.pixels_to_rays(uv_px)
+        self._n_observations += len(track_id)
+        # A fixed lag has let go of frames before the window: their pairs are dropped
+        # (counted), and tracks last seen there can never pair again.
+        pairs, n_too_old = self._tracks.add_frame(k, track_id, q, self._settled)
+        self.n_too_old += n_too_old
+        self._n_pairs += sum(p.q_a.shape[0] for p in pairs) + n_too_old
+        if self.settings.lag_s is not None and len(self._tracks) > 4 * len(track_id):
+            self._tracks.forget_before(self._settled)
+        for pair in pairs:  # fetch only the poses these planes need
+            self._poses[pair.frame_a] = self._backend.pose(pair.frame_a)
+        build = cdtm_factors(pairs, self._poses, self._body_T_cam, self.dtm, self._noise,
+                             self.settings.graph)
+        self.n_missed += build.n_missed
+        return build.factors
+
+    def _commit(self, k: int, factors: list[CdtmPairFactor], slots: list[int]) -> None:
+        n_features = sum(f.features.n for f in factors)
+        self._cdtm.extend(factors)
+        self._cdtm_slots.extend(slots)
+        self.n_features += n_features
+        self.n_cdtm_factors += len(factors)
+        self._features_per_frame[k] = n_features
+
+    def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, k: int,
+                relinearize: bool = False) -> list[int]:
+        """One solver update with frame k's new factors and states; fetches frame k."""
+        t_s = self._t_ns[k] * 1e-9
+        slots = self._backend.update(graph, values, {key: t_s for key in frame_keys(k)},
+                                     relinearize)
+        self._fetch(k)  # only the newest state: a full estimate grows with the flight
+        return slots
+
+    def _leave_window(self, k: int) -> None:
+        """Fixed lag: fetch, for the last time, the frames that frame k's update may
+        marginalize (older than the lag, with one frame interval of margin so float
+        timestamps cannot race the smoother); they keep that estimate (and, offline,
+        their covariances)."""
+        lag_s = self.settings.lag_s
+        if lag_s is None:
+            return
+        margin_ns = self._t_ns[k] - self._t_ns[k - 1]
+        horizon = self._t_ns[k] - lag_s * 1e9 + margin_ns
+        while self._settled < k and self._t_ns[self._settled] < horizon:
+            j = self._settled
+            self._fetch(j)
+            if self.settings.keep_exit_covariances:  # ~1 ms: marginals deep in the tree
+                self._exit_cov[j] = tuple(self._backend.marginal(key) for key in frame_keys(j))
+            self._settled += 1
+
+    def _settle_prior(self, k: int) -> None:
+        """A few relinearizing Gauss-Newton steps before the gate uses the prior: one
+        update is one step, and while the solution converges from its initial prior the
+        linearized test would misjudge good features."""
+        for _ in range(self.GATE_SETTLE_UPDATES):
+            self._backend.step()
+        self._fetch(k)
+
+    def _current_pose(self, k: int) -> np.ndarray:
+        self._poses[k] = self._backend.pose(k)
+        return self._poses[k]
+
+    def _fetch(self, k: int) -> None:
+        """Current estimate of frame k's states."""
+        self._poses[k] = self._backend.pose(k)
+        self._velocities[k] = self._backend.velocity(k)
+        self._biases[k] = self._backend.bias(k)
+
+    def _moved_far(self, k: int, predicted: np.ndarray) -> bool:
+        """Whether frame k's estimate is past the refresh thresholds from ``predicted``."""
+        moved = np.linalg.inv(predicted) @ self._poses[k]
+        return bool(np.linalg.norm(moved[:3, 3]) >= self.NOISE_REFRESH_POSITION_M
+                    or np.linalg.norm(so3_log(moved[:3, :3])) >= self.NOISE_REFRESH_ROTATION_RAD)
+
+    def _refresh_newest_noise(self, k: int, predicted: np.ndarray, n: int) -> None:
+        """When frame k's update moved it far from its IMU prediction (early frames under a
+        loose prior), swap its ``n`` new C-DTM factors for ones whose planes and noise
+        (eqs. 19-26) are linearized at the updated estimate, as the batch smoother does at
+        its solution. Only the newest factors change: a local re-elimination."""
+        if not self._moved_far(k, predicted):
+            return
+        old = self._cdtm[-n:]
+        refreshed = [f.refreshed(self._backend.pose(int(gtsam.Symbol(f.key_a).index())),
+                                 self._poses[k]) for f in old]
+        graph = gtsam.NonlinearFactorGraph()
+        for f in refreshed:
+            graph.add(f.factor)
+        self._cdtm_slots[-n:] = self._backend.replace(graph, self._cdtm_slots[-n:])
+        self._cdtm[-n:] = refreshed
+        self._fetch(k)
+
+    # -- results ----------------------------------------------------------------------
+
+    def finalize(self, iterations: int | None = None, relative_tol: float = 1e-6) -> bool:
+        """Relinearize everything and iterate with no new data, so the estimate reaches the
+        optimum (``relinearizeSkip`` otherwise leaves it one step from a stale point).
+
+        Args:
+            iterations: at most this many relinearizing steps (default:
+                ``settings.final_iterations``).
+            relative_tol: a step that lowers the error by less than this, relatively, ends.
+
+        Returns:
+            Whether it settled: the error stopped decreasing within ``CONVERGED_SPREAD``
+            of the lowest error seen. Near the optimum, relinearizing only the states past
+            their thresholds makes the error wander by ~1e-5 relative: it stops at the
+            first step that does not gain.
+        """
+        steps = self.settings.final_iterations if iterations is None else iterations
+        previous = best = self._backend.error()
+        done = False
+        for _ in range(steps):
+            self._backend.step()
+            error = self._backend.error()
+            best = min(best, error)
+            done = error >= previous * (1.0 - relative_tol)  # no gain left (or a loss)
+            previous = error
+            if done:
+                break
+        self._refresh(self._backend.estimate())
+        if self._t_ns:  # more frames may follow: the next interval at the new bias estimate
+            k = len(self._t_ns) - 1
+            self._imu.start(self._t_ns[k], self._biases[k])
+            self._imu.advance()
+        self.final_error = previous
+        self.converged = done and previous <= best * (1.0 + self.CONVERGED_SPREAD)
+        return self.converged
+
+    def _refresh(self, estimate: gtsam.Values) -> None:
+        for key in estimate.keys():
+            symbol = gtsam.Symbol(key)
+            i, c = int(symbol.index()), chr(symbol.chr())
+            if c == "x":
+                self._poses[i] = estimate.atPose3(key).matrix()
+            elif c == "v":
+                self._velocities[i] = np.asarray(estimate.atVector(key))
+            elif c == "b":
+                self._biases[i] = estimate.atConstantBias(key)
+
+    @property
+    def innovation_nis(self) -> np.ndarray:
+        """Squared Mahalanobis distance of every innovation the gate tested, (n,):
+        chi-square(2) (median 1.39, mean 2) when the noise model and the prior are honest."""
+        return self._gate.all_nis if self._gate is not None else np.zeros(0)
+
+    def values(self) -> gtsam.Values:
+        """Latest estimate of every frame so far (frames out of a lag window keep the
+        estimate they had when they left it)."""
+        values = gtsam.Values()
+        for k in range(len(self._t_ns)):
+            insert_state(values, k, self._poses[k], self._velocities[k], self._biases[k])
+        return values
+
+    def estimate(self) -> TrajectoryEstimate:
+        """Latest estimate of every frame so far."""
+        K = len(self._t_ns)
+        biases = [self._biases[k] for k in range(K)]
+        return TrajectoryEstimate(
+            t_ns=np.asarray(self._t_ns, dtype=np.int64),
+            world_T_body=np.stack([self._poses[k] for k in range(K)]),
+            velocity_mps=np.stack([self._velocities[k] for k in range(K)]),
+            gyro_bias=np.stack([b.gyroscope() for b in biases]),
+            accel_bias=np.stack([b.accelerometer() for b in biases]))
+
+    def covariances(self) -> StateCovariances:
+        """Marginals of every frame (full-history iSAM2), or of the frames still in the
+        window (fixed lag; older frames keep the covariances they left the window with
+        if ``keep_exit_covariances``, else NaN)."""
+        K = len(self._t_ns)
+        pose, vel, bias = np.full((K, 6, 6), np.nan), np.full((K, 3, 3), np.nan), \
+            np.full((K, 6, 6), np.nan)
+        current = self._backend.estimate()
+        for k in range(K):
+            if current.exists(X(k)):
+                pose[k], vel[k], bias[k] = (self._backend.marginal(key) for key in frame_keys(k))
+            elif k in self._exit_cov:  # as it left the window
+                pose[k], vel[k], bias[k] = self._exit_cov[k]
+        return StateCovariances(pose, vel, bias)
+
+    def run(self, flight: FlightLog, progress: Progress | None = None) -> SmootherResult:
+        """Feed a whole log frame by frame (:func:`~cdtm_graph.replay.replay`), finalize,
+        and return the result like :func:`~cdtm_graph.smoother.smooth`.
+
+        Unless the smoother was given the IMU up front, the log's samples are fed as they
+        would arrive live: those before each frame through :meth:`add_imu`, then the
+        frame with the sample that closes its interval.
+        """
+        start = time.perf_counter()
+        K = len(flight.frames)
+        live_imu = not self._imu.given_up_front
+        for frame in replay(flight):
+            if live_imu and len(frame.imu_before):
+                self.add_imu(frame.imu_before)
+            self.add_frame(frame.t_ns, frame.track_id, frame.uv_px,
+                           frame.imu_closing if live_imu else None)
+            if progress is not None:
+                progress(frame.k + 1, K)
+        self.finalize()
+        elapsed = time.perf_counter() - start
+        t0 = time.perf_counter()
+        covariances = self.covariances()
+        estimate = self.estimate()
+        n_out, out_per_frame = count_outliers(self._cdtm, estimate.world_T_body, K)
+        gated = self._gate.gated_per_frame if self._gate is not None else {}
+        counts = GraphCounts(
+            K, self._tracks.n_tracks, self._n_observations, self._n_pairs, self.n_features,
+            self.n_missed, self.n_cdtm_factors, K - 1,
+            np.array([self._features_per_frame.get(k, 0) for k in range(K)]),
+            n_out, out_per_frame, self._gate.n_gated if self._gate is not None else 0,
+            np.array([gated.get(k, 0) for k in range(K)]))
+        nis = self.innovation_nis
+        stats = SolverStats(
+            Solver.ISAM2 if self.settings.lag_s is None else Solver.FIXED_LAG, K,
+            float("nan"), self.final_error, self.converged, elapsed,
+            time.perf_counter() - t0, tuple(self.update_times_s), tuple(self.imu_times_s),
+            float(np.median(nis)) if nis.size else float("nan"),
+            float(np.mean(nis)) if nis.size else float("nan"))
+        settings = self.settings.to_dict()
+        settings["n_too_old_for_lag"] = self.n_too_old
+        return SmootherResult(estimate, covariances, stats, counts, settings,
+                              frame_flags(counts))

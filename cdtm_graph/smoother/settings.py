@@ -1,0 +1,61 @@
+"""Settings of a smoothing run: one object, one set of defaults, for batch and incremental."""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+
+from cdtm_graph.graph import GraphSettings
+
+#: ``progress(done, total)``: called once per frame on long runs.
+Progress = Callable[[int, int], None]
+
+
+class SmootherMode(enum.Enum):
+    """Which solver a run uses."""
+
+    BATCH = "batch"              # Levenberg-Marquardt over the whole log
+    INCREMENTAL = "incremental"  # iSAM2, one update per frame (fixed lag with ``lag_s``)
+
+
+@dataclass(frozen=True)
+class SmootherSettings:
+    """Settings of a smoothing run.
+
+    Attributes:
+        graph: how factors are built (plane mode, robust kernel, IMU hold).
+        mode: BATCH (LM over the whole log) or INCREMENTAL (iSAM2, one update per frame).
+        max_iterations: LM iterations (batch).
+        relative_error_tol: LM stops when the error decreases less than this, relatively.
+        lag_s: incremental only: a fixed-lag smoother of this lag (seconds); ``None``
+            keeps the full history in iSAM2.
+        final_iterations: incremental only: relinearizing updates after the last frame
+            (``IncrementalSmoother.finalize``) so the final estimate reaches the optimum.
+        marginals: compute per-frame marginal covariances (batch).
+        keep_exit_covariances: fixed lag: keep each frame's pose, velocity and bias
+            covariances as it leaves the window (about 1 ms per frame; an offline run
+            wants them, a live system needs only the newest: set False); otherwise NaN
+            for frames older than the lag.
+        innovation_gate: incremental only: drop each C-DTM feature whose innovation,
+            against the prior covariance of its two poses, fails the chi-square(2) gate
+            of this probability (e.g. 0.999); ``None`` gates nothing.
+    """
+
+    graph: GraphSettings = field(default_factory=GraphSettings)
+    mode: SmootherMode = SmootherMode.BATCH
+    max_iterations: int = 30
+    relative_error_tol: float = 1e-6
+    lag_s: float | None = None
+    final_iterations: int = 5
+    marginals: bool = True
+    keep_exit_covariances: bool = True
+    innovation_gate: float | None = None
+
+    def to_dict(self) -> dict:
+        """Plain values for report.json (enums as their values)."""
+        d = asdict(self)
+        d["mode"] = self.mode.value
+        d["graph"] = {k: (v.value if isinstance(v, enum.Enum) else v)
+                      for k, v in asdict(self.graph).items()}
+        return d

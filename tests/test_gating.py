@@ -1,0 +1,26 @@
+"""Chi-square tests of features: the innovation distance and its quantiles."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cdtm_graph.gating import chi2_2dof_quantile, innovation_mahalanobis
+
+
+def test_innovation_distance_is_chi_square_2_for_a_linear_gaussian_model(rng):
+    """e = H dx + v with dx ~ N(0, P), v ~ N(0, I): d is chi-square(2), and the gate of
+    probability p passes a fraction p."""
+    n = 20000
+    L = rng.normal(size=(12, 12))
+    P = L @ L.T * 0.01 + np.diag(rng.uniform(0.001, 0.1, 12))
+    H_a, H_b = rng.normal(size=(n, 2, 6)), rng.normal(size=(n, 2, 6))
+    dx = rng.multivariate_normal(np.zeros(12), P, n)
+    e = np.einsum("nij,nj->ni", np.concatenate([H_a, H_b], axis=2), dx) + rng.normal(size=(n, 2))
+    d = innovation_mahalanobis(e, H_a, H_b, P)
+    assert abs(d.mean() - 2.0) < 4 * 2.0 / np.sqrt(n)  # chi2_2: mean 2, std 2
+    for p in (0.9, 0.99):
+        passed = np.mean(d <= chi2_2dof_quantile(p))
+        assert abs(passed - p) < 4 * np.sqrt(p * (1 - p) / n)
+    with pytest.raises(ValueError):
+        chi2_2dof_quantile(1.0)

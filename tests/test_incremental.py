@@ -1,0 +1,190 @@
+"""The incremental smoother: live input, IMU latency, the innovation gate, fixed lag."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from cdtm_graph.errors import SolverError
+from cdtm_graph.flightlog import ImuSamples
+from cdtm_graph.gating import chi2_2dof_quantile
+from cdtm_graph.run import smooth_and_evaluate
+from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
+from cdtm_graph.smoother import IncrementalSmoother, SmootherMode, SmootherSettings, smooth
+
+MAX_RMSE_M = 10.0
+#: chi-square(2) has median 2 ln 2 = 1.39; the model is honest to about 15%.
+NIS_MEDIAN_RANGE = (1.15, 1.65)
+GATE_RATE_TOL = 0.03
+
+
+def test_live_fed_incremental_run_equals_imu_given_up_front():
+    """run() feeds the IMU as it would arrive (add_imu between frames): same estimates and
+    covariances as a smoother given the whole IMU at construction."""
+    flight, dtm = simulate_flight(SimulationSettings(frames=8, features=40, seed=4))
+    live = IncrementalSmoother(flight.config, dtm).run(flight)
+    upfront = IncrementalSmoother(flight.config, dtm, imu=flight.imu).run(flight)
+    np.testing.assert_array_equal(live.estimate.world_T_body, upfront.estimate.world_T_body)
+    np.testing.assert_array_equal(live.covariances.pose, upfront.covariances.pose)
+    assert all(t > 0 for t in live.stats.imu_times_s[1:])
+    assert all(t == 0 for t in upfront.stats.imu_times_s)
+
+
+def _samples(imu, a, b):
+    return ImuSamples(imu.t_ns[a:b], imu.gyro_radps[a:b], imu.acc_mps2[a:b])
+
+
+def test_a_frame_ahead_of_its_imu_can_be_retried():
+    """A frame whose interval the IMU does not yet cover is refused with nothing changed;
+    fed the missing samples, the same frame goes through and the run equals a normal one."""
+    flight, dtm = simulate_flight(SimulationSettings(frames=5, features=40, seed=4))
+    imu, t = flight.imu, flight.frames.t_ns
+    reference = IncrementalSmoother(flight.config, dtm, imu=flight.imu).run(flight)
+    smoother = IncrementalSmoother(flight.config, dtm)
+    tracks = flight.tracks
+    sent = 0
+    for k in range(len(t)):
+        rows = tracks.frame == k
+        cover = int(np.searchsorted(imu.t_ns, t[k])) + 1
+        if k == 2:  # three samples short of the frame time
+            smoother.add_imu(_samples(imu, sent, cover - 3))
+            sent = cover - 3
+            with pytest.raises(SolverError, match="does not cover"):
+                smoother.add_frame(int(t[k]), tracks.track_id[rows], tracks.uv_px[rows])
+        smoother.add_frame(int(t[k]), tracks.track_id[rows], tracks.uv_px[rows],
+                           _samples(imu, sent, cover))
+        sent = cover
+    smoother.finalize()
+    np.testing.assert_array_equal(smoother.estimate().world_T_body,
+                                  reference.estimate.world_T_body)
+
+
+def test_imu_running_ahead_of_the_camera_is_held_back():
+    """With camera latency the IMU arrives past each frame before the frame does: the
+    stream learns the lead and stops integrating into the next interval; the estimates
+    stay those of the IMU given up front."""
+    flight, dtm = simulate_flight(SimulationSettings(frames=6, features=40, seed=4))
+    imu, t = flight.imu, flight.frames.t_ns
+    reference = IncrementalSmoother(flight.config, dtm, imu=flight.imu).run(flight)
+    smoother = IncrementalSmoother(flight.config, dtm)
+    tracks = flight.tracks
+    lead = 7  # samples past the frame time that arrive before the frame
+    sent, redone = 0, []
+    for k in range(len(t)):
+        upto = int(np.searchsorted(imu.t_ns, t[k])) + lead
+        smoother.add_imu(_samples(imu, sent, upto))
+        sent = upto
+        redone.append(smoother._imu.stream.done_ns > t[k])  # integrated past this frame?
+        rows = tracks.frame == k
+        smoother.add_frame(int(t[k]), tracks.track_id[rows], tracks.uv_px[rows])
+    assert redone[1] and not any(redone[2:])
+    assert smoother._imu.stream.holdback_ns >= imu.t_ns[lead - 1] - imu.t_ns[0]
+    smoother.finalize()
+    np.testing.assert_array_equal(smoother.estimate().world_T_body,
+                                  reference.estimate.world_T_body)
+
+
+def test_frames_without_tracks_may_come_as_empty_lists():
+    flight, dtm = simulate_flight(SimulationSettings(frames=4, features=30, seed=4))
+    smoother = IncrementalSmoother(flight.config, dtm, imu=flight.imu)
+    update = smoother.add_frame(int(flight.frames.t_ns[0]), [], [])
+    assert update.n_features == 0
+
+
+def test_incremental_api_one_frame_at_a_time(nominal_log):
+    """The API a live system uses: IMU samples arrive with each frame."""
+    from cdtm_graph.flightlog import ImuSamples
+
+    flight, dtm = nominal_log
+    smoother = IncrementalSmoother(flight.config, dtm)
+    imu, tracks = flight.imu, flight.tracks
+    sent = 0
+    sigmas = []
+    for k, t_ns in enumerate(flight.frames.t_ns[:15]):
+        upto = min(int(np.searchsorted(imu.t_ns, t_ns, side="right")) + 1, len(imu.t_ns))
+        chunk = ImuSamples(imu.t_ns[sent:upto], imu.gyro_radps[sent:upto], imu.acc_mps2[sent:upto])
+        sent = upto
+        seen = tracks.frame == k
+        update = smoother.add_frame(int(t_ns), tracks.track_id[seen], tracks.uv_px[seen], chunk)
+        assert update.frame == k and update.pose_covariance.shape == (6, 6)
+        sigmas.append(np.sqrt(np.diag(update.pose_covariance)[3:]).max())
+        if k:
+            assert update.n_features > 0
+    # C-DTM updates pull the 50 m prior down to metres within a few frames
+    assert sigmas[0] > 20 and sigmas[-1] < 5
+
+
+def test_fixed_lag_smoother_tracks_the_flight(nominal_log):
+    flight, dtm = nominal_log
+    result = smooth(flight, dtm, SmootherSettings(mode=SmootherMode.INCREMENTAL, lag_s=10.0))
+    truth = flight.groundtruth.interpolate(flight.frames.t_ns).position_m
+    err = result.estimate.position_m - truth
+    assert np.sqrt(np.mean(err**2, axis=0)).max() <= MAX_RMSE_M
+    # frames that left the window keep the covariances they left with: SPD, and no
+    # smaller than the final smoothed ones of the frames still in the window
+    for block in (result.covariances.pose, result.covariances.velocity,
+                  result.covariances.bias):
+        assert np.isfinite(block).all()
+        assert np.all(np.linalg.eigvalsh(block) > 0)
+    dt_s = float(np.max(np.diff(flight.frames.t_ns))) * 1e-9  # as smooth() passes it
+    live = IncrementalSmoother(
+        flight.config, dtm, SmootherSettings(lag_s=10.0, keep_exit_covariances=False),
+        frame_interval_s=dt_s).run(flight)
+    assert np.isnan(live.covariances.velocity[0]).all()  # a live run keeps none
+    np.testing.assert_allclose(live.covariances.pose[-1], result.covariances.pose[-1])
+
+
+def test_innovation_gate_keeps_nearly_every_good_feature(nominal_log):
+    """On a clean log a 99.9% gate drops well under 1% of the features and the run keeps
+    the ungated accuracy."""
+    flight, dtm = nominal_log
+    runs = {gate: smooth_and_evaluate(flight, dtm, SmootherSettings(
+        mode=SmootherMode.INCREMENTAL, innovation_gate=gate)) for gate in (None, 0.999)}
+    counts = runs[0.999].result.counts
+    assert 0 < counts.n_gated < 0.01 * (counts.n_cdtm_features + counts.n_gated)
+    rmse = {g: np.linalg.norm(r.errors.rmse_position_m) for g, r in runs.items()}
+    assert rmse[0.999] < 1.5 * rmse[None]
+
+
+def test_innovations_of_a_clean_log_are_chi_square_2(nominal_log):
+    """The gate's test statistic (the first observation's pixel noise counted, the prior
+    from iSAM2) follows chi-square(2) on a clean log: median near 1.39, and a 90% gate
+    drops about 10% of the features tested."""
+    flight, dtm = nominal_log
+    smoother = IncrementalSmoother(flight.config, dtm, SmootherSettings(innovation_gate=0.9))
+    result = smoother.run(flight)
+    nis = smoother.innovation_nis
+    assert nis.size > 5000
+    assert NIS_MEDIAN_RANGE[0] < np.median(nis) < NIS_MEDIAN_RANGE[1]
+    assert result.stats.innovation_nis_median == np.median(nis)
+    limit = chi2_2dof_quantile(0.9)
+    dropped = np.mean(nis > limit)
+    assert abs(dropped - 0.1) < GATE_RATE_TOL, dropped
+    assert result.counts.n_gated == int(np.sum(nis > limit))
+
+
+def test_the_innovation_gate_drops_gross_outliers_before_they_enter():
+    """Bad matches (2% of observations moved 15-25 px) are gated out as they arrive: the
+    incremental run stays near the clean one, where without a gate it does not."""
+
+    from cdtm_graph.run import smooth_and_evaluate
+    from cdtm_graph.smoother import SmootherMode, SmootherSettings
+
+    flight, dtm = simulate_flight(SimulationSettings(frames=30, features=80, seed=6))
+    rng = np.random.default_rng(8)
+    uv = flight.tracks.uv_px.copy()
+    bad = rng.random(len(uv)) < 0.02
+    angle = rng.uniform(0, 2 * np.pi, int(bad.sum()))
+    shift = rng.uniform(15, 25, angle.size)[:, None] * np.c_[np.cos(angle), np.sin(angle)]
+    uv[bad] = np.clip(uv[bad] + shift, 0, 399)
+    corrupted = dataclasses.replace(flight, tracks=dataclasses.replace(flight.tracks, uv_px=uv))
+    runs = {gate: smooth_and_evaluate(corrupted, dtm, SmootherSettings(
+        mode=SmootherMode.INCREMENTAL, innovation_gate=gate)) for gate in (None, 0.999)}
+    clean = smooth_and_evaluate(flight, dtm, SmootherSettings(mode=SmootherMode.INCREMENTAL))
+    gated = runs[0.999].result.counts
+    assert gated.n_gated == gated.gated_per_frame.sum() >= bad.sum()  # each enters <= 2 pairs
+    rmse = {g: np.linalg.norm(r.errors.rmse_position_m) for g, r in runs.items()}
+    assert rmse[0.999] < 0.5 * rmse[None]
+    assert rmse[0.999] < 2 * np.linalg.norm(clean.errors.rmse_position_m)
