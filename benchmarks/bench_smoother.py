@@ -40,7 +40,7 @@ def main(argv: list[str] | None = None) -> None:
 
     t0 = time.perf_counter()
     flight, dtm = simulate_flight(SimulationSettings(
-        frames=args.frames, fps=args.fps, features=args.features, nav="noisy_truth", seed=5))
+        frames=args.frames, fps=args.fps, n_features=args.features, nav="noisy_truth", seed=5))
     print(f"simulated {args.frames} frames at {args.fps} fps, {len(flight.tracks)} observations "
           f"in {time.perf_counter() - t0:.1f} s")
     smooth(flight, dtm, SmootherSettings(max_iterations=1))  # warm-up: numba caches, imports

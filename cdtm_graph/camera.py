@@ -207,9 +207,9 @@ class PinholeCamera:
         u, v = uv[..., 0], uv[..., 1]
         return (u >= -0.5) & (u <= self.width - 0.5) & (v >= -0.5) & (v <= self.height - 0.5)
 
-    def sigma_normalized(self, sigma_px: float) -> tuple[float, float]:
-        """A pixel standard deviation in normalized image units: ``(sigma_px/fx, sigma_px/fy)``."""
-        return (sigma_px / self.fx, sigma_px / self.fy)
+    def sigma_normalized(self, pixel_sigma_px: float) -> tuple[float, float]:
+        """A pixel standard deviation in normalized image units: ``(sigma / fx, sigma / fy)``."""
+        return (pixel_sigma_px / self.fx, pixel_sigma_px / self.fy)
 
 
 def _finite_float(value: object, name: str) -> float:

@@ -15,4 +15,4 @@ def nominal_log():
     """60 frames at 1 fps, ~1000 m above 300 m-relief fractal terrain, 30 m DTM."""
     from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
 
-    return simulate_flight(SimulationSettings(frames=60, alt_m=1000.0, relief_m=300.0, seed=1))
+    return simulate_flight(SimulationSettings(frames=60, altitude_m=1000.0, relief_m=300.0, seed=1))

@@ -464,7 +464,7 @@ def _pim_state(pim):
 def test_imu_stream_gives_the_interval_preintegration_exactly(hold, rng):
     """Samples fed in random chunks, integrated as far as they fix the holds, give the
     same preintegration as the whole interval at once, also when they ran past the frame."""
-    flight, _ = simulate_flight(SimulationSettings(frames=4, features=10, seed=3))
+    flight, _ = simulate_flight(SimulationSettings(frames=4, n_features=10, seed=3))
     imu, t_frames = flight.imu, flight.frames.t_ns
     reference = ImuIntervals(flight.config, imu, hold)
     bias = gtsam.imuBias.ConstantBias(np.array([0.01, -0.02, 0.03]), np.array([1e-3, 0, -2e-3]))

@@ -23,7 +23,7 @@ GATE_RATE_TOL = 0.03
 def test_live_fed_incremental_run_equals_imu_given_up_front():
     """run() feeds the IMU as it would arrive (add_imu between frames): same estimates and
     covariances as a smoother given the whole IMU at construction."""
-    flight, dtm = simulate_flight(SimulationSettings(frames=8, features=40, seed=4))
+    flight, dtm = simulate_flight(SimulationSettings(frames=8, n_features=40, seed=4))
     live = IncrementalSmoother(flight.config, dtm).run(flight)
     upfront = IncrementalSmoother(flight.config, dtm, imu=flight.imu).run(flight)
     np.testing.assert_array_equal(live.estimate.world_T_body, upfront.estimate.world_T_body)
@@ -39,7 +39,7 @@ def _samples(imu, a, b):
 def test_a_frame_ahead_of_its_imu_can_be_retried():
     """A frame whose interval the IMU does not yet cover is refused with nothing changed;
     fed the missing samples, the same frame goes through and the run equals a normal one."""
-    flight, dtm = simulate_flight(SimulationSettings(frames=5, features=40, seed=4))
+    flight, dtm = simulate_flight(SimulationSettings(frames=5, n_features=40, seed=4))
     imu, t = flight.imu, flight.frames.t_ns
     reference = IncrementalSmoother(flight.config, dtm, imu=flight.imu).run(flight)
     smoother = IncrementalSmoother(flight.config, dtm)
@@ -65,7 +65,7 @@ def test_imu_running_ahead_of_the_camera_is_held_back():
     """With camera latency the IMU arrives past each frame before the frame does: the
     stream learns the lead and stops integrating into the next interval; the estimates
     stay those of the IMU given up front."""
-    flight, dtm = simulate_flight(SimulationSettings(frames=6, features=40, seed=4))
+    flight, dtm = simulate_flight(SimulationSettings(frames=6, n_features=40, seed=4))
     imu, t = flight.imu, flight.frames.t_ns
     reference = IncrementalSmoother(flight.config, dtm, imu=flight.imu).run(flight)
     smoother = IncrementalSmoother(flight.config, dtm)
@@ -87,7 +87,7 @@ def test_imu_running_ahead_of_the_camera_is_held_back():
 
 
 def test_frames_without_tracks_may_come_as_empty_lists():
-    flight, dtm = simulate_flight(SimulationSettings(frames=4, features=30, seed=4))
+    flight, dtm = simulate_flight(SimulationSettings(frames=4, n_features=30, seed=4))
     smoother = IncrementalSmoother(flight.config, dtm, imu=flight.imu)
     update = smoother.add_frame(int(flight.frames.t_ns[0]), [], [])
     assert update.n_features == 0
@@ -172,7 +172,7 @@ def test_the_innovation_gate_drops_gross_outliers_before_they_enter():
     from cdtm_graph.run import smooth_and_evaluate
     from cdtm_graph.smoother import SmootherMode, SmootherSettings
 
-    flight, dtm = simulate_flight(SimulationSettings(frames=30, features=80, seed=6))
+    flight, dtm = simulate_flight(SimulationSettings(frames=30, n_features=80, seed=6))
     rng = np.random.default_rng(8)
     uv = flight.tracks.uv_px.copy()
     bad = rng.random(len(uv)) < 0.02

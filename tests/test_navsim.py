@@ -124,7 +124,7 @@ def test_frame_interval_keeps_the_baseline_a_fifth_of_the_altitude():
     assert [settings.frames(a) for a in (700.0, 1000.0, 3000.0)] == [429, 301, 101]
     sim = settings.simulation(3000.0, 4000)
     assert sim.resolution_px == (4000, 4000) and sim.fps == pytest.approx(1 / 3)
-    assert sim.speed_mps == 200.0 and sim.fov_deg == 60.0 and 100 <= sim.features <= 120
+    assert sim.speed_mps == 200.0 and sim.fov_deg == 60.0 and 100 <= sim.n_features <= 120
 
 
 def test_a_case_both_tables_share_is_flown_once(result):

@@ -67,7 +67,7 @@ SAMPLE_CHI2_PER_DOF_TOL = 0.15
 #: body_T_cam goes through a quaternion in flight.yaml (flightlog module docstring).
 BODY_T_CAM_ROUND_TRIP_TOL = 1e-15
 
-SMALL = dict(frames=10, features=120, seed=TEST_SEED)
+SMALL = dict(frames=10, n_features=120, seed=TEST_SEED)
 
 
 @functools.cache
@@ -94,7 +94,7 @@ def _ridge_dtm() -> Dtm:
 def _ridge(tmp_dir: str) -> SimulationResult:
     path = Path(tmp_dir) / "ridge.npz"
     save_dtm_npz(_ridge_dtm(), path)
-    return simulate(SimulationSettings(terrain=path, frames=14, features=150, seed=TEST_SEED,
+    return simulate(SimulationSettings(terrain=path, frames=14, n_features=150, seed=TEST_SEED,
                                        noiseless=True, turn_deg=0.0))
 
 
@@ -156,7 +156,7 @@ def test_written_log_reads_back_as_simulated(tmp_path):
 
 
 def test_simulate_flight_and_write_simulated_log_agree(tmp_path):
-    settings = SimulationSettings(frames=3, features=20, seed=5)
+    settings = SimulationSettings(frames=3, n_features=20, seed=5)
     log, dtm = simulate_flight(settings)
     back = read_flightlog(write_simulated_log(settings, tmp_path / "log"))
     assert back.tracks == log.tracks and back.imu == log.imu
@@ -164,11 +164,11 @@ def test_simulate_flight_and_write_simulated_log_agree(tmp_path):
 
 
 def test_simulation_is_deterministic():
-    settings = SimulationSettings(frames=4, features=30, seed=11)
+    settings = SimulationSettings(frames=4, n_features=30, seed=11)
     a, b = simulate(settings).log, simulate(settings).log
     assert a.imu == b.imu and a.tracks == b.tracks and a.groundtruth == b.groundtruth
     assert a.config.initial_state == b.config.initial_state
-    c = simulate(SimulationSettings(frames=4, features=30, seed=12)).log
+    c = simulate(SimulationSettings(frames=4, n_features=30, seed=12)).log
     assert not np.array_equal(a.tracks.uv_px[:10], c.tracks.uv_px[:10])
 
 
@@ -273,7 +273,7 @@ def test_features_per_frame_pair_meet_the_target():
         rows_a, rows_b = tracks.pairs()
         assert np.all(tracks.frame[rows_b] == tracks.frame[rows_a] + 1)  # tracks die when lost
         per_pair = np.bincount(tracks.frame[rows_a], minlength=SMALL["frames"] - 1)
-        assert per_pair.tolist() == [SMALL["features"]] * (SMALL["frames"] - 1)
+        assert per_pair.tolist() == [SMALL["n_features"]] * (SMALL["frames"] - 1)
         np.testing.assert_array_equal(per_pair, result.stats.pairs_per_frame)
         assert result.log.config.camera.camera.in_image(tracks.uv_px).all()
 
@@ -287,7 +287,7 @@ def test_pixel_noise_matches_its_sigma():
 
 
 def test_imu_noise_matches_the_flight_yaml_densities():
-    result = simulate(SimulationSettings(frames=21, features=5, seed=TEST_SEED))
+    result = simulate(SimulationSettings(frames=21, n_features=5, seed=TEST_SEED))
     log, imu = result.log, result.imu
     cfg = log.config.imu
     truth = evaluate(result.plan, log.imu.t_ns / NS_PER_S)
@@ -324,7 +324,7 @@ def test_noisy_truth_nav_has_its_sigma():
 
 
 @pytest.mark.parametrize("changes", [
-    dict(alt_m=-1.0), dict(frames=1), dict(features=0), dict(fps=0.0), dict(nav="gps"),
+    dict(altitude_m=-1.0), dict(frames=1), dict(n_features=0), dict(fps=0.0), dict(nav="gps"),
     dict(fov_deg=180.0), dict(dtm_spacing_m=float("nan")), dict(seed=-1),
     dict(resolution_px=(400,)),
 ])
@@ -337,7 +337,7 @@ def test_impossible_flights_are_refused(tmp_path):
     with pytest.raises(SimulationError, match="horizon"):
         simulate(SimulationSettings(frames=3, fov_deg=150.0))
     with pytest.raises(SimulationError, match="clears the highest terrain"):
-        simulate(SimulationSettings(frames=3, alt_m=120.0))
+        simulate(SimulationSettings(frames=3, altitude_m=120.0))
     path = tmp_path / "small.npz"
     save_dtm_npz(Dtm(np.zeros((11, 11)), 0.0, 0.0, 100.0, 100.0), path)
     with pytest.raises(SimulationError, match="covers"):
@@ -363,7 +363,7 @@ def test_cli_writes_a_log_and_prints_one_line(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--alt-m", "-100"], "alt_m"),
+    (["--alt-m", "-100"], "altitude_m"),
     (["--frames", "1"], "frames"),
     (["--terrain", "missing.npz"], "missing.npz"),
 ])

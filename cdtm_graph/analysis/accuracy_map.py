@@ -82,7 +82,7 @@ class AccuracyMapSettings:
         n_features: features per pair.
         baseline_m: ``|p12|``, along the body x axis.
         rotation_deg: ``|(phi12, theta12, psi12)|``.
-        sigma_px: registration error, pixels (1 sigma).
+        pixel_sigma_px: registration error, pixels (1 sigma).
         sigma_h_m: DTM height error; ``None`` uses the DTM's own (its ``sigma_h()``).
         heading_deg: flight direction, degrees counter-clockwise from +x.
         step_m: node spacing; ``None`` puts :data:`DEFAULT_NODES_PER_SIDE` nodes along
@@ -97,7 +97,7 @@ class AccuracyMapSettings:
     n_features: int = 170
     baseline_m: float = 40.0
     rotation_deg: float = 10.0
-    sigma_px: float = 0.5
+    pixel_sigma_px: float = 0.5
     sigma_h_m: float | None = None
     heading_deg: float = 0.0
     step_m: float | None = None
@@ -107,7 +107,7 @@ class AccuracyMapSettings:
     def check(self) -> None:
         """Raise CdtmError on settings that make no sense."""
         positive = {"altitude_m": self.altitude_m, "resolution_px": self.resolution_px,
-                    "n_features": self.n_features, "sigma_px": self.sigma_px}
+                    "n_features": self.n_features, "pixel_sigma_px": self.pixel_sigma_px}
         for name, value in positive.items():
             if not (math.isfinite(value) and value > 0):
                 raise CdtmError(f"{name} = {value!r}, expected > 0")
@@ -129,7 +129,7 @@ class AccuracyMapSettings:
 
     def noise(self, dtm: Dtm) -> FeatureNoise:
         sigma_h = dtm.sigma_h() if self.sigma_h_m is None else self.sigma_h_m
-        return FeatureNoise(self.camera.sigma_normalized(self.sigma_px), sigma_h)
+        return FeatureNoise(self.camera.sigma_normalized(self.pixel_sigma_px), sigma_h)
 
 
 @dataclass(frozen=True)

@@ -42,9 +42,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "Sigma_C2), with noiseless features at the true geometry. Degenerate "
                     "nodes are flagged with their reasons.")
     parser.add_argument("dtm", type=Path, metavar="DTM", help="DTM file (.npz, .asc, .tif)")
-    parser.add_argument("--alt-m", type=float, required=True,
-                        help="camera altitude [m] (see --alt-ref)")
-    parser.add_argument("--alt-ref", choices=[r.value for r in AltitudeReference],
+    parser.add_argument("--altitude-m", "--alt-m", type=float, required=True,
+                        help="camera altitude [m] (see --altitude-ref)")
+    parser.add_argument("--altitude-ref", "--alt-ref", choices=[r.value for r in AltitudeReference],
                         default=AltitudeReference.MEAN_TERRAIN.value,
                         help="altitude above the DTM's mean height (constant-altitude flight, "
                              "default) or above the ground below the camera")
@@ -57,7 +57,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="baseline |p12| [m] (default: %(default)s)")
     parser.add_argument("--rotation-deg", type=float, default=10.0,
                         help="rotation between the frames [deg] (default: %(default)s)")
-    parser.add_argument("--sigma-px", type=float, default=0.5,
+    parser.add_argument("--pixel-sigma-px", "--sigma-px", type=float, default=0.5,
                         help="registration error, 1 sigma [px] (default: %(default)s)")
     parser.add_argument("--sigma-h-m", type=float, default=None,
                         help="DTM height error, 1 sigma [m] (default: from the grid spacing)")
@@ -83,15 +83,16 @@ def write_accuracy_map_npz(result: AccuracyMap, path: Path) -> None:
                  altitude_m=s.altitude_m, altitude_reference=s.altitude_reference.value,
                  fov_deg=s.fov_deg, resolution_px=s.resolution_px,
                  n_features_requested=s.n_features, baseline_m=s.baseline_m,
-                 rotation_deg=s.rotation_deg, sigma_px=s.sigma_px, heading_deg=s.heading_deg)
+                 rotation_deg=s.rotation_deg, pixel_sigma_px=s.pixel_sigma_px,
+                 heading_deg=s.heading_deg)
 
 
 def run(args: argparse.Namespace) -> int:
     settings = AccuracyMapSettings(
-        altitude_m=args.alt_m, fov_deg=args.fov_deg, resolution_px=args.resolution_px,
+        altitude_m=args.altitude_m, fov_deg=args.fov_deg, resolution_px=args.resolution_px,
         n_features=args.features, baseline_m=args.baseline_m, rotation_deg=args.rotation_deg,
-        sigma_px=args.sigma_px, sigma_h_m=args.sigma_h_m, heading_deg=args.heading_deg,
-        step_m=args.step_m, altitude_reference=AltitudeReference(args.alt_ref))
+        pixel_sigma_px=args.pixel_sigma_px, sigma_h_m=args.sigma_h_m, heading_deg=args.heading_deg,
+        step_m=args.step_m, altitude_reference=AltitudeReference(args.altitude_ref))
     settings.check()  # before reading the DTM: a bad flag fails fast
     dtm = load_dtm(args.dtm)
     result = accuracy_map(dtm, settings, ParallelSettings(workers=args.workers))

@@ -21,7 +21,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--terrain", type=Path, metavar="DTMFILE",
                         help="fly over this DTM (.npz, .asc, .tif) instead of a fractal "
                              "terrain; it is then also the log's DTM")
-    parser.add_argument("--alt-m", type=float, default=_DEFAULTS.alt_m,
+    parser.add_argument("--altitude-m", "--alt-m", type=float, default=_DEFAULTS.altitude_m,
                         help="altitude above the terrain's mean height, m (default %(default)s)")
     parser.add_argument("--speed-mps", type=float, default=_DEFAULTS.speed_mps,
                         help="ground speed, m/s (default %(default)s)")
@@ -29,7 +29,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="number of camera frames (default %(default)s)")
     parser.add_argument("--fps", type=float, default=_DEFAULTS.fps,
                         help="frame rate, Hz (default %(default)s)")
-    parser.add_argument("--features", type=int, default=_DEFAULTS.features,
+    parser.add_argument("--features", type=int, default=_DEFAULTS.n_features,
                         help="features per consecutive frame pair (default %(default)s)")
     parser.add_argument("--seed", type=int, default=_DEFAULTS.seed,
                         help="seed of every random draw (default %(default)s)")
@@ -51,8 +51,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     settings = SimulationSettings(
-        terrain=args.terrain, alt_m=args.alt_m, speed_mps=args.speed_mps, frames=args.frames,
-        fps=args.fps, features=args.features, seed=args.seed, noiseless=args.noiseless,
+        terrain=args.terrain, altitude_m=args.altitude_m, speed_mps=args.speed_mps,
+        frames=args.frames,
+        fps=args.fps, n_features=args.features, seed=args.seed, noiseless=args.noiseless,
         exact_dtm=args.exact_dtm, dtm_spacing_m=args.dtm_spacing_m, relief_m=args.relief_m,
         nav=args.nav)
     result = simulate(settings)

@@ -105,5 +105,5 @@ def accuracy_map_figure(result: AccuracyMap, dtm: Dtm) -> Figure:
     fig.suptitle(f"Predicted accuracy (closed form): altitude {s.altitude_m:g} m "
                  f"({s.altitude_reference.value}), FOV {s.fov_deg:g} deg, "
                  f"{s.resolution_px} px, {s.n_features} features, baseline {s.baseline_m:g} m, "
-                 f"rotation {s.rotation_deg:g} deg, {s.sigma_px:g} px", fontsize=10)
+                 f"rotation {s.rotation_deg:g} deg, {s.pixel_sigma_px:g} px", fontsize=10)
     return fig

@@ -50,7 +50,7 @@ class PairScenario:
         n_features: features requested (those visible in both frames are kept).
         baseline_m: ``|p12|``, mostly along track.
         rotation_deg: ``|(phi12, theta12, psi12)|``.
-        sigma_px: registration error (1 sigma, pixels) on the second frame's points.
+        pixel_sigma_px: registration error (1 sigma, pixels) on the second frame's points.
         sigma_h_m: DTM height error; ``None`` uses the Fig. 6 model of the grid spacing.
         dtm_error: how the DTM error is simulated.
         initial_position_error_m, initial_attitude_error_deg: 1-sigma of the initial guess.
@@ -68,7 +68,7 @@ class PairScenario:
     n_features: int = 170
     baseline_m: float = 40.0
     rotation_deg: float = 10.0
-    sigma_px: float = 0.5
+    pixel_sigma_px: float = 0.5
     sigma_h_m: float | None = None
     dtm_error: DtmErrorModel = DtmErrorModel.MODEL
     initial_position_error_m: float = 5.0
@@ -90,7 +90,7 @@ class PairScenario:
     @property
     def noise(self) -> FeatureNoise:
         """The data noise the estimator assumes (``q_a`` exact, as the paper)."""
-        return FeatureNoise(self.camera.sigma_normalized(self.sigma_px), self.sigma_h)
+        return FeatureNoise(self.camera.sigma_normalized(self.pixel_sigma_px), self.sigma_h)
 
 
 @dataclass(frozen=True)
@@ -194,7 +194,7 @@ def sample_pair(scenario: PairScenario, terrain: ScenarioTerrain,
         scenario.dtm_error is DtmErrorModel.MODEL)
     ok, g_b = visible_from(occluder, wTc_b, G, ok, tolerance)
     uv_b = camera.rays_to_pixels(np.where(ok[:, None], g_b, [0.0, 0.0, 1.0]))
-    uv_b = uv_b + rng.normal(0, scenario.sigma_px, uv_b.shape) * (not scenario.noiseless)
+    uv_b = uv_b + rng.normal(0, scenario.pixel_sigma_px, uv_b.shape) * (not scenario.noiseless)
     ok &= camera.in_image(uv_b)
     idx = np.flatnonzero(ok)[: scenario.n_features]
     q_b = camera.pixels_to_rays(uv_b[idx])

@@ -25,7 +25,7 @@ as a ``cdtm-flightlog/1`` log (FLIGHTLOG.md) plus the DTM to ship with it:
   observation occlusion-checked (a ray from the camera toward the point must first hit
   the terrain at the point), inside the image after pixel noise. Tracks die when lost.
   New tracks are spawned only where they are also seen in the next frame (what a
-  tracker's matched pairs give), so every consecutive frame pair has ``features``
+  tracker's matched pairs give), so every consecutive frame pair has ``n_features``
   features exactly unless the terrain refuses (the shortfall is logged and counted).
 
 All randomness comes from one seed, split into independent streams (terrain, initial
@@ -170,11 +170,11 @@ class SimulationSettings:
         dtm_spacing_m: spacing of the log's DTM, the truth resampled (m); its sigma_h
             follows the Fig. 6 model.
         exact_dtm: the log's DTM is the truth itself (sigma_h ``EXACT_DTM_SIGMA_H_M``).
-        alt_m: flight altitude above the terrain's mean height (m).
+        altitude_m: flight altitude above the terrain's mean height (m).
         speed_mps: ground speed (m/s).
         frames: number of camera frames (>= 2).
         fps: frame rate (Hz).
-        features: target number of features per consecutive frame pair.
+        n_features: target number of features per consecutive frame pair.
         resolution_px: image (width, height) in pixels.
         fov_deg: horizontal field of view (deg).
         pixel_sigma_px: 1-sigma pixel noise of every observation.
@@ -213,11 +213,11 @@ class SimulationSettings:
     terrain_spacing_m: float | None = None
     dtm_spacing_m: float = 30.0
     exact_dtm: bool = False
-    alt_m: float = 1000.0
+    altitude_m: float = 1000.0
     speed_mps: float = 200.0
     frames: int = 60
     fps: float = 1.0
-    features: int = 170
+    n_features: int = 170
     resolution_px: tuple[int, int] = (400, 400)
     fov_deg: float = 60.0
     pixel_sigma_px: float = 0.5
@@ -253,7 +253,7 @@ class SimulationSettings:
             choices = ", ".join(m.value for m in NavMode)
             raise SimulationError(f"nav = {self.nav!r}, expected one of {choices}") from None
         positive = ("relief_m", "terrain_cell_m", "correlation_length_m", "dtm_spacing_m",
-                    "alt_m", "speed_mps", "fps", "fov_deg", "pixel_sigma_px", "leg_s",
+                    "altitude_m", "speed_mps", "fps", "fov_deg", "pixel_sigma_px", "leg_s",
                     "turn_rate_dps", "attitude_wobble_period_s", "imu_rate_hz",
                     "gravity_mps2", "sigma_position_m", "sigma_attitude_deg",
                     "sigma_velocity_mps", "sigma_gyro_bias", "sigma_accel_bias",
@@ -276,8 +276,8 @@ class SimulationSettings:
                 raise SimulationError(f"{name} = {value!r}, expected a finite number")
         if not _is_int(self.frames) or self.frames < 2:
             raise SimulationError(f"frames = {self.frames!r}, expected an integer >= 2")
-        if not _is_int(self.features) or self.features < 1:
-            raise SimulationError(f"features = {self.features!r}, expected an integer >= 1")
+        if not _is_int(self.n_features) or self.n_features < 1:
+            raise SimulationError(f"n_features = {self.n_features!r}, expected an integer >= 1")
         if not _is_int(self.seed) or self.seed < 0:
             raise SimulationError(f"seed = {self.seed!r}, expected an integer >= 0")
         if (len(self.resolution_px) != 2
@@ -316,7 +316,7 @@ class SimulationSettings:
         """Time of the last frame (s); the first frame is at t = 0."""
         return (self.frames - 1) / self.fps
 
-    def as_dict(self) -> dict:
+    def to_dict(self) -> dict:
         """The settings as plain YAML-able values (recorded under ``extra`` in flight.yaml)."""
         out = {}
         for f in dataclasses.fields(self):
@@ -351,7 +351,7 @@ class TrackStats:
     lost: dict
     spawn_candidates: int
 
-    def as_dict(self) -> dict:
+    def to_dict(self) -> dict:
         """Plain YAML-able summary."""
         pairs = self.pairs_per_frame
         return {
@@ -497,29 +497,29 @@ def simulate(settings: SimulationSettings) -> SimulationResult:
                        tuple(true_gyro_bias), tuple(true_accel_bias))
 
     # Feature tracks.
-    sigma_px = 0.0 if settings.noiseless else settings.pixel_sigma_px
-    tracks_sim = _simulate_tracks(terrain, camera, world_T_cam, settings.features, sigma_px,
+    pixel_sigma_px = 0.0 if settings.noiseless else settings.pixel_sigma_px
+    tracks_sim = _simulate_tracks(terrain, camera, world_T_cam, settings.n_features, pixel_sigma_px,
                                   rng_tracks)
     if tracks_sim.stats.pairs_per_frame.min() == 0:
         k = int(np.argmin(tracks_sim.stats.pairs_per_frame))
         raise SimulationError(
             f"frames {k} and {k + 1} share no visible ground feature; expected frames closer "
-            "together (higher fps, lower speed) or a wider footprint (higher alt_m, fov_deg)")
-    short = tracks_sim.stats.pairs_per_frame < settings.features
+            "together (higher fps, lower speed) or a wider footprint (higher altitude_m, fov_deg)")
+    short = tracks_sim.stats.pairs_per_frame < settings.n_features
     if short.any():
         logger.warning("%d of %d frame pairs have fewer than %d features (min %d): the terrain "
-                       "hides or lacks the rest", int(short.sum()), short.size, settings.features,
+                       "hides or lacks the rest", int(short.sum()), short.size, settings.n_features,
                        int(tracks_sim.stats.pairs_per_frame.min()))
 
     groundtruth = _groundtruth(plan, frame_t_ns, int(imu_t_ns[-1]),
                                settings.groundtruth_rate_hz or settings.imu_rate_hz)
     extra = {"simulation": {
         "generator": __name__,
-        "settings": settings.as_dict(),
+        "settings": settings.to_dict(),
         "terrain": world.info,
         "true_initial_gyro_bias": [float(v) for v in true_gyro_bias],
         "true_initial_accel_bias": [float(v) for v in true_accel_bias],
-        "tracks": tracks_sim.stats.as_dict(),
+        "tracks": tracks_sim.stats.to_dict(),
     }}
     imu_noise = settings.imu_noise
     config = FlightConfig(
@@ -580,7 +580,7 @@ def _make_world(settings: SimulationSettings, frame_t_s: np.ndarray,
     else:
         mean_height = 0.0  # fractal_terrain has zero mean; tiling keeps it
         lowest = -settings.relief_m  # max - min = relief around a zero mean
-    altitude = mean_height + settings.alt_m
+    altitude = mean_height + settings.altitude_m
     plan = _flight_plan(settings, (0.0, 0.0), altitude)
     region = _footprint_region(plan, frame_t_s, body_T_cam, camera, lowest)
 
@@ -735,7 +735,7 @@ def _check_clearance(terrain: Dtm, region: tuple[float, float, float, float],
     if altitude_m - top < MIN_CLEARANCE_M:
         raise SimulationError(
             f"the aircraft at {altitude_m:.0f} m clears the highest terrain under it "
-            f"({top:.0f} m) by less than {MIN_CLEARANCE_M:g} m; expected a larger alt_m")
+            f"({top:.0f} m) by less than {MIN_CLEARANCE_M:g} m; expected a larger altitude_m")
 
 
 def _height_error_rms(dtm: Dtm, truth: Dtm) -> float:
@@ -832,7 +832,7 @@ class _Observed:
 
 
 def _observe(terrain: Dtm, camera: PinholeCamera, world_T_cam: np.ndarray,
-             ground_m: np.ndarray, sigma_px: float, rng: np.random.Generator) -> _Observed:
+             ground_m: np.ndarray, pixel_sigma_px: float, rng: np.random.Generator) -> _Observed:
     """Project ground points into a camera, occlusion-check them and add pixel noise.
 
     Args:
@@ -840,7 +840,7 @@ def _observe(terrain: Dtm, camera: PinholeCamera, world_T_cam: np.ndarray,
         camera: intrinsics.
         world_T_cam: (4, 4) the camera pose.
         ground_m: (N, 3) ground points in world.
-        sigma_px: pixel noise (0: none).
+        pixel_sigma_px: pixel noise (0: none).
         rng: noise source; draws (N, 2) normals whatever the outcome, so the stream does
             not depend on which points are seen.
 
@@ -851,7 +851,7 @@ def _observe(terrain: Dtm, camera: PinholeCamera, world_T_cam: np.ndarray,
     R, p = world_T_cam[:3, :3], world_T_cam[:3, 3]
     to_ground = ground_m - p
     uv_true = camera.rays_to_pixels(to_ground @ R)  # NaN behind the camera
-    uv = uv_true + sigma_px * rng.standard_normal((n, 2))
+    uv = uv_true + pixel_sigma_px * rng.standard_normal((n, 2))
     end = np.full(n, TrackEnd.LAST_FRAME, dtype=np.int64)
     end[~camera.in_image(uv_true)] = TrackEnd.LEFT_IMAGE
     check = np.flatnonzero(end == TrackEnd.LAST_FRAME)
@@ -891,7 +891,7 @@ class _Spawned:
 
 
 def _spawn(terrain: Dtm, camera: PinholeCamera, world_T_cam_k: np.ndarray,
-           world_T_cam_next: np.ndarray, need: int, sigma_px: float,
+           world_T_cam_next: np.ndarray, need: int, pixel_sigma_px: float,
            rng: np.random.Generator) -> _Spawned:
     """Up to ``need`` new ground features seen (in the image after noise) in frames k and k+1.
 
@@ -912,10 +912,10 @@ def _spawn(terrain: Dtm, camera: PinholeCamera, world_T_cam_k: np.ndarray,
         candidates += n_try
         uv_true = np.column_stack([rng.uniform(-0.5, w - 0.5, n_try),
                                    rng.uniform(-0.5, h - 0.5, n_try)])
-        uv = uv_true + sigma_px * rng.standard_normal((n_try, 2))
+        uv = uv_true + pixel_sigma_px * rng.standard_normal((n_try, 2))
         hits = terrain.raycast(p, camera.pixels_to_rays(uv_true) @ R.T)
         cast = np.flatnonzero(hits.hit & camera.in_image(uv))
-        nxt = _observe(terrain, camera, world_T_cam_next, hits.point[cast], sigma_px, rng)
+        nxt = _observe(terrain, camera, world_T_cam_next, hits.point[cast], pixel_sigma_px, rng)
         keep = np.flatnonzero(nxt.seen)[:need]
         rows = cast[keep]
         parts.append((hits.point[rows], uv[rows], uv_true[rows], nxt.uv_px[keep],
@@ -931,7 +931,7 @@ def _spawn(terrain: Dtm, camera: PinholeCamera, world_T_cam_k: np.ndarray,
 
 
 def _simulate_tracks(terrain: Dtm, camera: PinholeCamera, world_T_cam: np.ndarray,
-                     features: int, sigma_px: float, rng: np.random.Generator
+                     features: int, pixel_sigma_px: float, rng: np.random.Generator
                      ) -> _TrackSimulation:
     """Feature tracks over K frames, vectorized per frame.
 
@@ -945,7 +945,7 @@ def _simulate_tracks(terrain: Dtm, camera: PinholeCamera, world_T_cam: np.ndarra
         camera: intrinsics.
         world_T_cam: (K, 4, 4) true camera poses.
         features: target features per frame pair.
-        sigma_px: pixel noise (0: none).
+        pixel_sigma_px: pixel noise (0: none).
         rng: randomness.
 
     Returns:
@@ -961,10 +961,10 @@ def _simulate_tracks(terrain: Dtm, camera: PinholeCamera, world_T_cam: np.ndarra
     pairs = np.zeros(k_frames - 1, dtype=np.int64)
     candidates = 0
     for k in range(k_frames - 1):
-        nxt = _observe(terrain, camera, world_T_cam[k + 1], ground[live_id], sigma_px, rng)
+        nxt = _observe(terrain, camera, world_T_cam[k + 1], ground[live_id], pixel_sigma_px, rng)
         track_end[live_id[~nxt.seen]] = nxt.end[~nxt.seen]
         need = features - int(nxt.seen.sum())
-        new = _spawn(terrain, camera, world_T_cam[k], world_T_cam[k + 1], need, sigma_px, rng)
+        new = _spawn(terrain, camera, world_T_cam[k], world_T_cam[k + 1], need, pixel_sigma_px, rng)
         candidates += new.candidates
         n_new = new.ground_m.shape[0]
         new_id = np.arange(ground.shape[0], ground.shape[0] + n_new, dtype=np.int64)

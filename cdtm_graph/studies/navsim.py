@@ -180,7 +180,7 @@ class NavsimSettings:
             frame interval is ``baseline_per_altitude * altitude / speed_mps``.
         speed_mps: ground speed (m/s), the paper's 200.
         fov_deg: horizontal field of view (deg), the paper's 60.
-        features: features per consecutive frame pair (the paper: 100-120).
+        n_features: features per consecutive frame pair (the paper: 100-120).
         pixel_sigma_px: 1-sigma registration error (the paper assumes half a pixel).
         dtm_spacing_m: grid spacing of the DTM the navigation uses (m), the paper's 30 m
             (sigma_h from its Fig. 6 model).
@@ -205,7 +205,7 @@ class NavsimSettings:
     baseline_per_altitude: float = 0.2
     speed_mps: float = 200.0
     fov_deg: float = 60.0
-    features: int = 110
+    n_features: int = 110
     pixel_sigma_px: float = 0.5
     dtm_spacing_m: float = 30.0
     relief_m: float = 300.0
@@ -224,7 +224,7 @@ class NavsimSettings:
             "altitudes_m", self.altitudes_m, float))
         object.__setattr__(self, "resolutions_px", _positive_tuple(
             "resolutions_px", self.resolutions_px, int))
-        for name in ("table1_resolution_px", "features"):
+        for name in ("table1_resolution_px", "n_features"):
             if not _is_int(getattr(self, name)) or getattr(self, name) < 1:
                 raise SimulationError(f"{name} = {getattr(self, name)!r}, expected an integer >= 1")
         for name in ("table2_altitude_m", "duration_s", "baseline_per_altitude", "speed_mps"):
@@ -256,9 +256,9 @@ class NavsimSettings:
     def simulation(self, altitude_m: float, resolution_px: int) -> SimulationSettings:
         """The simulator's settings of one case (the rest at the simulator's defaults)."""
         return SimulationSettings(
-            relief_m=self.relief_m, dtm_spacing_m=self.dtm_spacing_m, alt_m=altitude_m,
+            relief_m=self.relief_m, dtm_spacing_m=self.dtm_spacing_m, altitude_m=altitude_m,
             speed_mps=self.speed_mps, frames=self.frames(altitude_m),
-            fps=1.0 / self.frame_interval_s(altitude_m), features=self.features,
+            fps=1.0 / self.frame_interval_s(altitude_m), n_features=self.n_features,
             resolution_px=(resolution_px, resolution_px), fov_deg=self.fov_deg,
             pixel_sigma_px=self.pixel_sigma_px, imu_noise=self.imu_noise,
             sigma_position_m=self.sigma_position_m, sigma_attitude_deg=self.sigma_attitude_deg,
