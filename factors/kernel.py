@@ -206,14 +206,13 @@ def triangularize(e, Ha, Hb, work, Ja_out, Jb_out, z_out):
         Ja_out, Jb_out: (13, 6) outputs. z_out: (13,) output; its last entry is the
             residual left outside the Jacobians' range, so ``|z| = |e|`` (to rounding).
     """
-    if not _gram_triangle(e, Ha, Hb, work, Ja_out, Jb_out, z_out):
+    if not _gram_triangle(e, Ha, Hb, Ja_out, Jb_out, z_out):
         _householder_triangle(e, Ha, Hb, work, Ja_out, Jb_out, z_out)
 
 
 @njit(cache=True)
-def _gram_triangle(e, Ha, Hb, work, Ja_out, Jb_out, z_out):
-    """Upper Cholesky factor of the Gram matrix; False if a pose column lost its pivot.
-    (``work`` is unused: the signature is Householder's.)"""
+def _gram_triangle(e, Ha, Hb, Ja_out, Jb_out, z_out):
+    """Upper Cholesky factor of the Gram matrix; False if a pose column lost its pivot."""
     c = COMPRESSED_ROWS
     G = np.zeros((c, c))
     row = np.empty(c)

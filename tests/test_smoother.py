@@ -20,7 +20,8 @@ from cdtm_graph.smoother import (
 #: Acceptance bounds of the smoothing issue.
 MAX_RMSE_M = 10.0
 MIN_FREE_OVER_COMPENSATED = 5.0
-POSITION_ANEES_RANGE = (1.5, 6.0)  # 3 dof: consistent within a factor 2
+#: Loose bound for short or fixed-lag runs whose few frames make the band meaningless.
+POSITION_ANEES_RANGE = (1.5, 6.0)
 INCREMENTAL_VS_BATCH_SIGMA = 0.3
 NOISELESS_TOL_M = 0.02  # "centimetres"
 NOISELESS_TOL_DEG = 1e-3
@@ -37,8 +38,10 @@ def test_batch_accuracy_and_consistency(batch_run):
     assert np.all(e.rmse_position_m <= MAX_RMSE_M), e.rmse_position_m
     ratio = free.max_abs_position_error_m / e.max_abs_position_error_m
     assert np.all(ratio >= MIN_FREE_OVER_COMPENSATED), ratio
-    lo, hi = POSITION_ANEES_RANGE
-    assert lo <= e.anees_position <= hi, e.anees_position
+    # inside the chi-square band of this log's 60 frames (2.41-3.65 for 3 dof), the band
+    # for independent frames: this seeded log sits in it (2.63); over many seeds smoothed
+    # errors are correlated and the spread is wider (tests/test_consistency.py)
+    assert e.position_consistent, (e.anees_position, e.anees_position_band)
     assert batch_run.result.stats.converged
 
 
