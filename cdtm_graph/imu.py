@@ -1,6 +1,6 @@
 """IMU synthesis, IMU noise, and feeding samples to GTSAM's preintegration.
 
-Measurement model (body frame, FLIGHTLOG.md units)::
+Measurement model (body frame, docs/flightlog.md units)::
 
     gyro_radps = omega_body + gyro_bias + n_g
     acc_mps2   = R^T (a_world + g e_z) + accel_bias + n_a     (specific force)
