@@ -1,6 +1,6 @@
 """Pinhole camera with OpenCV radial-tangential ("radtan") distortion.
 
-Conventions (FLIGHTLOG.md): the camera frame ``cam`` is OpenCV's (x right, y down,
+Conventions (docs/flightlog.md): the camera frame ``cam`` is OpenCV's (x right, y down,
 z along the optical axis); pixel (0, 0) is the *centre* of the top-left pixel, so the
 image spans ``-0.5 <= u <= width - 0.5`` and ``-0.5 <= v <= height - 0.5``.
 Normalized rays are ``q = (x, y, 1)``: the undistorted point on the plane z = 1.

@@ -2,7 +2,7 @@
 
 The DTM is the paper's terrain model: the C-DTM constraint casts a camera ray into it to
 find the ground point ``G_E`` and the upward normal ``N`` there (DESIGN.md, "The C-DTM
-factor"). Conventions (FLIGHTLOG.md, "DTM files"):
+factor"). Conventions (docs/flightlog.md, "DTM files"):
 
 * ``elevation[r, c]`` is the world height z (metres, ENU) at ``x = x0 + c*dx``,
   ``y = y0 + r*dy``; ``dx`` and ``dy`` may be negative (``dy < 0`` for north-up rasters).
@@ -704,7 +704,7 @@ def load_dtm(
     origin_enu_m: Sequence[float] = (0.0, 0.0, 0.0),
     sigma_h_m: float | None = None,
 ) -> Dtm:
-    """Read a DTM file (FLIGHTLOG.md, "DTM files") into world coordinates.
+    """Read a DTM file (docs/flightlog.md, "DTM files") into world coordinates.
 
     The format follows the suffix: ``.npz``, ``.asc`` (ESRI ASCII grid) or ``.tif``/
     ``.tiff`` (GeoTIFF, needs rasterio). Samples are at pixel/cell centres.
@@ -744,7 +744,7 @@ def load_dtm(
 
 
 def save_dtm_npz(dtm: Dtm, path: str | os.PathLike) -> None:
-    """Write a DTM in the ``.npz`` format of FLIGHTLOG.md, atomically.
+    """Write a DTM in the ``.npz`` format of docs/flightlog.md, atomically.
 
     The arrays go to a temporary file in the target directory which then replaces
     ``path``, so a reader never sees a half-written file. ``sigma_h_m`` is not part of the

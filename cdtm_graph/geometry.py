@@ -1,6 +1,6 @@
 """Rotation and pose helpers on plain numpy (no GTSAM), vectorized where it matters.
 
-Conventions (FLIGHTLOG.md): quaternions are Hamilton, stored w first, and rotate
+Conventions (docs/flightlog.md): quaternions are Hamilton, stored w first, and rotate
 body-frame vectors into the world frame; a pose ``a_T_b`` is a 4x4 matrix with
 ``x_a = R_ab x_b + t_ab``.
 """

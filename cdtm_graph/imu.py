@@ -1,6 +1,6 @@
 """The IMU in the estimator: noise, sample holds, preintegration as samples arrive, dead reckoning.
 
-Measurement model (body frame, FLIGHTLOG.md units)::
+Measurement model (body frame, docs/flightlog.md units)::
 
     gyro_radps = omega_body + gyro_bias + n_g
     acc_mps2   = R^T (a_world + g e_z) + accel_bias + n_a     (specific force)

@@ -45,7 +45,7 @@ def read_flightlog(path: str | os.PathLike) -> FlightLog:
         The flight log; ``root`` and ``config.dtm.path`` are absolute.
 
     Raises:
-        FlightLogError: anything in the log that does not follow FLIGHTLOG.md; the
+        FlightLogError: anything in the log that does not follow docs/flightlog.md; the
             message names the file, the line and what was expected.
     """
     given = Path(path)

@@ -95,7 +95,7 @@ def _yaml_document(log: FlightLog, target: Path) -> str:
 
 
 class _FlightYamlDumper(yaml.SafeDumper):
-    """Block mappings, lists on one line (``position_m: [0.0, 0.0, 1000.0]``): as FLIGHTLOG.md."""
+    """Block mappings, lists on one line (``position_m: [0.0, 0.0, 1000.0]``): docs/flightlog.md."""
 
 
 def _represent_flow_list(dumper: yaml.SafeDumper, data: list) -> yaml.Node:

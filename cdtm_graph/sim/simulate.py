@@ -4,7 +4,7 @@ The paper evaluates C-DTM inside a navigation filter on a simulated flight at 20
 over a synthetic DTM made by cloning a basic cell of terrain until it covers the flight
 region (Figs. 10-12), with an IMU error model, a 60 degree FOV and about 100-170
 features per frame pair. :func:`simulate` builds the same kind of flight and returns it
-as a ``cdtm-flightlog/1`` log (FLIGHTLOG.md) plus the DTM to ship with it:
+as a ``cdtm-flightlog/1`` log (docs/flightlog.md) plus the DTM to ship with it:
 
 * **Terrain** (the truth). By default a 3x3 km fractal cell with the paper's 300 m of
   relief (:func:`cdtm_graph.sim.terrain.fractal_terrain`), tiled over the region the flight

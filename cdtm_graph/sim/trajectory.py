@@ -4,7 +4,7 @@ The path is a chain of straight legs and level coordinated turns at constant alt
 and ground speed. Every quantity the IMU senses is evaluated analytically at any time,
 so simulated IMU samples and camera frame times agree with the true state to round-off.
 
-Frames and conventions (FLIGHTLOG.md): ``world`` is local ENU (metres, z up), ``body``
+Frames and conventions (docs/flightlog.md): ``world`` is local ENU (metres, z up), ``body``
 is the IMU frame, here x forward, y left, z up. Quaternions are Hamilton, w first, and
 rotate body vectors into world. The attitude is ``R = Rz(yaw) Ry(pitch) Rx(roll)``.
 

@@ -28,8 +28,8 @@ Choices the paper leaves open (documented in docs/navsim.md):
 * **IMU**: :data:`TACTICAL_IMU`, a tactical-grade unit (0.15 deg/sqrt(h) angle random
   walk, 10 deg/h gyro and 1 mg accelerometer turn-on bias), so Free drifts 0.2-3 km
   horizontally and 65-430 m vertically over the 5-minute flight (seeds 0-2): the paper's
-  Free rows span 130-4000 m and 180-250 m. FLIGHTLOG.md's defaults (an ADIS16448-class
-  MEMS, EuRoC's numbers) drift 4-11 km horizontally over the same flight.
+  Free rows span 130-4000 m and 180-250 m. The example IMU of docs/flightlog.md (an
+  ADIS16448-class MEMS, EuRoC's numbers) drifts 4-11 km horizontally over the same flight.
 * **Initial state**: the aircraft has just lost GNSS: position 5 m, velocity 0.2 m/s,
   attitude 0.1 deg (1 sigma), the biases at their turn-on sigmas.
 * **Frame interval**: the paper's 5-30 s intervals with 30-200 m baselines cannot both
