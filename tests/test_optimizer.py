@@ -15,6 +15,7 @@ from gtsam.symbol_shorthand import B, L, V, X
 
 from cdtm_graph.errors import CdtmError, SolverError
 from cdtm_graph.optimizer import LinearSolver, explain_indeterminant, levenberg_marquardt
+from cdtm_graph.results import Solver
 
 #: Two converged solutions of one small problem agree to this (tangent norm, rad and m).
 SOLUTION_TOL = 1e-9
@@ -185,7 +186,8 @@ def test_converges_to_the_rosenbrock_minimum():
                                         relative_error_tol=1e-12)
     assert stats.converged and stats.iterations < 200
     np.testing.assert_allclose(result.atVector(V(0)), [1.0, 1.0, 0.0], atol=SOLUTION_TOL)
-    assert stats.mode == "batch" and stats.initial_error == pytest.approx(12.225)
+    assert stats.solver is Solver.LEVENBERG_MARQUARDT
+    assert stats.initial_error == pytest.approx(12.225)
 
 
 def test_at_the_optimum_no_step_is_taken_and_the_solve_converges():

@@ -7,8 +7,6 @@ import numpy as np
 import pytest
 from gtsam.symbol_shorthand import X
 
-from cdtm_graph.errors import SolverError
-from cdtm_graph.optimizer import explain_indeterminant
 from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
 from cdtm_graph.smoother import (
@@ -94,22 +92,6 @@ def test_covariances_are_symmetric_positive_definite(batch_run):
     for cov in batch_run.result.covariances.pose:
         np.testing.assert_allclose(cov, cov.T, rtol=1e-9, atol=1e-15)
         assert np.linalg.eigvalsh(cov).min() > 0
-
-
-def test_indeterminant_system_names_the_variable():
-    """X(12) with its rotation constrained by nothing: the error names it and a cause."""
-    graph = gtsam.NonlinearFactorGraph()
-    graph.add(gtsam.GPSFactor(X(12), gtsam.Point3(1, 2, 3), gtsam.noiseModel.Isotropic.Sigma(3, 1)))
-    values = gtsam.Values()
-    values.insert(X(12), gtsam.Pose3())
-    with pytest.raises(SolverError) as err:
-        try:
-            graph.linearize(values).eliminateMultifrontal(function=gtsam.EliminateQR)
-        except RuntimeError as exc:
-            raise explain_indeterminant(exc) from None
-    message = str(err.value)
-    assert "X(12)" in message and "no C-DTM features" in message
-    assert "\n" not in message
 
 
 def test_marginals_match_gtsam_with_cholesky_and_with_qr(nominal_log, batch_run):
