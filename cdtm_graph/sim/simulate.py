@@ -65,6 +65,7 @@ from cdtm_graph.flightlog import (
 )
 from cdtm_graph.geometry import make_pose, rotation_to_quat_wxyz, so3_exp
 from cdtm_graph.imu import NS_PER_S, ImuNoise, dead_reckoning
+from cdtm_graph.sim.faults import TerrainMismatch, apply_terrain_mismatch
 from cdtm_graph.sim.imu import ImuData, simulate_imu
 from cdtm_graph.sim.terrain import NOMINAL_CORRELATION_LENGTH_M, clone_basic_cell, fractal_terrain
 from cdtm_graph.sim.trajectory import STANDARD_GRAVITY_MPS2, FlightPlan, Trajectory, evaluate
@@ -203,6 +204,14 @@ class SimulationSettings:
             noise of ``NavMode.NOISY_TRUTH``.
         groundtruth_rate_hz: rate of groundtruth.csv (Hz); None: the IMU rate. Frame
             times are always included.
+        region_margin_m: the terrain and the DTM extend this far beyond the camera
+            footprint (m); a prior of hundreds of metres needs more than the default.
+        initial_error_m: the prior mean's position error, exactly (world, m), instead of
+            a draw of ``sigma_position_m``.
+        initial_error_deg: the prior mean's attitude error, exactly (rotation vector in
+            the body frame, deg), instead of a draw of ``sigma_attitude_deg``.
+        terrain_mismatch: terrain the true ground has and the DTM lacks
+            (:class:`~cdtm_graph.sim.faults.TerrainMismatch`).
         seed: the one seed of every random draw (>= 0).
     """
 
@@ -242,6 +251,10 @@ class SimulationSettings:
     nav_sigma_attitude_deg: float = 0.5
     nav_sigma_velocity_mps: float = 0.5
     groundtruth_rate_hz: float | None = None
+    region_margin_m: float = REGION_MARGIN_M
+    initial_error_m: tuple[float, float, float] | None = None
+    initial_error_deg: tuple[float, float, float] | None = None
+    terrain_mismatch: TerrainMismatch | None = None
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -265,6 +278,14 @@ class SimulationSettings:
             if not ok:
                 bound = ">= 0" if name == "relief_m" else "> 0"
                 raise SimulationError(f"{name} = {value!r}, expected a finite number {bound}")
+        if not (_is_number(self.region_margin_m) and self.region_margin_m >= 0):
+            raise SimulationError(f"region_margin_m = {self.region_margin_m!r}, expected >= 0")
+        for name in ("initial_error_m", "initial_error_deg"):
+            value = getattr(self, name)
+            if value is not None:
+                if len(value) != 3 or not all(_is_number(v) and math.isfinite(v) for v in value):
+                    raise SimulationError(f"{name} = {value!r}, expected 3 finite numbers")
+                object.__setattr__(self, name, tuple(float(v) for v in value))
         for name in ("terrain_spacing_m", "groundtruth_rate_hz"):
             value = getattr(self, name)
             if value is not None and not (_is_number(value) and math.isfinite(value)
@@ -327,6 +348,8 @@ class SimulationSettings:
                 value = value.value
             elif isinstance(value, ImuNoise):
                 value = dataclasses.asdict(value)
+            elif isinstance(value, TerrainMismatch):
+                value = value.to_dict()
             elif isinstance(value, tuple):
                 value = list(value)
             out[f.name] = value
@@ -582,7 +605,8 @@ def _make_world(settings: SimulationSettings, frame_t_s: np.ndarray,
         lowest = -settings.relief_m  # max - min = relief around a zero mean
     altitude = mean_height + settings.altitude_m
     plan = _flight_plan(settings, (0.0, 0.0), altitude)
-    region = _footprint_region(plan, frame_t_s, body_T_cam, camera, lowest)
+    region = _footprint_region(plan, frame_t_s, body_T_cam, camera, lowest,
+                               settings.region_margin_m)
 
     if file_terrain is None:
         terrain, info = _fractal_truth(settings, region, terrain_seed)
@@ -612,6 +636,10 @@ def _make_world(settings: SimulationSettings, frame_t_s: np.ndarray,
         dtm = Dtm(coarse.elevation, coarse.x0, coarse.y0, coarse.dx, coarse.dy,
                   sigma_h_m=sigma_h_from_grid_spacing(settings.dtm_spacing_m))
     info["dtm_height_error_rms_m"] = _height_error_rms(dtm, terrain)
+    if settings.terrain_mismatch is not None:  # the truth changes, the DTM does not
+        at = evaluate(plan, np.array([settings.terrain_mismatch.at_s])).position_m[0]
+        terrain = apply_terrain_mismatch(terrain, settings.terrain_mismatch, (at[0], at[1]))
+        info["dtm_height_error_rms_with_mismatch_m"] = _height_error_rms(dtm, terrain)
     return _World(terrain, dtm, plan, info)
 
 
@@ -647,8 +675,9 @@ def _flight_plan(settings: SimulationSettings, start_xy: tuple[float, float],
 
 
 def _footprint_region(plan: FlightPlan, frame_t_s: np.ndarray, body_T_cam: np.ndarray,
-                      camera: PinholeCamera, lowest_m: float) -> tuple[float, float, float, float]:
-    """(xmin, xmax, ymin, ymax) the frames can see, with ``REGION_MARGIN_M`` around it.
+                      camera: PinholeCamera, lowest_m: float, margin_m: float
+                      ) -> tuple[float, float, float, float]:
+    """(xmin, xmax, ymin, ymax) the frames can see, with ``margin_m`` around it.
 
     Image corner rays are cut with the plane of the lowest terrain: a ray from above
     meets any higher ground nearer to the camera's nadir, so this bounds the footprint.
@@ -674,7 +703,7 @@ def _footprint_region(plan: FlightPlan, frame_t_s: np.ndarray, body_T_cam: np.nd
     t = (lowest_m - origins[:, None, 2]) / rays[:, :, 2]
     ground = origins[:, None, :2] + t[:, :, None] * rays[:, :, :2]
     xy = np.concatenate([ground.reshape(-1, 2), origins[:, :2]])
-    lo, hi = xy.min(axis=0) - REGION_MARGIN_M, xy.max(axis=0) + REGION_MARGIN_M
+    lo, hi = xy.min(axis=0) - margin_m, xy.max(axis=0) + margin_m
     return float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])
 
 
@@ -771,9 +800,14 @@ def _initial_state(settings: SimulationSettings, truth_frames: Trajectory, rng: 
         true_gyro_bias, true_accel_bias = zero, zero
     else:
         draws = rng.standard_normal((5, 3))  # one fixed block: order never changes the stream
-        position = position + settings.sigma_position_m * draws[0]
+        position_error = (settings.sigma_position_m * draws[0] if settings.initial_error_m
+                          is None else np.asarray(settings.initial_error_m))
+        attitude_error = (math.radians(settings.sigma_attitude_deg) * draws[1]
+                          if settings.initial_error_deg is None
+                          else np.radians(settings.initial_error_deg))
+        position = position + position_error
         # Right perturbation (body frame), as GTSAM's Pose3 prior measures it.
-        R = R @ so3_exp(math.radians(settings.sigma_attitude_deg) * draws[1])
+        R = R @ so3_exp(attitude_error)
         velocity = velocity + settings.sigma_velocity_mps * draws[2]
         true_gyro_bias = settings.sigma_gyro_bias * draws[3]
         true_accel_bias = settings.sigma_accel_bias * draws[4]

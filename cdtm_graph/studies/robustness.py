@@ -1,0 +1,150 @@
+"""How the smoother fares on the data real flights produce: a scenario x mode matrix.
+
+Each scenario is a simulated flight with one fault (wrong matches, terrain the DTM lacks,
+a far initial fix, an IMU gap, a calibration error) or none; each is smoothed in every
+mode with the given settings and evaluated against its ground truth. ``scripts/
+robustness_matrix.py`` prints the table; the tests run small versions of each scenario.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from cdtm_graph.dtm import Dtm
+from cdtm_graph.errors import CdtmError
+from cdtm_graph.flightlog import FlightLog
+from cdtm_graph.run import smooth_and_evaluate
+from cdtm_graph.sim.faults import (
+    MismatchKind,
+    TerrainMismatch,
+    with_calibration_error,
+    with_imu_gap,
+    with_wrong_matches,
+)
+from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
+from cdtm_graph.smoother import SmootherMode, SmootherSettings
+
+#: The issue's flight: 1 fps, 150 m/s at 1800 m, ~150 features, 640x480, FOV 60 deg.
+BASE = SimulationSettings(frames=90, fps=1.0, speed_mps=150.0, altitude_m=1800.0,
+                          n_features=150, resolution_px=(640, 480), fov_deg=60.0, seed=1)
+
+
+class Mode(enum.Enum):
+    BATCH = "batch"
+    ISAM2 = "isam2"
+    FIXED_LAG = "fixed_lag"
+
+    def settings(self, base: SmootherSettings) -> SmootherSettings:
+        if self is Mode.BATCH:
+            return dataclasses.replace(base, mode=SmootherMode.BATCH, lag_s=None)
+        lag = None if self is Mode.ISAM2 else 10.0
+        return dataclasses.replace(base, mode=SmootherMode.INCREMENTAL, lag_s=lag)
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """A flight and the fault done to it.
+
+    Attributes:
+        name: short name. simulation: changes to the base simulation settings.
+        fault: what is done to the finished log (``log, rng -> log``), or None.
+    """
+
+    name: str
+    simulation: dict = field(default_factory=dict)
+    fault: Callable[[FlightLog, np.random.Generator], FlightLog] | None = None
+
+    def flight(self, base: SimulationSettings = BASE) -> tuple[FlightLog, Dtm]:
+        log, dtm = simulate_flight(dataclasses.replace(base, **self.simulation))
+        if self.fault is not None:
+            log = self.fault(log, np.random.default_rng(base.seed + 1000))
+        return log, dtm
+
+
+def _wrong(fraction: float) -> Callable[[FlightLog, np.random.Generator], FlightLog]:
+    return lambda log, rng: with_wrong_matches(log, fraction, rng)[0]
+
+
+def _far(metres: float, heading_deg: float) -> dict:
+    # a horizontal error of `metres` with an honest sigma, the DTM wide enough to search
+    angle = np.radians(35.0)
+    return dict(sigma_position_m=metres, sigma_attitude_deg=max(heading_deg, 1.0),
+                initial_error_m=(metres * np.cos(angle), -metres * np.sin(angle), 0.0),
+                initial_error_deg=(0.0, 0.0, heading_deg),
+                region_margin_m=max(400.0, 3.5 * metres))
+
+
+SCENARIOS: dict[str, Scenario] = {s.name: s for s in (
+    Scenario("clean"),
+    Scenario("wrong15", fault=_wrong(0.15)),
+    Scenario("wrong30", fault=_wrong(0.30)),
+    Scenario("pit", dict(terrain_mismatch=TerrainMismatch(MismatchKind.PIT, depth_m=40.0,
+                                                          radius_m=900.0, at_s=45.0))),
+    Scenario("blocks", dict(terrain_mismatch=TerrainMismatch(
+        MismatchKind.BLOCKS, coverage=0.15, height_m=(15.0, 30.0), size_m=(30.0, 80.0)))),
+    Scenario("forest", dict(terrain_mismatch=TerrainMismatch(
+        MismatchKind.BLOCKS, coverage=0.20, height_m=(15.0, 25.0), size_m=(10.0, 25.0)))),
+    Scenario("far300", _far(300.0, 3.0)),
+    Scenario("far600", _far(600.0, 3.0)),
+    Scenario("far1000", _far(1000.0, 3.0)),
+    Scenario("imu_gap", fault=lambda log, rng: with_imu_gap(log, 19.0, 5.0)),
+    Scenario("focal1pct", fault=lambda log, rng: with_calibration_error(log, focal_scale=1.01)),
+    Scenario("mount05deg", fault=lambda log, rng: with_calibration_error(
+        log, mount_rotation_deg=(0.3, 0.4, 0.0))),
+    Scenario("late20ms", fault=lambda log, rng: with_calibration_error(log, time_offset_s=0.02)),
+)}
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """One scenario smoothed in one mode (NaN where it failed; ``error`` says why)."""
+
+    scenario: str
+    mode: Mode
+    rmse_m: np.ndarray
+    max_error_m: float
+    anees_position: float
+    n_outliers: int
+    n_rejected: int
+    verdict: str
+    time_s: float
+    error: str = ""
+
+    def row(self) -> str:
+        if self.error:
+            return f"{self.scenario:11} {self.mode.value:9} failed: {self.error}"
+        x, y, z = self.rmse_m
+        return (f"{self.scenario:11} {self.mode.value:9} {x:8.2f} {y:8.2f} {z:8.2f} "
+                f"{self.max_error_m:9.2f} {self.anees_position:9.2f} {self.n_outliers:7d} "
+                f"{self.n_rejected:8d} {self.verdict:9} {self.time_s:6.1f}")
+
+
+HEADER = (f"{'scenario':11} {'mode':9} {'rmse_x':>8} {'rmse_y':>8} {'rmse_z':>8} "
+          f"{'max_3d':>9} {'anees_pos':>9} {'outlier':>7} {'rejected':>8} {'verdict':9} "
+          f"{'time_s':>6}")
+
+
+def run(flight: FlightLog, dtm: Dtm, scenario: str, mode: Mode,
+        settings: SmootherSettings | None = None) -> Outcome:
+    """Smooth one faulty flight in one mode and evaluate it."""
+    start = time.perf_counter()
+    try:
+        out = smooth_and_evaluate(flight, dtm, mode.settings(settings or SmootherSettings()))
+    except CdtmError as exc:
+        return Outcome(scenario, mode, np.full(3, np.nan), np.nan, np.nan, 0, 0, "error",
+                       time.perf_counter() - start, str(exc))
+    e = out.errors
+    assert e is not None  # simulated flights have ground truth
+    counts = out.result.counts
+    rejected = counts.n_gated + getattr(counts, "n_rejected", 0)
+    verdict = str(out.report.get("verdict", "-"))
+    return Outcome(scenario, mode, e.rmse_position_m,
+                   float(np.max(np.linalg.norm(e.position_error_world_m, axis=1))),
+                   float(e.anees_position if e.anees_position is not None else np.nan),
+                   counts.n_outliers, int(rejected), verdict, time.perf_counter() - start)
