@@ -672,6 +672,45 @@ def _tangent_planes_kernel(elev, cell_max, x0, y0, dx, dy, z_top, origin, direct
 # ---------------------------------------------------------------------------------------
 
 
+def grazing_hits(dtm: Dtm, origin: np.ndarray, directions: np.ndarray, points: np.ndarray,
+                 normals: np.ndarray, angle_rad: float | np.ndarray, jump: float = 4.0
+                 ) -> np.ndarray:
+    """Rays whose first hit jumps to another surface when the ray turns a little.
+
+    The C-DTM factor linearizes each feature on the tangent plane at its hit. Where the
+    ray grazes a ridge (the paper's Fig. 1) a small pose change moves the hit behind the
+    ridge, far along the ground, and the linearization is meaningless. Each ray is turned
+    by ``angle_rad`` four ways (up, down, left, right of its own direction). On a smooth
+    surface the hit then moves by about ``range * angle / cos(incidence)``; a ray is
+    grazing when a turned ray's hit moves ``jump`` times farther than that, or misses.
+
+    Args:
+        dtm: the terrain. origin: (3,) the camera. directions: (n, 3) the rays.
+        points, normals: (n, 3) their hits and upward normals ``(-dh/dx, -dh/dy, 1)``.
+        angle_rad: the turn, scalar or (n,).
+        jump: how many times the smooth-surface displacement a hit may move.
+
+    Returns:
+        (n,) bool, True for grazing rays.
+    """
+    d = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    # two unit vectors perpendicular to each ray
+    helper = np.where(np.abs(d[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+    u = np.cross(d, helper)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v = np.cross(d, u)
+    angle = np.broadcast_to(np.asarray(angle_rad, dtype=float), d.shape[:1])
+    n_unit = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+    cos_incidence = np.abs(np.einsum("ni,ni->n", d, n_unit))
+    smooth_m = np.linalg.norm(points - origin, axis=1) * angle / np.maximum(cos_incidence, 1e-3)
+    grazing = np.zeros(d.shape[0], dtype=bool)
+    for turn in (u, -u, v, -v):
+        hit_points, _, hit = dtm.tangent_planes(origin, d + angle[:, None] * turn)
+        moved = np.linalg.norm(hit_points - points, axis=1)
+        grazing |= ~hit | ~(moved <= jump * smooth_m)
+    return grazing
+
+
 #: A point counts as visible if the first terrain hit toward it lies within this of it (m).
 OCCLUSION_TOLERANCE_M = 1.0
 

@@ -14,9 +14,11 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 
-from cdtm_graph.dtm import Dtm
+from cdtm_graph.dtm import Dtm, grazing_hits
+from cdtm_graph.epipolar import EpipolarSettings
 from cdtm_graph.flightlog import FlightConfig, InitialState
 from cdtm_graph.imu import SampleHold, initial_bias
+from cdtm_graph.results import Rejection, Rejections
 from cdtm_graph.tracks import FramePairObservations
 from factors import CdtmPairFactor, FeatureNoise, PairFeatures, PlaneMode, RobustKernel
 
@@ -29,8 +31,10 @@ class GraphSettings:
         plane_mode: REINTERSECT (default) casts each feature's ray again at every
             linearization, so drifted initial guesses and hills are handled; FIXED
             keeps the planes of the initial guess (the paper).
-        robust: per-feature M-estimator; ``robust_threshold`` in whitened units
-            (``None``: the kernel's 95%-efficiency default).
+        robust: per-feature M-estimator (default Cauchy, a redescending kernel reached
+            from a robust start: the gated incremental pass); ``robust_threshold`` in
+            units of one residual's spread (``None``: the kernel's 95%-efficiency value).
+            ``NONE`` is plain least squares, for studies.
         imu_hold: which interval an IMU sample stands for (see :mod:`cdtm_graph.imu`);
             MIDPOINT is second-order accurate for instantaneous samples.
         first_observation_noise: also count the pixel noise of the earlier observation
@@ -39,14 +43,24 @@ class GraphSettings:
             both, as independent noise, counts it twice: on simulated logs that made the
             position ANEES 1.25 instead of 1.9 (3 expected) and the pose ANEES 3.2
             instead of 5.3 (6 expected).
+        shared_dtm_error: a track's pairs share its ground point's DTM error
+            (:func:`cdtm_factors`).
+        epipolar: sightings are paired only where they agree with the epipolar geometry
+            of the current relative pose (:mod:`cdtm_graph.epipolar`): wrong matches are
+            left out and counted, and their tracks pair across them. ``None``: no check.
+        grazing_turn_cells: features whose ray grazes a ridge are dropped and counted
+            (:func:`cdtm_graph.dtm.grazing_hits`, the ray turned by this many DTM cells
+            at its range). ``None``: no check.
     """
 
     plane_mode: PlaneMode = PlaneMode.REINTERSECT
-    robust: RobustKernel = RobustKernel.NONE
+    robust: RobustKernel = RobustKernel.CAUCHY
     robust_threshold: float | None = None
     imu_hold: SampleHold = SampleHold.MIDPOINT
     first_observation_noise: bool = False
     shared_dtm_error: bool = True
+    epipolar: EpipolarSettings | None = field(default_factory=EpipolarSettings)
+    grazing_turn_cells: float | None = 1.0
 
 
 def dtm_ray_caster(dtm: Dtm):
@@ -97,13 +111,12 @@ def imu_factor(k: int, pim: gtsam.PreintegratedCombinedMeasurements) -> gtsam.Co
 
 @dataclass
 class CdtmBuild:
-    """C-DTM factors of a set of frame pairs, with what was dropped."""
+    """C-DTM factors of a set of frame pairs, with what was left out."""
 
     factors: list[CdtmPairFactor] = field(default_factory=list)
     n_features: int = 0
-    n_missed: int = 0
     features_per_frame: dict[int, int] = field(default_factory=dict)
-
+    rejections: Rejections = field(default_factory=Rejections)
 
 
 def cdtm_factors(
@@ -113,34 +126,47 @@ def cdtm_factors(
     dtm: Dtm,
     noise: FeatureNoise,
     settings: GraphSettings,
+    rejections: Rejections | None = None,
 ) -> CdtmBuild:
     """One batched C-DTM factor per frame pair, planes cast from the current pose guesses.
+
+    Before a feature enters, it must hit the DTM and not graze a ridge; what fails is
+    counted by reason. (Wrong matches are left out earlier, when sightings are paired:
+    :class:`cdtm_graph.tracks.SightingPairs`.)
 
     Args:
         pairs: observations grouped by frame pair.
         world_T_body: current guess of every frame's body pose (index -> (4, 4)).
         body_T_cam: (4, 4) camera mounting.
-        dtm: the terrain. noise: data noise. settings: plane mode, robust kernel, and
-            ``shared_dtm_error``: the j-th pair of a track (``track_pair_index``) has its
-            DTM variance multiplied by ``j (j + 1) / 2``, so a track of any length m
+        dtm: the terrain. noise: data noise. settings: plane mode, robust kernel, checks,
+            and ``shared_dtm_error``: the j-th pair of a track (``track_pair_index``) has
+            its DTM variance multiplied by ``j (j + 1) / 2``, so a track of any length m
             brings ``sum 2 / j (j + 1) = 2 - 2 / (m + 1)`` DTM samples of information (1
             for a single pair, under 2 however long) instead of m. The rule needs only
             the rank, known when the pair arrives, so batch and incremental weigh alike.
+        rejections: where to count what is left out (a new record if None).
 
     Returns:
-        The factors, and the count of features whose ray missed the DTM (dropped).
+        The factors and the counts.
     """
     raycast = dtm_ray_caster(dtm)
-    build = CdtmBuild()
+    build = CdtmBuild(rejections=rejections if rejections is not None else Rejections())
     for pair in pairs:
         wTc_a = world_T_body[pair.frame_a] @ body_T_cam
         wTc_b = world_T_body[pair.frame_b] @ body_T_cam
+        k = pair.frame_b
         ray = pair.q_a @ wTc_a[:3, :3].T
         G_E, N, valid = raycast(wTc_a[:3, 3], ray)
         # A pixel the distortion model cannot undistort has a NaN ray: no ground point.
         valid &= np.isfinite((pair.q_a + pair.q_b).sum(axis=1))
+        build.rejections.add(Rejection.MISSED_DTM, k, int(valid.size - valid.sum()))
+        if settings.grazing_turn_cells is not None and valid.any():
+            range_m_each = np.linalg.norm(G_E[valid] - wTc_a[:3, 3], axis=1)
+            turn = settings.grazing_turn_cells * dtm.grid_spacing_m / range_m_each
+            grazing = grazing_hits(dtm, wTc_a[:3, 3], ray[valid], G_E[valid], N[valid], turn)
+            build.rejections.add(Rejection.GRAZING, k, int(grazing.sum()))
+            valid[np.flatnonzero(valid)[grazing]] = False
         n_valid = int(valid.sum())
-        build.n_missed += int(valid.size - n_valid)
         if n_valid == 0:
             continue
         q_a, q_b, rank = pair.q_a, pair.q_b, pair.track_pair_index
@@ -153,11 +179,8 @@ def cdtm_factors(
             scale = j * (j + 1) / 2
         features = PairFeatures.build(wTc_a, wTc_b, q_a, q_b, G_E, N, noise, scale)
         build.factors.append(CdtmPairFactor(
-            X(pair.frame_a), X(pair.frame_b), features, body_T_cam, settings.plane_mode,
+            X(pair.frame_a), X(k), features, body_T_cam, settings.plane_mode,
             raycast, settings.robust, settings.robust_threshold))
         build.n_features += n_valid
-        build.features_per_frame[pair.frame_b] = (
-            build.features_per_frame.get(pair.frame_b, 0) + n_valid)
+        build.features_per_frame[k] = build.features_per_frame.get(k, 0) + n_valid
     return build
-
-

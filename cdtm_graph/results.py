@@ -85,6 +85,43 @@ class SolverStats:
     innovation_nis_mean: float = float("nan")
 
 
+class Rejection(enum.Enum):
+    """Why a feature (one consecutive observation pair of a track) was left out."""
+
+    MISSED_DTM = "missed_dtm"      # its ray missed the DTM or hit no data
+    WRONG_MATCH = "wrong_match"    # off its epipolar line: the tracker matched something else
+    GRAZING = "grazing"            # its ray grazes a ridge: the DTM hit is unstable
+    MAP_MISMATCH = "map_mismatch"  # its ground point is not where the DTM says
+    GATED = "gated"                # its innovation failed the gate against the prior
+    TOO_OLD = "too_old"            # its earlier frame had left the fixed lag's window
+
+
+class Rejections:
+    """Features left out, by reason and by frame (the later frame of the pair)."""
+
+    def __init__(self) -> None:
+        self._counts: dict[Rejection, dict[int, int]] = {r: {} for r in Rejection}
+
+    def add(self, reason: Rejection, frame: int, n: int) -> None:
+        if n:
+            per_frame = self._counts[reason]
+            per_frame[frame] = per_frame.get(frame, 0) + int(n)
+
+    def total(self, reason: Rejection | None = None) -> int:
+        reasons = list(Rejection) if reason is None else [reason]
+        return sum(sum(self._counts[r].values()) for r in reasons)
+
+    def per_frame(self, n_frames: int) -> dict[str, np.ndarray]:
+        """Reason value -> (K,) counts, every reason present."""
+        out = {}
+        for reason, counts in self._counts.items():
+            arr = np.zeros(n_frames, dtype=int)
+            for k, n in counts.items():
+                arr[k] += n
+            out[reason.value] = arr
+        return out
+
+
 @dataclass(frozen=True)
 class GraphCounts:
     """What went into the graph.
@@ -95,16 +132,14 @@ class GraphCounts:
         n_observations: rows of tracks.csv.
         n_feature_pairs: consecutive observation pairs offered to the graph.
         n_cdtm_features: pairs that became C-DTM residuals.
-        n_missed_dtm: pairs dropped because the ray missed the DTM or hit no-data.
         n_cdtm_factors: batched factors (one per frame pair).
         n_imu_factors: IMU preintegration factors.
         features_per_frame: (K,) C-DTM features ending at each frame.
-        n_outliers: features whose whitened residual at the solution fails the
-            chi-square(2) 99.9% gate (flagged; the robust kernel, if any, weights them).
+        n_outliers: features whose residual at the solution fails the chi-square(2)
+            99.9% test (flagged; the robust kernel weights them).
         outliers_per_frame: (K,) the same, by the frame the feature pair ends at.
-        n_gated: features rejected before entering the graph because their innovation
-            failed the chi-square gate against the prior (incremental, when asked for).
-        gated_per_frame: (K,) the same, by frame.
+        rejected_per_frame: :class:`Rejection` value -> (K,) features left out for that
+            reason, by the frame the pair ends at.
     """
 
     n_frames: int
@@ -112,14 +147,18 @@ class GraphCounts:
     n_observations: int
     n_feature_pairs: int
     n_cdtm_features: int
-    n_missed_dtm: int
     n_cdtm_factors: int
     n_imu_factors: int
     features_per_frame: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
     n_outliers: int = 0
     outliers_per_frame: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
-    n_gated: int = 0
-    gated_per_frame: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+    rejected_per_frame: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def n_rejected(self, reason: Rejection | None = None) -> int:
+        """Features left out for ``reason`` (any reason if None)."""
+        if reason is not None:
+            return int(np.sum(self.rejected_per_frame.get(reason.value, 0)))
+        return int(sum(np.sum(v) for v in self.rejected_per_frame.values()))
 
 
 @dataclass(frozen=True)

@@ -9,14 +9,18 @@ grouping by earlier frame take one numba call and a small sort.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
 
 from cdtm_graph.camera import PinholeCamera
+from cdtm_graph.dtm import Dtm
+from cdtm_graph.epipolar import EpipolarSettings, check_pair
 from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import Tracks
+from cdtm_graph.results import Rejection, Rejections
 
 
 @dataclass(frozen=True)
@@ -36,6 +40,12 @@ class FramePairObservations:
     q_b: np.ndarray
     track_id: np.ndarray
     track_pair_index: np.ndarray | None = None
+
+    def subset(self, keep: np.ndarray) -> FramePairObservations:
+        """The same pair with the features selected by ``keep`` (mask or indices)."""
+        rank = None if self.track_pair_index is None else self.track_pair_index[keep]
+        return FramePairObservations(self.frame_a, self.frame_b, self.q_a[keep],
+                                     self.q_b[keep], self.track_id[keep], rank)
 
 
 def frame_pair_observations(tracks: Tracks, camera: PinholeCamera) -> list[FramePairObservations]:
@@ -80,6 +90,7 @@ class TrackTable:
         self._frame = np.zeros(capacity, dtype=np.int64)
         self._q = np.zeros((capacity, 3))
         self._pairs = np.zeros(capacity, dtype=np.int64)
+        self._fails = np.zeros(capacity, dtype=np.int64)  # pairs rejected in a row
         self._n = 0
         self._ever: set[int] = set()  # every id added (one forgotten may come back)
 
@@ -147,13 +158,38 @@ class TrackTable:
                                                track_id[rows[s:e]], rank[s:e]))
         return pairs, n_too_old
 
+    def reject(self, pair: FramePairObservations, rejected: np.ndarray,
+               patience: int = 2) -> None:
+        """Undo the newest sighting of tracks whose pair was rejected as a wrong match.
+
+        The track keeps its earlier sighting, so its next sighting pairs across the bad
+        one (a wrong match in frame b costs one pair, not two). A track whose pairs keep
+        failing (``patience`` times in a row) restarts from its newest sighting instead:
+        its earlier one was the wrong match.
+
+        Args:
+            pair: pairs :meth:`add_frame` returned. rejected: (n,) bool, which to undo.
+        """
+        if not rejected.any():
+            return
+        ids = np.ascontiguousarray(pair.track_id[rejected])
+        _reject(self.ids, self.frame, self.q, self.pairs, self._fails[:self._n], ids,
+                int(pair.frame_a), np.ascontiguousarray(pair.q_a[rejected]), patience)
+
+    def accept(self, pair: FramePairObservations, accepted: np.ndarray) -> None:
+        """Clear the failure count of tracks whose pair passed."""
+        if accepted.any():
+            _clear(self.ids, self._fails[:self._n], np.ascontiguousarray(pair.track_id[accepted]))
+
     def forget_before(self, frame: int) -> None:
         """Drop tracks last seen before ``frame`` (they can only pair with older frames)."""
-        self._n = _compact(self._ids, self._frame, self._q, self._pairs, self._n, frame)
+        self._n = _compact(self._ids, self._frame, self._q, self._pairs, self._fails, self._n,
+                           frame)
 
     def _insert(self, k: int, new_ids: np.ndarray, q_new: np.ndarray) -> None:
         self._ever.update(new_ids.tolist())
-        n = _append(self._ids, self._frame, self._q, self._pairs, self._n, new_ids, q_new, k)
+        n = _append(self._ids, self._frame, self._q, self._pairs, self._fails, self._n, new_ids,
+                    q_new, k)
         if n >= 0:
             self._n = n
             return
@@ -164,11 +200,13 @@ class TrackTable:
         frame = np.insert(self.frame, at, k)
         q = np.insert(self.q, at, q_new[order], axis=0)
         pairs = np.insert(self.pairs, at, 0)
+        fails = np.insert(self._fails[:self._n], at, 0)
         capacity = max(2 * ids.size, 1024)
         self._ids = np.resize(ids, capacity)
         self._frame = np.resize(frame, capacity)
         self._q = np.resize(q, (capacity, 3))
         self._pairs = np.resize(pairs, capacity)
+        self._fails = np.resize(fails, capacity)
         self._n = ids.size
 
 
@@ -220,7 +258,28 @@ def _match(ids, frame, q_seen, pairs, track_id, q, k, oldest_frame):
 
 
 @njit(cache=True)
-def _append(ids, frame, q_seen, pairs, n, new_ids, q_new, k):
+def _reject(ids, frame, q_seen, pairs, fails, track_id, frame_a, q_a, patience):
+    """Restore the earlier sighting of each rejected track (or, after ``patience``
+    rejections in a row, keep the newest and start over)."""
+    for i in range(track_id.shape[0]):
+        at = np.searchsorted(ids, track_id[i])
+        pairs[at] -= 1
+        fails[at] += 1
+        if fails[at] >= patience:
+            fails[at] = 0
+            continue
+        frame[at] = frame_a
+        q_seen[at, :] = q_a[i, :]
+
+
+@njit(cache=True)
+def _clear(ids, fails, track_id):
+    for i in range(track_id.shape[0]):
+        fails[np.searchsorted(ids, track_id[i])] = 0
+
+
+@njit(cache=True)
+def _append(ids, frame, q_seen, pairs, fails, n, new_ids, q_new, k):
     """Append tracks whose ids are increasing and above every known id, in place, if the
     buffers have room: the new length, else -1."""
     m = new_ids.shape[0]
@@ -236,11 +295,12 @@ def _append(ids, frame, q_seen, pairs, n, new_ids, q_new, k):
         frame[n + i] = k
         q_seen[n + i, :] = q_new[i, :]
         pairs[n + i] = 0
+        fails[n + i] = 0
     return n + m
 
 
 @njit(cache=True)
-def _compact(ids, frame, q_seen, pairs, n, oldest_frame):
+def _compact(ids, frame, q_seen, pairs, fails, n, oldest_frame):
     """Keep the rows last seen at or after ``oldest_frame``, in order: the new length."""
     j = 0
     for i in range(n):
@@ -249,5 +309,79 @@ def _compact(ids, frame, q_seen, pairs, n, oldest_frame):
             frame[j] = frame[i]
             q_seen[j, :] = q_seen[i, :]
             pairs[j] = pairs[i]
+            fails[j] = fails[i]
             j += 1
     return j
+
+
+class SightingPairs:
+    """Pairs each frame's sightings with their tracks' last good ones, wrong matches out.
+
+    A :class:`TrackTable` pairs each sighting with its track's previous one; each pair's
+    features are then checked against the epipolar geometry of the current relative pose
+    (:func:`cdtm_graph.epipolar.check_pair`). A rejected feature's newest sighting is
+    undone (:meth:`TrackTable.reject`), so the track pairs across the wrong match. The
+    batch smoother pairs a whole log this way, frame by frame, as the incremental
+    smoother does live.
+
+    Args:
+        camera: undistorts pixels to rays. body_T_cam: (4, 4) the mounting.
+        dtm: for the camera's height above the ground (the parallax test).
+        pixel_sigma_px: one observation's pixel noise.
+        settings: the check (``None``: pairing without it).
+        rejections: where wrong matches and pairs too old are counted.
+    """
+
+    def __init__(self, camera: PinholeCamera, body_T_cam: np.ndarray, dtm: Dtm,
+                 pixel_sigma_px: float, settings: EpipolarSettings | None,
+                 rejections: Rejections):
+        self.table = TrackTable()
+        self._camera = camera
+        self._body_T_cam = body_T_cam
+        self._dtm = dtm
+        self._sigma_q = float(np.mean(camera.sigma_normalized(pixel_sigma_px)))
+        self._settings = settings
+        self._rejections = rejections
+        self.n_observations = 0
+        self.n_pairs = 0
+
+    def add_frame(self, k: int, track_id: np.ndarray, uv_px: np.ndarray,
+                  world_T_body: Callable[[int], np.ndarray], oldest_frame: int = 0
+                  ) -> list[FramePairObservations]:
+        """Frame k's sightings: the pairs they close that pass the check.
+
+        Args:
+            k: the frame. track_id: (m,) ids. uv_px: (m, 2) pixels.
+            world_T_body: frame -> current (4, 4) pose guess (frame k's and the earlier
+                frames' of its pairs).
+            oldest_frame: pairs with an earlier frame before this are dropped (counted).
+        """
+        q = self._camera.pixels_to_rays(uv_px)
+        self.n_observations += len(track_id)
+        pairs, n_too_old = self.table.add_frame(k, track_id, q, oldest_frame)
+        self._rejections.add(Rejection.TOO_OLD, k, n_too_old)
+        self.n_pairs += sum(p.q_a.shape[0] for p in pairs) + n_too_old
+        if self._settings is None:
+            return pairs
+        wTc_b = world_T_body(k) @ self._body_T_cam
+        kept = []
+        for pair in pairs:
+            wTc_a = world_T_body(pair.frame_a) @ self._body_T_cam
+            check = check_pair(pair.q_a, pair.q_b, wTc_b[:3, :3].T @ wTc_a[:3, :3],
+                               wTc_b[:3, :3].T @ (wTc_a[:3, 3] - wTc_b[:3, 3]), self._sigma_q,
+                               self._range_m(wTc_a[:3, 3]), self._settings)
+            self.table.reject(pair, ~check.inlier)
+            self.table.accept(pair, check.inlier)
+            self._rejections.add(Rejection.WRONG_MATCH, k, int((~check.inlier).sum()))
+            if check.inlier.all():
+                kept.append(pair)
+            elif check.inlier.any():
+                kept.append(pair.subset(check.inlier))
+        return kept
+
+    def _range_m(self, camera_m: np.ndarray) -> float:
+        """Height of the camera above the ground under it (the DTM's mean if outside)."""
+        ground = float(self._dtm.height(camera_m[0], camera_m[1]))
+        if not np.isfinite(ground):
+            ground = float(np.nanmean(self._dtm.elevation))
+        return max(float(camera_m[2]) - ground, 1.0)

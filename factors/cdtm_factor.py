@@ -111,6 +111,13 @@ class PairFeatures:
         Sigma_f: (n, 3, 3) covariance of the paper's 3-vector residual (eqs. 19-26).
         basis_b: (n, 3, 2) orthonormal complement of ``q_b``.
         sqrt_info: (n, 2, 2) upper-triangular whitening, ``S^T S = Sigma_e^-1``.
+        sqrt_info_full: (n, 2, 2) the whitening of one residual as measured, with the
+            first observation's pixel noise too: ``|S_full e|^2`` is chi-square(2) for an
+            inlier tested on its own (the gate, the outlier count); None: ``sqrt_info``.
+        robust_scale: (n,) how much larger one residual's spread is than the factor's
+            whitening says (``sqrt(trace(S Sigma_full S^T) / 2)``, >= 1): the robust
+            kernel judges ``|S e| / robust_scale``, so it does not count the first
+            observation's noise against an inlier. None: 1.
     """
 
     q_a: np.ndarray
@@ -123,6 +130,8 @@ class PairFeatures:
     sqrt_info: np.ndarray
     noise: FeatureNoise | None = None
     dtm_variance_scale: np.ndarray | None = None
+    sqrt_info_full: np.ndarray | None = None
+    robust_scale: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -157,6 +166,7 @@ class PairFeatures:
             dtm_variance_scale = np.asarray(dtm_variance_scale, dtype=float)
             sigma_h = float(noise.sigma_h_m) * np.sqrt(dtm_variance_scale)
         Sigma_f = np.empty((n, 3, 3))
+        Sigma_full = np.empty((n, 3, 3))
         sax, say = noise.sigma_qa_xy if noise.sigma_qa_xy is not None else (0.0, 0.0)
         # numba twins of cdtm_math's feature_covariance, orthonormal_complement,
         # residual_covariance and sqrt_information (tested equal): ~10x faster
@@ -164,23 +174,31 @@ class PairFeatures:
             np.ascontiguousarray(world_T_cam_a[:3, :3]), world_T_cam_a[:3, 3].copy(),
             np.ascontiguousarray(world_T_cam_b[:3, :3]), world_T_cam_b[:3, 3].copy(),
             q_a, q_b, G_E, N, float(noise.sigma_q_xy[0]), float(noise.sigma_q_xy[1]),
-            sigma_h, float(sax), float(say), Sigma_f)
+            sigma_h, float(sax), float(say), Sigma_f, Sigma_full)
         basis = np.empty((n, 3, 2))
         Sigma_e = np.empty((n, 2, 2))
         sqrt_info = np.empty((n, 2, 2))
         residual_noise_kernel(q_b, Sigma_f, basis, Sigma_e, sqrt_info)
+        Sigma_e_full = np.empty((n, 2, 2))
+        sqrt_info_full = np.empty((n, 2, 2))
+        residual_noise_kernel(q_b, Sigma_full, np.empty((n, 3, 2)), Sigma_e_full, sqrt_info_full)
+        C = sqrt_info @ Sigma_e_full @ np.swapaxes(sqrt_info, 1, 2)
+        robust_scale = np.sqrt(np.maximum(0.5 * (C[:, 0, 0] + C[:, 1, 1]), 1.0))
         return cls(q_a, q_b, G_E, N, Sigma_e, Sigma_f, basis, sqrt_info, noise,
-                   dtm_variance_scale)
+                   dtm_variance_scale, sqrt_info_full, robust_scale)
 
     def subset(self, index: np.ndarray) -> PairFeatures:
         """The features selected by ``index`` (mask or indices)."""
         def pick(a: np.ndarray) -> np.ndarray:
             return np.ascontiguousarray(a[index])
 
-        scale = None if self.dtm_variance_scale is None else self.dtm_variance_scale[index]
+        def maybe(a: np.ndarray | None) -> np.ndarray | None:
+            return None if a is None else pick(a)
+
         return PairFeatures(pick(self.q_a), pick(self.q_b), pick(self.G_E), pick(self.N),
                             pick(self.Sigma_e), pick(self.Sigma_f), pick(self.basis_b),
-                            pick(self.sqrt_info), self.noise, scale)
+                            pick(self.sqrt_info), self.noise, maybe(self.dtm_variance_scale),
+                            maybe(self.sqrt_info_full), maybe(self.robust_scale))
 
 
 _SCRATCH = [np.empty((COMPRESSED_ROWS, 512))]
@@ -255,6 +273,8 @@ class CdtmPairFactor:
                                  else float(robust_threshold))
         self._Ad = _adjoint(self.body_T_cam)
         n = features.n
+        scale = features.robust_scale if features.robust_scale is not None else np.ones(n)
+        self._kernel_k = np.ascontiguousarray(self.robust_threshold * scale)
         self._e = np.empty((n, 2))
         self._Ha = np.empty((n, 2, 6))
         self._Hb = np.empty((n, 2, 6))
@@ -305,7 +325,7 @@ class CdtmPairFactor:
         self.n_inactive = cdtm_linearize(
             wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3], self._Ad,
             f.q_a, G_E, N, f.basis_b, f.sqrt_info, self.robust.kernel_id,
-            self.robust_threshold, want_jacobians, self._e, self._Ha, self._Hb)
+            self._kernel_k, want_jacobians, self._e, self._Ha, self._Hb)
         return self._e, self._Ha, self._Hb
 
     def refreshed(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray) -> CdtmPairFactor:
@@ -351,9 +371,22 @@ class CdtmPairFactor:
         Ha = np.empty((f.n, 2, 6)) if want_jacobians else self._Ha
         Hb = np.empty((f.n, 2, 6)) if want_jacobians else self._Hb
         cdtm_linearize(wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3], self._Ad,
-                       f.q_a, G_E, N, f.basis_b, f.sqrt_info, KERNEL_NONE, 0.0, want_jacobians,
-                       e, Ha, Hb)
+                       f.q_a, G_E, N, f.basis_b, f.sqrt_info, KERNEL_NONE, self._kernel_k,
+                       want_jacobians, e, Ha, Hb)
         return e, Ha, Hb
+
+    def normalized_residuals(self, world_T_body_a: np.ndarray,
+                             world_T_body_b: np.ndarray) -> np.ndarray:
+        """Squared Mahalanobis distance of each residual as measured (both observations'
+        pixel noise and the DTM's), (n,): chi-square(2) for an inlier at the true poses."""
+        f = self.features
+        e = self.whitened_residuals(world_T_body_a, world_T_body_b)
+        if f.sqrt_info_full is None:
+            return np.einsum("ni,ni->n", e, e)
+        # back to the unwhitened residual, then the full whitening
+        u = np.linalg.solve(f.sqrt_info, e[..., None])
+        z = (f.sqrt_info_full @ u)[..., 0]
+        return np.einsum("ni,ni->n", z, z)
 
     def whitened_noise(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray,
                        noise: FeatureNoise) -> np.ndarray:
@@ -409,12 +442,15 @@ def make_feature_factors(
     (``Sigma_e``), wrapped in ``noiseModel.Robust`` when a kernel is given.
     """
     threshold = robust.default_threshold if robust_threshold is None else robust_threshold
-    estimator = robust.gtsam_estimator(threshold)
+    scale = features.robust_scale if features.robust_scale is not None else np.ones(features.n)
     factors: list[gtsam.CustomFactor] = []
     for i in range(features.n):
+        # the kernel judges |S e| / robust_scale: GTSAM's kernel at threshold * scale
+        estimator = robust.gtsam_estimator(threshold * float(scale[i]))
         single = features.subset(np.array([i]))
         # The per-feature factor returns the unwhitened residual; GTSAM whitens.
         single.sqrt_info = np.ascontiguousarray(np.eye(2)[None])
+        single.robust_scale = None
         pair = CdtmPairFactor(key_a, key_b, single, body_T_cam, plane_mode, raycast)
         # smart=False: GTSAM's "smart" constructor would round a covariance with small
         # off-diagonal terms (~1e-10 rad^2 here) to a diagonal one.

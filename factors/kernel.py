@@ -71,7 +71,8 @@ def cdtm_linearize(
         Ad: (6, 6) ``Ad(cam_T_body)``: camera-tangent Jacobians times Ad give body ones.
         q_a: (n, 3) rays in camera a. G_E, N: (n, 3) tangent planes. basis: (n, 3, 2) ``B_b``.
         sqrt_info: (n, 2, 2) whitening; the identity gives the unwhitened residual.
-        kernel, kernel_k: robust kernel id and threshold (whitened units).
+        kernel, kernel_k: robust kernel id and per-feature thresholds (n,), in the units
+            of the whitened residual.
         want_jacobians: fill ``Ha_out``/``Hb_out`` and return sqrt(w)-reweighted
             residuals (a linearization); otherwise return residuals whose half
             squared norm is the robust loss (an error evaluation).
@@ -124,11 +125,11 @@ def cdtm_linearize(
                 e_out[i, 0] = w0
                 e_out[i, 1] = w1
             else:
-                scale = np.sqrt(2.0 * robust_loss(kernel, kernel_k, s)) / s
+                scale = np.sqrt(2.0 * robust_loss(kernel, kernel_k[i], s)) / s
                 e_out[i, 0] = w0 * scale
                 e_out[i, 1] = w1 * scale
             continue
-        sw = np.sqrt(robust_weight(kernel, kernel_k, s)) if kernel != KERNEL_NONE else 1.0
+        sw = np.sqrt(robust_weight(kernel, kernel_k[i], s)) if kernel != KERNEL_NONE else 1.0
         e_out[i, 0] = sw * w0
         e_out[i, 1] = sw * w1
         for k in range(2):
@@ -308,9 +309,14 @@ def _np_apply(q, qq, g, gn, x, out):
 
 @njit(cache=True)
 def feature_covariance_kernel(R_a, p_a, R_b, p_b, q_a, q_b, G_E, N, sx, sy, sigma_h,
-                              sax, say, Sigma_out):
+                              sax, say, Sigma_out, Sigma_full_out):
     # sigma_h: (n,) DTM height 1-sigma per feature
     """Sigma_f of eqs. 19-26 per feature, as a sum of rank-one terms (n, 3, 3).
+
+    ``Sigma_full_out`` gets the covariance of a single residual's data as measured: with
+    ``q_a``'s pixel noise (``sx, sy``) whatever ``sax, say`` say (a residual tested on its
+    own carries both observations' noise; the factors leave ``q_a``'s out because each
+    observation is ``q_b`` of one pair and ``q_a`` of the next).
 
     The same formula as :func:`factors.cdtm_math.feature_covariance` (the tested
     reference): ``J_q Sigma_q J_q^T`` has one term per noisy image axis, and the DTM
@@ -322,7 +328,7 @@ def feature_covariance_kernel(R_a, p_a, R_b, p_b, q_a, q_b, G_E, N, sx, sy, sigm
     g = np.empty(3)
     x = np.empty(3)
     w = np.empty(3)
-    cols = np.empty((5, 3))
+    cols = np.empty((7, 3))
     for i in range(n):
         for a in range(3):
             r[a] = R_a[a, 0] * q_a[i, 0] + R_a[a, 1] * q_a[i, 1] + R_a[a, 2] * q_a[i, 2]
@@ -357,13 +363,15 @@ def feature_covariance_kernel(R_a, p_a, R_b, p_b, q_a, q_b, G_E, N, sx, sy, sigm
             x[a] = (R_b[0, a] * r[0] + R_b[1, a] * r[1] + R_b[2, a] * r[2]) * sigma_h[i] / Nr
         _np_apply(q, qq, g, gn, x, w)
         cols[2, :] = w
-        # q_a columns: lam N_P R_b^T P(r, N) R_a e_c
-        m = 3
-        for c in range(2):
-            s = sax if c == 0 else say
-            if s == 0.0:
+        # q_a columns: lam N_P R_b^T P(r, N) R_a e_c, as configured (sax, say); when the
+        # factor leaves q_a exact, the full covariance gets them at the pixel noise.
+        configured = sax != 0.0 or say != 0.0
+        m = m_configured = 3
+        for c in range(4):
+            s = (sax, say, sx, sy)[c]
+            if s == 0.0 or (c >= 2 and configured):
                 continue
-            v0, v1, v2 = R_a[0, c], R_a[1, c], R_a[2, c]
+            v0, v1, v2 = R_a[0, c % 2], R_a[1, c % 2], R_a[2, c % 2]
             nv = (N[i, 0] * v0 + N[i, 1] * v1 + N[i, 2] * v2) / Nr
             v0 -= r[0] * nv
             v1 -= r[1] * nv
@@ -373,12 +381,17 @@ def feature_covariance_kernel(R_a, p_a, R_b, p_b, q_a, q_b, G_E, N, sx, sy, sigm
             _np_apply(q, qq, g, gn, x, w)
             cols[m, :] = w
             m += 1
+            if c < 2:
+                m_configured = m
         for a in range(3):
             for b in range(3):
                 acc = 0.0
-                for k in range(m):
+                for k in range(m_configured):
                     acc += cols[k, a] * cols[k, b]
                 Sigma_out[i, a, b] = acc
+                for k in range(m_configured, m):
+                    acc += cols[k, a] * cols[k, b]
+                Sigma_full_out[i, a, b] = acc
 
 
 @njit(cache=True)

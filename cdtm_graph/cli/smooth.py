@@ -100,11 +100,12 @@ def plot_writers(out: RunOutput, dtm, flight) -> list:
 def summary(out: RunOutput, out_dir: Path) -> str:
     r = out.result
     total_s = out.report["timings_s"]["total"]
-    gated = f", {r.counts.n_gated} gated on arrival" if r.counts.n_gated else ""
+    left_out = ", ".join(f"{int(n.sum())} {reason.replace('_', ' ')}"
+                         for reason, n in r.counts.rejected_per_frame.items() if n.sum())
     lines = [f"{r.counts.n_frames} frames, {r.counts.n_cdtm_features} C-DTM features "
-             f"({r.counts.n_missed_dtm} missed the DTM, {r.counts.n_outliers} beyond the "
-             f"chi-square gate{gated}), {r.stats.solver.value} smoothing in {total_s:.2f} s -> "
-             f"{out_dir}"]
+             f"({r.counts.n_outliers} beyond the chi-square test at the solution"
+             f"{'; left out: ' + left_out if left_out else ''}), {r.stats.solver.value} "
+             f"smoothing in {total_s:.2f} s -> {out_dir}"]
     e, f = out.errors, out.free_errors
     if e is not None and f is not None:
         fmt = lambda v: " ".join(f"{x:8.2f}" for x in v)  # noqa: E731

@@ -22,8 +22,10 @@ from cdtm_graph.gating import count_outliers
 from cdtm_graph.graph import cdtm_factors, feature_noise, imu_factor, insert_state, prior_factors
 from cdtm_graph.imu import ImuIntervals, initial_bias
 from cdtm_graph.optimizer import LinearSolver, explain_indeterminant, levenberg_marquardt
+from cdtm_graph.replay import replay
 from cdtm_graph.results import (
     GraphCounts,
+    Rejections,
     SmootherResult,
     SolverStats,
     StateCovariances,
@@ -32,7 +34,7 @@ from cdtm_graph.results import (
 )
 from cdtm_graph.smoother.incremental import IncrementalSmoother
 from cdtm_graph.smoother.settings import Progress, SmootherMode, SmootherSettings
-from cdtm_graph.tracks import frame_pair_observations
+from cdtm_graph.tracks import SightingPairs
 from factors import CdtmPairFactor
 
 
@@ -120,7 +122,12 @@ def _initial_values(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
 
 def build_log_graph(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
                     initial: gtsam.Values) -> LogGraph:
-    """Priors, IMU factors and C-DTM factors of the whole log, planes cast from ``initial``."""
+    """Priors, IMU factors and C-DTM factors of the whole log, planes cast from ``initial``.
+
+    Sightings are paired frame by frame as the incremental smoother pairs them
+    (:class:`~cdtm_graph.tracks.SightingPairs`: wrong matches left out against the
+    initial guess's relative poses).
+    """
     K = len(flight.frames)
     t = flight.frames.t_ns
     graph = prior_factors(flight.config.initial_state)
@@ -128,20 +135,25 @@ def build_log_graph(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
     bias0 = initial_bias(flight.config.initial_state)
     for k in range(K - 1):
         graph.add(imu_factor(k, intervals.preintegrate(int(t[k]), int(t[k + 1]), bias0)))
-    tracks = flight.tracks
-    pairs = (frame_pair_observations(tracks, flight.config.camera.camera)
-             if tracks is not None else [])
     poses = [initial.atPose3(X(k)).matrix() for k in range(K)]
-    build = cdtm_factors(pairs, poses, flight.config.camera.body_T_cam, dtm,
-                         feature_noise(flight.config, dtm, settings.graph), settings.graph)
+    rejections = Rejections()
+    camera = flight.config.camera
+    pairing = SightingPairs(camera.camera, camera.body_T_cam, dtm, camera.pixel_sigma_px,
+                            settings.graph.epipolar, rejections)
+    pairs = []
+    for frame in replay(flight):
+        if len(frame.track_id):
+            pairs += pairing.add_frame(frame.k, frame.track_id, frame.uv_px, poses.__getitem__)
+    build = cdtm_factors(pairs, poses, camera.body_T_cam, dtm,
+                         feature_noise(flight.config, dtm, settings.graph), settings.graph,
+                         rejections)
     per_frame = np.zeros(K, dtype=int)
     for k, n in build.features_per_frame.items():
         per_frame[k] = n
     counts = GraphCounts(
-        K, int(np.unique(tracks.track_id).size) if tracks is not None else 0,
-        len(tracks) if tracks is not None else 0, sum(p.q_a.shape[0] for p in pairs),
-        build.n_features, build.n_missed, len(build.factors), K - 1, per_frame,
-        outliers_per_frame=np.zeros(K, dtype=int), gated_per_frame=np.zeros(K, dtype=int))
+        K, pairing.table.n_tracks, pairing.n_observations, pairing.n_pairs, build.n_features,
+        len(build.factors), K - 1, per_frame, outliers_per_frame=np.zeros(K, dtype=int),
+        rejected_per_frame=rejections.per_frame(K))
     return LogGraph(graph, initial, counts, build.factors)
 
 

@@ -33,6 +33,7 @@ from cdtm_graph.imu import ImuArrays, ImuFeed, initial_bias, navstate_predict
 from cdtm_graph.replay import replay
 from cdtm_graph.results import (
     GraphCounts,
+    Rejections,
     SmootherResult,
     Solver,
     SolverStats,
@@ -42,7 +43,7 @@ from cdtm_graph.results import (
 )
 from cdtm_graph.smoother.backends import Backend, FixedLag, FullHistory, frame_keys
 from cdtm_graph.smoother.settings import Progress, SmootherSettings
-from cdtm_graph.tracks import TrackTable, check_unique
+from cdtm_graph.tracks import SightingPairs, check_unique
 from factors import CdtmPairFactor
 
 
@@ -97,9 +98,13 @@ class IncrementalSmoother:
         graph = settings.graph
         self._noise = feature_noise(config, dtm, graph)
         self._imu = ImuFeed(config, graph.imu_hold, imu)
-        self._tracks = TrackTable()
+        self.rejections = Rejections()  # features left out, by reason and frame
+        self._pairing = SightingPairs(config.camera.camera, config.camera.body_T_cam, dtm,
+                                      config.camera.pixel_sigma_px, graph.epipolar,
+                                      self.rejections)
         self._gate = (None if settings.innovation_gate is None else InnovationGate(
-            settings.innovation_gate, self._noise, max(abs(dtm.dx), abs(dtm.dy))))
+            settings.innovation_gate, self._noise, max(abs(dtm.dx), abs(dtm.dy)),
+            self.rejections))
         # A gate updates twice per frame (IMU, then the features that pass): relinearize
         # every other update as often, in frames.
         updates = 1 if self._gate is None else 2
@@ -119,8 +124,7 @@ class IncrementalSmoother:
         self._cdtm_slots: list[int] = []  # ... their solver slots (full history)
         self._converging = True  # the newest update moved its frame far from the prediction
         self._features_per_frame: dict[int, int] = {}
-        self.n_features = self.n_missed = self.n_too_old = self.n_cdtm_factors = 0
-        self._n_pairs = self._n_observations = 0
+        self.n_features = self.n_cdtm_factors = 0
         self.update_times_s: list[float] = []
         self.imu_times_s: list[float] = []
         self.final_error = float("nan")
@@ -232,22 +236,24 @@ class IncrementalSmoother:
 
     def _new_cdtm(self, k: int, track_id: np.ndarray, uv_px: np.ndarray
                   ) -> list[CdtmPairFactor]:
-        """The C-DTM factors frame k's sightings close (counted, not yet in the graph)."""
-        q = self._camera.pixels_to_rays(uv_px)
-        self._n_observations += len(track_id)
-        # A fixed lag has let go of frames before the window: their pairs are dropped
-        # (counted), and tracks last seen there can never pair again.
-        pairs, n_too_old = self._tracks.add_frame(k, track_id, q, self._settled)
-        self.n_too_old += n_too_old
-        self._n_pairs += sum(p.q_a.shape[0] for p in pairs) + n_too_old
-        if self.settings.lag_s is not None and len(self._tracks) > 4 * len(track_id):
-            self._tracks.forget_before(self._settled)
-        for pair in pairs:  # fetch only the poses these planes need
-            self._poses[pair.frame_a] = self._backend.pose(pair.frame_a)
+        """The C-DTM factors frame k's sightings close (counted, not yet in the graph).
+
+        A fixed lag has let go of frames before the window: their pairs are dropped
+        (counted), and tracks last seen there can never pair again.
+        """
+        pairs = self._pairing.add_frame(k, track_id, uv_px, self._pose_guess, self._settled)
+        table = self._pairing.table
+        if self.settings.lag_s is not None and len(table) > 4 * len(track_id):
+            table.forget_before(self._settled)
         build = cdtm_factors(pairs, self._poses, self._body_T_cam, self.dtm, self._noise,
-                             self.settings.graph)
-        self.n_missed += build.n_missed
+                             self.settings.graph, self.rejections)
         return build.factors
+
+    def _pose_guess(self, j: int) -> np.ndarray:
+        """Frame j's pose as the solver has it now (the newest frame: its prediction)."""
+        if j != len(self._t_ns) - 1:  # fetch only the poses the new pairs need
+            self._poses[j] = self._backend.pose(j)
+        return self._poses[j]
 
     def _commit(self, k: int, factors: list[CdtmPairFactor], slots: list[int]) -> None:
         n_features = sum(f.features.n for f in factors)
@@ -436,13 +442,12 @@ class IncrementalSmoother:
         covariances = self.covariances()
         estimate = self.estimate()
         n_out, out_per_frame = count_outliers(self._cdtm, estimate.world_T_body, K)
-        gated = self._gate.gated_per_frame if self._gate is not None else {}
         counts = GraphCounts(
-            K, self._tracks.n_tracks, self._n_observations, self._n_pairs, self.n_features,
-            self.n_missed, self.n_cdtm_factors, K - 1,
+            K, self._pairing.table.n_tracks, self._pairing.n_observations,
+            self._pairing.n_pairs, self.n_features,
+            self.n_cdtm_factors, K - 1,
             np.array([self._features_per_frame.get(k, 0) for k in range(K)]),
-            n_out, out_per_frame, self._gate.n_gated if self._gate is not None else 0,
-            np.array([gated.get(k, 0) for k in range(K)]))
+            n_out, out_per_frame, self.rejections.per_frame(K))
         nis = self.innovation_nis
         stats = SolverStats(
             Solver.ISAM2 if self.settings.lag_s is None else Solver.FIXED_LAG, K,
@@ -450,7 +455,5 @@ class IncrementalSmoother:
             time.perf_counter() - t0, tuple(self.update_times_s), tuple(self.imu_times_s),
             float(np.median(nis)) if nis.size else float("nan"),
             float(np.mean(nis)) if nis.size else float("nan"))
-        settings = self.settings.to_dict()
-        settings["n_too_old_for_lag"] = self.n_too_old
-        return SmootherResult(estimate, covariances, stats, counts, settings,
+        return SmootherResult(estimate, covariances, stats, counts, self.settings.to_dict(),
                               frame_flags(counts))

@@ -19,6 +19,7 @@ import numpy as np
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import CdtmError
 from cdtm_graph.flightlog import FlightLog
+from cdtm_graph.results import Rejection
 from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.sim.faults import (
     MismatchKind,
@@ -142,7 +143,7 @@ def run(flight: FlightLog, dtm: Dtm, scenario: str, mode: Mode,
     e = out.errors
     assert e is not None  # simulated flights have ground truth
     counts = out.result.counts
-    rejected = counts.n_gated + getattr(counts, "n_rejected", 0)
+    rejected = counts.n_rejected() - counts.n_rejected(Rejection.MISSED_DTM)
     verdict = str(out.report.get("verdict", "-"))
     return Outcome(scenario, mode, e.rmse_position_m,
                    float(np.max(np.linalg.norm(e.position_error_world_m, axis=1))),
