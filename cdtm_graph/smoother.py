@@ -39,6 +39,7 @@ from cdtm_graph.graph import (
 )
 from cdtm_graph.imu import ImuIntervals, ImuStream, initial_bias, navstate_predict
 from cdtm_graph.optimizer import LinearSolver, explain_indeterminant, levenberg_marquardt
+from cdtm_graph.preflight import check_constraints
 from cdtm_graph.results import (
     GraphCounts,
     SmootherResult,
@@ -244,6 +245,7 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     Raises:
         SolverError: indeterminant system (names the variable and the likely cause).
         FlightLogError: the log has fewer than two frames.
+        NoConstraintError: no camera or DTM constraint at all (``preflight``).
         ValueError: ``innovation_gate`` with the batch smoother.
     """
     settings = settings or SmootherSettings()
@@ -253,6 +255,7 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     if len(flight.frames) < 2:
         raise FlightLogError(f"{flight.root / 'frames.csv'}: {len(flight.frames)} frame(s); "
                              "expected at least 2")
+    check_constraints(flight, dtm)  # no camera/DTM constraint at all: refuse, not IMU-only
     if settings.mode is SmootherMode.INCREMENTAL:
         dt_s = float(np.max(np.diff(flight.frames.t_ns))) * 1e-9
         smoother = IncrementalSmoother(flight.config, dtm, settings.graph, lag_s=settings.lag_s,
