@@ -23,7 +23,7 @@ import numpy as np
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import NoConstraintError
 from cdtm_graph.evaluation import dead_reckoning
-from cdtm_graph.flightlog import FRAMES_CSV, TRACKS_CSV, FlightLog
+from cdtm_graph.flightlog import FRAMES_CSV, TRACKS_CSV, FlightLog, Tracks
 
 
 @dataclass(frozen=True)
@@ -135,11 +135,11 @@ def check_constraints(flight: FlightLog, dtm: Dtm) -> DtmCoverage:
     coverage = dtm_coverage(flight, dtm, poses)
     if coverage.n_on_dtm.sum() > 0:
         return coverage
-    raise NoConstraintError(_off_dtm_message(flight, dtm, poses, source, coverage))
+    raise NoConstraintError(_off_dtm_message(flight, tracks, dtm, poses, source, coverage))
 
 
-def _off_dtm_message(flight: FlightLog, dtm: Dtm, poses: np.ndarray, source: str,
-                     coverage: DtmCoverage) -> str:
+def _off_dtm_message(flight: FlightLog, tracks: Tracks, dtm: Dtm, poses: np.ndarray,
+                     source: str, coverage: DtmCoverage) -> str:
     xmin, xmax, ymin, ymax = dtm.bounds
     zmin, zmax = float(np.nanmin(dtm.elevation)), float(np.nanmax(dtm.elevation))
     p = poses[:, :3, 3]
@@ -147,9 +147,14 @@ def _off_dtm_message(flight: FlightLog, dtm: Dtm, poses: np.ndarray, source: str
     inside = (xmin <= p[:, 0]) & (p[:, 0] <= xmax) & (ymin <= p[:, 1]) & (p[:, 1] <= ymax)
     span = (f"the DTM spans x {xmin:.6g}..{xmax:.6g} m, y {ymin:.6g}..{ymax:.6g} m, "
             f"heights {zmin:.6g}..{zmax:.6g} m (world, after dtm.origin_enu_m)")
-    where = (f"the flight ({source}) goes from x {x0:.6g}, y {y0:.6g}, z {z0:.6g} m to "
+    where = (f"the flight goes from x {x0:.6g}, y {y0:.6g}, z {z0:.6g} m to "
              f"x {p[-1, 0]:.6g}, y {p[-1, 1]:.6g} m")
-    if not inside.any():
+    camera = flight.config.camera.camera
+    undistortable = np.isfinite(camera.pixels_to_rays(tracks.uv_px)).all(axis=1)
+    if not undistortable.any():
+        hint = ("no observed pixel can be undistorted: are camera.intrinsics and "
+                "camera.distortion_coeffs right?")
+    elif not inside.any():
         hint = ("the DTM is elsewhere: are dtm.origin_enu_m and the DTM's coordinates "
                 "right (a projected DTM needs the world origin subtracted)?")
     elif np.all(p[inside, 2] < zmin):
@@ -159,5 +164,5 @@ def _off_dtm_message(flight: FlightLog, dtm: Dtm, poses: np.ndarray, source: str
                 "and is the initial attitude right?")
     n = int(coverage.n_observations.sum())
     return (f"{flight.root}: no observed ray meets the DTM ({n} observations cast from "
-            f"{source}): {span}; {where}; {hint} Without the DTM the result would be "
-            "IMU-only")
+            f"poses of {source}): {span}; {where}; {hint} Without the DTM the result would "
+            "be IMU-only")

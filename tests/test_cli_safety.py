@@ -217,6 +217,25 @@ def test_absurd_magnitudes_in_the_csv_files_name_the_line(log, tmp_path, capsys,
     _one_line(err, f"{file}:{line}: {name} is 1e+300", "expected |")
 
 
+_DTM = ROOT / "data" / "sample_flight" / "dtm.npz"
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["simulate", "{out}", "--fps", "1e300"], ("fps = 1e+300", "IMU rate")),
+    (["simulate", "{out}", "--fps", "1e-300"], ("shorter flight",)),
+    (["accuracy-map", str(_DTM), "--alt-m", "1000", "--fov-deg", "60", "--sigma-px", "1e-300",
+      "--out", "{out}"], ("sigma_px = 1e-300", "[0.001, 100] px")),
+    (["accuracy-map", str(_DTM), "--alt-m", "1e300", "--fov-deg", "60", "--out", "{out}"],
+     ("altitude_m = 1e+300",)),
+])
+def test_absurd_magnitudes_of_other_commands_are_one_line(tmp_path, capsys, argv, words):
+    out = tmp_path / "out"
+    code, err = _run(capsys, *(a.replace("{out}", str(out)) for a in argv))
+    assert code == 1
+    _one_line(err, *words)
+    assert not out.exists()
+
+
 # --------------------------------------------------------------------------- --out
 
 
@@ -345,7 +364,7 @@ def test_other_commands_check_out_before_any_work(tmp_path, capsys, monkeypatch)
         monkeypatch.setattr(module, name, never)
     a_file = tmp_path / "a_file"
     a_file.write_text("keep")
-    dtm = ROOT / "data" / "sample_flight" / "dtm.npz"
+    dtm = _DTM
     for argv in (["navsim", "--quick"], ["study", "fov", "--trials", "2"],
                  ["accuracy-map", str(dtm), "--alt-m", "1000", "--fov-deg", "60"],
                  ["simulate", "--frames", "3"]):

@@ -111,6 +111,9 @@ REGION_MARGIN_M = 400.0
 #: The aircraft must clear the highest terrain under its footprint by this much (m).
 MIN_CLEARANCE_M = 100.0
 
+#: Most IMU samples of a simulation: 2e7 (28 h at 200 Hz) hold about 1 GB.
+MAX_IMU_SAMPLES = 2e7
+
 #: Largest true terrain grid (samples): 2000 x 2000 float64 is 32 MB.
 MAX_TERRAIN_SAMPLES = 4_000_000
 
@@ -287,6 +290,14 @@ class SimulationSettings:
                 f"resolution_px = {self.resolution_px!r}, expected (width, height) > 0")
         if not self.fov_deg < 180.0:
             raise SimulationError(f"fov_deg = {self.fov_deg!r}, expected 0 < fov_deg < 180")
+        if not self.fps <= self.imu_rate_hz:
+            raise SimulationError(f"fps = {self.fps!r}, expected at most the IMU rate "
+                                  f"{self.imu_rate_hz!r} Hz (at least one IMU sample a frame)")
+        if not self.duration_s * self.imu_rate_hz <= MAX_IMU_SAMPLES:
+            raise SimulationError(
+                f"frames = {self.frames}, fps = {self.fps!r}, imu_rate_hz = "
+                f"{self.imu_rate_hz!r}: {self.duration_s:.3g} s of IMU is more than "
+                f"{MAX_IMU_SAMPLES:g} samples; expected a shorter flight")
         if len(self.camera_offset_m) != 3 or not all(
                 _is_number(v) and math.isfinite(v) for v in self.camera_offset_m):
             raise SimulationError(
