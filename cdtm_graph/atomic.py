@@ -402,16 +402,20 @@ def _remove_created(created: list[Path]) -> None:
 # --------------------------------------------------------------------------- publishing
 
 
-def _check_foreign(path: Path, ours: Mapping[str, str] | None, force: bool, shown: str) -> None:
+def _check_foreign(path: Path, ours: Mapping[str, str] | None, force: bool, shown: str,
+                   names: Iterable[str] = ()) -> None:
     """Refuse a non-empty directory without a manifest unless ``force``."""
     if ours is not None or force:
         return
     foreign = _foreign_entries(path, {})
     if foreign:
         more = f" and {len(foreign) - 1} more" if len(foreign) > 1 else ""
-        raise OutputError(
-            f"{shown}: holds {foreign[0]!r}{more}, not written by cdtm; expected "
-            f"{_EXPECTED_DIR} (--force writes beside such files, never over them)")
+        hint = "--force writes beside such files, never over them"
+        if set(foreign) <= set(names):
+            hint = ("its files look like the output of a cdtm older than manifests: "
+                    "remove them to write there")
+        raise OutputError(f"{shown}: holds {foreign[0]!r}{more}, not written by cdtm; "
+                          f"expected {_EXPECTED_DIR} ({hint})")
 
 
 def _publish_into(target: Path, staging: _Staging, writer: str, names: list[str],
@@ -419,7 +423,7 @@ def _publish_into(target: Path, staging: _Staging, writer: str, names: list[str]
     """Rename each staged file over its old version, the manifest updated first and last."""
     with _directory_lock(target):
         manifest = read_manifest(target)
-        _check_foreign(target, manifest, force, shown)  # again: it may have changed meanwhile
+        _check_foreign(target, manifest, force, shown, names)  # again: may have changed
         ours = manifest or {}
         clashes = _clashes(target, names, ours)
         if clashes:
@@ -482,7 +486,7 @@ def atomic_output_dir(target: str | os.PathLike, *, writer: str, force: bool = F
             raise OutputError(f"{shown}: exists and is not a directory; expected "
                               f"{_EXPECTED_DIR}")
         ours = read_manifest(path)
-        _check_foreign(path, ours, force, shown)
+        _check_foreign(path, ours, force, shown, names)
         clashes = _clashes(path, names, ours or {})
         if clashes:
             raise _clash_error(shown, clashes)

@@ -294,3 +294,16 @@ def test_a_folder_made_at_the_target_during_the_work_is_respected(tmp_path: Path
         _write(out, **{"more.txt": "theirs too"})
     assert read_manifest(out) == {"r.json": "smooth"}
     assert (out / "more.txt").read_text() == "theirs too"
+
+
+def test_an_output_of_an_older_cdtm_is_recognised_in_the_message(tmp_path: Path):
+    """Run directories written before manifests existed: refused (nothing proves they are
+    ours), with the way out in the message."""
+    out = tmp_path / "old"
+    out.mkdir()
+    _write(out, **{"report.json": "r", "states.csv": "s"})
+    with pytest.raises(OutputError, match="older than manifests: remove them"):
+        with atomic_output_dir(out, writer="smooth", names=["report.json", "states.csv",
+                                                            "trajectory.tum"]):
+            pass
+    assert _snapshot(out) == {"report.json": b"r", "states.csv": b"s"}
