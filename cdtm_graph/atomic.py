@@ -199,10 +199,13 @@ class _Staging:
     @classmethod
     def create(cls, parent: Path, prefix: str, writer: str, target: Path) -> _Staging:
         path = Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
+        fd: int | None = None
         try:
             path.chmod(0o777 & ~_umask())  # mkdtemp is owner-only; outputs are data to share
-            lock = path / STAGING_LOCK_NAME
-            fd = os.open(lock, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
+            # Locked and filled under another name, then renamed: a cleaner can only ever
+            # open a lock file that is already locked (the rename keeps the inode's flock).
+            draft = path / (STAGING_LOCK_NAME + ".new")
+            fd = os.open(draft, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
             if fcntl is not None:
                 # Without flock support (some network file systems) the lock cannot be
                 # taken by a cleaner either: the directory then counts as in use.
@@ -212,7 +215,10 @@ class _Staging:
                       "target": str(target), "started_utc": datetime.datetime.now(
                           datetime.UTC).isoformat(timespec="seconds")}
             os.write(fd, (json.dumps(marker) + "\n").encode())
+            os.rename(draft, path / STAGING_LOCK_NAME)
         except BaseException:
+            if fd is not None:
+                os.close(fd)
             shutil.rmtree(path, ignore_errors=True)
             raise
         return cls(path, fd)
