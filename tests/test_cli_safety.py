@@ -485,3 +485,23 @@ def test_a_live_runs_staging_is_not_touched_by_a_concurrent_run(log, tmp_path, c
     assert _no_staging(out, tmp_path)
     t_ns, poses = read_tum(out / "trajectory.tum")
     assert len(t_ns) == 6 and np.isfinite(poses).all()
+
+
+def test_an_interrupt_surfacing_through_compiled_code_is_still_an_interrupt(log, tmp_path,
+                                                                           capsys,
+                                                                           monkeypatch):
+    """Measured: SIGTERM handled inside a numba callback reached the CLI as a SystemError
+    chained to the KeyboardInterrupt, with a traceback. It is an interrupt: one line, 130."""
+    from cdtm_graph.cli import smooth as smooth_cli
+
+    def interrupted_in_a_kernel(*args, **kwargs):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as exc:
+            raise SystemError("CPUDispatcher returned a result with an exception set") from exc
+
+    monkeypatch.setattr(smooth_cli, "smooth_and_evaluate", interrupted_in_a_kernel)
+    code, err = _smooth(capsys, log, tmp_path / "out")
+    assert code == 130
+    _one_line(err, "cdtm smooth: interrupted")
+    assert not (tmp_path / "out").exists() and _no_staging(tmp_path)

@@ -61,16 +61,31 @@ def _sigterm_as_interrupt() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+def _caused_by_interrupt(exc: BaseException) -> bool:
+    """Whether ``exc`` comes from a KeyboardInterrupt: a signal handled inside a compiled
+    callback (numba, GTSAM) resurfaces as e.g. a SystemError chained to it."""
+    seen: set[int] = set()
+    current: BaseException | None = exc
+    while current is not None and id(current) not in seen:
+        if isinstance(current, KeyboardInterrupt):
+            return True
+        seen.add(id(current))
+        current = current.__cause__ or current.__context__
+    return False
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
-                        format="%(levelname)s %(name)s: %(message)s")
+    command = "cdtm"
     try:
-        with _sigterm_as_interrupt():
+        with _sigterm_as_interrupt():  # from the start: the imports take a second or two
+            parser = build_parser()
+            args = parser.parse_args(argv)
+            command = f"cdtm {args.command}"
+            logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                                format="%(levelname)s %(name)s: %(message)s")
             return int(args.func(args) or 0)
     except CdtmError as exc:
-        print(f"cdtm {args.command}: error: {exc}", file=sys.stderr)
+        print(f"{command}: error: {exc}", file=sys.stderr)
         return 1
     except BrokenPipeError:  # e.g. `cdtm ... | head`: the reader left; stop quietly
         devnull = os.open(os.devnull, os.O_WRONLY)
@@ -80,10 +95,15 @@ def main(argv: list[str] | None = None) -> int:
         if exc.errno is None:
             raise
         where = f": {exc.filename}" if exc.filename else ""
-        print(f"cdtm {args.command}: error: {exc.strerror}{where}", file=sys.stderr)
+        print(f"{command}: error: {exc.strerror}{where}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        print(f"cdtm {args.command}: interrupted", file=sys.stderr)
+        print(f"{command}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:
+        if not _caused_by_interrupt(exc):
+            raise
+        print(f"{command}: interrupted", file=sys.stderr)
         return 130
 
 
