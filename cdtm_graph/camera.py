@@ -194,18 +194,21 @@ class PinholeCamera:
         uv[~in_front] = np.nan
         return uv
 
-    def in_image(self, uv: np.ndarray) -> np.ndarray:
+    def in_image(self, uv: np.ndarray, margin_px: float = 0.0) -> np.ndarray:
         """Whether pixels lie on the image (outer pixel edges included; NaN is outside).
 
         Args:
             uv: (..., 2) pixel coordinates.
+            margin_px: also accept pixels up to this far outside the outer edges.
 
         Returns:
-            (...) booleans: ``-0.5 <= u <= width-0.5`` and ``-0.5 <= v <= height-0.5``.
+            (...) booleans: ``-0.5 - m <= u <= width - 0.5 + m`` and likewise for v.
         """
         uv = np.asarray(uv, dtype=float)
         u, v = uv[..., 0], uv[..., 1]
-        return (u >= -0.5) & (u <= self.width - 0.5) & (v >= -0.5) & (v <= self.height - 0.5)
+        lo = -0.5 - margin_px
+        return ((u >= lo) & (u <= self.width - 0.5 + margin_px)
+                & (v >= lo) & (v <= self.height - 0.5 + margin_px))
 
     def sigma_normalized(self, pixel_sigma_px: float) -> tuple[float, float]:
         """A pixel standard deviation in normalized image units: ``(sigma / fx, sigma / fy)``."""

@@ -39,3 +39,13 @@ class SolverError(CdtmError):
 
 class SimulationError(CdtmError):
     """The simulation settings or terrain cannot give a valid flight log."""
+
+
+class OutputError(CdtmError):
+    """An output path cannot be written safely: it is the input, a file, someone else's
+    folder, or not writable. Nothing was written, deleted or replaced."""
+
+
+class NoConstraintError(CdtmError):
+    """The log gives the smoother no camera or DTM constraint at all (no tracks, no feature
+    seen twice, or a DTM that no observed ray meets): the result would be IMU-only."""

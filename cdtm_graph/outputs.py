@@ -27,7 +27,9 @@ Conventions of the files:
   perturbation on the right, ``world_T_body * Exp(xi)`` (body frame); bias [accel, gyro].
 
 Everything is written inside :func:`~cdtm_graph.atomic.atomic_output_dir`: a failure
-anywhere (including in an extra-file writer) leaves the target directory as it was.
+anywhere (including in an extra-file writer) leaves the target directory as it was, and
+no file cdtm did not write there is ever replaced or deleted; the hidden manifest
+``.cdtm-run.json`` lists the files the run wrote.
 """
 
 from __future__ import annotations
@@ -58,6 +60,8 @@ COVARIANCES_NPZ = "covariances.npz"
 REPORT_JSON = "report.json"
 #: The files ``write_run`` always writes; extra files may not take these names.
 RUN_FILES = (TRAJECTORY_TUM, TRAJECTORY_COV, STATES_CSV, COVARIANCES_NPZ, REPORT_JSON)
+#: The writer named in the run directory's manifest (``.cdtm-run.json``).
+RUN_WRITER = "smooth"
 
 POSE_COVARIANCE_CONVENTION = ("Pose3 tangent [rot, trans], right perturbation (body frame): "
                               "world_T_body_true = world_T_body_est * Exp(xi)")
@@ -296,45 +300,74 @@ def _check_extra_name(name: str) -> None:
 
 
 def write_run(out_dir: str | os.PathLike, result: SmootherResult, report: Mapping[str, Any],
-              extra_files: Sequence[tuple[str, ExtraFileWriter]] = ()) -> None:
-    """Write a whole run directory, atomically.
+              extra_files: Sequence[tuple[str, ExtraFileWriter]] = (), *, force: bool = False,
+              protected: Sequence[str | os.PathLike] = ()) -> None:
+    """Write a whole run directory, atomically, never over a file cdtm did not write.
 
-    The files are written into a temporary directory beside ``out_dir`` that replaces
-    ``out_dir`` only when every file, extras included, has been written; on any
-    exception ``out_dir`` keeps its old content (or stays absent) and the exception
-    propagates.
+    The files are written into a staging directory and published into ``out_dir`` only
+    when every file, extras included, has been written; on any exception ``out_dir``
+    keeps its old content (or stays absent) and the exception propagates. The rules of
+    :func:`~cdtm_graph.atomic.atomic_output_dir` apply (writer ``"smooth"``): an earlier
+    run there is replaced file by file, files cdtm did not write are kept.
 
     Args:
-        out_dir: the run directory; an existing one is replaced as a whole.
+        out_dir: the run directory: new, empty, or an earlier cdtm output directory.
         result: what the smoother produced.
         report: extra report.json content (timings, degeneracy flags, evaluation...);
             must not use the keys ``run_report`` fills in.
         extra_files: ``(file name, writer)`` pairs; each writer is called with the
-            file's path inside the temporary directory, e.g.
+            file's path inside the staging directory, e.g.
             ``("trajectory.png", lambda p: plot_trajectory_over_dtm(p, dtm, ...))``.
+        force: also write into a non-empty directory cdtm did not write (beside its files).
+        protected: inputs ``out_dir`` must not be, be inside or contain (the flight log).
 
     Raises:
         ValueError: inconsistent shapes, a bad or duplicate extra file name, or report
             keys that clash with generated ones (all checked before anything is written).
+        OutputError: ``out_dir`` may not be written (see ``atomic_output_dir``).
     """
-    k = _check_result(result)
+    check_run(result, report, extra_files)
+    names = [*RUN_FILES, *(name for name, _ in extra_files)]
+    with atomic_output_dir(out_dir, writer=RUN_WRITER, force=force, protected=protected,
+                           names=names) as tmp:
+        write_run_files(tmp, result, report, extra_files)
+
+
+def check_run(result: SmootherResult, report: Mapping[str, Any],
+              extra_files: Sequence[tuple[str, ExtraFileWriter]] = ()) -> None:
+    """Raise ValueError if :func:`write_run_files` would refuse these inputs."""
+    _check_result(result)
     names = [name for name, _ in extra_files]
     for name in names:
         _check_extra_name(name)
     if len(set(names)) != len(names):
         raise ValueError(f"duplicate extra file names in {names}")
+    json.dumps(run_report(result, report), allow_nan=False)
+
+
+def write_run_files(directory: str | os.PathLike, result: SmootherResult,
+                    report: Mapping[str, Any],
+                    extra_files: Sequence[tuple[str, ExtraFileWriter]] = ()) -> None:
+    """Write the files of a run into ``directory`` (not atomic by itself).
+
+    For a caller holding an :func:`~cdtm_graph.atomic.atomic_output_dir` open (the CLI
+    opens it before smoothing, so an unwritable ``--out`` fails first); otherwise use
+    :func:`write_run`. Same arguments and ``ValueError`` checks as :func:`write_run`.
+    """
+    check_run(result, report, extra_files)
+    directory = Path(directory)
+    k = _check_result(result)
     report_text = json.dumps(run_report(result, report), indent=2, allow_nan=False) + "\n"
     est = result.estimate
     t_ns = np.asarray(est.t_ns, dtype=np.int64).reshape(k)
-    with atomic_output_dir(out_dir) as tmp:
-        write_trajectory_tum(tmp / TRAJECTORY_TUM, t_ns, est.world_T_body)
-        write_trajectory_cov(tmp / TRAJECTORY_COV, t_ns, est.world_T_body,
-                             result.covariances.pose)
-        write_states_csv(tmp / STATES_CSV, result)
-        write_covariances_npz(tmp / COVARIANCES_NPZ, result)
-        (tmp / REPORT_JSON).write_text(report_text)
-        for name, writer in extra_files:
-            writer(tmp / name)
+    write_trajectory_tum(directory / TRAJECTORY_TUM, t_ns, est.world_T_body)
+    write_trajectory_cov(directory / TRAJECTORY_COV, t_ns, est.world_T_body,
+                         result.covariances.pose)
+    write_states_csv(directory / STATES_CSV, result)
+    write_covariances_npz(directory / COVARIANCES_NPZ, result)
+    (directory / REPORT_JSON).write_text(report_text)
+    for name, writer in extra_files:
+        writer(directory / name)
 
 
 # --------------------------------------------------------------------------- readers

@@ -463,12 +463,12 @@ def test_exponent_without_dot_is_a_number(log: FlightLog) -> None:
 
 
 @pytest.mark.parametrize("key, value, words", [
-    ("gravity_mps2:", "gravity_mps2: .nan", ("gravity_mps2", "finite")),
-    ("gravity_mps2:", "gravity_mps2: -9.8", ("gravity_mps2", "positive")),
-    ("pixel_sigma_px:", "  pixel_sigma_px: abc", ("pixel_sigma_px", "finite number")),
-    ("rate_hz:", "  rate_hz: 0", ("imu.rate_hz", "positive")),
+    ("gravity_mps2:", "gravity_mps2: .nan", ("gravity_mps2", "a number in [1, 30] m/s^2")),
+    ("gravity_mps2:", "gravity_mps2: -9.8", ("gravity_mps2", "a number in [1, 30] m/s^2")),
+    ("pixel_sigma_px:", "  pixel_sigma_px: abc", ("pixel_sigma_px", "in [0.001, 100] px")),
+    ("rate_hz:", "  rate_hz: 0", ("imu.rate_hz", "in [1, 100000] Hz")),
     ("resolution:", "  resolution: [400.5, 300]", ("resolution", "positive integer")),
-    ("intrinsics:", "  intrinsics: [-310.5, 309.25, 201.3, 148.7]", ("fx", "positive")),
+    ("intrinsics:", "  intrinsics: [-310.5, 309.25, 201.3, 148.7]", ("fx", "fx in [")),
     ("position_m:", "  position_m: [0.0, 0.0]", ("initial_state.position_m", "3")),
     ("sigma_h_m:", "  sigma_h_m: [1.0]", ("dtm.sigma_h_m", "a list")),
 ])
@@ -634,12 +634,18 @@ def test_track_seen_twice_in_one_frame(log: FlightLog) -> None:
     _expect_error(log.root, "tracks.csv", _data_line(3), f"track {first_id} is seen twice")
 
 
+_MARGIN = fl.IMAGE_BORDER_MARGIN_PX
+
+
 @pytest.mark.parametrize("column, value", [
-    (2, f"{WIDTH - 0.5 + 1e-9!r}"), (2, "-0.6"), (3, f"{HEIGHT - 0.5 + 1e-6!r}"), (3, "-3.0"),
+    (2, f"{WIDTH - 0.5 + _MARGIN + 1e-9!r}"), (2, f"{-0.5 - _MARGIN - 0.1!r}"),
+    (3, f"{HEIGHT - 0.5 + _MARGIN + 1e-6!r}"), (3, "-30.0"),
 ])
 def test_pixels_outside_the_image(log: FlightLog, column: int, value: str) -> None:
+    """Beyond the border margin a pixel is a data error naming its line."""
     _set_value(log.root / "tracks.csv", 7, column, value)
-    _expect_error(log.root, "tracks.csv", 7, "outside", f"{WIDTH}x{HEIGHT}")
+    _expect_error(log.root, "tracks.csv", 7, "outside", f"{WIDTH}x{HEIGHT}",
+                  f"{_MARGIN:g} px border margin")
 
 
 def test_pixels_on_the_outer_edges_are_inside(log: FlightLog) -> None:
@@ -647,6 +653,19 @@ def test_pixels_on_the_outer_edges_are_inside(log: FlightLog) -> None:
     _set_value(path, 7, 2, "-0.5")
     _set_value(path, 8, 3, f"{HEIGHT - 0.5!r}")
     read_flightlog(log.root)
+
+
+def test_pixels_within_the_border_margin_are_kept_as_they_are(log: FlightLog) -> None:
+    """Detection noise at the border (a fraction of a pixel out) is not an error: the
+    observations are read unchanged, up to the margin itself."""
+    path = log.root / "tracks.csv"
+    _set_value(path, 7, 2, f"{-0.5 - _MARGIN!r}")
+    _set_value(path, 8, 3, f"{HEIGHT - 0.5 + _MARGIN!r}")
+    _set_value(path, 9, 2, "-0.85")
+    tracks = read_flightlog(log.root).tracks
+    assert tracks.uv_px[7 - 2, 0] == -0.5 - _MARGIN
+    assert tracks.uv_px[8 - 2, 1] == HEIGHT - 0.5 + _MARGIN
+    assert tracks.uv_px[9 - 2, 0] == -0.85
 
 
 def test_nav_with_a_row_missing(log: FlightLog) -> None:

@@ -8,6 +8,7 @@ import io
 import numpy as np
 import pytest
 
+from cdtm_graph.atomic import MANIFEST_NAME
 from cdtm_graph.cli import build_parser
 from cdtm_graph.cli import main as cdtm_main
 from cdtm_graph.cli.navsim import OUTPUT_FILES, settings_from_args
@@ -204,7 +205,7 @@ def test_cli_writes_the_four_tables_and_prints_them(tmp_path, capsys):
     code = cdtm_main(["navsim", "--out", str(out), "--quick", "--altitudes", "3000",
                       "--resolutions", "1000", "--seed", str(TEST_SEED), "--quiet"])
     assert code == 0
-    assert sorted(p.name for p in out.iterdir()) == sorted(OUTPUT_FILES)
+    assert sorted(p.name for p in out.iterdir()) == sorted([*OUTPUT_FILES, MANIFEST_NAME])
     printed = capsys.readouterr().out
     table1 = (out / "table1.md").read_text()
     table2 = (out / "table2.md").read_text()
@@ -236,5 +237,6 @@ def test_cli_refuses_to_replace_a_directory_that_is_not_its_own(tmp_path, capsys
     code = cdtm_main(["navsim", "--out", str(out), "--quick"])
     assert code == 1
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "not a navsim output directory" in err[0]
+    assert len(err) == 1 and "'notes.txt'" in err[0] and "not written by cdtm" in err[0]
     assert (out / "notes.txt").read_text() == "keep me"
+    assert [p.name for p in out.iterdir()] == ["notes.txt"]

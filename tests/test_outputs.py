@@ -10,6 +10,7 @@ import gtsam
 import numpy as np
 import pytest
 
+from cdtm_graph.atomic import MANIFEST_NAME, read_manifest
 from cdtm_graph.errors import CdtmError
 from cdtm_graph.geometry import make_pose, quat_wxyz_to_rotation, so3_log
 from cdtm_graph.outputs import (
@@ -122,8 +123,9 @@ def test_parse_t_s_accepts_other_float_syntax():
 
 
 def test_run_directory_has_exactly_the_run_files(run_dir: Path):
-    assert sorted(p.name for p in run_dir.iterdir()) == sorted(
-        [TRAJECTORY_TUM, TRAJECTORY_COV, STATES_CSV, COVARIANCES_NPZ, REPORT_JSON])
+    files = [TRAJECTORY_TUM, TRAJECTORY_COV, STATES_CSV, COVARIANCES_NPZ, REPORT_JSON]
+    assert sorted(p.name for p in run_dir.iterdir()) == sorted([*files, MANIFEST_NAME])
+    assert read_manifest(run_dir) == dict.fromkeys(files, "smooth")
 
 
 def test_tum_round_trip(run_dir: Path, result: SmootherResult):

@@ -378,7 +378,8 @@ def test_cli_bad_arguments_exit_1_with_one_line(tmp_path, capsys, argv, message)
 def test_cli_refuses_to_replace_a_directory_that_is_not_a_log(tmp_path, capsys):
     (tmp_path / "notes.txt").write_text("mine")
     assert main(["simulate", str(tmp_path), "--frames", "2"]) == 1
-    assert "flight.yaml" in capsys.readouterr().err
+    assert "'notes.txt'" in capsys.readouterr().err
+    assert [p.name for p in tmp_path.iterdir()] == ["notes.txt"]
     assert (tmp_path / "notes.txt").read_text() == "mine"
 
 

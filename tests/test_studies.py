@@ -15,6 +15,7 @@ import math
 import numpy as np
 import pytest
 
+from cdtm_graph.atomic import MANIFEST_NAME
 from cdtm_graph.cli import main as cdtm_main
 from cdtm_graph.errors import CdtmError
 from cdtm_graph.parallel import ParallelSettings
@@ -204,7 +205,8 @@ def test_cli_writes_exact_csv_columns_figure_and_table(tmp_path, capsys):
     assert png.startswith(b"\x89PNG")
     printed = capsys.readouterr().out
     assert "pos2 pred/err" in printed and "study_baseline.csv" in printed
-    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporaries left
+    assert sorted(p.name for p in out.iterdir()) == [  # no temporaries left
+        MANIFEST_NAME, "study_baseline.csv", "study_baseline.png"]
 
 
 def test_cli_bad_value_is_one_line_and_writes_nothing(tmp_path, capsys):

@@ -30,6 +30,7 @@ from cdtm_graph.analysis.closed_form import ClosedFormAnalysis, DegeneracySettin
 from cdtm_graph.camera import DOWNWARD_BODY_T_CAM, PinholeCamera
 from cdtm_graph.dtm import Dtm, visible_from
 from cdtm_graph.errors import CdtmError
+from cdtm_graph.flightlog.config import RANGES
 from cdtm_graph.geometry import make_pose, so3_exp
 from cdtm_graph.parallel import ParallelSettings, map_tasks
 from factors import FeatureNoise
@@ -38,6 +39,8 @@ from factors import FeatureNoise
 _CANDIDATES_PER_FEATURE = 3
 #: Grid nodes along the longer side of the DTM when no step is given.
 DEFAULT_NODES_PER_SIDE = 40
+#: Highest camera altitude (m) of a map: beyond it the camera is in space.
+MAX_ALTITUDE_M = 1e5
 #: Body axis of the inter-frame rotation: equal roll, pitch and yaw.
 _ROTATION_AXIS_BODY = np.ones(3) / math.sqrt(3.0)
 
@@ -111,6 +114,12 @@ class AccuracyMapSettings:
         for name, value in positive.items():
             if not (math.isfinite(value) and value > 0):
                 raise CdtmError(f"{name} = {value!r}, expected > 0")
+        sigma = RANGES["camera.pixel_sigma_px"]  # as flight.yaml: 1e-300 px is singular
+        if not sigma.lo <= self.sigma_px <= sigma.hi:
+            raise CdtmError(f"sigma_px = {self.sigma_px!r}, expected {sigma}")
+        if not self.altitude_m <= MAX_ALTITUDE_M:
+            raise CdtmError(f"altitude_m = {self.altitude_m!r}, expected at most "
+                            f"{MAX_ALTITUDE_M:g} m")
         if not 0 < self.fov_deg < 180:
             raise CdtmError(f"fov_deg = {self.fov_deg!r}, expected 0 < fov < 180")
         for name in ("baseline_m", "rotation_deg"):

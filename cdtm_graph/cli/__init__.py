@@ -2,16 +2,23 @@
 
 Each subcommand module defines ``register(subparsers)``, which adds its parser and sets
 ``func`` to a ``run(args) -> int``. User mistakes (:class:`CdtmError`, missing files)
-become one line on stderr and exit code 1; anything else is a bug and keeps its traceback.
+and the system's refusals (disk full, I/O errors) become one line on stderr and exit code
+1; anything else is a bug and keeps its traceback. SIGTERM is handled as SIGINT: a
+``KeyboardInterrupt`` unwinds (staging directories are removed, outputs stay as they
+were) and the exit code is 130.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import logging
 import os
+import signal
 import sys
+import threading
+from collections.abc import Iterator
 
 from cdtm_graph.errors import CdtmError
 
@@ -37,25 +44,66 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
-                        format="%(levelname)s %(name)s: %(message)s")
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """SIGTERM raises KeyboardInterrupt while the command runs (main thread only)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _interrupt)
     try:
-        return int(args.func(args) or 0)
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _caused_by_interrupt(exc: BaseException) -> bool:
+    """Whether ``exc`` comes from a KeyboardInterrupt: a signal handled inside a compiled
+    callback (numba, GTSAM) resurfaces as e.g. a SystemError chained to it."""
+    seen: set[int] = set()
+    current: BaseException | None = exc
+    while current is not None and id(current) not in seen:
+        if isinstance(current, KeyboardInterrupt):
+            return True
+        seen.add(id(current))
+        current = current.__cause__ or current.__context__
+    return False
+
+
+def main(argv: list[str] | None = None) -> int:
+    command = "cdtm"
+    try:
+        with _sigterm_as_interrupt():  # from the start: the imports take a second or two
+            parser = build_parser()
+            args = parser.parse_args(argv)
+            command = f"cdtm {args.command}"
+            logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                                format="%(levelname)s %(name)s: %(message)s")
+            return int(args.func(args) or 0)
     except CdtmError as exc:
-        print(f"cdtm {args.command}: error: {exc}", file=sys.stderr)
-        return 1
-    except (FileNotFoundError, IsADirectoryError, PermissionError) as exc:
-        print(f"cdtm {args.command}: error: {exc.strerror}: {exc.filename}", file=sys.stderr)
+        print(f"{command}: error: {exc}", file=sys.stderr)
         return 1
     except BrokenPipeError:  # e.g. `cdtm ... | head`: the reader left; stop quietly
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 1
+    except OSError as exc:  # missing file, no permission, disk full, I/O error...
+        if exc.errno is None:
+            raise
+        where = f": {exc.filename}" if exc.filename else ""
+        print(f"{command}: error: {exc.strerror}{where}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
-        print(f"cdtm {args.command}: interrupted", file=sys.stderr)
+        print(f"{command}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:
+        if not _caused_by_interrupt(exc):
+            raise
+        print(f"{command}: interrupted", file=sys.stderr)
         return 130
 
 

@@ -1,7 +1,7 @@
 """``cdtm accuracy-map DTM``: predicted camera-2 accuracy over a DTM, before flying.
 
-Writes ``accuracy_map.npz`` and ``accuracy_map.png`` into ``--out``, each complete or
-absent. The npz holds:
+Writes ``accuracy_map.npz`` and ``accuracy_map.png`` into ``--out`` (both or neither,
+under the rules of :mod:`cdtm_graph.atomic`). The npz holds:
 
 * ``x_m`` (nx,), ``y_m`` (ny,): node coordinates (world, m);
 * ``sigma_pos2_m``, ``sigma_att2_deg`` (ny, nx): predicted 1-sigma (norms over the three
@@ -26,11 +26,14 @@ from cdtm_graph.analysis.accuracy_map import (
     accuracy_map,
 )
 from cdtm_graph.atomic import atomic_output_file
+from cdtm_graph.cli.outdir import add_out_option, output_dir
 from cdtm_graph.dtm import load_dtm
 from cdtm_graph.parallel import ParallelSettings
 
 #: Resolution of the PNG: readable labels, files under ~200 kB (the hillshade is busy).
 FIGURE_DPI = 80
+#: The files written into --out.
+OUTPUT_FILES = ("accuracy_map.npz", "accuracy_map.png")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -67,8 +70,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="node spacing [m] (default: 40 nodes along the longer side)")
     parser.add_argument("--workers", type=int, default=None,
                         help="local worker processes (default: all cores)")
-    parser.add_argument("--out", type=Path, default=Path("accuracy_map"),
-                        help="output directory (default: %(default)s)")
+    add_out_option(parser, "output directory", default="accuracy_map")
     parser.set_defaults(func=run)
 
 
@@ -94,16 +96,17 @@ def run(args: argparse.Namespace) -> int:
         pixel_sigma_px=args.pixel_sigma_px, sigma_h_m=args.sigma_h_m, heading_deg=args.heading_deg,
         step_m=args.step_m, altitude_reference=AltitudeReference(args.altitude_ref))
     settings.check()  # before reading the DTM: a bad flag fails fast
-    dtm = load_dtm(args.dtm)
-    result = accuracy_map(dtm, settings, ParallelSettings(workers=args.workers))
-    npz_path = args.out / "accuracy_map.npz"
-    png_path = args.out / "accuracy_map.png"
-    write_accuracy_map_npz(result, npz_path)
-    from cdtm_graph.plots.accuracy_map import accuracy_map_figure  # matplotlib when plotting
+    with output_dir(args, args.out, "accuracy-map", protected=[args.dtm],
+                    names=OUTPUT_FILES) as staging:
+        dtm = load_dtm(args.dtm)
+        result = accuracy_map(dtm, settings, ParallelSettings(workers=args.workers))
+        write_accuracy_map_npz(result, staging / OUTPUT_FILES[0])
+        from cdtm_graph.plots.accuracy_map import accuracy_map_figure  # matplotlib: plots
 
-    fig = accuracy_map_figure(result, dtm)
-    with atomic_output_file(png_path) as tmp:
-        fig.savefig(tmp, format="png", dpi=FIGURE_DPI)
+        fig = accuracy_map_figure(result, dtm)
+        with atomic_output_file(staging / OUTPUT_FILES[1]) as tmp:
+            fig.savefig(tmp, format="png", dpi=FIGURE_DPI)
+    npz_path, png_path = (args.out / name for name in OUTPUT_FILES)
     good = ~result.degenerate
     print(f"accuracy map of {args.dtm}: {result.x_m.size} x {result.y_m.size} nodes, "
           f"sigma_h {settings.noise(dtm).sigma_h_m:.2f} m")

@@ -1,8 +1,9 @@
 """``cdtm navsim``: the paper's navigation simulation, Tables 1 and 2 (section VI.A).
 
 Flies every case (:mod:`cdtm_graph.studies.navsim`), writes ``table1.md``, ``table1.csv``,
-``table2.md`` and ``table2.csv`` into ``--out`` (the directory appears complete or not at
-all) and prints the two markdown tables.
+``table2.md`` and ``table2.csv`` into ``--out`` (all four or none, under the rules of
+:mod:`cdtm_graph.atomic`: never over a file cdtm did not write) and prints the two markdown
+tables.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import dataclasses
 import sys
 from pathlib import Path
 
-from cdtm_graph.atomic import atomic_output_dir
+from cdtm_graph.cli.outdir import add_out_option, output_dir
 from cdtm_graph.errors import CdtmError
 from cdtm_graph.studies.navsim import (
     QUICK_DURATION_S,
@@ -27,6 +28,8 @@ _DEFAULTS = NavsimSettings()
 
 #: The files written into --out.
 OUTPUT_FILES = ("table1.md", "table1.csv", "table2.md", "table2.csv")
+#: The writer named in the output directory's manifest.
+WRITER = "navsim"
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -39,8 +42,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "of IMU-only navigation (Free), batch smoothing and the incremental "
                     "estimate as each frame arrived, beside the paper's numbers. Writes "
                     "table1.md, table1.csv, table2.md and table2.csv into --out.")
-    parser.add_argument("--out", type=Path, default=Path("cdtm-navsim-out"),
-                        help="output directory, replaced as a whole (default: %(default)s)")
+    add_out_option(parser, "output directory", default="cdtm-navsim-out")
     parser.add_argument("--altitudes", type=float, nargs="+", metavar="M",
                         default=list(_DEFAULTS.altitudes_m),
                         help="Table 1 altitudes, m (default: %(default)s)")
@@ -81,25 +83,11 @@ def settings_from_args(args: argparse.Namespace) -> NavsimSettings:
     return settings
 
 
-def write_tables(result: NavsimResult, out_dir: Path) -> None:
-    """The four table files, atomically as one directory."""
-    with atomic_output_dir(out_dir) as tmp:
-        for name, table in (("table1", result.table1), ("table2", result.table2)):
-            (tmp / f"{name}.md").write_text(table_markdown(table))
-            (tmp / f"{name}.csv").write_text(table_csv(table))
-
-
-def check_out_dir(out_dir: Path) -> None:
-    """Refuse (before any flight) an --out that is a file or holds files not ours: the
-    directory is replaced as a whole, and e.g. ``--out .`` must not take the cwd with it."""
-    if not out_dir.exists():
-        return
-    if not out_dir.is_dir():
-        raise CdtmError(f"--out {out_dir}: exists and is not a directory")
-    foreign = sorted(p.name for p in out_dir.iterdir() if p.name not in OUTPUT_FILES)
-    if foreign:
-        raise CdtmError(f"--out {out_dir}: holds {foreign[0]!r} and is not a navsim output "
-                        "directory; expected a new, empty or navsim output directory")
+def write_tables(result: NavsimResult, directory: Path) -> None:
+    """The four table files (into a staging directory: see ``run``)."""
+    for name, table in (("table1", result.table1), ("table2", result.table2)):
+        (directory / f"{name}.md").write_text(table_markdown(table))
+        (directory / f"{name}.csv").write_text(table_csv(table))
 
 
 def _progress(done: int, total: int, case: tuple[float, int]) -> None:
@@ -112,9 +100,9 @@ def _progress(done: int, total: int, case: tuple[float, int]) -> None:
 def run(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
     out_dir = Path(args.out)
-    check_out_dir(out_dir)
-    result = run_navsim(settings, None if args.quiet else _progress)
-    write_tables(result, out_dir)
+    with output_dir(args, out_dir, WRITER, names=OUTPUT_FILES) as staging:
+        result = run_navsim(settings, None if args.quiet else _progress)
+        write_tables(result, staging)
     print(table_markdown(result.table1))
     print(table_markdown(result.table2), end="")
     if not args.quiet:

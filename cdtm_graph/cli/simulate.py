@@ -5,7 +5,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from cdtm_graph.sim.simulate import NavMode, SimulationSettings, simulate, write_simulation
+from cdtm_graph.cli.outdir import OUT_RULES, add_force_option, output_dir
+from cdtm_graph.sim.simulate import (
+    WRITER,
+    NavMode,
+    SimulationSettings,
+    simulate,
+    write_simulation_files,
+)
 
 _DEFAULTS = SimulationSettings()
 
@@ -17,7 +24,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Simulate a flight over terrain (the paper's section VI.A: a cloned 3x3 km "
                     "fractal cell, or a DTM file) with an IMU and a downward camera, and write "
                     "it as a cdtm-flightlog/1 directory holding its DTM (dtm.npz).")
-    parser.add_argument("out", type=Path, metavar="OUT", help="log directory to write")
+    parser.add_argument("out", type=Path, metavar="OUT",
+                        help=f"log directory to write: {OUT_RULES}")
+    add_force_option(parser)
     parser.add_argument("--terrain", type=Path, metavar="DTMFILE",
                         help="fly over this DTM (.npz, .asc, .tif) instead of a fractal "
                              "terrain; it is then also the log's DTM")
@@ -56,8 +65,11 @@ def run(args: argparse.Namespace) -> int:
         fps=args.fps, n_features=args.features, seed=args.seed, noiseless=args.noiseless,
         exact_dtm=args.exact_dtm, dtm_spacing_m=args.dtm_spacing_m, relief_m=args.relief_m,
         nav=args.nav)
-    result = simulate(settings)
-    out = write_simulation(result, args.out)
+    out = args.out
+    protected = [args.terrain] if args.terrain is not None else []
+    with output_dir(args, out, WRITER, protected=protected, label="OUT") as staging:
+        result = simulate(settings)
+        write_simulation_files(result, staging, out)
     stats = result.stats
     rows, cols = result.dtm.shape
     print(f"wrote {out}: {len(result.log.frames)} frames, {stats.n_tracks} tracks, "

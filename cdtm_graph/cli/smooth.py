@@ -6,10 +6,11 @@ import argparse
 import sys
 from pathlib import Path
 
+from cdtm_graph.cli.outdir import add_out_option, output_dir
 from cdtm_graph.errors import CdtmError
 from cdtm_graph.flightlog import load_log_and_dtm
 from cdtm_graph.graph import GraphSettings
-from cdtm_graph.outputs import write_run
+from cdtm_graph.outputs import RUN_FILES, RUN_WRITER, write_run_files
 from cdtm_graph.results import pose_covariance_in_world
 from cdtm_graph.run import RunOutput, smooth_and_evaluate
 from cdtm_graph.smoother import SmootherMode, SmootherSettings
@@ -17,6 +18,8 @@ from factors import PlaneMode, RobustKernel
 
 #: Runs with at least this many frames show a progress bar (unless --quiet).
 PROGRESS_MIN_FRAMES = 100
+#: The plots ``--plots`` may write (errors.png only with ground truth).
+PLOT_FILES = ("trajectory.png", "errors.png")
 
 
 def add_smoothing_options(p: argparse.ArgumentParser) -> None:
@@ -44,7 +47,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "trajectory.tum, trajectory_cov.txt, states.csv, "
                                    "covariances.npz and report.json into --out.")
     p.add_argument("log", help="flight log directory")
-    p.add_argument("--out", required=True, help="output directory (replaced as a whole)")
+    add_out_option(p, "output directory")
     add_smoothing_options(p)
     p.set_defaults(func=run)
 
@@ -123,11 +126,15 @@ def summary(out: RunOutput, out_dir: Path) -> str:
 
 
 def smooth_log_to_dir(log_dir: str, out_dir: Path, args: argparse.Namespace) -> RunOutput:
+    """Smooth ``log_dir`` into ``out_dir``; the output directory is checked (and its staging
+    directory made) before the log is read, so a bad ``--out`` fails before any work."""
     settings = settings_from_args(args)
-    flight, dtm = load_log_and_dtm(log_dir)
-    out = smooth_and_evaluate(flight, dtm, settings, progress_bar(args.quiet))
-    extras = plot_writers(out, dtm, flight) if args.plots else []
-    write_run(out_dir, out.result, out.report, extras)
+    names = [*RUN_FILES, *(PLOT_FILES if args.plots else ())]
+    with output_dir(args, out_dir, RUN_WRITER, protected=[log_dir], names=names) as staging:
+        flight, dtm = load_log_and_dtm(log_dir)
+        out = smooth_and_evaluate(flight, dtm, settings, progress_bar(args.quiet))
+        extras = plot_writers(out, dtm, flight) if args.plots else []
+        write_run_files(staging, out.result, out.report, extras)
     return out
 
 

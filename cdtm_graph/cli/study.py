@@ -1,7 +1,8 @@
 """``cdtm study PARAM``: one sensitivity study of the paper's section VI (Figs. 2-9).
 
 Writes ``study_<param>.csv`` (columns :data:`cdtm_graph.studies.STUDY_COLUMNS`) and
-``study_<param>.png`` into ``--out``, each file complete or absent, and prints the table.
+``study_<param>.png`` into ``--out`` (both or neither, under the rules of
+:mod:`cdtm_graph.atomic`: the files of other studies there are kept) and prints the table.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import time
 from pathlib import Path
 
 from cdtm_graph.atomic import atomic_output_file
+from cdtm_graph.cli.outdir import add_out_option, output_dir
 from cdtm_graph.parallel import ParallelSettings
 from cdtm_graph.studies.sweeps import (
     STUDY_COLUMNS,
@@ -44,8 +46,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="random trials per value (default: %(default)s, as the paper)")
     parser.add_argument("--values", type=float, nargs="+", metavar="V",
                         help="values to sweep (default: the paper's range)")
-    parser.add_argument("--out", type=Path, default=Path("studies"),
-                        help="output directory (default: %(default)s)")
+    add_out_option(parser, "output directory", default="studies")
     parser.add_argument("--workers", type=int, default=None,
                         help="local worker processes (default: all cores)")
     parser.add_argument("--scheduler", metavar="ADDRESS", default=None,
@@ -101,13 +102,15 @@ def run(args: argparse.Namespace) -> int:
                              trials=args.trials, seed=args.seed)
     settings.check()  # bad values fail before any work or output
     parallel = ParallelSettings(workers=args.workers, scheduler_address=args.scheduler)
-    start = time.perf_counter()
-    result = run_study(settings, parallel)
-    elapsed_s = time.perf_counter() - start
-    csv_path = args.out / f"study_{parameter.value}.csv"
-    png_path = args.out / f"study_{parameter.value}.png"
-    write_study_csv(result, csv_path)
-    write_study_figure(result, png_path)
+    csv_name, png_name = f"study_{parameter.value}.csv", f"study_{parameter.value}.png"
+    with output_dir(args, args.out, f"study {parameter.value}",
+                    names=(csv_name, png_name)) as staging:
+        start = time.perf_counter()
+        result = run_study(settings, parallel)
+        elapsed_s = time.perf_counter() - start
+        write_study_csv(result, staging / csv_name)
+        write_study_figure(result, staging / png_name)
+    csv_path, png_path = args.out / csv_name, args.out / png_name
     sweep = parameter.sweep
     print(f"study {parameter.value}: {sweep.label}; {settings.trials} trials per value, "
           f"seed {settings.seed}, {elapsed_s:.1f} s")

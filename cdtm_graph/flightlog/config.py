@@ -1,9 +1,17 @@
-"""flight.yaml: walked node by node, so every message names the offending line."""
+"""flight.yaml: walked node by node, so every message names the offending line.
+
+Every number must also lie within physical sense (:data:`RANGES`): beyond it a value is a
+typo or a unit mix-up (degrees for radians, feet, a missing exponent), and IEEE overflow
+would otherwise surface deep in the solver as a traceback or a silent NaN. The ranges are
+wide, orders of magnitude around real sensors and flights; the error names the key, the
+line and the accepted range.
+"""
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -26,6 +34,54 @@ from cdtm_graph.flightlog.model import (
 from cdtm_graph.flightlog.problems import _fail, _show
 from cdtm_graph.flightlog.tables import _parse_float
 from cdtm_graph.geometry import make_pose, quat_wxyz_to_rotation
+
+
+@dataclass(frozen=True)
+class Range:
+    """Accepted values of one flight.yaml number (each component, for a vector)."""
+
+    lo: float
+    hi: float
+    unit: str = ""
+
+    def __str__(self) -> str:
+        unit = f" {self.unit}" if self.unit else ""
+        return f"a number in [{self.lo:g}, {self.hi:g}]{unit}"
+
+
+#: What each flight.yaml number may be. Sigmas and noise densities span orders of
+#: magnitude around real sensors (a ring-laser gyro's 1.5e-7 to a cheap MEMS's 1e-3
+#: rad/s/sqrt(Hz)); positions allow UTM-sized coordinates; gravity any planet a plane
+#: or drone flies on (Moon 1.62 to Jupiter 24.8 m/s^2).
+RANGES: dict[str, Range] = {
+    "gravity_mps2": Range(1.0, 30.0, "m/s^2"),
+    "dtm.sigma_h_m": Range(1e-4, 1e3, "m"),
+    "dtm.origin_enu_m": Range(-1e8, 1e8, "m"),
+    "camera.pixel_sigma_px": Range(1e-3, 100.0, "px"),
+    "camera.distortion_coeffs": Range(-1e3, 1e3),
+    "camera.body_T_cam.translation_m": Range(-100.0, 100.0, "m"),
+    "imu.rate_hz": Range(1.0, 1e5, "Hz"),
+    "imu.gyroscope_noise_density": Range(1e-9, 1e-1, "rad/s/sqrt(Hz)"),
+    "imu.accelerometer_noise_density": Range(1e-7, 1.0, "m/s^2/sqrt(Hz)"),
+    "imu.gyroscope_random_walk": Range(1e-12, 1e-1, "rad/s^2/sqrt(Hz)"),
+    "imu.accelerometer_random_walk": Range(1e-10, 10.0, "m/s^3/sqrt(Hz)"),
+    "initial_state.position_m": Range(-1e8, 1e8, "m"),
+    "initial_state.velocity_mps": Range(-1e4, 1e4, "m/s"),
+    "initial_state.gyro_bias": Range(-1.0, 1.0, "rad/s"),
+    "initial_state.accel_bias": Range(-10.0, 10.0, "m/s^2"),
+    "initial_state.sigma_position_m": Range(1e-6, 1e7, "m"),
+    "initial_state.sigma_attitude_deg": Range(1e-6, 180.0, "deg"),
+    "initial_state.sigma_velocity_mps": Range(1e-6, 1e4, "m/s"),
+    "initial_state.sigma_gyro_bias": Range(1e-9, 1.0, "rad/s"),
+    "initial_state.sigma_accel_bias": Range(1e-7, 10.0, "m/s^2"),
+}
+#: Image sides (px).
+RESOLUTION_RANGE_PX = (2, 100_000)
+#: Focal lengths fx, fy as multiples of the longer image side: a horizontal field of view
+#: from about 157 degrees down to 0.06 degrees.
+FOCAL_RANGE_SIDES = (0.1, 1000.0)
+#: The principal point cx (cy) may lie this many image widths (heights) beyond the image.
+PRINCIPAL_POINT_MARGIN_SIDES = 0.5
 
 
 class _Yaml:
@@ -86,8 +142,10 @@ class _Yaml:
             self.fail(node, f"{name} is {kind}", expected)
         return self.value(node)
 
-    def number(self, node: yaml.Node, name: str, *, positive: bool = False) -> float:
-        value = self.scalar(node, name, "a finite number")
+    def number(self, node: yaml.Node, name: str, *, positive: bool = False,
+               within: Range | None = None) -> float:
+        expected = str(within) if within is not None else "a finite number"
+        value = self.scalar(node, name, expected)
         number: float | None = None
         if isinstance(value, int | float) and not isinstance(value, bool):
             number = float(value)
@@ -95,10 +153,16 @@ class _Yaml:
             # PyYAML (YAML 1.1) reads 1e-4 as a string; it is a number to anyone else.
             number = _parse_float(value)
         if number is None or not math.isfinite(number):
-            self.fail(node, f"{name} is {_show(str(value))}", "a finite number")
+            self.fail(node, f"{name} is {_show(str(value))}", expected)
         if positive and not number > 0.0:
             self.fail(node, f"{name} is {number!r}", "a positive number")
+        if within is not None and not within.lo <= number <= within.hi:
+            self.fail(node, f"{name} is {number!r}", expected)
         return number
+
+    def bounded(self, node: yaml.Node, key: str) -> float:
+        """A number within ``RANGES[key]``."""
+        return self.number(node, key, within=RANGES[key])
 
     def integer(self, node: yaml.Node, name: str) -> int:
         value = self.scalar(node, name, "a positive integer")
@@ -112,15 +176,19 @@ class _Yaml:
             self.fail(node, f"{name} is {_show(str(value))}", "a non-empty string")
         return value
 
-    def vector(self, node: yaml.Node, name: str, lengths: Sequence[int]) -> np.ndarray:
+    def vector(self, node: yaml.Node, name: str, lengths: Sequence[int],
+               bounded: bool = False) -> np.ndarray:
+        """A list of numbers; with ``bounded``, each within ``RANGES[name]``."""
         want = " or ".join(str(n) for n in lengths)
-        expected = f"a list of {want} finite numbers"
+        within = RANGES[name] if bounded else None
+        expected = f"a list of {want} finite numbers" + (f", each {within}" if within else "")
         if not isinstance(node, yaml.SequenceNode):
             self.fail(node, f"{name} is {_show(str(self.scalar(node, name, expected)))}",
                       expected)
         if len(node.value) not in lengths:
             self.fail(node, f"{name} has {len(node.value)} values", expected)
-        return np.array([self.number(item, f"{name}[{i}]") for i, item in enumerate(node.value)])
+        return np.array([self.number(item, f"{name}[{i}]", within=within)
+                         for i, item in enumerate(node.value)])
 
     def quaternion(self, node: yaml.Node, name: str) -> np.ndarray:
         quat = self.vector(node, name, (4,))
@@ -169,7 +237,7 @@ def _parse_flight_document(loader: yaml.SafeLoader, shown: str, root: Path) -> F
                  ("extra",))
     line_of = {key: y.line(key_node) for key, (key_node, _) in top_pairs.items()}
 
-    gravity = y.number(top["gravity_mps2"], "gravity_mps2", positive=True)
+    gravity = y.bounded(top["gravity_mps2"], "gravity_mps2")
     dtm = _parse_dtm(y, top["dtm"], line_of["dtm"], root)
     camera = _parse_camera(y, top["camera"], line_of["camera"])
     imu = _parse_imu(y, top["imu"], line_of["imu"])
@@ -196,11 +264,31 @@ def _parse_dtm(y: _Yaml, node: yaml.Node, line: int, root: Path) -> DtmConfig:
                "an existing DTM file, relative to the log directory or absolute")
     sigma_h = None
     if "sigma_h_m" in m and y.value(m["sigma_h_m"]) is not None:
-        sigma_h = y.number(m["sigma_h_m"], "dtm.sigma_h_m", positive=True)
+        sigma_h = y.bounded(m["sigma_h_m"], "dtm.sigma_h_m")
     origin = (0.0, 0.0, 0.0)
     if "origin_enu_m" in m:
-        origin = tuple(y.vector(m["origin_enu_m"], "dtm.origin_enu_m", (3,)).tolist())
+        origin = tuple(y.vector(m["origin_enu_m"], "dtm.origin_enu_m", (3,), True).tolist())
     return DtmConfig(resolved, sigma_h, origin)  # type: ignore[arg-type]
+
+
+def _intrinsics(y: _Yaml, node: yaml.Node, width: int, height: int
+                ) -> tuple[float, float, float, float]:
+    """fx, fy, cx, cy, each within sense for the image size."""
+    values = y.vector(node, "camera.intrinsics", (4,))
+    side = max(width, height)
+    lo_f, hi_f = (k * side for k in FOCAL_RANGE_SIDES)
+    m = PRINCIPAL_POINT_MARGIN_SIDES
+    bounds = {"fx": (lo_f, hi_f), "fy": (lo_f, hi_f),
+              "cx": (-m * width, (1 + m) * width), "cy": (-m * height, (1 + m) * height)}
+    for i, (name, (lo, hi)) in enumerate(bounds.items()):
+        value = float(values[i])
+        if not lo <= value <= hi:
+            y.fail(node.value[i], f"camera.intrinsics {name} is {value!r}",
+                   f"{name} in [{lo:g}, {hi:g}] px for a {width}x{height} image (focal "
+                   f"lengths {FOCAL_RANGE_SIDES[0]:g}-{FOCAL_RANGE_SIDES[1]:g} image sides, "
+                   f"principal point at most {m:g} image sides outside the image)")
+    fx, fy, cx, cy = values.tolist()
+    return fx, fy, cx, cy
 
 
 def _parse_camera(y: _Yaml, node: yaml.Node, line: int) -> CameraConfig:
@@ -213,7 +301,11 @@ def _parse_camera(y: _Yaml, node: yaml.Node, line: int) -> CameraConfig:
         y.fail(res_node, "camera.resolution is not two values", "[width, height] in pixels")
     width = y.integer(res_node.value[0], "camera.resolution width")
     height = y.integer(res_node.value[1], "camera.resolution height")
-    fx, fy, cx, cy = y.vector(m["intrinsics"], "camera.intrinsics", (4,)).tolist()
+    lo_px, hi_px = RESOLUTION_RANGE_PX
+    if not (lo_px <= width <= hi_px and lo_px <= height <= hi_px):
+        y.fail(res_node, f"camera.resolution is {width}x{height}",
+               f"[width, height], each from {lo_px} to {hi_px} px")
+    fx, fy, cx, cy = _intrinsics(y, m["intrinsics"], width, height)
 
     model_node = m.get("distortion_model")
     model = None if model_node is None else y.value(model_node)
@@ -223,7 +315,7 @@ def _parse_camera(y: _Yaml, node: yaml.Node, line: int) -> CameraConfig:
             y.fail(model_node, "distortion_model radtan without distortion_coeffs",
                    "camera.distortion_coeffs: [k1, k2, p1, p2] or [k1, k2, p1, p2, k3]")
         distortion = tuple(y.vector(m["distortion_coeffs"], "camera.distortion_coeffs",
-                                    (4, 5)).tolist())
+                                    (4, 5), True).tolist())
     elif model is None or model == "none":
         if "distortion_coeffs" in m:
             y.fail(m["distortion_coeffs"], "distortion_coeffs given without a distortion model",
@@ -236,12 +328,13 @@ def _parse_camera(y: _Yaml, node: yaml.Node, line: int) -> CameraConfig:
     except ValueError as exc:
         y.fail(m["intrinsics"], f"invalid camera: {exc}",
                "positive focal lengths fx, fy and a finite principal point cx, cy")
-    sigma = y.number(m["pixel_sigma_px"], "camera.pixel_sigma_px", positive=True)
+    sigma = y.bounded(m["pixel_sigma_px"], "camera.pixel_sigma_px")
 
     mount_line = y.line(pairs["body_T_cam"][0])
     mount = y.keys(y.pairs(m["body_T_cam"], "camera.body_T_cam", mount_line),
                    "camera.body_T_cam", mount_line, ("translation_m", "quaternion_wxyz"))
-    translation = y.vector(mount["translation_m"], "camera.body_T_cam.translation_m", (3,))
+    translation = y.vector(mount["translation_m"], "camera.body_T_cam.translation_m", (3,),
+                           True)
     quat = y.quaternion(mount["quaternion_wxyz"], "camera.body_T_cam.quaternion_wxyz")
     return CameraConfig(camera, sigma, make_pose(quat_wxyz_to_rotation(quat), translation))
 
@@ -252,8 +345,8 @@ _IMU_KEYS = ("rate_hz", "gyroscope_noise_density", "accelerometer_noise_density"
 
 def _parse_imu(y: _Yaml, node: yaml.Node, line: int) -> ImuConfig:
     m = y.keys(y.pairs(node, "imu", line), "imu", line, _IMU_KEYS)
-    # Zero noise would make the IMU factors' information infinite: positive required.
-    return ImuConfig(*(y.number(m[key], f"imu.{key}", positive=True) for key in _IMU_KEYS))
+    # Zero noise would make the IMU factors' information infinite: RANGES keeps it positive.
+    return ImuConfig(*(y.bounded(m[key], f"imu.{key}") for key in _IMU_KEYS))
 
 
 _INITIAL_VECTORS = (("position_m", 3), ("quaternion_wxyz", 4), ("velocity_mps", 3),
@@ -269,9 +362,9 @@ def _parse_initial_state(y: _Yaml, node: yaml.Node, line: int) -> InitialState:
     for name, n in _INITIAL_VECTORS:
         dotted = f"initial_state.{name}"
         values[name] = (y.quaternion(m[name], dotted) if name == "quaternion_wxyz"
-                        else y.vector(m[name], dotted, (n,)))
+                        else y.vector(m[name], dotted, (n,), True))
     for name in _INITIAL_SIGMAS:
-        values[name] = y.number(m[name], f"initial_state.{name}", positive=True)
+        values[name] = y.bounded(m[name], f"initial_state.{name}")
     return InitialState(**values)
 
 

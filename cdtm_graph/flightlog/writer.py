@@ -129,6 +129,29 @@ def _render(log: FlightLog, target: Path) -> dict[str, str]:
     return files
 
 
+def write_flightlog_files(log: FlightLog, directory: str | os.PathLike,
+                          final_dir: str | os.PathLike | None = None) -> list[str]:
+    """Write the log's files into an existing ``directory``, plainly (not atomic).
+
+    For a caller that writes into a staging directory it publishes itself
+    (:func:`cdtm_graph.atomic.atomic_output_dir`); otherwise use :func:`write_flightlog`.
+
+    Args:
+        log: the flight log. directory: where to write now.
+        final_dir: where the files will live (an absolute DTM path inside it is written
+            relative to it); default ``directory``.
+
+    Returns:
+        The names written.
+    """
+    directory = Path(directory)
+    files = _render(log, normalized_path(Path(final_dir if final_dir is not None else directory)))
+    for name, text in files.items():
+        with (directory / name).open("w", encoding="utf-8", newline="\n") as f:
+            f.write(text)
+    return list(files)
+
+
 def write_flightlog(log: FlightLog, path: str | os.PathLike) -> None:
     """Write a flight log directory (flight.yaml and the CSV files; not the DTM or images).
 

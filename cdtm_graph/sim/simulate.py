@@ -40,6 +40,7 @@ import dataclasses
 import enum
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -50,7 +51,6 @@ from cdtm_graph.camera import DOWNWARD_BODY_T_CAM, PinholeCamera
 from cdtm_graph.dtm import Dtm, RayStatus, load_dtm, save_dtm_npz, sigma_h_from_grid_spacing
 from cdtm_graph.errors import CdtmError, SimulationError  # noqa: F401  (re-exported)
 from cdtm_graph.flightlog import (
-    FLIGHT_YAML,
     CameraConfig,
     DtmConfig,
     FlightConfig,
@@ -61,7 +61,7 @@ from cdtm_graph.flightlog import (
     InitialState,
     States,
     Tracks,
-    write_flightlog,
+    write_flightlog_files,
 )
 from cdtm_graph.geometry import make_pose, rotation_to_quat_wxyz, so3_exp
 from cdtm_graph.imu import NS_PER_S, ImuNoise, dead_reckoning
@@ -84,6 +84,7 @@ __all__ = [
     "simulate_flight",
     "write_simulated_log",
     "write_simulation",
+    "write_simulation_files",
 ]
 
 #: Name of the DTM file inside a simulated log directory.
@@ -110,6 +111,9 @@ REGION_MARGIN_M = 400.0
 
 #: The aircraft must clear the highest terrain under its footprint by this much (m).
 MIN_CLEARANCE_M = 100.0
+
+#: Most IMU samples of a simulation: 2e7 (28 h at 200 Hz) hold about 1 GB.
+MAX_IMU_SAMPLES = 2e7
 
 #: Largest true terrain grid (samples): 2000 x 2000 float64 is 32 MB.
 MAX_TERRAIN_SAMPLES = 4_000_000
@@ -307,6 +311,14 @@ class SimulationSettings:
                 f"resolution_px = {self.resolution_px!r}, expected (width, height) > 0")
         if not self.fov_deg < 180.0:
             raise SimulationError(f"fov_deg = {self.fov_deg!r}, expected 0 < fov_deg < 180")
+        if not self.fps <= self.imu_rate_hz:
+            raise SimulationError(f"fps = {self.fps!r}, expected at most the IMU rate "
+                                  f"{self.imu_rate_hz!r} Hz (at least one IMU sample a frame)")
+        if not self.duration_s * self.imu_rate_hz <= MAX_IMU_SAMPLES:
+            raise SimulationError(
+                f"frames = {self.frames}, fps = {self.fps!r}, imu_rate_hz = "
+                f"{self.imu_rate_hz!r}: {self.duration_s:.3g} s of IMU is more than "
+                f"{MAX_IMU_SAMPLES:g} samples; expected a shorter flight")
         if len(self.camera_offset_m) != 3 or not all(
                 _is_number(v) and math.isfinite(v) for v in self.camera_offset_m):
             raise SimulationError(
@@ -435,44 +447,60 @@ def simulate_flight(settings: SimulationSettings) -> tuple[FlightLog, Dtm]:
     return result.log, result.dtm
 
 
-def write_simulated_log(settings: SimulationSettings, out_dir: str | Path) -> Path:
+def write_simulated_log(settings: SimulationSettings, out_dir: str | Path, *,
+                        force: bool = False) -> Path:
     """Simulate a flight and write it as a log directory holding its DTM (``dtm.npz``).
 
-    The directory appears complete or not at all. An existing flight log there is
-    replaced as a whole; any other non-empty directory is refused (it is not ours).
+    The directory is checked before simulating and its files appear all or none, under
+    the rules of :func:`cdtm_graph.atomic.atomic_output_dir`: a new or empty directory,
+    or an earlier cdtm output (an earlier simulation: its log files are replaced and those
+    this one does not write, say ``nav.csv``, removed; images or notes added since are
+    kept). A non-empty directory cdtm did not write only with ``force``, and even then no
+    file there is overwritten. The terrain file (``settings.terrain``) is never inside it.
 
     Args:
         settings: what to simulate.
-        out_dir: the log directory to create.
+        out_dir: the log directory to create or rewrite.
+        force: also write into a non-empty directory cdtm did not write (beside its files).
 
     Returns:
         The log directory.
 
     Raises:
-        SimulationError: bad settings, or ``out_dir`` is a file or a non-empty directory
-            that is not a flight log.
+        SimulationError: bad settings.
+        OutputError: ``out_dir`` may not be written (a file, someone else's folder, the
+            terrain file's folder, not writable).
     """
-    return write_simulation(simulate(settings), out_dir)
+    protected = [settings.terrain] if settings.terrain is not None else []
+    with atomic_output_dir(out_dir, writer=WRITER, force=force, protected=protected) as staging:
+        write_simulation_files(simulate(settings), staging, out_dir)
+    logger.info("wrote simulated flight log %s", out_dir)
+    return Path(out_dir)
 
 
-def write_simulation(result: SimulationResult, out_dir: str | Path) -> Path:
+def write_simulation(result: SimulationResult, out_dir: str | Path, *, force: bool = False,
+                     protected: Sequence[str | Path] = ()) -> Path:
     """Write an already simulated flight (:func:`simulate`) as a log directory.
 
-    Same contract as :func:`write_simulated_log`.
+    Same contract as :func:`write_simulated_log`; ``protected``: inputs (the terrain
+    file) that ``out_dir`` must not be, be inside or contain.
     """
-    out = Path(out_dir)
-    if out.exists():
-        if not out.is_dir():
-            raise SimulationError(f"{out}: exists and is not a directory, "
-                                  "expected a new or flight-log directory")
-        if any(out.iterdir()) and not (out / FLIGHT_YAML).is_file():
-            raise SimulationError(f"{out}: is a non-empty directory without {FLIGHT_YAML}, "
-                                  "expected a new, empty or flight-log directory")
-    with atomic_output_dir(out) as tmp:
-        save_dtm_npz(result.dtm, tmp / DTM_FILENAME)
-        write_flightlog(result.log, tmp)
-    logger.info("wrote simulated flight log %s", out)
-    return out
+    with atomic_output_dir(out_dir, writer=WRITER, force=force, protected=protected) as staging:
+        write_simulation_files(result, staging, out_dir)
+    logger.info("wrote simulated flight log %s", out_dir)
+    return Path(out_dir)
+
+
+#: The writer named in a simulated log's manifest (``.cdtm-run.json``).
+WRITER = "simulate"
+
+
+def write_simulation_files(result: SimulationResult, directory: Path,
+                           final_dir: str | Path) -> None:
+    """The log's files and its DTM, into ``directory`` (a staging directory that becomes
+    ``final_dir``), plainly: for callers holding an ``atomic_output_dir`` open."""
+    save_dtm_npz(result.dtm, directory / DTM_FILENAME)
+    write_flightlog_files(result.log, directory, final_dir)
 
 
 def simulate(settings: SimulationSettings) -> SimulationResult:

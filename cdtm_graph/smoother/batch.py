@@ -22,6 +22,7 @@ from cdtm_graph.gating import count_outliers
 from cdtm_graph.graph import cdtm_factors, feature_noise, imu_factor, insert_state, prior_factors
 from cdtm_graph.imu import ImuIntervals, initial_bias
 from cdtm_graph.optimizer import LinearSolver, explain_indeterminant, levenberg_marquardt
+from cdtm_graph.preflight import check_constraints
 from cdtm_graph.replay import replay
 from cdtm_graph.results import (
     GraphCounts,
@@ -171,6 +172,7 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     Raises:
         SolverError: indeterminant system (names the variable and the likely cause).
         FlightLogError: the log has fewer than two frames.
+        NoConstraintError: no camera or DTM constraint at all (``preflight``).
         ValueError: ``innovation_gate`` with the batch smoother.
     """
     settings = settings or SmootherSettings()
@@ -180,6 +182,7 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     if len(flight.frames) < 2:
         raise FlightLogError(f"{flight.root / 'frames.csv'}: {len(flight.frames)} frame(s); "
                              "expected at least 2")
+    check_constraints(flight, dtm)  # no camera/DTM constraint at all: refuse, not IMU-only
     if settings.mode is SmootherMode.INCREMENTAL:
         dt_s = float(np.max(np.diff(flight.frames.t_ns))) * 1e-9
         smoother = IncrementalSmoother(flight.config, dtm, settings, frame_interval_s=dt_s)
