@@ -8,13 +8,12 @@ count at a solution (``count_outliers``).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import replace
 
 import gtsam
 import numpy as np
 
 from cdtm_graph.results import Rejection, Rejections
-from factors import CdtmPairFactor, FeatureNoise
+from factors import CdtmPairFactor
 
 
 def chi2_2dof_quantile(p: float) -> float:
@@ -67,58 +66,71 @@ def count_outliers(factors: Sequence[CdtmPairFactor],
 
 
 class InnovationGate:
-    """Drops each new feature whose innovation fails a chi-square(2) gate against the prior.
+    """Each new feature's innovation against the prior covariance of its two poses.
 
-    The prior is the joint covariance of the feature's two poses after the frame's IMU
-    factor (before its C-DTM factors), from the incremental solver. The factors leave the
-    first observation's pixel noise out (each observation is the second of one pair and
-    the first of the next); a fresh innovation has it, so the gate counts it (without it
-    the innovations were 1.8x over-dispersed: docs/design.md).
+    The prior is the joint covariance of the pair's poses before the frame's C-DTM
+    factors (the IMU's prediction of the new pose, :func:`cdtm_graph.imu.
+    propagate_covariance`). Two uses:
+
+    * the robust kernel's scale: each feature's residual is judged against its
+      innovation's spread, ``sqrt(trace(S) / 2)`` with ``S = R + H P H^T``, not the bare
+      measurement noise. While the poses are uncertain (the first frames under a loose
+      prior) the redescending kernel is then nearly quadratic and pulls the solution in;
+      as they settle, it tightens to the measurement noise. The kernel is reached
+      without its local-minimum trap (graduated by the prior, not by a schedule).
+    * with a ``probability``, the chi-square(2) gate: a feature whose squared Mahalanobis
+      distance ``e^T S^-1 e`` fails it is dropped before it enters (counted).
+
+    ``R`` includes the first observation's pixel noise, which the factors leave to the
+    previous pair: a fresh innovation carries it (without it the innovations were 1.8x
+    over-dispersed; docs/design.md).
 
     Args:
-        probability: gate probability, e.g. 0.999.
-        noise: the factors' data noise.
+        probability: gate probability, e.g. 0.999; ``None`` tests nothing.
         dtm_spacing_m: the DTM's grid spacing. Where the newer pose is uncertain by more
             than a cell (the first frame under its initial prior), the tangent-plane
-            linearization cannot judge a feature: such pairs pass untested.
-
+            linearization cannot judge a feature: such pairs are not tested.
         rejections: where the dropped features are counted (``Rejection.GATED``).
 
     Attributes:
         nis: squared Mahalanobis distance of every innovation tested, per call.
     """
 
-    def __init__(self, probability: float, noise: FeatureNoise, dtm_spacing_m: float,
+    def __init__(self, probability: float | None, dtm_spacing_m: float,
                  rejections: Rejections):
-        self.threshold = chi2_2dof_quantile(probability)
-        self._noise = replace(noise, sigma_qa_xy=noise.sigma_q_xy)
+        self.threshold = None if probability is None else chi2_2dof_quantile(probability)
         self._spacing_m = float(dtm_spacing_m)
         self._rejections = rejections
         self.nis: list[np.ndarray] = []
 
     def apply(self, k: int, factors: Sequence[CdtmPairFactor],
-              pose: Callable[[int], np.ndarray],
-              joint_covariance: Callable[[int, int], np.ndarray]) -> list[CdtmPairFactor]:
-        """The factors of frame k with only the features that pass.
+              pose: Callable[[int], np.ndarray], prior: Callable[[int], np.ndarray],
+              test: bool = True) -> list[CdtmPairFactor]:
+        """Frame k's factors with their kernels scaled, and only the features that pass.
 
         Args:
             k: the newest frame (every factor's later pose).
             factors: its new C-DTM factors.
-            pose: frame -> current (4, 4) ``world_T_body`` estimate.
-            joint_covariance: (key_a, key_b) -> (12, 12) prior covariance of the two poses.
+            pose: frame -> current (4, 4) ``world_T_body`` guess.
+            prior: earlier frame a -> (12, 12) prior covariance of ``(X(a), X(k))``.
+            test: False while the solution is still converging: scale, do not drop.
         """
         kept: list[CdtmPairFactor] = []
         n_gated = 0
         pose_k = pose(k)
         for f in factors:
-            P = joint_covariance(f.key_a, f.key_b)
-            if np.sqrt(np.linalg.eigvalsh(P[9:, 9:]).max()) > self._spacing_m:
+            a = int(gtsam.Symbol(f.key_a).index())
+            P = prior(a)
+            pose_a = pose(a)
+            e, H_a, H_b = f.innovations(pose_a, pose_k)
+            H = np.concatenate([H_a, H_b], axis=2)
+            S = H @ P @ np.swapaxes(H, 1, 2) + f.features.whitened_full_covariance()
+            f = f.with_robust_scale(np.sqrt(0.5 * np.trace(S, axis1=1, axis2=2)))
+            uncertain = np.sqrt(np.linalg.eigvalsh(P[9:, 9:]).max()) > self._spacing_m
+            if self.threshold is None or not test or uncertain:
                 kept.append(f)  # the DTM plane at the guess means nothing a cell away
                 continue
-            pose_a = pose(int(gtsam.Symbol(f.key_a).index()))
-            e, H_a, H_b = f.innovations(pose_a, pose_k)
-            R = f.whitened_noise(pose_a, pose_k, self._noise)
-            d = innovation_mahalanobis(e, H_a, H_b, P, R)
+            d = np.einsum("ni,ni->n", e, np.linalg.solve(S, e[..., None])[..., 0])
             self.nis.append(d)
             passed = d <= self.threshold
             n_gated += int(f.features.n - passed.sum())

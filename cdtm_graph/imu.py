@@ -594,3 +594,37 @@ def dead_reckoning(config: FlightConfig, imu: ImuArrays, t_ns: np.ndarray,
         t_ns=t_frames, world_T_body=poses, velocity_mps=velocities,
         gyro_bias=np.tile(np.asarray(init.gyro_bias, dtype=float), (k_frames, 1)),
         accel_bias=np.tile(np.asarray(init.accel_bias, dtype=float), (k_frames, 1)))
+
+
+#: Columns of a ``CombinedImuFactor``'s Jacobian (keys X(k), V(k), X(k+1), V(k+1), B(k),
+#: B(k+1)) that belong to the earlier and to the later state, each ordered [X, V, B].
+_EARLIER_COLUMNS = np.r_[0:9, 18:24]
+_LATER_COLUMNS = np.r_[9:18, 24:30]
+
+
+def propagate_covariance(factor: gtsam.CombinedImuFactor, values: gtsam.Values,
+                         covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The later state's covariance from the earlier one's through an IMU factor.
+
+    Linearized at ``values`` (the earlier state's estimate, the later state's
+    prediction), the factor's whitened Jacobian ``[A_0 A_1]`` gives
+    ``dx_1 = -A_1^-1 (A_0 dx_0 + w)``, ``w ~ N(0, I)``: a Kalman prediction step, without
+    a solver update.
+
+    Args:
+        factor: the IMU factor between the two frames.
+        values: both states' X, V, B.
+        covariance: (15, 15) of the earlier state, order [pose (rot, trans), velocity,
+            bias (accel, gyro)].
+
+    Returns:
+        The later state's (15, 15) covariance and the (15, 15) transition ``M``
+        (``dx_1 = M dx_0 + noise``): its covariance with anything correlated with the
+        earlier state, ``C``, is ``M C``.
+    """
+    A, _ = factor.linearize(values).jacobian()
+    A_0, A_1 = A[:, _EARLIER_COLUMNS], A[:, _LATER_COLUMNS]
+    M = -np.linalg.solve(A_1, A_0)
+    A_1_inv = np.linalg.inv(A_1)
+    later = M @ covariance @ M.T + A_1_inv @ A_1_inv.T
+    return 0.5 * (later + later.T), M

@@ -22,8 +22,8 @@ import numpy as np
 
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import NoConstraintError
-from cdtm_graph.evaluation import dead_reckoning
 from cdtm_graph.flightlog import FRAMES_CSV, TRACKS_CSV, FlightLog, Tracks
+from cdtm_graph.imu import dead_reckoning
 
 
 @dataclass(frozen=True)
@@ -88,7 +88,8 @@ def prior_poses(flight: FlightLog) -> tuple[np.ndarray, str]:
     the log has one, else IMU dead reckoning from the initial state."""
     if flight.nav is not None:
         return flight.nav.world_T_body, "nav.csv"
-    return dead_reckoning(flight).world_T_body, "IMU dead reckoning from initial_state"
+    free = dead_reckoning(flight.config, flight.imu, flight.frames.t_ns)
+    return free.world_T_body, "IMU dead reckoning from initial_state"
 
 
 def check_constraints(flight: FlightLog, dtm: Dtm) -> DtmCoverage:

@@ -23,6 +23,7 @@ new hit (which is the exact derivative of the re-intersected residual).
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import functools
 from collections.abc import Callable
@@ -186,6 +187,14 @@ class PairFeatures:
         robust_scale = np.sqrt(np.maximum(0.5 * (C[:, 0, 0] + C[:, 1, 1]), 1.0))
         return cls(q_a, q_b, G_E, N, Sigma_e, Sigma_f, basis, sqrt_info, noise,
                    dtm_variance_scale, sqrt_info_full, robust_scale)
+
+    def whitened_full_covariance(self) -> np.ndarray:
+        """(n, 2, 2) covariance of one residual as measured (``sqrt_info_full``), in the
+        coordinates ``sqrt_info`` whitens to (the identity without ``sqrt_info_full``)."""
+        if self.sqrt_info_full is None:
+            return np.broadcast_to(np.eye(2), (self.n, 2, 2)).copy()
+        T = self.sqrt_info @ np.linalg.inv(self.sqrt_info_full)
+        return T @ np.swapaxes(T, 1, 2)
 
     def subset(self, index: np.ndarray) -> PairFeatures:
         """The features selected by ``index`` (mask or indices)."""
@@ -401,6 +410,15 @@ class CdtmPairFactor:
                                      f.dtm_variance_scale).Sigma_e
         W = f.sqrt_info
         return W @ Sigma_e @ np.swapaxes(W, 1, 2)
+
+    def with_robust_scale(self, robust_scale: np.ndarray | None) -> CdtmPairFactor:
+        """The same factor whose kernel judges each residual against ``robust_scale``
+        (n,) times the factor's whitening (e.g. the innovation's spread while the poses
+        are uncertain)."""
+        scale = None if robust_scale is None else np.asarray(robust_scale, dtype=float)
+        features = dataclasses.replace(self.features, robust_scale=scale)
+        return CdtmPairFactor(self.key_a, self.key_b, features, self.body_T_cam,
+                              self.plane_mode, self.raycast, self.robust, self.robust_threshold)
 
     def with_features(self, keep: np.ndarray) -> CdtmPairFactor:
         """The same factor over the features selected by ``keep`` (mask or indices)."""

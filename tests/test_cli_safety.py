@@ -35,7 +35,7 @@ CHILD_READY_TIMEOUT_S = 120.0
 
 @pytest.fixture(scope="module")
 def base_log(tmp_path_factory) -> Path:
-    settings = SimulationSettings(frames=6, features=40, seed=TEST_SEED % 1000,
+    settings = SimulationSettings(frames=6, n_features=40, seed=TEST_SEED % 1000,
                                   resolution_px=(640, 480))
     return write_simulated_log(settings, tmp_path_factory.mktemp("base") / "log")
 
@@ -224,7 +224,7 @@ _DTM = ROOT / "data" / "sample_flight" / "dtm.npz"
     (["simulate", "{out}", "--fps", "1e300"], ("fps = 1e+300", "IMU rate")),
     (["simulate", "{out}", "--fps", "1e-300"], ("shorter flight",)),
     (["accuracy-map", str(_DTM), "--alt-m", "1000", "--fov-deg", "60", "--sigma-px", "1e-300",
-      "--out", "{out}"], ("sigma_px = 1e-300", "[0.001, 100] px")),
+      "--out", "{out}"], ("pixel_sigma_px = 1e-300", "[0.001, 100] px")),
     (["accuracy-map", str(_DTM), "--alt-m", "1e300", "--fov-deg", "60", "--out", "{out}"],
      ("altitude_m = 1e+300",)),
 ])

@@ -8,6 +8,7 @@ from cdtm_graph.camera import DOWNWARD_BODY_T_CAM
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.geometry import make_pose
 from cdtm_graph.graph import GraphSettings, cdtm_factors
+from cdtm_graph.results import Rejection
 from cdtm_graph.tracks import FramePairObservations
 from factors import FeatureNoise
 
@@ -27,6 +28,6 @@ def test_features_with_nan_rays_are_dropped_and_counted():
              make_pose(np.eye(3), [1040.0, 1000.0, 800.0])]
     noise = FeatureNoise((1e-3, 1e-3), 2.0)
     build = cdtm_factors([pair], poses, DOWNWARD_BODY_T_CAM, dtm, noise, GraphSettings())
-    assert build.n_features == 8 and build.n_missed == 2
+    assert build.n_features == 8 and build.rejections.total(Rejection.MISSED_DTM) == 2
     e, _, _ = build.factors[0].evaluate(poses[0], poses[1])
     assert np.isfinite(e).all()

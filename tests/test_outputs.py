@@ -77,9 +77,10 @@ def _synthetic_result(rng: np.random.Generator, k: int = K) -> SmootherResult:
                           final_error=float("nan"), converged=True, time_s=0.25,
                           update_times_s=(0.1, float("inf"))),
         counts=GraphCounts(n_frames=k, n_tracks=12, n_observations=300, n_feature_pairs=250,
-                           n_cdtm_features=240, n_missed_dtm=10, n_cdtm_factors=k - 1,
+                           n_cdtm_features=240, n_cdtm_factors=k - 1,
                            n_imu_factors=k - 1,
-                           features_per_frame=np.arange(k, dtype=np.int64)),
+                           features_per_frame=np.arange(k, dtype=np.int64),
+                           rejected_per_frame={"missed_dtm": np.full(k, 2)}),
         settings={"plane_mode": "fixed", "huber_k": np.float64(1.345)},
         flags={np.int64(3): ["no_features"], 7: ["degenerate"]})
 

@@ -18,7 +18,7 @@ from tests.conftest import TEST_SEED
 
 @pytest.fixture(scope="module")
 def sim() -> SimulationResult:
-    return simulate(SimulationSettings(frames=8, features=40, seed=TEST_SEED % 997,
+    return simulate(SimulationSettings(frames=8, n_features=40, seed=TEST_SEED % 997,
                                        noiseless=True, turn_deg=0.0))
 
 

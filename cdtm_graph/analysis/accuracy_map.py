@@ -115,8 +115,8 @@ class AccuracyMapSettings:
             if not (math.isfinite(value) and value > 0):
                 raise CdtmError(f"{name} = {value!r}, expected > 0")
         sigma = RANGES["camera.pixel_sigma_px"]  # as flight.yaml: 1e-300 px is singular
-        if not sigma.lo <= self.sigma_px <= sigma.hi:
-            raise CdtmError(f"sigma_px = {self.sigma_px!r}, expected {sigma}")
+        if not sigma.lo <= self.pixel_sigma_px <= sigma.hi:
+            raise CdtmError(f"pixel_sigma_px = {self.pixel_sigma_px!r}, expected {sigma}")
         if not self.altitude_m <= MAX_ALTITUDE_M:
             raise CdtmError(f"altitude_m = {self.altitude_m!r}, expected at most "
                             f"{MAX_ALTITUDE_M:g} m")

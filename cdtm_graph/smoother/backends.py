@@ -86,7 +86,9 @@ class Backend(Protocol):
 
     def marginal(self, key: int) -> np.ndarray: ...
 
-    def joint_marginal(self, key_a: int, key_b: int) -> np.ndarray: ...
+    def joint_marginal(self, keys: list[int]) -> np.ndarray:
+        """Joint covariance of ``keys``, blocks in their order."""
+        ...
 
     def error(self) -> float:
         """The total error of the factors held, at the current estimate."""
@@ -117,9 +119,9 @@ class _Isam2Estimates:
         with _solvable():
             return np.asarray(self._solver.marginalCovariance(key))
 
-    def joint_marginal(self, key_a: int, key_b: int) -> np.ndarray:
+    def joint_marginal(self, keys: list[int]) -> np.ndarray:
         with _solvable():
-            return self._isam2().jointMarginalCovariance([key_a, key_b]).fullMatrix()
+            return self._isam2().jointMarginalCovariance(keys).fullMatrix()
 
 
 class FullHistory(_Isam2Estimates):

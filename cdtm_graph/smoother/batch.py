@@ -114,8 +114,7 @@ def _initial_values(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
             insert_state(values, k, flight.nav.world_T_body[k], flight.nav.velocity_mps[k],
                          bias)
         return values, "nav.csv"
-    incremental = replace(settings, mode=SmootherMode.INCREMENTAL, lag_s=None,
-                          innovation_gate=None)
+    incremental = replace(settings, mode=SmootherMode.INCREMENTAL, lag_s=None)
     smoother = IncrementalSmoother(flight.config, dtm, incremental, imu=flight.imu)
     smoother.run(flight, progress)
     return smoother.values(), "incremental pass"
@@ -173,12 +172,8 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
         SolverError: indeterminant system (names the variable and the likely cause).
         FlightLogError: the log has fewer than two frames.
         NoConstraintError: no camera or DTM constraint at all (``preflight``).
-        ValueError: ``innovation_gate`` with the batch smoother.
     """
     settings = settings or SmootherSettings()
-    if settings.innovation_gate is not None and settings.mode is not SmootherMode.INCREMENTAL:
-        raise ValueError("the innovation gate needs the incremental smoother (a prior "
-                         "covariance for each frame as it arrives)")
     if len(flight.frames) < 2:
         raise FlightLogError(f"{flight.root / 'frames.csv'}: {len(flight.frames)} frame(s); "
                              "expected at least 2")

@@ -11,6 +11,7 @@ also the batch smoother's initializer when the log has no ``nav.csv``.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import gtsam
@@ -29,7 +30,13 @@ from cdtm_graph.graph import (
     insert_state,
     prior_factors,
 )
-from cdtm_graph.imu import ImuArrays, ImuFeed, initial_bias, navstate_predict
+from cdtm_graph.imu import (
+    ImuArrays,
+    ImuFeed,
+    initial_bias,
+    navstate_predict,
+    propagate_covariance,
+)
 from cdtm_graph.replay import replay
 from cdtm_graph.results import (
     GraphCounts,
@@ -102,15 +109,12 @@ class IncrementalSmoother:
         self._pairing = SightingPairs(config.camera.camera, config.camera.body_T_cam, dtm,
                                       config.camera.pixel_sigma_px, graph.epipolar,
                                       self.rejections)
-        self._gate = (None if settings.innovation_gate is None else InnovationGate(
-            settings.innovation_gate, self._noise, max(abs(dtm.dx), abs(dtm.dy)),
-            self.rejections))
-        # A gate updates twice per frame (IMU, then the features that pass): relinearize
-        # every other update as often, in frames.
-        updates = 1 if self._gate is None else 2
+        self._gate = InnovationGate(settings.innovation_gate, max(abs(dtm.dx), abs(dtm.dy)),
+                                    self.rejections)
         self._backend: Backend = (
-            FullHistory(updates) if settings.lag_s is None
-            else FixedLag(settings.lag_s, frame_interval_s, updates))
+            FullHistory() if settings.lag_s is None
+            else FixedLag(settings.lag_s, frame_interval_s))
+        self._state_cov = np.zeros((15, 15))  # newest frame's [X, V, B] covariance
         self._camera = config.camera.camera
         self._body_T_cam = config.camera.body_T_cam
         self._t_ns: list[int] = []
@@ -129,9 +133,6 @@ class IncrementalSmoother:
         self.imu_times_s: list[float] = []
         self.final_error = float("nan")
         self.converged = False
-
-    #: Gate, while converging: relinearizing steps before the prior is used.
-    GATE_SETTLE_UPDATES = 2
 
     #: finalize(): a settled error within this relative spread of the lowest one is converged.
     CONVERGED_SPREAD = 1e-4
@@ -179,6 +180,7 @@ class IncrementalSmoother:
         if imu is not None:
             self._imu.hold(imu)
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        link = None  # the IMU factor from the previous frame
         if k == 0:
             init = self.config.initial_state
             graph.push_back(prior_factors(init, 0))
@@ -187,7 +189,8 @@ class IncrementalSmoother:
         else:
             bias = self._biases[k - 1]  # the IMU feed's linearization point too
             pim = self._imu.finish(int(t_ns))
-            graph.add(imu_factor(k - 1, pim))
+            link = imu_factor(k - 1, pim)
+            graph.add(link)
             predicted, velocity = navstate_predict(pim, self._poses[k - 1],
                                                    self._velocities[k - 1], bias)
         insert_state(values, k, predicted, velocity, bias)
@@ -196,16 +199,12 @@ class IncrementalSmoother:
         if k:
             self._leave_window(k)
         new = self._new_cdtm(k, *seen) if seen is not None else []
-        if self._gate is not None and new:
-            # The prior the innovations are gated against: everything up to this frame's
-            # IMU factor; the features that pass go in with a second update. While the
-            # solution still converges from its initial prior the linearized test would
-            # misjudge good features, so the prior gets relinearizing steps first.
-            self._update(graph, values, k, relinearize=self._converging)
-            if self._converging:
-                self._settle_prior(k)
-            new = self._gate.apply(k, new, self._current_pose, self._backend.joint_marginal)
-            graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        if new and link is not None:
+            # Each feature's innovation against the IMU's prediction: the kernel's scale,
+            # and the gate (not while the solution still converges from a loose prior:
+            # the linearized test would misjudge good features).
+            new = self._gate.apply(k, new, self._pose_guess, self._pair_prior(k, link, values),
+                                   test=not self._converging)
         n_new = sum(f.features.n for f in new)
         for f in new:
             graph.add(f.factor)
@@ -214,13 +213,37 @@ class IncrementalSmoother:
         if new and self._backend.can_replace:
             self._refresh_newest_noise(k, predicted, len(new))
         self._converging = self._moved_far(k, predicted)
-        covariance = self._backend.marginal(X(k))
+        self._state_cov = self._backend.joint_marginal(list(frame_keys(k)))
         self._imu.start(int(t_ns), self._biases[k])
         elapsed = time.perf_counter() - start
         self.update_times_s.append(elapsed)
         self.imu_times_s.append(self._imu.take_time_s())
-        return FrameUpdate(k, int(t_ns), self._poses[k], self._velocities[k], covariance, n_new,
-                           elapsed, self.imu_times_s[-1])
+        return FrameUpdate(k, int(t_ns), self._poses[k], self._velocities[k],
+                           self._state_cov[:6, :6].copy(), n_new, elapsed, self.imu_times_s[-1])
+
+    def _pair_prior(self, k: int, imu: gtsam.CombinedImuFactor, predicted: gtsam.Values
+                    ) -> Callable[[int], np.ndarray]:
+        """Earlier frame a -> the (12, 12) prior covariance of ``(X(a), X(k))``: frame
+        k-1's state covariance carried through the IMU factor (a Kalman prediction, no
+        solver update); an older frame a gets its joint covariance with frame k-1."""
+        values = gtsam.Values(predicted)
+        insert_state(values, k - 1, self._poses[k - 1], self._velocities[k - 1],
+                     self._biases[k - 1])
+        later, M = propagate_covariance(imu, values, self._state_cov)
+        P_k = later[:6, :6]
+        cache: dict[int, np.ndarray] = {}
+
+        def prior(a: int) -> np.ndarray:
+            if a not in cache:
+                if a == k - 1:
+                    P_a, cross = self._state_cov[:6, :6], (M @ self._state_cov)[:6, :6]
+                else:
+                    J = self._backend.joint_marginal([X(a), *frame_keys(k - 1)])
+                    P_a, cross = J[:6, :6], (M @ J[6:, :6])[:6]
+                cache[a] = np.block([[P_a, cross.T], [cross, P_k]])
+            return cache[a]
+
+        return prior
 
     def _checked_sightings(self, k: int, track_id: np.ndarray | None, uv_px: np.ndarray | None
                            ) -> tuple[np.ndarray, np.ndarray] | None:
@@ -289,18 +312,6 @@ class IncrementalSmoother:
                 self._exit_cov[j] = tuple(self._backend.marginal(key) for key in frame_keys(j))
             self._settled += 1
 
-    def _settle_prior(self, k: int) -> None:
-        """A few relinearizing Gauss-Newton steps before the gate uses the prior: one
-        update is one step, and while the solution converges from its initial prior the
-        linearized test would misjudge good features."""
-        for _ in range(self.GATE_SETTLE_UPDATES):
-            self._backend.step()
-        self._fetch(k)
-
-    def _current_pose(self, k: int) -> np.ndarray:
-        self._poses[k] = self._backend.pose(k)
-        return self._poses[k]
-
     def _fetch(self, k: int) -> None:
         """Current estimate of frame k's states."""
         self._poses[k] = self._backend.pose(k)
@@ -322,7 +333,8 @@ class IncrementalSmoother:
             return
         old = self._cdtm[-n:]
         refreshed = [f.refreshed(self._backend.pose(int(gtsam.Symbol(f.key_a).index())),
-                                 self._poses[k]) for f in old]
+                                 self._poses[k]).with_robust_scale(f.features.robust_scale)
+                     for f in old]
         graph = gtsam.NonlinearFactorGraph()
         for f in refreshed:
             graph.add(f.factor)
@@ -382,7 +394,7 @@ class IncrementalSmoother:
     def innovation_nis(self) -> np.ndarray:
         """Squared Mahalanobis distance of every innovation the gate tested, (n,):
         chi-square(2) (median 1.39, mean 2) when the noise model and the prior are honest."""
-        return self._gate.all_nis if self._gate is not None else np.zeros(0)
+        return self._gate.all_nis
 
     def values(self) -> gtsam.Values:
         """Latest estimate of every frame so far (frames out of a lag window keep the

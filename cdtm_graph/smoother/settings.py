@@ -37,9 +37,10 @@ class SmootherSettings:
             covariances as it leaves the window (about 1 ms per frame; an offline run
             wants them, a live system needs only the newest: set False); otherwise NaN
             for frames older than the lag.
-        innovation_gate: incremental only: drop each C-DTM feature whose innovation,
-            against the prior covariance of its two poses, fails the chi-square(2) gate
-            of this probability (e.g. 0.999); ``None`` gates nothing.
+        innovation_gate: incremental modes (and the batch's incremental first pass): drop
+            each C-DTM feature whose innovation, against the prior covariance of its two
+            poses, fails the chi-square(2) gate of this probability; ``None`` gates
+            nothing. At 0.999 a clean log loses ~0.1% of its features.
     """
 
     graph: GraphSettings = field(default_factory=GraphSettings)
@@ -50,7 +51,7 @@ class SmootherSettings:
     final_iterations: int = 5
     marginals: bool = True
     keep_exit_covariances: bool = True
-    innovation_gate: float | None = None
+    innovation_gate: float | None = 0.999
 
     def to_dict(self) -> dict:
         """Plain values for report.json (enums as their values)."""
