@@ -23,6 +23,7 @@ Array conventions: latitudes and longitudes in degrees, heights and positions in
 
 from __future__ import annotations
 
+import enum
 import functools
 import math
 import os
@@ -48,6 +49,7 @@ __all__ = [
     "GeodeticOrigin",
     "ImuEnvironment",
     "LocalFrame",
+    "VerticalDatum",
     "enu_R_ecef",
     "geoid_undulation_m",
     "normal_gravity_enu_mps2",
@@ -293,6 +295,24 @@ def geoid_undulation_m(latitude_deg, longitude_deg) -> np.ndarray:
         raise GeodesyError(f"no EGM96 geoid height at latitude {lat[bad]!r}, longitude "
                            f"{lon[bad]!r}; expected -90 <= latitude <= 90")
     return n
+
+
+class VerticalDatum(enum.Enum):
+    """What a DEM's heights are measured from (``dtm.vertical_datum`` in flight.yaml).
+
+    ELLIPSOID: WGS84 ellipsoidal heights (GNSS heights).
+    EGM96: heights above the EGM96 geoid ("MSL"), as SRTM and Copernicus GLO-30 give them.
+    """
+
+    ELLIPSOID = "ellipsoid"
+    EGM96 = "egm96"
+
+    def to_ellipsoidal_m(self, latitude_deg, longitude_deg, height_m) -> np.ndarray:
+        """Ellipsoidal heights (N,) of heights in this datum at geodetic points (N,)."""
+        height = np.asarray(height_m, dtype=float).ravel()
+        if self is VerticalDatum.ELLIPSOID:
+            return height.copy()
+        return height + geoid_undulation_m(latitude_deg, longitude_deg)
 
 
 # --------------------------------------------------------------------------- local frame

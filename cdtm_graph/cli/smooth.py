@@ -126,7 +126,7 @@ def smooth_log_to_dir(log_dir: str, out_dir: Path, args: argparse.Namespace) -> 
     flight, dtm = load_log_and_dtm(log_dir)
     out = smooth_and_evaluate(flight, dtm, settings, progress_bar(args.quiet))
     extras = plot_writers(out, dtm, flight) if args.plots else []
-    write_run(out_dir, out.result, out.report, extras)
+    write_run(out_dir, out.result, out.report, extras, frame=flight.config.local_frame)
     return out
 
 

@@ -51,18 +51,28 @@ def _yaml_document(log: FlightLog, target: Path) -> str:
     cfg = log.config
     cam = cfg.camera.camera
     body_T_cam = cfg.camera.body_T_cam
-    dtm_path = Path(cfg.dtm.path)
-    if dtm_path.is_absolute():
-        try:
-            dtm_text = dtm_path.relative_to(target).as_posix()
-        except ValueError:
-            dtm_text = str(dtm_path)
-    else:
-        dtm_text = dtm_path.as_posix()
-    dtm: dict[str, Any] = {"path": dtm_text}
+
+    def path_text(path: Path) -> str:
+        if path.is_absolute():
+            try:
+                return path.relative_to(target).as_posix()
+            except ValueError:
+                return str(path)
+        return path.as_posix()
+
+    paths = [path_text(Path(p)) for p in cfg.dtm.paths]
+    dtm: dict[str, Any] = {"path": paths if len(paths) > 1 else paths[0]}
     if cfg.dtm.sigma_h_m is not None:
         dtm["sigma_h_m"] = float(cfg.dtm.sigma_h_m)
-    dtm["origin_enu_m"] = [float(x) for x in cfg.dtm.origin_enu_m]
+    if cfg.origin is None:
+        dtm["origin_enu_m"] = [float(x) for x in cfg.dtm.origin_enu_m]
+    else:
+        if cfg.dtm.vertical_datum is not None:
+            dtm["vertical_datum"] = cfg.dtm.vertical_datum.value
+        if cfg.dtm.crs is not None:
+            dtm["crs"] = cfg.dtm.crs
+        if cfg.dtm.margin_m is not None:
+            dtm["margin_m"] = float(cfg.dtm.margin_m)
     camera: dict[str, Any] = {
         "resolution": [cam.width, cam.height],
         "intrinsics": [cam.fx, cam.fy, cam.cx, cam.cy],
@@ -76,8 +86,12 @@ def _yaml_document(log: FlightLog, target: Path) -> str:
         "quaternion_wxyz": rotation_to_quat_wxyz(body_T_cam[:3, :3]).tolist(),
     }
     init = cfg.initial_state
-    document: dict[str, Any] = {
-        "format": FORMAT,
+    document: dict[str, Any] = {"format": FORMAT}
+    if cfg.origin is not None:
+        document["origin"] = {"latitude_deg": cfg.origin.latitude_deg,
+                              "longitude_deg": cfg.origin.longitude_deg,
+                              "height_m": cfg.origin.height_m}
+    document.update({
         "gravity_mps2": float(cfg.gravity_mps2),
         "dtm": dtm,
         "camera": camera,
@@ -86,7 +100,7 @@ def _yaml_document(log: FlightLog, target: Path) -> str:
             **{name: getattr(init, name).tolist() for name, _ in _INITIAL_VECTORS},
             **{name: float(getattr(init, name)) for name in _INITIAL_SIGMAS},
         },
-    }
+    })
     if cfg.extra:
         document["extra"] = cfg.extra
     # PyYAML writes floats with repr, so every number reads back bit for bit.
