@@ -243,9 +243,16 @@ def track_region_m(track_xy_m: np.ndarray, margin_m: float
 class _Surface:
     """The heights of one CRS group under the region, as a bilinear grid in CRS units."""
 
-    to_source: object  # pyproj Transformer, geographic (lon, lat) -> CRS (x, y)
+    to_source: object  # pyproj Transformer (lon, lat) -> CRS (x, y); None for EPSG:4326
     grid: Dtm  # elevation in the source's own coordinates (only its bilinear surface is used)
     paths: tuple[Path, ...]
+
+
+def _to_source(to_source, lon: np.ndarray, lat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    if to_source is None:
+        return lon, lat
+    sx, sy = to_source.transform(lon, lat)
+    return np.asarray(sx), np.asarray(sy)
 
 
 def _outline_in_source(frame: LocalFrame, region: tuple[float, float, float, float],
@@ -265,8 +272,7 @@ def _outline_in_source(frame: LocalFrame, region: tuple[float, float, float, flo
     points = []
     for z in (LOWEST_TERRAIN_M - h0 - drop, HIGHEST_TERRAIN_M - h0):
         lat, lon, _ = frame.world_to_geodetic(np.column_stack([xs, ys, np.full_like(xs, z)]))
-        sx, sy = to_source.transform(lon, lat)
-        points.append(np.column_stack([sx, sy]))
+        points.append(np.column_stack(_to_source(to_source, lon, lat)))
     pts = np.concatenate(points)
     if not np.all(np.isfinite(pts)):
         raise DtmError("the flight region does not map into the DEM's CRS (outside the "
@@ -284,8 +290,10 @@ def _group_surface(group: list[DemSource], frame: LocalFrame,
 
     first = group[0]
     a, c, e, f = first.transform
-    to_source = Transformer.from_crs(CRS.from_epsg(4326), CRS.from_wkt(first.crs_wkt),
-                                     always_xy=True)
+    crs = CRS.from_wkt(first.crs_wkt)
+    # EPSG:4326 rasters (SRTM, Copernicus) are indexed by longitude and latitude directly.
+    to_source = (None if crs.equals(CRS.from_epsg(4326), ignore_axis_order=True)
+                 else Transformer.from_crs(CRS.from_epsg(4326), crs, always_xy=True))
     bx0, bx1, by0, by1 = _outline_in_source(frame, region, to_source)
     # Column/row indices (of pixel centres) in the first file's grid.
     cols = sorted(((bx0 - c) / a - 0.5, (bx1 - c) / a - 0.5))
@@ -361,8 +369,8 @@ def _terrain_height(surfaces: list[_Surface], datum: VerticalDatum,
         need = np.isnan(height)
         if not need.any():
             break
-        sx, sy = surface.to_source.transform(lon[need], lat[need])  # type: ignore[attr-defined]
-        height[need] = surface.grid.height(np.asarray(sx), np.asarray(sy))
+        sx, sy = _to_source(surface.to_source, lon[need], lat[need])
+        height[need] = surface.grid.height(sx, sy)
     valid = np.isfinite(height)
     if valid.any() and datum is not VerticalDatum.ELLIPSOID:
         height[valid] = datum.to_ellipsoidal_m(lat[valid], lon[valid], height[valid])

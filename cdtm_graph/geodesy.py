@@ -346,10 +346,20 @@ class LocalFrame:
     """
 
     def __init__(self, origin: GeodeticOrigin):
+        from pyproj import Transformer
+
         self.origin = origin
         self.origin_ecef_m = geodetic_to_ecef(origin.latitude_deg, origin.longitude_deg,
                                               origin.height_m)[0]
         self.world_R_ecef = enu_R_ecef(origin.latitude_deg, origin.longitude_deg)[0]
+        # World -> geodetic in one PROJ pipeline (its topocentric conversion is this frame:
+        # tests/test_geodesy.py compares it with world_R_ecef and origin_ecef_m).
+        self._world_to_geodetic = Transformer.from_pipeline(
+            "+proj=pipeline "
+            f"+step +inv +proj=topocentric +ellps=WGS84 +lat_0={origin.latitude_deg!r} "
+            f"+lon_0={origin.longitude_deg!r} +h_0={origin.height_m!r} "
+            "+step +inv +proj=cart +ellps=WGS84 "
+            "+step +proj=unitconvert +xy_in=rad +xy_out=deg")
 
     def __repr__(self) -> str:
         o = self.origin
@@ -360,16 +370,16 @@ class LocalFrame:
 
     def ecef_to_world(self, p_ecef: np.ndarray) -> np.ndarray:
         """(N, 3) ECEF -> (N, 3) world metres."""
-        return (np.atleast_2d(np.asarray(p_ecef, dtype=float)) - self.origin_ecef_m) \
-            @ self.world_R_ecef.T
+        return _rotate(self.world_R_ecef,
+                       np.atleast_2d(np.asarray(p_ecef, dtype=float)) - self.origin_ecef_m)
 
     def world_to_ecef(self, p_world: np.ndarray) -> np.ndarray:
         """(N, 3) world -> (N, 3) ECEF metres."""
-        return np.atleast_2d(np.asarray(p_world, dtype=float)) @ self.world_R_ecef \
+        return _rotate(self.world_R_ecef.T, np.atleast_2d(np.asarray(p_world, dtype=float))) \
             + self.origin_ecef_m
 
     def geodetic_to_world(self, latitude_deg, longitude_deg, height_m) -> np.ndarray:
-        """World positions of geodetic points.
+        """World positions of geodetic points (PROJ).
 
         Args:
             latitude_deg, longitude_deg, height_m: broadcastable arrays (deg, deg,
@@ -378,11 +388,16 @@ class LocalFrame:
         Returns:
             (N, 3) world metres.
         """
-        return self.ecef_to_world(geodetic_to_ecef(latitude_deg, longitude_deg, height_m))
+        lat, lon, h = np.broadcast_arrays(_as_float_array("latitude_deg", latitude_deg),
+                                          _as_float_array("longitude_deg", longitude_deg),
+                                          _as_float_array("height_m", height_m))
+        x, y, z = self._world_to_geodetic.transform(lon.ravel(), lat.ravel(), h.ravel(),
+                                                    direction="INVERSE")
+        return np.column_stack([x, y, z])
 
     def world_to_geodetic(self, p_world: np.ndarray
                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Geodetic coordinates of world positions.
+        """Geodetic coordinates of world positions (PROJ).
 
         Args:
             p_world: (N, 3) or (3,) world metres.
@@ -390,7 +405,9 @@ class LocalFrame:
         Returns:
             latitude_deg, longitude_deg (in [-180, 180]), height_m (ellipsoidal): (N,).
         """
-        return ecef_to_geodetic(self.world_to_ecef(p_world))
+        p = np.atleast_2d(_as_float_array("p_world", p_world))
+        lon, lat, h = self._world_to_geodetic.transform(p[:, 0], p[:, 1], p[:, 2])
+        return np.asarray(lat), np.asarray(lon), np.asarray(h)
 
     # -- directions --------------------------------------------------------------------
 
@@ -501,6 +518,12 @@ class LocalFrame:
         """(N, 3, 3) world-frame position covariances -> the local ENU at each position."""
         enu_R_world = np.swapaxes(self.world_R_enu_at(position_m), 1, 2)
         return enu_R_world @ cov_world @ np.swapaxes(enu_R_world, 1, 2)
+
+
+def _rotate(R: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """(N, 3) rows ``R @ p_i``, column by column (numpy's (N,3)@(3,3) matmul is 4x slower)."""
+    return np.column_stack([p[:, 0] * R[i, 0] + p[:, 1] * R[i, 1] + p[:, 2] * R[i, 2]
+                            for i in range(3)])
 
 
 @functools.lru_cache(maxsize=16)

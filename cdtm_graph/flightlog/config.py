@@ -223,7 +223,7 @@ def _dtm_file(y: _Yaml, node: yaml.Node, name: str, root: Path,
 
 def _parse_dtm(y: _Yaml, node: yaml.Node, line: int, root: Path,
                origin: GeodeticOrigin | None) -> DtmConfig:
-    geodetic_keys = ("vertical_datum", "crs", "margin_m")
+    geodetic_keys = ("vertical_datum", "crs", "margin_m", "spacing_m")
     m = y.keys(y.pairs(node, "dtm", line), "dtm", line, ("path",),
                ("sigma_h_m", "origin_enu_m", *geodetic_keys))
     suffixes = DTM_SUFFIXES if origin is None else GEODETIC_DTM_SUFFIXES
@@ -275,10 +275,10 @@ def _parse_dtm(y: _Yaml, node: yaml.Node, line: int, root: Path,
         except CRSError:
             y.fail(m["crs"], f"dtm.crs {_show(crs)} is not a CRS PROJ knows",
                    "a CRS such as EPSG:4326 or EPSG:32652")
-    margin = None
-    if "margin_m" in m:
-        margin = y.number(m["margin_m"], "dtm.margin_m", positive=True)
-    return DtmConfig(paths[0], sigma_h, (0.0, 0.0, 0.0), tuple(paths[1:]), datum, crs, margin)
+    margin, spacing = (y.number(m[key], f"dtm.{key}", positive=True) if key in m else None
+                       for key in ("margin_m", "spacing_m"))
+    return DtmConfig(paths[0], sigma_h, (0.0, 0.0, 0.0), tuple(paths[1:]), datum, crs, margin,
+                     spacing)
 
 
 def _parse_camera(y: _Yaml, node: yaml.Node, line: int) -> CameraConfig:

@@ -111,6 +111,8 @@ class DtmConfig:
         crs: the CRS of DEM files that carry none, e.g. ``"EPSG:4326"`` (geodetic logs).
         margin_m: how far around the prior track the DEM is read (m); None: the default
             of :mod:`cdtm_graph.dem`.
+        spacing_m: spacing of the world grid the DEM is resampled into (m); None: the
+            DEM's own finest pixel size in metres.
     """
 
     path: Path
@@ -120,6 +122,7 @@ class DtmConfig:
     vertical_datum: VerticalDatum | None = None
     crs: str | None = None
     margin_m: float | None = None
+    spacing_m: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "path", Path(self.path))
@@ -131,8 +134,9 @@ class DtmConfig:
             object.__setattr__(self, "sigma_h_m", float(self.sigma_h_m))
         if self.vertical_datum is not None:
             object.__setattr__(self, "vertical_datum", VerticalDatum(self.vertical_datum))
-        if self.margin_m is not None:
-            object.__setattr__(self, "margin_m", float(self.margin_m))
+        for name in ("margin_m", "spacing_m"):
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, float(getattr(self, name)))
 
     @property
     def paths(self) -> tuple[Path, ...]:

@@ -148,7 +148,7 @@ def load_flight_dtm(flight: FlightLog) -> Dtm:
 
     assert cfg.vertical_datum is not None  # the parser requires it with an origin
     return import_dem(cfg.paths, frame, dem_region_m(flight), cfg.vertical_datum,
-                      crs=cfg.crs, sigma_h_m=cfg.sigma_h_m)
+                      crs=cfg.crs, spacing_m=cfg.spacing_m, sigma_h_m=cfg.sigma_h_m)
 
 
 def dem_region_m(flight: FlightLog) -> tuple[float, float, float, float]:

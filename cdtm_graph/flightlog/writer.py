@@ -71,8 +71,9 @@ def _yaml_document(log: FlightLog, target: Path) -> str:
             dtm["vertical_datum"] = cfg.dtm.vertical_datum.value
         if cfg.dtm.crs is not None:
             dtm["crs"] = cfg.dtm.crs
-        if cfg.dtm.margin_m is not None:
-            dtm["margin_m"] = float(cfg.dtm.margin_m)
+        for key in ("margin_m", "spacing_m"):
+            if getattr(cfg.dtm, key) is not None:
+                dtm[key] = float(getattr(cfg.dtm, key))
     camera: dict[str, Any] = {
         "resolution": [cam.width, cam.height],
         "intrinsics": [cam.fx, cam.fy, cam.cx, cam.cy],

@@ -40,13 +40,15 @@ def terrain_ellipsoidal_height_m(terrain: Dtm, frame: LocalFrame, latitude_deg: 
     """
     lat = np.asarray(latitude_deg, dtype=float).ravel()
     lon = np.asarray(longitude_deg, dtype=float).ravel()
-    up_world = frame.world_R_enu(lat, lon)[:, :, 2]
+    la, lo = np.radians(lat), np.radians(lon)
+    up_ecef = np.column_stack([np.cos(la) * np.cos(lo), np.cos(la) * np.sin(lo), np.sin(la)])
+    up_z = up_ecef @ frame.world_R_ecef[2]  # world z of each point's local vertical
     h = np.zeros(lat.size)
     out = np.full(lat.size, np.nan)
     active = np.arange(lat.size)
     for _ in range(_MAX_ITERATIONS):
         p = frame.geodetic_to_world(lat[active], lon[active], h[active])
-        step = (terrain.height(p[:, 0], p[:, 1]) - p[:, 2]) / up_world[active, 2]
+        step = (terrain.height(p[:, 0], p[:, 1]) - p[:, 2]) / up_z[active]
         ok = np.isfinite(step)
         active, step = active[ok], step[ok]
         h[active] += step
@@ -76,8 +78,8 @@ def write_dem_tile(terrain: Dtm, frame: LocalFrame, path: str | os.PathLike, crs
         The path. Pixels whose terrain point is off the world grid hold NaN (nodata).
     """
     import rasterio
+    from affine import Affine
     from pyproj import Transformer
-    from rasterio.transform import from_origin
 
     xmin, xmax, ymin, ymax = terrain.bounds
     corners = np.array([[x, y, 0.0] for x in (xmin, xmax) for y in (ymin, ymax)])
@@ -107,6 +109,6 @@ def write_dem_tile(terrain: Dtm, frame: LocalFrame, path: str | os.PathLike, crs
     path.parent.mkdir(parents=True, exist_ok=True)
     with rasterio.open(path, "w", driver="GTiff", width=width, height=height, count=1,
                        dtype="float32", crs=crs, nodata=float("nan"),
-                       transform=from_origin(left, top, pixel_size, pixel_size)) as dst:
+                       transform=Affine(pixel_size, 0.0, left, 0.0, -pixel_size, top)) as dst:
         dst.write(h.reshape(height, width).astype(np.float32), 1)
     return path
