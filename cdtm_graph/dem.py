@@ -43,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cdtm_graph.dtm import Dtm
+from cdtm_graph.dtm import Dtm, sigma_h_from_grid_spacing
 from cdtm_graph.errors import DtmError
 from cdtm_graph.geodesy import WGS84_A_M, WGS84_E2, LocalFrame, VerticalDatum
 
@@ -53,7 +53,9 @@ __all__ = [
     "DEFAULT_MARGIN_M",
     "DEM_SUFFIXES",
     "DemSource",
+    "DemWindow",
     "import_dem",
+    "read_dem_window",
     "read_dem_sources",
     "track_region_m",
 ]
@@ -75,6 +77,12 @@ CONVERGENCE_M = 1e-4
 MAX_ITERATIONS = 12
 #: World nodes resampled per batch (bounds the temporaries: ~30 float64 arrays of this size).
 CHUNK_NODES = 1 << 18
+#: Default world grid spacing as a fraction of the DEM's finest pixel (in metres): a
+#: bilinear grid resampled at the pixel size errs by about as much as the DEM's own
+#: interpolation; at half of it, by half (docs/geodesy.md has the measurements).
+SPACING_PER_PIXEL = 0.5
+#: Points at which the resampling error is measured (folded into sigma_h).
+RESAMPLING_CHECK_POINTS = 4096
 #: Points per edge of the region outline mapped into a source CRS.
 _OUTLINE_POINTS = 65
 
@@ -361,6 +369,53 @@ def _surfaces(sources: list[DemSource], frame: LocalFrame,
     return surfaces
 
 
+@dataclass(frozen=True)
+class DemWindow:
+    """The DEM under a region in the DEM's own coordinates (for plots in its CRS).
+
+    Attributes:
+        grid: heights as read (the file's vertical datum) on the file's pixel centres,
+            x and y in CRS units (degrees for EPSG:4326).
+        crs_wkt: the CRS of x and y.
+        pixel_size_m: the finer pixel size in metres near the region.
+        paths: the files it was read from.
+    """
+
+    grid: Dtm
+    crs_wkt: str
+    pixel_size_m: float
+    paths: tuple[Path, ...]
+
+    def to_crs(self, latitude_deg: np.ndarray, longitude_deg: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """CRS x, y (N,) of geodetic points."""
+        from pyproj import CRS, Transformer
+
+        crs = CRS.from_wkt(self.crs_wkt)
+        if crs.equals(CRS.from_epsg(4326), ignore_axis_order=True):
+            return np.asarray(longitude_deg, float), np.asarray(latitude_deg, float)
+        x, y = Transformer.from_crs(CRS.from_epsg(4326), crs, always_xy=True).transform(
+            longitude_deg, latitude_deg)
+        return np.asarray(x), np.asarray(y)
+
+
+def read_dem_window(paths: Sequence[str | os.PathLike], frame: LocalFrame,
+                    region_m: tuple[float, float, float, float], vertical_datum: VerticalDatum,
+                    crs: str | None = None) -> DemWindow:
+    """The first CRS group of DEM files under a world region, as stored (no resampling).
+
+    Raises:
+        DtmError: as :func:`import_dem`.
+    """
+    sources = read_dem_sources(paths, vertical_datum, crs)
+    surface = _surfaces(sources, frame, tuple(float(v) for v in region_m))[0]  # type: ignore[arg-type]
+    lat, _, _ = frame.world_to_geodetic(np.array([(region_m[0] + region_m[1]) / 2,
+                                                  (region_m[2] + region_m[3]) / 2, 0.0]))
+    first = next(s for s in sources if s.path == surface.paths[0])
+    return DemWindow(surface.grid, first.crs_wkt, first.pixel_size_m(frame, float(lat[0])),
+                     surface.paths)
+
+
 def _terrain_height(surfaces: list[_Surface], datum: VerticalDatum,
                     lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
     """Ellipsoidal terrain height (N,) at geodetic points; NaN where no file has data."""
@@ -405,6 +460,20 @@ def _resample(frame: LocalFrame, surfaces: list[_Surface], datum: VerticalDatum,
     return z, int(active.size)
 
 
+def _resampling_rms_m(dtm: Dtm, frame: LocalFrame, surfaces: list[_Surface],
+                      datum: VerticalDatum) -> float:
+    """RMS difference (m) between the world grid's bilinear surface and the DEM's own at
+    ``RESAMPLING_CHECK_POINTS`` points drawn (seeded) over the grid."""
+    xmin, xmax, ymin, ymax = dtm.bounds
+    rng = np.random.default_rng(0)
+    x = rng.uniform(xmin, xmax, RESAMPLING_CHECK_POINTS)
+    y = rng.uniform(ymin, ymax, RESAMPLING_CHECK_POINTS)
+    exact, _ = _resample(frame, surfaces, datum, x, y)
+    diff = dtm.height(x, y) - exact
+    diff = diff[np.isfinite(diff)]
+    return float(np.sqrt(np.mean(diff**2))) if diff.size else 0.0
+
+
 def import_dem(paths: Sequence[str | os.PathLike], frame: LocalFrame,
                region_m: tuple[float, float, float, float], vertical_datum: VerticalDatum,
                *, crs: str | None = None, spacing_m: float | None = None,
@@ -419,11 +488,15 @@ def import_dem(paths: Sequence[str | os.PathLike], frame: LocalFrame,
         region_m: (xmin, xmax, ymin, ymax) world region to cover (m).
         vertical_datum: what the files' heights are measured from.
         crs: CRS of files that carry none (``dtm.crs``).
-        spacing_m: world grid spacing (m); None: the finest source pixel size in metres.
-        sigma_h_m: the DTM's 1-sigma height error, passed to the :class:`Dtm`.
+        spacing_m: world grid spacing (m); None: ``SPACING_PER_PIXEL`` times the finest
+            source pixel size in metres.
+        sigma_h_m: the DEM's 1-sigma height error; None: the Fig. 6 model at the DEM's
+            pixel size (:func:`~cdtm_graph.dtm.sigma_h_from_grid_spacing`).
 
     Returns:
         The world DTM: heights are world z (so the ground curves away below the plane).
+        Its ``sigma_h_m`` is the DEM's combined with the resampling error measured at
+        ``RESAMPLING_CHECK_POINTS`` points (root sum of squares).
 
     Raises:
         DtmError: unreadable files, no CRS, no data under the region.
@@ -433,11 +506,12 @@ def import_dem(paths: Sequence[str | os.PathLike], frame: LocalFrame,
     if not (xmin < xmax and ymin < ymax) or not all(map(math.isfinite, region_m)):
         raise DtmError(f"DEM region {region_m!r}; expected finite xmin < xmax, ymin < ymax")
     surfaces = _surfaces(sources, frame, (xmin, xmax, ymin, ymax))
+    lat_c, _, _ = frame.world_to_geodetic(np.array([(xmin + xmax) / 2, (ymin + ymax) / 2,
+                                                    0.0]))
+    used = {p for sf in surfaces for p in sf.paths}
+    pixel_m = min(s.pixel_size_m(frame, float(lat_c[0])) for s in sources if s.path in used)
     if spacing_m is None:
-        lat_c, _, _ = frame.world_to_geodetic(np.array([(xmin + xmax) / 2, (ymin + ymax) / 2,
-                                                        0.0]))
-        spacing_m = min(s.pixel_size_m(frame, float(lat_c[0])) for s in sources
-                        if s.path in {p for sf in surfaces for p in sf.paths})
+        spacing_m = SPACING_PER_PIXEL * pixel_m
     if not (math.isfinite(spacing_m) and spacing_m > 0):
         raise DtmError(f"DEM grid spacing {spacing_m!r} m; expected a finite value > 0")
     i0, i1 = math.floor(xmin / spacing_m), math.ceil(xmax / spacing_m)
@@ -458,10 +532,18 @@ def import_dem(paths: Sequence[str | os.PathLike], frame: LocalFrame,
         logger.warning("DEM import: %d nodes did not converge within %d steps (steep terrain "
                        "far from the origin); they are no data", unconverged, MAX_ITERATIONS)
     covered = float(np.isfinite(elevation).mean())
-    logger.info("DEM resampled into a %dx%d world grid at %.2f m (%.1f%% with data)",
-                cols, rows, spacing_m, 100 * covered)
     try:
-        return Dtm(elevation, xs[0], j0 * spacing_m, spacing_m, spacing_m, sigma_h_m=sigma_h_m)
+        dtm = Dtm(elevation, xs[0], j0 * spacing_m, spacing_m, spacing_m)
+        # The DEM's own error follows its own pixel size (Fig. 6 model), not the finer
+        # world grid's; the resampling adds its own, measured here.
+        resampling_m = _resampling_rms_m(dtm, frame, surfaces, vertical_datum)
+        dem_sigma = sigma_h_m if sigma_h_m is not None else sigma_h_from_grid_spacing(pixel_m)
+        logger.info("DEM resampled into a %dx%d world grid at %.2f m (%.1f%% with data); "
+                    "resampling error %.3f m rms, sigma_h %.3f m -> %.3f m", cols, rows,
+                    spacing_m, 100 * covered, resampling_m, dem_sigma,
+                    math.hypot(dem_sigma, resampling_m))
+        dtm.sigma_h_m = math.hypot(dem_sigma, resampling_m)
+        return dtm
     except DtmError as exc:
         names = ", ".join(str(s.path) for s in sources)
         raise DtmError(f"{names}: {exc}") from None

@@ -133,15 +133,38 @@ def test_epsg4326_utm_and_the_native_grid_agree(tmp_path):
     assert np.nanmin(wrong.elevation - from_utm.elevation) > 20.0
 
 
-def test_default_spacing_is_the_finest_source_pixel_in_metres(tmp_path):
+def test_default_grid_is_half_the_dem_pixel_and_sigma_h_follows_the_dem(tmp_path):
+    from cdtm_graph.dtm import sigma_h_from_grid_spacing
+
     frame = _frame()
     utm = write_dem_tile(_smooth_native(), frame, tmp_path / "u.tif", UTM_52N, 30.0)
-    assert import_dem([utm], frame, REGION, VerticalDatum.ELLIPSOID).dx == 30.0
+    dtm = import_dem([utm], frame, REGION, VerticalDatum.ELLIPSOID)
+    assert dtm.dx == 15.0
+    # The Fig. 6 model at the DEM's 30 m (not the grid's 15 m), plus a tiny resampling error.
+    assert sigma_h_from_grid_spacing(30.0) <= dtm.sigma_h() < sigma_h_from_grid_spacing(30.0) + 0.01
     geographic = write_dem_tile(_smooth_native(), frame, tmp_path / "g.tif", "EPSG:4326",
                                 ARCSEC)
     spacing = import_dem([geographic], frame, REGION, VerticalDatum.ELLIPSOID).dx
-    # 1" of longitude at 36.7 deg N (the east-west pixel is the finer one).
-    assert spacing == pytest.approx(30.92 * math.cos(math.radians(36.7)), rel=0.01)
+    # Half of 1" of longitude at 36.7 deg N (the east-west pixel is the finer one).
+    assert spacing == pytest.approx(0.5 * 30.92 * math.cos(math.radians(36.7)), rel=0.01)
+
+
+def test_sigma_h_counts_the_resampling_error(tmp_path, rng):
+    frame = _frame()
+    native = _smooth_native()
+    utm = write_dem_tile(native, frame, tmp_path / "u.tif", UTM_52N, 30.0)
+    fine = import_dem([utm], frame, REGION, VerticalDatum.ELLIPSOID, spacing_m=15.0,
+                      sigma_h_m=0.1)
+    coarse = import_dem([utm], frame, REGION, VerticalDatum.ELLIPSOID, spacing_m=90.0,
+                        sigma_h_m=0.1)
+    # Measured independently: the coarse grid's surface against the tile's own surface
+    # (the fine grid stands in for it: its own resampling error is far smaller).
+    x = rng.uniform(REGION[0] + 100, REGION[1] - 100, 5000)
+    y = rng.uniform(REGION[2] + 100, REGION[3] - 100, 5000)
+    rms = float(np.sqrt(np.mean((coarse.height(x, y) - fine.height(x, y)) ** 2)))
+    assert rms > 0.1  # 90 m cells on 150 m hills 4.5 km apart: 0.15 m
+    assert math.hypot(0.1, rms) == pytest.approx(coarse.sigma_h(), rel=0.1)
+    assert fine.sigma_h() < 0.1 + 0.2 * (coarse.sigma_h() - 0.1)
 
 
 # --------------------------------------------------------------------------- mosaics

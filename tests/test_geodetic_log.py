@@ -231,7 +231,8 @@ def test_the_dem_is_read_around_the_prior_track(geolog: FlightLog):
                           VerticalDatum.EGM96, spacing_m=60.0)
     assert dtm.dx == 60.0
     np.testing.assert_array_equal(dtm.elevation, expected.elevation)
-    assert dtm.sigma_h() == 4.0
+    assert dtm.sigma_h() == pytest.approx(4.0, abs=1e-6)  # + resampling of a flat DEM
+    assert flight.config.dtm.sigma_h_m == dtm.sigma_h()
 
 
 def test_a_projected_dtm_far_from_the_flight_is_refused(tmp_path: Path, rng):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from cdtm_graph.geodesy import VerticalDatum
 from cdtm_graph.sim.simulate import NavMode, SimulationSettings, simulate, write_simulation
 
 _DEFAULTS = SimulationSettings()
@@ -46,6 +47,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--nav", choices=[m.value for m in NavMode], default=NavMode.NONE.value,
                         help="write nav.csv: none, IMU dead reckoning, or noisy truth "
                              "(default %(default)s)")
+    geo = parser.add_argument_group(
+        "geodetic log", "place the flight on the Earth: lat/lon inputs and a DEM tile")
+    geo.add_argument("--origin", type=float, nargs=3, metavar=("LAT", "LON", "H"),
+                     help="WGS84 latitude, longitude (deg) and ellipsoidal height (m) of the "
+                          "world origin: writes dem.tif instead of dtm.npz, and the initial "
+                          "state, nav.csv and groundtruth.csv in latitude/longitude/height")
+    geo.add_argument("--dem-crs", default="EPSG:4326",
+                     help="CRS of dem.tif (default %(default)s, as SRTM and Copernicus)")
+    geo.add_argument("--vertical-datum", choices=[d.value for d in VerticalDatum],
+                     default=VerticalDatum.EGM96.value,
+                     help="heights of dem.tif above the geoid or the ellipsoid "
+                          "(default %(default)s)")
     parser.set_defaults(func=run)
 
 
@@ -56,7 +69,15 @@ def run(args: argparse.Namespace) -> int:
         exact_dtm=args.exact_dtm, dtm_spacing_m=args.dtm_spacing_m, relief_m=args.relief_m,
         nav=args.nav)
     result = simulate(settings)
-    out = write_simulation(result, args.out)
+    if args.origin is None:
+        out = write_simulation(result, args.out)
+    else:
+        from cdtm_graph.geodesy import GeodeticOrigin
+        from cdtm_graph.sim.geodetic import write_geodetic_simulation
+
+        out = write_geodetic_simulation(result, args.out, GeodeticOrigin(*args.origin),
+                                        args.dem_crs, vertical_datum=VerticalDatum(
+                                            args.vertical_datum))
     stats = result.stats
     rows, cols = result.dtm.shape
     print(f"wrote {out}: {len(result.log.frames)} frames, {stats.n_tracks} tracks, "

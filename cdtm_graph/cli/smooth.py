@@ -33,8 +33,9 @@ def add_smoothing_options(p: argparse.ArgumentParser) -> None:
                    help="incremental mode: drop features whose innovation against the "
                         "prior fails the chi-square gate of probability P (e.g. 0.9999)")
     p.add_argument("--plots", action="store_true",
-                   help="also write trajectory.png (over the DTM, 3-sigma ellipses) and "
-                        "errors.png (errors inside +-3 sigma)")
+                   help="also write trajectory.png (over the DTM, 3-sigma ellipses), "
+                        "errors.png (errors inside +-3 sigma) and, for a geodetic log, "
+                        "trajectory_dem.png (over the DEM in its own coordinates)")
     p.add_argument("--quiet", action="store_true", help="no progress bar, no summary")
 
 
@@ -89,6 +90,16 @@ def plot_writers(out: RunOutput, dtm, flight) -> list:
     _, pos_cov = pose_covariance_in_world(est.world_T_body, out.result.covariances.pose)
     writers = [("trajectory.png",
                 lambda p: plot_trajectory_over_dtm(p, dtm, est, pos_cov, flight.groundtruth))]
+    frame, cfg = flight.config.local_frame, flight.config.dtm
+    if frame is not None:
+        from cdtm_graph.dem import read_dem_window
+        from cdtm_graph.flightlog.reader import dem_region_m
+        from cdtm_graph.plots.dem import plot_trajectory_over_dem
+
+        window = read_dem_window(cfg.paths, frame, dem_region_m(flight), cfg.vertical_datum,
+                                 cfg.crs)
+        writers.append(("trajectory_dem.png", lambda p: plot_trajectory_over_dem(
+            p, window, frame, est, pos_cov, flight.groundtruth)))
     e = out.errors
     if e is not None and e.position_sigma_world_m is not None:
         sigma = e.position_sigma_world_m

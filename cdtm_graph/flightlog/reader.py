@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 from pathlib import Path
@@ -215,8 +216,19 @@ DEAD_RECKONING_MARGIN_FRACTION = 0.1
 def load_log_and_dtm(path: str | os.PathLike) -> tuple[FlightLog, Dtm]:
     """Read ``path`` (a ``cdtm-flightlog/1`` directory) and the DTM its flight.yaml names.
 
+    For a geodetic log the returned config's ``dtm.sigma_h_m`` is the imported DTM's: the
+    DEM's own (flight.yaml's, or the Fig. 6 model at the DEM's pixel size) combined with
+    the resampling error (:func:`cdtm_graph.dem.import_dem`).
+
     Raises:
         FlightLogError: the log is malformed. DtmError: the DTM is.
     """
     flight = read_flightlog(path)
-    return flight, load_flight_dtm(flight)
+    dtm = load_flight_dtm(flight)
+    if flight.config.origin is not None:
+        # The imported DTM's sigma_h holds the resampling error too; the factors read
+        # sigma_h from the config first, so the config carries the DTM's.
+        dtm_cfg = dataclasses.replace(flight.config.dtm, sigma_h_m=dtm.sigma_h())
+        flight = dataclasses.replace(
+            flight, config=dataclasses.replace(flight.config, dtm=dtm_cfg))
+    return flight, dtm

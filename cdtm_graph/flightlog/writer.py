@@ -27,8 +27,9 @@ from cdtm_graph.flightlog.model import (
     normalized_path,
 )
 from cdtm_graph.flightlog.problems import _fail
-from cdtm_graph.flightlog.tables import _STATE_COLUMNS
-from cdtm_graph.geometry import rotation_to_quat_wxyz
+from cdtm_graph.flightlog.tables import _GEODETIC_STATE_COLUMNS, _STATE_COLUMNS
+from cdtm_graph.geodesy import LocalFrame
+from cdtm_graph.geometry import quat_wxyz_to_rotation, rotation_to_quat_wxyz
 
 
 def _csv_text(header: str, int_columns: Sequence[np.ndarray], float_columns: np.ndarray) -> str:
@@ -42,12 +43,32 @@ def _csv_text(header: str, int_columns: Sequence[np.ndarray], float_columns: np.
     return f"{header}\n{body}\n" if body else f"{header}\n"
 
 
-def _states_text(states: States) -> str:
-    floats = np.hstack([states.position_m, states.quaternion_wxyz, states.velocity_mps])
-    return _csv_text("#t_ns," + ",".join(_STATE_COLUMNS), [states.t_ns], floats)
+def _states_text(states: States, frame: LocalFrame | None = None) -> str:
+    if frame is None:
+        floats = np.hstack([states.position_m, states.quaternion_wxyz, states.velocity_mps])
+        return _csv_text("#t_ns," + ",".join(_STATE_COLUMNS), [states.t_ns], floats)
+    lat, lon, h, quat, vel = frame.states_to_geodetic(
+        states.position_m, quat_wxyz_to_rotation(states.quaternion_wxyz), states.velocity_mps)
+    floats = np.column_stack([lat, lon, h, quat, vel]).reshape(len(states), 10)
+    return _csv_text("#t_ns," + ",".join(_GEODETIC_STATE_COLUMNS), [states.t_ns], floats)
 
 
-def _yaml_document(log: FlightLog, target: Path) -> str:
+def _initial_state_document(log: FlightLog, geodetic: bool) -> dict[str, Any]:
+    init = log.config.initial_state
+    vectors = {name: getattr(init, name).tolist() for name, _ in _INITIAL_VECTORS}
+    frame = log.config.local_frame
+    if geodetic and frame is not None:
+        lat, lon, h, quat, vel = frame.states_to_geodetic(
+            init.position_m[None], quat_wxyz_to_rotation(init.quaternion_wxyz)[None],
+            init.velocity_mps[None])
+        del vectors["position_m"]
+        vectors = {"latitude_deg": float(lat[0]), "longitude_deg": float(lon[0]),
+                   "height_m": float(h[0]), **vectors,
+                   "quaternion_wxyz": quat[0].tolist(), "velocity_mps": vel[0].tolist()}
+    return {**vectors, **{name: float(getattr(init, name)) for name in _INITIAL_SIGMAS}}
+
+
+def _yaml_document(log: FlightLog, target: Path, geodetic: bool = False) -> str:
     cfg = log.config
     cam = cfg.camera.camera
     body_T_cam = cfg.camera.body_T_cam
@@ -86,7 +107,6 @@ def _yaml_document(log: FlightLog, target: Path) -> str:
         "translation_m": body_T_cam[:3, 3].tolist(),
         "quaternion_wxyz": rotation_to_quat_wxyz(body_T_cam[:3, :3]).tolist(),
     }
-    init = cfg.initial_state
     document: dict[str, Any] = {"format": FORMAT}
     if cfg.origin is not None:
         document["origin"] = {"latitude_deg": cfg.origin.latitude_deg,
@@ -97,10 +117,7 @@ def _yaml_document(log: FlightLog, target: Path) -> str:
         "dtm": dtm,
         "camera": camera,
         "imu": {key: float(getattr(cfg.imu, key)) for key in _IMU_KEYS},
-        "initial_state": {
-            **{name: getattr(init, name).tolist() for name, _ in _INITIAL_VECTORS},
-            **{name: float(getattr(init, name)) for name in _INITIAL_SIGMAS},
-        },
+        "initial_state": _initial_state_document(log, geodetic),
     })
     if cfg.extra:
         document["extra"] = cfg.extra
@@ -120,13 +137,13 @@ def _represent_flow_list(dumper: yaml.SafeDumper, data: list) -> yaml.Node:
 _FlightYamlDumper.add_representer(list, _represent_flow_list)
 
 
-def _render(log: FlightLog, target: Path) -> dict[str, str]:
+def _render(log: FlightLog, target: Path, geodetic: bool = False) -> dict[str, str]:
     for image in log.frames.image:
         if any(c in image for c in ",\r\n"):
             raise ValueError(f"image path {image!r} holds a comma or a line break: "
                              f"frames.csv could not be read back")
     files = {
-        FLIGHT_YAML: _yaml_document(log, target),
+        FLIGHT_YAML: _yaml_document(log, target, geodetic),
         IMU_CSV: _csv_text("#t_ns,gyro_x,gyro_y,gyro_z,acc_x,acc_y,acc_z", [log.imu.t_ns],
                            np.hstack([log.imu.gyro_radps, log.imu.acc_mps2])),
         FRAMES_CSV: "#t_ns,image\n" + "".join(
@@ -137,14 +154,15 @@ def _render(log: FlightLog, target: Path) -> dict[str, str]:
         files[TRACKS_CSV] = _csv_text("#frame,track_id,u,v", [log.tracks.frame,
                                                              log.tracks.track_id],
                                       log.tracks.uv_px)
+    frame = log.config.local_frame if geodetic else None
     if log.nav is not None:
-        files[NAV_CSV] = _states_text(log.nav)
+        files[NAV_CSV] = _states_text(log.nav, frame)
     if log.groundtruth is not None:
-        files[GROUNDTRUTH_CSV] = _states_text(log.groundtruth)
+        files[GROUNDTRUTH_CSV] = _states_text(log.groundtruth, frame)
     return files
 
 
-def write_flightlog(log: FlightLog, path: str | os.PathLike) -> None:
+def write_flightlog(log: FlightLog, path: str | os.PathLike, geodetic: bool = False) -> None:
     """Write a flight log directory (flight.yaml and the CSV files; not the DTM or images).
 
     Every file is first written into a temporary directory next to the target. A
@@ -160,9 +178,15 @@ def write_flightlog(log: FlightLog, path: str | os.PathLike) -> None:
     lies inside it, else absolute; a relative path is written as given. The writer
     does not validate: :func:`read_flightlog` does.
 
+    With ``geodetic`` (and a geodetic origin in the log) the initial state, nav.csv and
+    groundtruth.csv are written as a GNSS/INS gives them: latitude, longitude, ellipsoidal
+    height, attitude and velocity in the local ENU; they then read back to ~1e-9 m, not
+    bit for bit.
+
     Args:
         log: the flight log (``log.root`` is not used).
         path: the target directory; created with its parents if needed.
+        geodetic: write states in geodetic form (needs ``log.config.origin``).
 
     Raises:
         FlightLogError: the target exists and is not a directory.
@@ -171,7 +195,9 @@ def write_flightlog(log: FlightLog, path: str | os.PathLike) -> None:
     target = normalized_path(Path(path))
     if target.exists() and not target.is_dir():
         _fail(str(path), 1, "exists and is not a directory", "a directory for the flight log")
-    files = _render(log, target)  # everything rendered before the disk is touched
+    if geodetic and log.config.origin is None:
+        raise ValueError("geodetic=True needs a log with a geodetic origin")
+    files = _render(log, target, geodetic)  # everything rendered before the disk is touched
     target.parent.mkdir(parents=True, exist_ok=True)
     staging = target.parent / f".{target.name}.{uuid.uuid4().hex[:12]}.tmp"
     staging.mkdir()

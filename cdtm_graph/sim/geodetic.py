@@ -11,6 +11,7 @@ pixel centre's latitude and longitude. Reading the tile back with
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from pathlib import Path
@@ -18,7 +19,11 @@ from pathlib import Path
 import numpy as np
 
 from cdtm_graph.dtm import Dtm
-from cdtm_graph.geodesy import LocalFrame, VerticalDatum, geoid_undulation_m
+from cdtm_graph.geodesy import GeodeticOrigin, LocalFrame, VerticalDatum, geoid_undulation_m
+from cdtm_graph.sim.simulate import SimulationResult
+
+#: Name of the DEM tile in a simulated geodetic log directory.
+GEODETIC_DEM_FILENAME = "dem.tif"
 
 #: The height iteration stops when no pixel moved more than this (m).
 _CONVERGENCE_M = 1e-5
@@ -112,3 +117,46 @@ def write_dem_tile(terrain: Dtm, frame: LocalFrame, path: str | os.PathLike, crs
                        transform=Affine(pixel_size, 0.0, left, 0.0, -pixel_size, top)) as dst:
         dst.write(h.reshape(height, width).astype(np.float32), 1)
     return path
+
+
+def write_geodetic_simulation(result: SimulationResult, out_dir: str | os.PathLike,
+                              origin: GeodeticOrigin, dem_crs: str = "EPSG:4326",
+                              pixel_size: float | None = None,
+                              vertical_datum: VerticalDatum = VerticalDatum.EGM96) -> Path:
+    """Write a simulated flight as a GNSS user would have it: lat/lon and a DEM tile.
+
+    The simulator's world becomes the ENU tangent plane at ``origin``; the log's DTM is
+    written as a GeoTIFF in ``dem_crs`` (``dem.tif``, heights in ``vertical_datum``), and
+    the initial state, nav.csv and groundtruth.csv in latitude, longitude and ellipsoidal
+    height. The IMU is the simulator's (flat model: constant gravity along the world's
+    -z, no Earth rotation), which is also what the smoother integrates today.
+
+    Args:
+        result: a :func:`~cdtm_graph.sim.simulate.simulate` result.
+        out_dir: the log directory (appears complete or not at all).
+        origin: where the world is on the Earth.
+        dem_crs: CRS of the DEM tile.
+        pixel_size: in CRS units; None: 1 arc-second for a geographic CRS, else the DTM's
+            spacing.
+        vertical_datum: heights of the tile above the ellipsoid or the EGM96 geoid.
+
+    Returns:
+        The log directory.
+    """
+    from pyproj import CRS
+
+    from cdtm_graph.atomic import atomic_output_dir
+    from cdtm_graph.flightlog import DtmConfig, write_flightlog
+
+    frame = LocalFrame(origin)
+    if pixel_size is None:
+        pixel_size = (1.0 / 3600.0 if CRS.from_user_input(dem_crs).is_geographic
+                      else result.dtm.grid_spacing_m)
+    config = dataclasses.replace(result.log.config, origin=origin, dtm=DtmConfig(
+        Path(GEODETIC_DEM_FILENAME), result.dtm.sigma_h_m, vertical_datum=vertical_datum))
+    log = dataclasses.replace(result.log, config=config)
+    with atomic_output_dir(out_dir) as tmp:
+        write_dem_tile(result.terrain, frame, tmp / GEODETIC_DEM_FILENAME, dem_crs, pixel_size,
+                       vertical_datum)
+        write_flightlog(log, tmp, geodetic=True)
+    return Path(out_dir)
