@@ -302,3 +302,67 @@ def test_no_geodetic_outputs_without_a_frame(tmp_path: Path, rng):
     write_run(tmp_path / "run", _synthetic_result(rng), {})
     assert not (tmp_path / "run" / TRAJECTORY_GEODETIC_CSV).exists()
     assert not (tmp_path / "run" / TRAJECTORY_GEOJSON).exists()
+
+
+# --------------------------------------------------------------------------- end to end
+
+
+def test_the_worked_example_end_to_end(tmp_path: Path):
+    """docs/geodesy.md's example: a lat/lon flight over an EPSG:4326 EGM96 tile."""
+    import rasterio
+
+    from cdtm_graph.cli import main
+
+    log, run = tmp_path / "my_flight", tmp_path / "my_run"
+    assert main(["simulate", str(log), "--origin", "36.5", "127.25", "120", "--frames", "8",
+                 "--nav", "noisy_truth"]) == 0
+    document = yaml.safe_load((log / "flight.yaml").read_text())
+    assert document["dtm"] == {"path": "dem.tif", "sigma_h_m": 2.4, "vertical_datum": "egm96"}
+    assert "latitude_deg" in document["initial_state"]
+    assert (log / "groundtruth.csv").read_text().startswith(
+        "#t_ns,latitude_deg,longitude_deg,height_m,")
+    with rasterio.open(log / "dem.tif") as src:
+        assert src.crs.to_epsg() == 4326
+    assert main(["smooth", str(log), "--out", str(run), "--plots", "--quiet"]) == 0
+    assert {"trajectory_geodetic.csv", "trajectory.geojson", "trajectory_dem.png"} <= {
+        p.name for p in run.iterdir()}
+    # The geodetic trajectory against the (geodetic) ground truth, in metres on the ground.
+    flight = read_flightlog(log)
+    frame = flight.config.local_frame
+    table = np.loadtxt(run / "trajectory_geodetic.csv", delimiter=",", skiprows=1)
+    estimate = frame.geodetic_to_world(table[:, 1], table[:, 2], table[:, 3])
+    truth = flight.groundtruth.interpolate(flight.frames.t_ns).position_m
+    error = np.linalg.norm(estimate - truth, axis=1)
+    sigma = np.linalg.norm(table[:, 11:14], axis=1)
+    assert np.all(error < 4 * sigma)
+    assert error.max() < 5.0  # a 30 m DEM, 1000 m above ground: metres, not tens
+
+
+def test_the_dem_plot_draws_in_the_dems_own_coordinates(tmp_path: Path, rng):
+    from cdtm_graph.dem import read_dem_window
+    from cdtm_graph.plots.dem import plot_trajectory_over_dem
+    from cdtm_graph.results import TrajectoryEstimate
+    from cdtm_graph.sim.geodetic import write_dem_tile
+    from tests.test_dem import _smooth_native
+
+    frame = LocalFrame(ORIGIN)
+    native = _smooth_native()
+    k = 12
+    position = np.column_stack([np.linspace(26500, 29500, k), np.linspace(16500, 18500, k),
+                                np.full(k, 1500.0)])
+    T = np.tile(np.eye(4), (k, 1, 1))
+    T[:, :3, 3] = position
+    estimate = TrajectoryEstimate(np.arange(k, dtype=np.int64), T, np.zeros((k, 3)),
+                                  np.zeros((k, 3)), np.zeros((k, 3)))
+    cov = np.tile(np.diag([25.0, 4.0, 9.0]), (k, 1, 1))
+    region = (26000.0, 30000.0, 16000.0, 19000.0)
+    for crs, pixel in (("EPSG:4326", 1 / 3600), ("EPSG:32652", 30.0)):
+        tile = write_dem_tile(native, frame, tmp_path / f"{pixel}.tif", crs, pixel)
+        window = read_dem_window([tile], frame, region, VerticalDatum.ELLIPSOID)
+        fig = plot_trajectory_over_dem(tmp_path / "dem.png", window, frame, estimate, cov)
+        line = next(ln for ln in fig.axes[0].lines if ln.get_label() == "estimate")
+        lat, lon, _ = frame.world_to_geodetic(position)
+        x, y = window.to_crs(lat, lon)
+        np.testing.assert_allclose(line.get_xdata(), x, rtol=1e-12)
+        np.testing.assert_allclose(line.get_ydata(), y, rtol=1e-12)
+        assert (tmp_path / "dem.png").stat().st_size > 0
