@@ -439,7 +439,6 @@ def _resample(frame: LocalFrame, surfaces: list[_Surface], datum: VerticalDatum,
     active = np.arange(x.size)
     # Start on the ellipsoid's drop below the tangent plane (a sphere's is close enough).
     z_try = -(x**2 + y**2) / (2 * WGS84_A_M) - frame.origin.height_m
-    up_z_row = frame.world_R_ecef[2]
     for _ in range(MAX_ITERATIONS):
         lat, lon, h = frame.world_to_geodetic(
             np.column_stack([x[active], y[active], z_try[active]]))
@@ -447,10 +446,7 @@ def _resample(frame: LocalFrame, surfaces: list[_Surface], datum: VerticalDatum,
         has_data = np.isfinite(terrain)
         active, lat, lon, h, terrain = (active[has_data], lat[has_data], lon[has_data],
                                         h[has_data], terrain[has_data])
-        la, lo = np.radians(lat), np.radians(lon)
-        up_z = (up_z_row[0] * np.cos(la) * np.cos(lo) + up_z_row[1] * np.cos(la) * np.sin(lo)
-                + up_z_row[2] * np.sin(la))
-        step = (terrain - h) / up_z
+        step = (terrain - h) / frame.up_z(lat, lon)
         z_try[active] += step
         done = np.abs(step) <= CONVERGENCE_M
         z[active[done]] = z_try[active[done]]

@@ -446,6 +446,14 @@ class LocalFrame:
         """
         return self.world_R_ecef @ np.swapaxes(enu_R_ecef(latitude_deg, longitude_deg), 1, 2)
 
+    def up_z(self, latitude_deg, longitude_deg) -> np.ndarray:
+        """World z component (N,) of the local vertical at geodetic points: the cosine of
+        the angle between it and the world's up (0.9999556 at 60 km from the origin)."""
+        la = np.radians(np.asarray(latitude_deg, dtype=float))
+        lo = np.radians(np.asarray(longitude_deg, dtype=float))
+        r = self.world_R_ecef[2]
+        return r[0] * np.cos(la) * np.cos(lo) + r[1] * np.cos(la) * np.sin(lo) + r[2] * np.sin(la)
+
     def world_R_enu_at(self, p_world: np.ndarray) -> np.ndarray:
         """:meth:`world_R_enu` at world positions (N, 3) -> (N, 3, 3)."""
         lat, lon, _ = self.world_to_geodetic(p_world)

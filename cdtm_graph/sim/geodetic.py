@@ -45,9 +45,7 @@ def terrain_ellipsoidal_height_m(terrain: Dtm, frame: LocalFrame, latitude_deg: 
     """
     lat = np.asarray(latitude_deg, dtype=float).ravel()
     lon = np.asarray(longitude_deg, dtype=float).ravel()
-    la, lo = np.radians(lat), np.radians(lon)
-    up_ecef = np.column_stack([np.cos(la) * np.cos(lo), np.cos(la) * np.sin(lo), np.sin(la)])
-    up_z = up_ecef @ frame.world_R_ecef[2]  # world z of each point's local vertical
+    up_z = frame.up_z(lat, lon)
     h = np.zeros(lat.size)
     out = np.full(lat.size, np.nan)
     active = np.arange(lat.size)
