@@ -774,12 +774,33 @@ def load_dtm(
     if not path.is_file():
         raise DtmError(f"{path}: no such file, expected a DTM file")
     elevation, x0, y0, dx, dy = readers[suffix](path)
+    _refuse_degrees(path, elevation.shape, x0, y0, dx, dy)
     try:
         return Dtm(
             elevation - origin[2], x0 - origin[0], y0 - origin[1], dx, dy, sigma_h_m=sigma_h_m
         )
     except DtmError as exc:
         raise DtmError(f"{path}: {exc}") from None
+
+
+#: A grid read as metres whose spacing is finer than this and whose coordinates all fit
+#: longitudes and latitudes is taken for a grid in degrees (SRTM 1" = 0.00028, 30" = 0.0083).
+DEGREE_LIKE_SPACING = 0.01
+
+
+def _refuse_degrees(path: Path, shape: tuple[int, ...], x0: float, y0: float, dx: float,
+                    dy: float) -> None:
+    """A grid in degrees read as metres would be a map of 0.0003 m cells: refuse it."""
+    rows, cols = shape
+    x1, y1 = x0 + (cols - 1) * dx, y0 + (rows - 1) * dy
+    if (max(abs(dx), abs(dy)) < DEGREE_LIKE_SPACING
+            and all(-180.0 <= x <= 360.0 for x in (x0, x1))
+            and all(-90.0 <= y <= 90.0 for y in (y0, y1))):
+        raise DtmError(
+            f"{path}: spacing {abs(dx):.6g} x {abs(dy):.6g} at x {x0:.6g}..{x1:.6g}, "
+            f"y {y0:.6g}..{y1:.6g} looks like degrees of longitude and latitude, and the file "
+            "carries no CRS; expected a metric grid, or a georeferenced DEM (GeoTIFF with its "
+            "CRS, or .asc with a .prj) with a top-level origin: in flight.yaml")
 
 
 def save_dtm_npz(dtm: Dtm, path: str | os.PathLike) -> None:
@@ -1016,7 +1037,9 @@ def _read_tif(path: Path) -> tuple[np.ndarray, float, float, float, float]:
         ) from None
     if crs is not None and getattr(crs, "is_geographic", False):
         raise DtmError(
-            f"{path}: CRS {crs} is geographic (degrees), expected a metric projected CRS"
+            f"{path}: CRS {crs} is geographic (degrees); expected a metric projected CRS, or "
+            "a top-level origin: (latitude_deg, longitude_deg, height_m) in flight.yaml to "
+            "read it in the local ENU"
         )
     a, b, c, d, e, f = (float(transform[k]) for k in range(6))
     if b != 0.0 or d != 0.0:

@@ -7,6 +7,10 @@ A run directory holds::
     states.csv            t_ns, position, quaternion wxyz, velocity, biases, 1-sigma
     covariances.npz       per-frame marginal covariances in GTSAM's tangent order
     report.json           counts, solver statistics, settings, flags + the caller's report
+    trajectory_geodetic.csv  (logs with a geodetic origin) t_ns, WGS84 latitude, longitude,
+                          ellipsoidal height, attitude and velocity in the local ENU,
+                          1-sigma north/east/up
+    trajectory.geojson    (logs with a geodetic origin) the track for GIS tools
     <extra files>         e.g. PNG plots, written by caller-supplied functions
 
 Conventions of the files:
@@ -48,6 +52,7 @@ import numpy as np
 
 from cdtm_graph.atomic import atomic_output_dir
 from cdtm_graph.errors import CdtmError
+from cdtm_graph.geodesy import LocalFrame
 from cdtm_graph.geometry import quat_wxyz_to_rotation, rotation_to_quat_wxyz
 from cdtm_graph.results import SmootherResult, pose_covariance_in_world
 
@@ -58,8 +63,21 @@ TRAJECTORY_COV = "trajectory_cov.txt"
 STATES_CSV = "states.csv"
 COVARIANCES_NPZ = "covariances.npz"
 REPORT_JSON = "report.json"
-#: The files ``write_run`` always writes; extra files may not take these names.
+TRAJECTORY_GEODETIC_CSV = "trajectory_geodetic.csv"
+TRAJECTORY_GEOJSON = "trajectory.geojson"
+#: The files ``write_run`` always writes, and those it adds for a log with a geodetic
+#: origin; extra files may take none of these names.
 RUN_FILES = (TRAJECTORY_TUM, TRAJECTORY_COV, STATES_CSV, COVARIANCES_NPZ, REPORT_JSON)
+GEODETIC_RUN_FILES = (TRAJECTORY_GEODETIC_CSV, TRAJECTORY_GEOJSON)
+
+#: Columns of trajectory_geodetic.csv. Its first eleven are those of a geodetic nav.csv or
+#: groundtruth.csv, so the file can be given back as either.
+GEODETIC_COLUMNS = (
+    "t_ns", "latitude_deg", "longitude_deg", "height_m",  # WGS84, ellipsoidal height
+    "qw", "qx", "qy", "qz",  # body -> local ENU at the position
+    "ve", "vn", "vu",  # m/s in the local ENU
+    "sigma_north_m", "sigma_east_m", "sigma_up_m",  # 1-sigma position, local ENU
+)
 #: The writer named in the run directory's manifest (``.cdtm-run.json``).
 RUN_WRITER = "smooth"
 
@@ -291,17 +309,75 @@ def write_covariances_npz(path: str | os.PathLike, result: SmootherResult) -> No
                  bias_convention=np.array(BIAS_COVARIANCE_CONVENTION))
 
 
+def _geodetic_states(result: SmootherResult, frame: LocalFrame) -> np.ndarray:
+    """(K, 13): the columns of ``GEODETIC_COLUMNS`` after t_ns."""
+    est = result.estimate
+    lat, lon, h, quat, vel = frame.states_to_geodetic(
+        est.position_m, est.world_T_body[:, :3, :3], est.velocity_mps)
+    _, position_cov = pose_covariance_in_world(est.world_T_body, result.covariances.pose)
+    sigma_enu = _sigma(frame.covariance_to_enu(est.position_m, position_cov))
+    return np.column_stack([lat, lon, h, quat, vel, sigma_enu[:, 1], sigma_enu[:, 0],
+                            sigma_enu[:, 2]])
+
+
+def write_trajectory_geodetic_csv(path: str | os.PathLike, result: SmootherResult,
+                                  frame: LocalFrame) -> None:
+    """Write ``trajectory_geodetic.csv``: one row per frame, columns ``GEODETIC_COLUMNS``.
+
+    Latitude and longitude in degrees (WGS84), height above the WGS84 ellipsoid (m);
+    attitude (body -> ENU) and velocity in the local ENU at the row's own position; the
+    position's 1-sigma along the local north, east and up (m). Floats in shortest
+    round-trip form.
+    """
+    values = _geodetic_states(result, frame)
+    t_ns = np.asarray(result.estimate.t_ns, dtype=np.int64)
+    text = _rows_text(t_ns, values, sep=",", t_format=str)
+    Path(path).write_text(",".join(GEODETIC_COLUMNS) + "\n" + text)
+
+
+def write_trajectory_geojson(path: str | os.PathLike, result: SmootherResult,
+                             frame: LocalFrame) -> None:
+    """Write ``trajectory.geojson`` (RFC 7946: WGS84, [longitude, latitude, height]).
+
+    One LineString of the whole track, then one Point per frame with its time and
+    1-sigma north/east/up as properties. Heights are ellipsoidal (m).
+    """
+    values = _geodetic_states(result, frame)
+    t_ns = np.asarray(result.estimate.t_ns, dtype=np.int64)
+    lat, lon, h = values[:, 0], values[:, 1], values[:, 2]
+    coords = [[round(float(x), 9), round(float(y), 9), round(float(z), 3)]
+              for x, y, z in zip(lon, lat, h)]
+    features: list[dict[str, Any]] = [{
+        "type": "Feature",
+        "geometry": {"type": "LineString", "coordinates": coords},
+        "properties": {"name": "trajectory", "t_ns_first": int(t_ns[0]) if len(t_ns) else None,
+                       "t_ns_last": int(t_ns[-1]) if len(t_ns) else None,
+                       "frames": int(len(t_ns)), "height": "WGS84 ellipsoidal, m"},
+    }]
+    for k, coord in enumerate(coords):
+        features.append({
+            "type": "Feature",
+            "geometry": {"type": "Point", "coordinates": coord},
+            "properties": {"frame": k, "t_ns": int(t_ns[k]),
+                           "sigma_north_m": values[k, 10], "sigma_east_m": values[k, 11],
+                           "sigma_up_m": values[k, 12]},
+        })
+    document = {"type": "FeatureCollection", "features": features}
+    Path(path).write_text(json.dumps(to_json_safe(document), allow_nan=False) + "\n")
+
+
 def _check_extra_name(name: str) -> None:
     pure = PurePath(name)
     if (not name or pure.name != name or name in (".", "..") or "\\" in name
-            or name in RUN_FILES):
+            or name in RUN_FILES + GEODETIC_RUN_FILES):
         raise ValueError(f"extra file name {name!r} must be a plain file name other than "
-                         f"{', '.join(RUN_FILES)}")
+                         f"{', '.join(RUN_FILES + GEODETIC_RUN_FILES)}")
 
 
 def write_run(out_dir: str | os.PathLike, result: SmootherResult, report: Mapping[str, Any],
               extra_files: Sequence[tuple[str, ExtraFileWriter]] = (), *, force: bool = False,
-              protected: Sequence[str | os.PathLike] = ()) -> None:
+              protected: Sequence[str | os.PathLike] = (),
+              frame: LocalFrame | None = None) -> None:
     """Write a whole run directory, atomically, never over a file cdtm did not write.
 
     The files are written into a staging directory and published into ``out_dir`` only
@@ -320,6 +396,9 @@ def write_run(out_dir: str | os.PathLike, result: SmootherResult, report: Mappin
             ``("trajectory.png", lambda p: plot_trajectory_over_dtm(p, dtm, ...))``.
         force: also write into a non-empty directory cdtm did not write (beside its files).
         protected: inputs ``out_dir`` must not be, be inside or contain (the flight log).
+        frame: the log's geodetic frame (``FlightConfig.local_frame``); when given, also
+            ``trajectory_geodetic.csv`` and ``trajectory.geojson``, and the origin in
+            report.json.
 
     Raises:
         ValueError: inconsistent shapes, a bad or duplicate extra file name, or report
@@ -327,10 +406,11 @@ def write_run(out_dir: str | os.PathLike, result: SmootherResult, report: Mappin
         OutputError: ``out_dir`` may not be written (see ``atomic_output_dir``).
     """
     check_run(result, report, extra_files)
-    names = [*RUN_FILES, *(name for name, _ in extra_files)]
+    names = [*RUN_FILES, *(GEODETIC_RUN_FILES if frame is not None else ()),
+             *(name for name, _ in extra_files)]
     with atomic_output_dir(out_dir, writer=RUN_WRITER, force=force, protected=protected,
                            names=names) as tmp:
-        write_run_files(tmp, result, report, extra_files)
+        write_run_files(tmp, result, report, extra_files, frame)
 
 
 def check_run(result: SmootherResult, report: Mapping[str, Any],
@@ -347,7 +427,8 @@ def check_run(result: SmootherResult, report: Mapping[str, Any],
 
 def write_run_files(directory: str | os.PathLike, result: SmootherResult,
                     report: Mapping[str, Any],
-                    extra_files: Sequence[tuple[str, ExtraFileWriter]] = ()) -> None:
+                    extra_files: Sequence[tuple[str, ExtraFileWriter]] = (),
+                    frame: LocalFrame | None = None) -> None:
     """Write the files of a run into ``directory`` (not atomic by itself).
 
     For a caller holding an :func:`~cdtm_graph.atomic.atomic_output_dir` open (the CLI
@@ -357,7 +438,16 @@ def write_run_files(directory: str | os.PathLike, result: SmootherResult,
     check_run(result, report, extra_files)
     directory = Path(directory)
     k = _check_result(result)
-    report_text = json.dumps(run_report(result, report), indent=2, allow_nan=False) + "\n"
+    content = run_report(result, report)
+    if frame is not None:
+        o = frame.origin
+        content["conventions"]["world"] = (
+            f"local ENU tangent plane at WGS84 latitude {o.latitude_deg} deg, longitude "
+            f"{o.longitude_deg} deg, ellipsoidal height {o.height_m} m; metres")
+        content["conventions"][TRAJECTORY_GEODETIC_CSV] = (
+            "WGS84 latitude/longitude (deg), ellipsoidal height (m); attitude body -> local "
+            "ENU and velocity in the local ENU at each position; 1-sigma north/east/up (m)")
+    report_text = json.dumps(content, indent=2, allow_nan=False) + "\n"
     est = result.estimate
     t_ns = np.asarray(est.t_ns, dtype=np.int64).reshape(k)
     write_trajectory_tum(directory / TRAJECTORY_TUM, t_ns, est.world_T_body)
@@ -366,6 +456,9 @@ def write_run_files(directory: str | os.PathLike, result: SmootherResult,
     write_states_csv(directory / STATES_CSV, result)
     write_covariances_npz(directory / COVARIANCES_NPZ, result)
     (directory / REPORT_JSON).write_text(report_text)
+    if frame is not None:
+        write_trajectory_geodetic_csv(directory / TRAJECTORY_GEODETIC_CSV, result, frame)
+        write_trajectory_geojson(directory / TRAJECTORY_GEOJSON, result, frame)
     for name, writer in extra_files:
         writer(directory / name)
 

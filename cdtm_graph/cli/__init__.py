@@ -26,11 +26,27 @@ from cdtm_graph.errors import CdtmError
 SUBCOMMANDS = ("demo", "smooth", "simulate", "analyze", "study", "navsim", "accuracy_map")
 
 
+#: The worked example ``cdtm --help`` ends with (docs/geodesy.md has the whole story).
+GEODETIC_EXAMPLE = """\
+a flight in latitude/longitude over an EPSG:4326 DEM with EGM96 heights (SRTM, Copernicus):
+  cdtm simulate my_flight --origin 36.5 127.25 120 --nav noisy_truth
+  cdtm smooth my_flight --out my_run --plots
+  flight.yaml:  origin: {latitude_deg: 36.5, longitude_deg: 127.25, height_m: 120.0}
+                dtm: {path: [N36E127.tif, N36E128.tif], vertical_datum: egm96}
+                initial_state: latitude_deg/longitude_deg/height_m (attitude, velocity
+                in the local ENU there) instead of position_m
+  nav.csv, groundtruth.csv: #t_ns,latitude_deg,longitude_deg,height_m,qw,qx,qy,qz,ve,vn,vu
+  my_run/trajectory_geodetic.csv (lat, lon, ellipsoidal height, 1-sigma north/east/up),
+  my_run/trajectory.geojson, my_run/trajectory_dem.png (over the DEM in its own CRS)
+"""
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="cdtm",
         description="C-DTM navigation: smooth flight logs from camera, IMU and a DTM; "
-                    "analyse and predict accuracy (Kupervasser et al.).")
+                    "analyse and predict accuracy (Kupervasser et al.).",
+        epilog=GEODETIC_EXAMPLE, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in SUBCOMMANDS:

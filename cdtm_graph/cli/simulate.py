@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from cdtm_graph.cli.outdir import OUT_RULES, add_force_option, output_dir
+from cdtm_graph.geodesy import VerticalDatum
 from cdtm_graph.sim.simulate import (
     WRITER,
     NavMode,
@@ -55,6 +56,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--nav", choices=[m.value for m in NavMode], default=NavMode.NONE.value,
                         help="write nav.csv: none, IMU dead reckoning, or noisy truth "
                              "(default %(default)s)")
+    geo = parser.add_argument_group(
+        "geodetic log", "place the flight on the Earth: lat/lon inputs and a DEM tile")
+    geo.add_argument("--origin", type=float, nargs=3, metavar=("LAT", "LON", "H"),
+                     help="WGS84 latitude, longitude (deg) and ellipsoidal height (m) of the "
+                          "world origin: writes dem.tif instead of dtm.npz, and the initial "
+                          "state, nav.csv and groundtruth.csv in latitude/longitude/height")
+    geo.add_argument("--dem-crs", default="EPSG:4326",
+                     help="CRS of dem.tif (default %(default)s, as SRTM and Copernicus)")
+    geo.add_argument("--vertical-datum", choices=[d.value for d in VerticalDatum],
+                     default=VerticalDatum.EGM96.value,
+                     help="heights of dem.tif above the geoid or the ellipsoid "
+                          "(default %(default)s)")
     parser.set_defaults(func=run)
 
 
@@ -69,7 +82,15 @@ def run(args: argparse.Namespace) -> int:
     protected = [args.terrain] if args.terrain is not None else []
     with output_dir(args, out, WRITER, protected=protected, label="OUT") as staging:
         result = simulate(settings)
-        write_simulation_files(result, staging, out)
+        if args.origin is None:
+            write_simulation_files(result, staging, out)
+        else:
+            from cdtm_graph.geodesy import GeodeticOrigin
+            from cdtm_graph.sim.geodetic import write_geodetic_simulation_files
+
+            write_geodetic_simulation_files(
+                result, staging, GeodeticOrigin(*args.origin), args.dem_crs,
+                vertical_datum=VerticalDatum(args.vertical_datum))
     stats = result.stats
     rows, cols = result.dtm.shape
     print(f"wrote {out}: {len(result.log.frames)} frames, {stats.n_tracks} tracks, "

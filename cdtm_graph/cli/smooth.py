@@ -10,7 +10,7 @@ from cdtm_graph.cli.outdir import add_out_option, output_dir
 from cdtm_graph.errors import CdtmError
 from cdtm_graph.flightlog import load_log_and_dtm
 from cdtm_graph.graph import GraphSettings
-from cdtm_graph.outputs import RUN_FILES, RUN_WRITER, write_run_files
+from cdtm_graph.outputs import GEODETIC_RUN_FILES, RUN_FILES, RUN_WRITER, write_run_files
 from cdtm_graph.results import pose_covariance_in_world
 from cdtm_graph.run import RunOutput, smooth_and_evaluate
 from cdtm_graph.smoother import SmootherMode, SmootherSettings
@@ -19,7 +19,7 @@ from factors import PlaneMode, RobustKernel
 #: Runs with at least this many frames show a progress bar (unless --quiet).
 PROGRESS_MIN_FRAMES = 100
 #: The plots ``--plots`` may write (errors.png only with ground truth).
-PLOT_FILES = ("trajectory.png", "errors.png")
+PLOT_FILES = ("trajectory.png", "errors.png", "trajectory_dem.png")
 
 
 def add_smoothing_options(p: argparse.ArgumentParser) -> None:
@@ -36,8 +36,9 @@ def add_smoothing_options(p: argparse.ArgumentParser) -> None:
                    help="incremental mode: drop features whose innovation against the "
                         "prior fails the chi-square gate of probability P (e.g. 0.9999)")
     p.add_argument("--plots", action="store_true",
-                   help="also write trajectory.png (over the DTM, 3-sigma ellipses) and "
-                        "errors.png (errors inside +-3 sigma)")
+                   help="also write trajectory.png (over the DTM, 3-sigma ellipses), "
+                        "errors.png (errors inside +-3 sigma) and, for a geodetic log, "
+                        "trajectory_dem.png (over the DEM in its own coordinates)")
     p.add_argument("--quiet", action="store_true", help="no progress bar, no summary")
 
 
@@ -92,6 +93,16 @@ def plot_writers(out: RunOutput, dtm, flight) -> list:
     _, pos_cov = pose_covariance_in_world(est.world_T_body, out.result.covariances.pose)
     writers = [("trajectory.png",
                 lambda p: plot_trajectory_over_dtm(p, dtm, est, pos_cov, flight.groundtruth))]
+    frame, cfg = flight.config.local_frame, flight.config.dtm
+    if frame is not None:
+        from cdtm_graph.dem import read_dem_window
+        from cdtm_graph.flightlog.reader import dem_region_m
+        from cdtm_graph.plots.dem import plot_trajectory_over_dem
+
+        window = read_dem_window(cfg.paths, frame, dem_region_m(flight), cfg.vertical_datum,
+                                 cfg.crs)
+        writers.append(("trajectory_dem.png", lambda p: plot_trajectory_over_dem(
+            p, window, frame, est, pos_cov, flight.groundtruth)))
     e = out.errors
     if e is not None and e.position_sigma_world_m is not None:
         sigma = e.position_sigma_world_m
@@ -129,12 +140,14 @@ def smooth_log_to_dir(log_dir: str, out_dir: Path, args: argparse.Namespace) -> 
     """Smooth ``log_dir`` into ``out_dir``; the output directory is checked (and its staging
     directory made) before the log is read, so a bad ``--out`` fails before any work."""
     settings = settings_from_args(args)
-    names = [*RUN_FILES, *(PLOT_FILES if args.plots else ())]
+    # (the geodetic files only come with an origin; unknown before the log is read)
+    names = [*RUN_FILES, *GEODETIC_RUN_FILES, *(PLOT_FILES if args.plots else ())]
     with output_dir(args, out_dir, RUN_WRITER, protected=[log_dir], names=names) as staging:
         flight, dtm = load_log_and_dtm(log_dir)
         out = smooth_and_evaluate(flight, dtm, settings, progress_bar(args.quiet))
         extras = plot_writers(out, dtm, flight) if args.plots else []
-        write_run_files(staging, out.result, out.report, extras)
+        write_run_files(staging, out.result, out.report, extras,
+                        frame=flight.config.local_frame)
     return out
 
 

@@ -19,9 +19,11 @@ import numpy as np
 import yaml
 
 from cdtm_graph.camera import PinholeCamera
+from cdtm_graph.errors import CdtmError
 from cdtm_graph.flightlog.model import (
     DTM_SUFFIXES,
     FORMAT,
+    GEODETIC_DTM_SUFFIXES,
     QUATERNION_EXACT_TOL,
     QUATERNION_UNIT_TOL,
     CameraConfig,
@@ -33,6 +35,7 @@ from cdtm_graph.flightlog.model import (
 )
 from cdtm_graph.flightlog.problems import _fail, _show
 from cdtm_graph.flightlog.tables import _parse_float
+from cdtm_graph.geodesy import GeodeticOrigin, VerticalDatum, local_frame, normal_gravity_mps2
 from cdtm_graph.geometry import make_pose, quat_wxyz_to_rotation
 
 
@@ -232,43 +235,118 @@ def _parse_flight_document(loader: yaml.SafeLoader, shown: str, root: Path) -> F
     format_node = top_pairs["format"][1]
     if y.value(format_node) != FORMAT:
         y.fail(format_node, f"format is {_show(str(y.value(format_node)))}", f"{FORMAT!r}")
-    top = y.keys(top_pairs, "", 1,
-                 ("format", "gravity_mps2", "dtm", "camera", "imu", "initial_state"),
-                 ("extra",))
+    top = y.keys(top_pairs, "", 1, ("format", "dtm", "camera", "imu", "initial_state"),
+                 ("gravity_mps2", "origin", "extra"))
     line_of = {key: y.line(key_node) for key, (key_node, _) in top_pairs.items()}
 
-    gravity = y.bounded(top["gravity_mps2"], "gravity_mps2")
-    dtm = _parse_dtm(y, top["dtm"], line_of["dtm"], root)
+    origin = _parse_origin(y, top["origin"], line_of["origin"]) if "origin" in top else None
+    if "gravity_mps2" in top:
+        gravity = y.bounded(top["gravity_mps2"], "gravity_mps2")
+    elif origin is not None:
+        gravity = float(normal_gravity_mps2(origin.latitude_deg, origin.height_m))
+    else:
+        _fail(shown, 1, "missing key 'gravity_mps2'",
+              "gravity_mps2 (m/s^2), or a top-level origin: (gravity from WGS84)")
+    dtm = _parse_dtm(y, top["dtm"], line_of["dtm"], root, origin)
     camera = _parse_camera(y, top["camera"], line_of["camera"])
     imu = _parse_imu(y, top["imu"], line_of["imu"])
-    initial = _parse_initial_state(y, top["initial_state"], line_of["initial_state"])
+    initial = _parse_initial_state(y, top["initial_state"], line_of["initial_state"], origin)
     extra: dict = {}
     if "extra" in top:
         value = y.value(top["extra"])
         if value is not None and not isinstance(value, dict):
             y.fail(top["extra"], "extra is not a mapping", "extra: a mapping (or nothing)")
         extra = value or {}
-    return FlightConfig(gravity, dtm, camera, imu, initial, extra)
+    return FlightConfig(gravity, dtm, camera, imu, initial, extra, origin)
 
 
-def _parse_dtm(y: _Yaml, node: yaml.Node, line: int, root: Path) -> DtmConfig:
-    m = y.keys(y.pairs(node, "dtm", line), "dtm", line, ("path",), ("sigma_h_m", "origin_enu_m"))
-    text = y.text(m["path"], "dtm.path")
+_ORIGIN_KEYS = ("latitude_deg", "longitude_deg", "height_m")
+
+
+def _parse_origin(y: _Yaml, node: yaml.Node, line: int) -> GeodeticOrigin:
+    m = y.keys(y.pairs(node, "origin", line), "origin", line, _ORIGIN_KEYS)
+    values = {key: y.number(m[key], f"origin.{key}") for key in _ORIGIN_KEYS}
+    if not -90.0 <= values["latitude_deg"] <= 90.0:
+        y.fail(m["latitude_deg"], f"origin.latitude_deg is {values['latitude_deg']!r}",
+               "a WGS84 latitude in degrees, -90 to 90")
+    if not -180.0 <= values["longitude_deg"] < 360.0:
+        y.fail(m["longitude_deg"], f"origin.longitude_deg is {values['longitude_deg']!r}",
+               "a WGS84 longitude in degrees, -180 to 360")
+    return GeodeticOrigin(**values)
+
+
+def _dtm_file(y: _Yaml, node: yaml.Node, name: str, root: Path,
+              suffixes: Sequence[str]) -> Path:
+    text = y.text(node, name)
     given = Path(text)
     resolved = normalized_path(given if given.is_absolute() else root / given)
-    if resolved.suffix.lower() not in DTM_SUFFIXES:
-        y.fail(m["path"], f"dtm.path {_show(text)} has suffix {_show(resolved.suffix)}",
-               f"a {', '.join(DTM_SUFFIXES[:-1])} or {DTM_SUFFIXES[-1]} file")
+    if resolved.suffix.lower() not in suffixes:
+        y.fail(node, f"{name} {_show(text)} has suffix {_show(resolved.suffix)}",
+               f"a {', '.join(suffixes[:-1])} or {suffixes[-1]} file")
     if not resolved.is_file():
-        y.fail(m["path"], f"dtm.path {_show(text)} does not exist ({resolved})",
+        y.fail(node, f"{name} {_show(text)} does not exist ({resolved})",
                "an existing DTM file, relative to the log directory or absolute")
+    return resolved
+
+
+def _parse_dtm(y: _Yaml, node: yaml.Node, line: int, root: Path,
+               origin: GeodeticOrigin | None) -> DtmConfig:
+    geodetic_keys = ("vertical_datum", "crs", "margin_m", "spacing_m")
+    m = y.keys(y.pairs(node, "dtm", line), "dtm", line, ("path",),
+               ("sigma_h_m", "origin_enu_m", *geodetic_keys))
+    suffixes = DTM_SUFFIXES if origin is None else GEODETIC_DTM_SUFFIXES
+    path_node = m["path"]
+    if isinstance(path_node, yaml.SequenceNode):
+        if origin is None:
+            y.fail(path_node, "dtm.path is a list of tiles without a geodetic origin",
+                   "one DTM file, or a top-level origin: to mosaic georeferenced tiles")
+        if not path_node.value:
+            y.fail(path_node, "dtm.path is an empty list", "one or more DEM files")
+        paths = [_dtm_file(y, item, f"dtm.path[{i}]", root, suffixes)
+                 for i, item in enumerate(path_node.value)]
+    else:
+        paths = [_dtm_file(y, path_node, "dtm.path", root, suffixes)]
     sigma_h = None
     if "sigma_h_m" in m and y.value(m["sigma_h_m"]) is not None:
         sigma_h = y.bounded(m["sigma_h_m"], "dtm.sigma_h_m")
-    origin = (0.0, 0.0, 0.0)
+    if origin is None:
+        for key in geodetic_keys:
+            if key in m:
+                y.fail(m[key], f"dtm.{key} without a geodetic origin",
+                       "a top-level origin: (latitude_deg, longitude_deg, height_m) "
+                       f"for dtm.{key}")
+        offset = (0.0, 0.0, 0.0)
+        if "origin_enu_m" in m:
+            offset = tuple(y.vector(m["origin_enu_m"], "dtm.origin_enu_m", (3,), True).tolist())
+        return DtmConfig(paths[0], sigma_h, offset)  # type: ignore[arg-type]
     if "origin_enu_m" in m:
-        origin = tuple(y.vector(m["origin_enu_m"], "dtm.origin_enu_m", (3,), True).tolist())
-    return DtmConfig(resolved, sigma_h, origin)  # type: ignore[arg-type]
+        y.fail(m["origin_enu_m"], "dtm.origin_enu_m with a geodetic origin",
+               "no origin_enu_m: georeferenced DEMs are placed by their CRS")
+    if "vertical_datum" not in m:
+        y.fail(line, "missing key 'dtm.vertical_datum'",
+               "dtm.vertical_datum: ellipsoid or egm96 with a geodetic origin (SRTM and "
+               "Copernicus GLO-30 heights are egm96)")
+    datum_text = y.scalar(m["vertical_datum"], "dtm.vertical_datum", "ellipsoid or egm96")
+    try:
+        datum = VerticalDatum(datum_text)
+    except ValueError:
+        y.fail(m["vertical_datum"], f"dtm.vertical_datum is {_show(str(datum_text))}",
+               "ellipsoid (WGS84 heights) or egm96 (heights above the EGM96 geoid)")
+    crs = None
+    if "crs" in m:
+        crs = y.text(m["crs"], "dtm.crs")
+        from pyproj import CRS
+        from pyproj.exceptions import CRSError
+
+        try:
+            CRS.from_user_input(crs)
+        except CRSError:
+            y.fail(m["crs"], f"dtm.crs {_show(crs)} is not a CRS PROJ knows",
+                   "a CRS such as EPSG:4326 or EPSG:32652")
+    margin, spacing = (y.number(m[key], f"dtm.{key}", positive=True) if key in m else None
+                       for key in ("margin_m", "spacing_m"))
+    return DtmConfig(paths[0], sigma_h, (0.0, 0.0, 0.0), tuple(paths[1:]), datum, crs, margin,
+                     spacing)
 
 
 def _intrinsics(y: _Yaml, node: yaml.Node, width: int, height: int
@@ -355,16 +433,43 @@ _INITIAL_SIGMAS = ("sigma_position_m", "sigma_attitude_deg", "sigma_velocity_mps
                    "sigma_gyro_bias", "sigma_accel_bias")
 
 
-def _parse_initial_state(y: _Yaml, node: yaml.Node, line: int) -> InitialState:
-    keys = tuple(name for name, _ in _INITIAL_VECTORS) + _INITIAL_SIGMAS
-    m = y.keys(y.pairs(node, "initial_state", line), "initial_state", line, keys)
+def _parse_initial_state(y: _Yaml, node: yaml.Node, line: int,
+                         origin: GeodeticOrigin | None) -> InitialState:
+    vectors = tuple(name for name, _ in _INITIAL_VECTORS)
+    pairs = y.pairs(node, "initial_state", line)
+    geodetic = any(key in pairs for key in _ORIGIN_KEYS)
+    if geodetic:
+        if origin is None:
+            key = next(key for key in _ORIGIN_KEYS if key in pairs)
+            y.fail(pairs[key][0], f"initial_state.{key} without a geodetic origin",
+                   "a top-level origin: (latitude_deg, longitude_deg, height_m), or "
+                   "initial_state.position_m in the world frame")
+        if "position_m" in pairs:
+            y.fail(pairs["position_m"][0], "initial_state has both position_m and "
+                   "latitude_deg/longitude_deg/height_m", "one of the two")
+        required = _ORIGIN_KEYS + vectors[1:] + _INITIAL_SIGMAS
+    else:
+        required = vectors + _INITIAL_SIGMAS
+    m = y.keys(pairs, "initial_state", line, required)
     values: dict[str, Any] = {}
     for name, n in _INITIAL_VECTORS:
-        dotted = f"initial_state.{name}"
-        values[name] = (y.quaternion(m[name], dotted) if name == "quaternion_wxyz"
-                        else y.vector(m[name], dotted, (n,), True))
+        if name in m:
+            dotted = f"initial_state.{name}"
+            values[name] = (y.quaternion(m[name], dotted) if name == "quaternion_wxyz"
+                            else y.vector(m[name], dotted, (n,), True))
     for name in _INITIAL_SIGMAS:
         values[name] = y.bounded(m[name], f"initial_state.{name}")
+    if geodetic:
+        assert origin is not None
+        lat, lon, h = (y.number(m[key], f"initial_state.{key}") for key in _ORIGIN_KEYS)
+        if not -90.0 <= lat <= 90.0:
+            y.fail(m["latitude_deg"], f"initial_state.latitude_deg is {lat!r}",
+                   "a WGS84 latitude in degrees, -90 to 90")
+        try:
+            position, quat, velocity = local_frame(origin).states_from_geodetic(
+                lat, lon, h, values["quaternion_wxyz"], values["velocity_mps"])
+        except CdtmError as exc:
+            y.fail(m["latitude_deg"], f"initial_state: {exc}", "a geodetic position")
+        values["position_m"], values["quaternion_wxyz"], values["velocity_mps"] = (
+            position[0], quat[0], velocity[0])
     return InitialState(**values)
-
-

@@ -15,6 +15,7 @@ import numpy as np
 
 from cdtm_graph.camera import PinholeCamera
 from cdtm_graph.errors import FlightLogError
+from cdtm_graph.geodesy import GeodeticOrigin, LocalFrame, VerticalDatum, local_frame
 from cdtm_graph.geometry import make_pose, quat_wxyz_to_rotation
 
 FORMAT = "cdtm-flightlog/1"
@@ -29,6 +30,8 @@ GROUNDTRUTH_CSV = "groundtruth.csv"
 LOG_FILES = (FLIGHT_YAML, IMU_CSV, FRAMES_CSV, TRACKS_CSV, NAV_CSV, GROUNDTRUTH_CSV)
 
 DTM_SUFFIXES = (".npz", ".asc", ".tif")
+#: DEM files a geodetic log (top-level ``origin:``) may name: any CRS, read through GDAL.
+GEODETIC_DTM_SUFFIXES = (".tif", ".tiff", ".asc", ".hgt")
 
 #: A quaternion whose norm is further than this from 1 is a data error, not rounding
 #: (six printed digits, as in EuRoC's ground truth, stay well inside it).
@@ -94,25 +97,51 @@ class DtmConfig:
     """Where the DTM is and how to read it (``dtm:`` in flight.yaml).
 
     Attributes:
-        path: the DTM file (.npz, .asc or .tif). The reader resolves a relative path
-            against the log directory; a relative path given to the writer is
-            written as is.
+        path: the DTM file (.npz, .asc or .tif; with a geodetic origin also .tiff, .hgt).
+            The reader resolves a relative path against the log directory; a relative
+            path given to the writer is written as is.
         sigma_h_m: 1-sigma height error of the DTM in metres; None: derive it from
             the grid spacing.
-        origin_enu_m: subtracted from the DTM's own x, y, z to give world coordinates.
+        origin_enu_m: subtracted from the DTM's own x, y, z to give world coordinates
+            (logs without a geodetic origin only).
+        more_paths: further tiles of a mosaic, after ``path`` (geodetic logs only; the
+            first file listed wins where tiles overlap).
+        vertical_datum: what the DEM's heights are measured from; required with a
+            geodetic origin, None without.
+        crs: the CRS of DEM files that carry none, e.g. ``"EPSG:4326"`` (geodetic logs).
+        margin_m: how far around the prior track the DEM is read (m); None: the default
+            of :mod:`cdtm_graph.dem`.
+        spacing_m: spacing of the world grid the DEM is resampled into (m); None: the
+            DEM's own finest pixel size in metres.
     """
 
     path: Path
     sigma_h_m: float | None = None
     origin_enu_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    more_paths: tuple[Path, ...] = ()
+    vertical_datum: VerticalDatum | None = None
+    crs: str | None = None
+    margin_m: float | None = None
+    spacing_m: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "path", Path(self.path))
+        object.__setattr__(self, "more_paths", tuple(Path(p) for p in self.more_paths))
         object.__setattr__(self, "origin_enu_m", tuple(float(x) for x in self.origin_enu_m))
         if len(self.origin_enu_m) != 3:
             raise ValueError(f"origin_enu_m must have 3 values, got {self.origin_enu_m}")
         if self.sigma_h_m is not None:
             object.__setattr__(self, "sigma_h_m", float(self.sigma_h_m))
+        if self.vertical_datum is not None:
+            object.__setattr__(self, "vertical_datum", VerticalDatum(self.vertical_datum))
+        for name in ("margin_m", "spacing_m"):
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, float(getattr(self, name)))
+
+    @property
+    def paths(self) -> tuple[Path, ...]:
+        """Every DEM file, ``path`` first."""
+        return (self.path, *self.more_paths)
 
 
 @dataclass(frozen=True, eq=False)
@@ -156,6 +185,9 @@ class ImuConfig:
 @dataclass(frozen=True, eq=False)
 class InitialState(_ArrayEq):
     """Prior on the body state at the first frame (``initial_state:`` in flight.yaml).
+
+    Always in the world frame: a flight.yaml that gives the state in latitude, longitude
+    and height (and attitude and velocity in the local ENU there) is converted on reading.
 
     Attributes:
         position_m: (3,) body position in world.
@@ -205,12 +237,16 @@ class FlightConfig:
     """Everything in flight.yaml.
 
     Attributes:
-        gravity_mps2: gravity magnitude; gravity points along -z of world.
+        gravity_mps2: gravity magnitude; gravity points along -z of world (the flat
+            model). With a geodetic origin flight.yaml may leave it out: WGS84 normal
+            gravity at the origin.
         dtm: the DTM file and its settings.
         camera: camera intrinsics, pixel noise and mounting.
         imu: IMU noise model.
         initial_state: prior on the first body state.
         extra: the top-level ``extra:`` mapping, kept as read and otherwise ignored.
+        origin: the geodetic point whose local ENU tangent plane is the world frame, or
+            None: the world is a plane with no place on the Earth.
     """
 
     gravity_mps2: float
@@ -219,6 +255,12 @@ class FlightConfig:
     imu: ImuConfig
     initial_state: InitialState
     extra: dict = field(default_factory=dict)
+    origin: GeodeticOrigin | None = None
+
+    @property
+    def local_frame(self) -> LocalFrame | None:
+        """The world frame on the Earth (conversions, gravity), or None without an origin."""
+        return None if self.origin is None else local_frame(self.origin)
 
 
 @dataclass(frozen=True, eq=False)

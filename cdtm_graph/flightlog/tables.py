@@ -71,6 +71,11 @@ class _CsvSpec:
 
 
 _STATE_COLUMNS = ("px", "py", "pz", "qw", "qx", "qy", "qz", "vx", "vy", "vz")
+#: nav.csv / groundtruth.csv with a header naming these columns hold geodetic states:
+#: WGS84 latitude, longitude, ellipsoidal height, and the attitude (body -> local ENU) and
+#: velocity (east, north, up) in the local ENU at each position. Needs a geodetic origin.
+_GEODETIC_STATE_COLUMNS = ("latitude_deg", "longitude_deg", "height_m", "qw", "qx", "qy",
+                           "qz", "ve", "vn", "vu")
 _IMU_SPEC = _CsvSpec(IMU_CSV, ("t_ns",),
                      ("gyro_x", "gyro_y", "gyro_z", "acc_x", "acc_y", "acc_z"))
 _TRACKS_SPEC = _CsvSpec(TRACKS_CSV, ("frame", "track_id"), ("u", "v"))
@@ -303,7 +308,35 @@ def _checked_quaternions(problems: _Problems, quat: np.ndarray) -> np.ndarray:
     return quat
 
 
+def _header_names(path: Path) -> list[str]:
+    """Column names of a header line ('#' and spaces stripped, lower case), or []."""
+    with path.open("rb") as f:
+        first = f.readline()
+    try:
+        text = first.decode("utf-8-sig").rstrip("\r\n")
+    except UnicodeDecodeError:
+        return []
+    if not text or not _is_header(text):
+        return []
+    return [name.strip().lstrip("#").strip().lower() for name in text.split(",")]
+
+
+def _geodetic_spec(spec: _CsvSpec) -> _CsvSpec:
+    return _CsvSpec(spec.name, spec.int_columns, _GEODETIC_STATE_COLUMNS,
+                    spec.extra_columns_ignored)
+
+
+def _is_geodetic_states(path: Path) -> bool:
+    """True when the header names latitude_deg, longitude_deg, height_m after the time."""
+    return _header_names(path)[1:4] == list(_GEODETIC_STATE_COLUMNS[:3])
+
+
 def _read_states(path: Path, shown: str, spec: _CsvSpec) -> tuple[States, int]:
+    """States as the file holds them: for a geodetic file (:func:`_is_geodetic_states`)
+    ``position_m`` holds latitude, longitude and height and the rest is local ENU."""
+    geodetic = _is_geodetic_states(path)
+    if geodetic:
+        spec = _geodetic_spec(spec)
     table = _read_numeric_csv(path, shown, spec)
     problems = _Problems(shown, table.first_line)
     _check_finite(problems, table, spec)
@@ -315,6 +348,11 @@ def _read_states(path: Path, shown: str, spec: _CsvSpec) -> tuple[States, int]:
     quat = table.floats[:, 3:7]
     quat = np.where(finite[:, None], quat, 1.0)  # NaN rows are already reported
     quat = _checked_quaternions(problems, quat)
+    if geodetic:
+        lat = np.where(finite, table.floats[:, 0], 0.0)
+        problems.check(np.abs(lat) > 90.0,
+                       lambda r: f"latitude_deg is {float(lat[r])!r}",
+                       "a WGS84 latitude in degrees, -90 to 90")
     problems.raise_first()
     states = States(t_ns.copy(), table.floats[:, 0:3].copy(), quat, table.floats[:, 7:10].copy())
     return states, table.first_line

@@ -60,8 +60,12 @@ def _view(xy: list[np.ndarray], dtm: Dtm) -> tuple[float, float, float, float]:
 
 
 def _hillshade(ax, dtm: Dtm, view: tuple[float, float, float, float],
-               vert_exag: float) -> None:
-    """Draw the hillshade of the part of the DTM inside ``view`` (north up)."""
+               vert_exag: float, cell_m: tuple[float, float] | None = None) -> None:
+    """Draw the hillshade of the part of the DTM inside ``view`` (north up).
+
+    ``cell_m``: the cell size (x, y) in metres when the grid's own units are not metres
+    (a DEM in degrees), so that slopes shade true.
+    """
     elev = np.asarray(dtm.elevation)
     x = dtm.x0 + dtm.dx * np.arange(elev.shape[1])
     y = dtm.y0 + dtm.dy * np.arange(elev.shape[0])
@@ -83,8 +87,9 @@ def _hillshade(ax, dtm: Dtm, view: tuple[float, float, float, float],
     if nodata.all():
         return
     filled = np.where(nodata, np.nanmean(z), z)
+    cell_x, cell_y = cell_m if cell_m is not None else (abs(dtm.dx), abs(dtm.dy))
     shade = LightSource(azdeg=315, altdeg=45).hillshade(
-        filled, vert_exag=vert_exag, dx=abs(dtm.dx) * step, dy=abs(dtm.dy) * step)
+        filled, vert_exag=vert_exag, dx=cell_x * step, dy=cell_y * step)
     shade = np.ma.masked_array(shade, nodata)
     half_dx, half_dy = abs(dtm.dx) * step / 2, abs(dtm.dy) * step / 2
     ax.imshow(shade, cmap="gray", vmin=0, vmax=1, origin="upper", interpolation="bilinear",
