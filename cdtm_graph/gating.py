@@ -11,7 +11,9 @@ from collections.abc import Callable, Sequence
 
 import gtsam
 import numpy as np
+from scipy.stats import chi2
 
+from cdtm_graph.mismatch import MismatchSettings, coherent_test
 from cdtm_graph.results import Rejection, Rejections
 from factors import CdtmPairFactor
 
@@ -97,49 +99,86 @@ class InnovationGate:
     """
 
     def __init__(self, probability: float | None, dtm_spacing_m: float,
-                 rejections: Rejections):
+                 rejections: Rejections, mismatch: MismatchSettings | None = None):
         self.threshold = None if probability is None else chi2_2dof_quantile(probability)
         self._spacing_m = float(dtm_spacing_m)
         self._rejections = rejections
+        self._mismatch = mismatch
         self.nis: list[np.ndarray] = []
 
-    def apply(self, k: int, factors: Sequence[CdtmPairFactor],
+    def apply(self, k: int, factors: Sequence[CdtmPairFactor], track_ids: Sequence[np.ndarray],
               pose: Callable[[int], np.ndarray], prior: Callable[[int], np.ndarray],
-              test: bool = True) -> list[CdtmPairFactor]:
+              test: bool = True
+              ) -> tuple[list[CdtmPairFactor], list[np.ndarray], np.ndarray]:
         """Frame k's factors with their kernels scaled, and only the features that pass.
 
         Args:
             k: the newest frame (every factor's later pose).
-            factors: its new C-DTM factors.
+            factors: its new C-DTM factors; track_ids: their features' track ids.
             pose: frame -> current (4, 4) ``world_T_body`` guess.
             prior: earlier frame a -> (12, 12) prior covariance of ``(X(a), X(k))``.
             test: False while the solution is still converging: scale, do not drop.
+
+        Returns:
+            The factors, their features' track ids, and the ids of tracks whose ground
+            region failed the coherent test (:func:`cdtm_graph.mismatch.coherent_test`:
+            terrain the DTM lacks); those features are left out.
         """
         kept: list[CdtmPairFactor] = []
-        n_gated = 0
+        kept_ids: list[np.ndarray] = []
+        flagged: list[np.ndarray] = []
+        n_gated = n_mismatch = 0
         pose_k = pose(k)
-        for f in factors:
+        for f, ids in zip(factors, track_ids):
             a = int(gtsam.Symbol(f.key_a).index())
             P = prior(a)
             pose_a = pose(a)
             e, H_a, H_b = f.innovations(pose_a, pose_k)
             H = np.concatenate([H_a, H_b], axis=2)
-            S = H @ P @ np.swapaxes(H, 1, 2) + f.features.whitened_full_covariance()
+            R = f.features.whitened_full_covariance()
+            S = H @ P @ np.swapaxes(H, 1, 2) + R
             f = f.with_robust_scale(np.sqrt(0.5 * np.trace(S, axis1=1, axis2=2)))
+            # the DTM plane at the guess means nothing a cell away: no judging there
             uncertain = np.sqrt(np.linalg.eigvalsh(P[9:, 9:]).max()) > self._spacing_m
-            if self.threshold is None or not test or uncertain:
-                kept.append(f)  # the DTM plane at the guess means nothing a cell away
-                continue
-            d = np.einsum("ni,ni->n", e, np.linalg.solve(S, e[..., None])[..., 0])
-            self.nis.append(d)
-            passed = d <= self.threshold
-            n_gated += int(f.features.n - passed.sum())
+            passed = np.ones(f.features.n, dtype=bool)
+            if test and not uncertain:
+                if self._mismatch is not None:
+                    region = self._regions_off_prior(f.features.G_E, e, H, R, P)
+                    n_mismatch += int(region.sum())
+                    flagged.append(ids[region])
+                    passed &= ~region
+                if self.threshold is not None:
+                    d = np.einsum("ni,ni->n", e, np.linalg.solve(S, e[..., None])[..., 0])
+                    self.nis.append(d[passed])
+                    gated = passed & (d > self.threshold)
+                    n_gated += int(gated.sum())
+                    passed &= ~gated
             if passed.all():
                 kept.append(f)
+                kept_ids.append(ids)
             elif passed.any():
                 kept.append(f.with_features(passed))
+                kept_ids.append(ids[passed])
         self._rejections.add(Rejection.GATED, k, n_gated)
-        return kept
+        self._rejections.add(Rejection.MAP_MISMATCH, k, n_mismatch)
+        return kept, kept_ids, (np.concatenate(flagged) if flagged else np.zeros(0, np.int64))
+
+    def _regions_off_prior(self, G_E: np.ndarray, e: np.ndarray, H: np.ndarray,
+                           R: np.ndarray, P: np.ndarray) -> np.ndarray:
+        """(n,) features in a ground cell whose features, together, fail the coherent test."""
+        assert self._mismatch is not None
+        cell = np.floor(G_E[:, :2] / self._mismatch.region_m).astype(np.int64)
+        _, which = np.unique(cell, axis=0, return_inverse=True)
+        which = which.reshape(-1)
+        out = np.zeros(e.shape[0], dtype=bool)
+        for c in range(int(which.max()) + 1 if which.size else 0):
+            members = which == c
+            if members.sum() < self._mismatch.min_neighbours:
+                continue
+            T, dof = coherent_test(e[members], H[members], R[members], P)
+            if dof and T > chi2.ppf(self._mismatch.region_probability, dof):
+                out |= members
+        return out
 
     @property
     def all_nis(self) -> np.ndarray:

@@ -7,7 +7,7 @@ Each builder returns its own factors; the smoothers merge them. Keys (DESIGN.md)
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import gtsam
@@ -18,6 +18,7 @@ from cdtm_graph.dtm import Dtm, grazing_hits
 from cdtm_graph.epipolar import EpipolarSettings
 from cdtm_graph.flightlog import FlightConfig, InitialState
 from cdtm_graph.imu import SampleHold, initial_bias
+from cdtm_graph.mismatch import MismatchSettings, mismatched, track_heights
 from cdtm_graph.results import Rejection, Rejections
 from cdtm_graph.tracks import FramePairObservations
 from factors import CdtmPairFactor, FeatureNoise, PairFeatures, PlaneMode, RobustKernel
@@ -33,7 +34,7 @@ class GraphSettings:
             keeps the planes of the initial guess (the paper).
         robust: per-feature M-estimator (default Cauchy, a redescending kernel reached
             from a robust start: the gated incremental pass); ``robust_threshold`` in
-            units of one residual's spread (``None``: the kernel's 95%-efficiency value).
+            units of one residual's spread (``None``: the kernel's default, ~98% efficient).
             ``NONE`` is plain least squares, for studies.
         imu_hold: which interval an IMU sample stands for (see :mod:`cdtm_graph.imu`);
             MIDPOINT is second-order accurate for instantaneous samples.
@@ -51,6 +52,9 @@ class GraphSettings:
         grazing_turn_cells: features whose ray grazes a ridge are dropped and counted
             (:func:`cdtm_graph.dtm.grazing_hits`, the ray turned by this many DTM cells
             at its range). ``None``: no check.
+        mismatch: tracks whose triangulated ground point lies off the DTM (terrain the
+            map lacks) lose their features (:mod:`cdtm_graph.mismatch`). ``None``: no
+            test.
     """
 
     plane_mode: PlaneMode = PlaneMode.REINTERSECT
@@ -61,6 +65,7 @@ class GraphSettings:
     shared_dtm_error: bool = True
     epipolar: EpipolarSettings | None = field(default_factory=EpipolarSettings)
     grazing_turn_cells: float | None = 1.0
+    mismatch: MismatchSettings | None = field(default_factory=MismatchSettings)
 
 
 def dtm_ray_caster(dtm: Dtm):
@@ -114,6 +119,7 @@ class CdtmBuild:
     """C-DTM factors of a set of frame pairs, with what was left out."""
 
     factors: list[CdtmPairFactor] = field(default_factory=list)
+    track_ids: list[np.ndarray] = field(default_factory=list)  # each factor's features'
     n_features: int = 0
     features_per_frame: dict[int, int] = field(default_factory=dict)
     rejections: Rejections = field(default_factory=Rejections)
@@ -169,9 +175,9 @@ def cdtm_factors(
         n_valid = int(valid.sum())
         if n_valid == 0:
             continue
-        q_a, q_b, rank = pair.q_a, pair.q_b, pair.track_pair_index
+        q_a, q_b, rank, ids = pair.q_a, pair.q_b, pair.track_pair_index, pair.track_id
         if n_valid < valid.size:
-            q_a, q_b, G_E, N = q_a[valid], q_b[valid], G_E[valid], N[valid]
+            q_a, q_b, G_E, N, ids = q_a[valid], q_b[valid], G_E[valid], N[valid], ids[valid]
             rank = None if rank is None else rank[valid]
         scale = None
         if settings.shared_dtm_error and rank is not None:
@@ -181,6 +187,66 @@ def cdtm_factors(
         build.factors.append(CdtmPairFactor(
             X(pair.frame_a), X(k), features, body_T_cam, settings.plane_mode,
             raycast, settings.robust, settings.robust_threshold))
+        build.track_ids.append(ids)
         build.n_features += n_valid
         build.features_per_frame[k] = build.features_per_frame.get(k, 0) + n_valid
     return build
+
+
+def track_observations(factors: Sequence[CdtmPairFactor], track_ids: Sequence[np.ndarray]
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The observations the factors hold, once each: (track id (M,), frame (M,), ray
+    (M, 3) in its camera)."""
+    ids, frames, rays = [], [], []
+    for f, tid in zip(factors, track_ids):
+        a = int(gtsam.Symbol(f.key_a).index())
+        b = int(gtsam.Symbol(f.key_b).index())
+        ids += [tid, tid]
+        frames += [np.full(tid.size, a), np.full(tid.size, b)]
+        rays += [f.features.q_a, f.features.q_b]
+    if not ids:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3))
+    track_id, frame, ray = np.concatenate(ids), np.concatenate(frames), np.concatenate(rays)
+    _, first = np.unique(np.c_[track_id, frame], axis=0, return_index=True)
+    return track_id[first], frame[first], ray[first]
+
+
+def mismatched_tracks(factors: Sequence[CdtmPairFactor], track_ids: Sequence[np.ndarray],
+                      world_T_body: Callable[[int], np.ndarray], body_T_cam: np.ndarray,
+                      dtm: Dtm, noise: FeatureNoise, settings: MismatchSettings
+                      ) -> np.ndarray:
+    """Ids of the tracks whose ground point, triangulated from the factors' observations
+    at the given poses, lies off the DTM (:func:`cdtm_graph.mismatch.mismatched`)."""
+    tid, frame, q = track_observations(factors, track_ids)
+    if tid.size == 0:
+        return np.zeros(0, np.int64)
+    frames = np.unique(frame)
+    world_T_cam = np.stack([world_T_body(int(k)) @ body_T_cam for k in frames])
+    at = np.searchsorted(frames, frame)
+    centre = world_T_cam[at, :3, 3]
+    ray = np.einsum("mij,mj->mi", world_T_cam[at, :3, :3], q)
+    heights = track_heights(tid, centre, ray, float(np.mean(noise.sigma_q_xy)), dtm,
+                            noise.sigma_h_m)
+    return heights.track_id[mismatched(heights, noise.sigma_h_m, settings)]
+
+
+def without_tracks(factors: Sequence[CdtmPairFactor], track_ids: Sequence[np.ndarray],
+                   drop: np.ndarray, reason: Rejection, rejections: Rejections
+                   ) -> tuple[list[int], list[CdtmPairFactor | None], list[np.ndarray]]:
+    """The factors holding features of the ``drop`` tracks, rebuilt without them.
+
+    Returns:
+        The indices of the changed factors, their replacements (``None`` where no
+        feature is left) and the replacements' track ids; the dropped features are
+        counted for ``reason`` by the pair's later frame.
+    """
+    changed, replacements, kept_ids = [], [], []
+    for i, (f, tid) in enumerate(zip(factors, track_ids)):
+        hit = np.isin(tid, drop)
+        if not hit.any():
+            continue
+        rejections.add(reason, int(gtsam.Symbol(f.key_b).index()), int(hit.sum()))
+        changed.append(i)
+        replacements.append(f.with_features(~hit) if not hit.all() else None)
+        kept_ids.append(tid[~hit])
+    return changed, replacements, kept_ids

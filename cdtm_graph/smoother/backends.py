@@ -60,9 +60,6 @@ class Backend(Protocol):
 
     #: Updates between relinearizations (a forced step relinearizes everything).
     relinearize_skip: int
-    #: Whether factors already in the solver can be swapped (``replace``).
-    can_replace: bool
-
     def update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                stamps: dict[int, float], relinearize: bool = False) -> list[int]:
         """Add factors and new states (with their times, s); return the factors' slots."""
@@ -132,8 +129,6 @@ class FullHistory(_Isam2Estimates):
             the relinearization interval is kept the same in frames.
     """
 
-    can_replace = True
-
     def __init__(self, updates_per_frame: int = 1):
         params = isam2_params()
         params.relinearizeSkip *= updates_per_frame
@@ -175,8 +170,6 @@ class FixedLag(_Isam2Estimates):
         updates_per_frame: solver updates each frame makes (2 with an innovation gate).
     """
 
-    can_replace = False
-
     def __init__(self, lag_s: float, frame_interval_s: float | None = None,
                  updates_per_frame: int = 1):
         params = isam2_params()
@@ -192,13 +185,17 @@ class FixedLag(_Isam2Estimates):
         return self._fls.getISAM2()  # by reference
 
     def update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
-               stamps: dict[int, float], relinearize: bool = False) -> list[int]:
+               stamps: dict[int, float], relinearize: bool = False,
+               remove: list[int] | None = None) -> list[int]:
         timestamps = gtsam.FixedLagSmootherKeyTimestampMap()
         for key, t_s in stamps.items():
             timestamps.insert((key, t_s))
+        # iSAM2 appends new factors (it does not reuse empty slots by default), and the
+        # smoother marginalizes after adding them: their slots follow the current size.
+        first = self._isam2().getFactorsUnsafe().size()
         with _solvable():
-            self._fls.update(graph, values, timestamps)
-        return []
+            self._fls.update(graph, values, timestamps, remove or [])
+        return list(range(first, first + graph.size()))
 
     def step(self) -> None:
         with _solvable():
@@ -206,7 +203,7 @@ class FixedLag(_Isam2Estimates):
                 self._fls.update()
 
     def replace(self, graph: gtsam.NonlinearFactorGraph, slots: list[int]) -> list[int]:
-        raise NotImplementedError("the fixed-lag smoother does not swap factors")
+        return self.update(graph, gtsam.Values(), {}, remove=slots)
 
     def error(self) -> float:
         return float(self._fls.getFactors().error(self.estimate()))

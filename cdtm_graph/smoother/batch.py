@@ -19,13 +19,23 @@ from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import FlightLog
 from cdtm_graph.gating import count_outliers
-from cdtm_graph.graph import cdtm_factors, feature_noise, imu_factor, insert_state, prior_factors
+from cdtm_graph.graph import (
+    cdtm_factors,
+    feature_noise,
+    imu_factor,
+    insert_state,
+    mismatched_tracks,
+    prior_factors,
+    without_tracks,
+)
 from cdtm_graph.imu import ImuIntervals, initial_bias
+from cdtm_graph.mismatch import MismatchSettings
 from cdtm_graph.optimizer import LinearSolver, explain_indeterminant, levenberg_marquardt
 from cdtm_graph.preflight import check_constraints
 from cdtm_graph.replay import replay
 from cdtm_graph.results import (
     GraphCounts,
+    Rejection,
     Rejections,
     SmootherResult,
     SolverStats,
@@ -36,7 +46,11 @@ from cdtm_graph.results import (
 from cdtm_graph.smoother.incremental import IncrementalSmoother
 from cdtm_graph.smoother.settings import Progress, SmootherMode, SmootherSettings
 from cdtm_graph.tracks import SightingPairs
-from factors import CdtmPairFactor
+from factors import CdtmPairFactor, FeatureNoise
+
+#: Rounds of "drop the tracks off the DTM, solve again" (each finds what the last one's
+#: estimate, no longer pulled by the worst, reveals).
+MISMATCH_ROUNDS = 8
 
 
 def _estimate_from_values(values: gtsam.Values, t_ns: np.ndarray) -> TrajectoryEstimate:
@@ -87,6 +101,8 @@ class LogGraph:
     values: gtsam.Values
     counts: GraphCounts
     cdtm: list[CdtmPairFactor]
+    track_ids: list[np.ndarray]  # each C-DTM factor's features'
+    rejections: Rejections
 
     @property
     def graph(self) -> gtsam.NonlinearFactorGraph:
@@ -96,6 +112,27 @@ class LogGraph:
             graph.add(f.factor)
         return graph
 
+    def drop_mismatched(self, values: gtsam.Values, dtm: Dtm, noise: FeatureNoise,
+                        body_T_cam: np.ndarray, settings: MismatchSettings) -> int:
+        """Drop the features of tracks that lie off the DTM at ``values``; how many."""
+        drop = mismatched_tracks(self.cdtm, self.track_ids,
+                                 lambda k: values.atPose3(X(k)).matrix(), body_T_cam, dtm,
+                                 noise, settings)
+        if drop.size == 0:
+            return 0
+        before = self.rejections.total(Rejection.MAP_MISMATCH)
+        changed, replacements, kept = without_tracks(self.cdtm, self.track_ids, drop,
+                                                     Rejection.MAP_MISMATCH, self.rejections)
+        swap = dict(zip(changed, zip(replacements, kept)))
+        cdtm, track_ids = [], []
+        for i, (f, ids) in enumerate(zip(self.cdtm, self.track_ids)):
+            g, g_ids = swap.get(i, (f, ids))
+            if g is not None:
+                cdtm.append(g)
+                track_ids.append(g_ids)
+        self.cdtm, self.track_ids = cdtm, track_ids
+        return self.rejections.total(Rejection.MAP_MISMATCH) - before
+
     def refresh_noise(self, values: gtsam.Values) -> None:
         """Re-linearize every C-DTM factor's planes and noise at ``values``."""
         poses = {k: values.atPose3(X(k)).matrix() for k in range(self.counts.n_frames)}
@@ -104,29 +141,30 @@ class LogGraph:
 
 
 def _initial_values(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
-                    progress: Progress | None) -> tuple[gtsam.Values, str]:
+                    progress: Progress | None) -> tuple[gtsam.Values, str, np.ndarray]:
     """Initial guess: nav.csv if present, else the incremental pass (dead reckoning
-    corrected frame by frame)."""
+    corrected frame by frame); and the tracks that pass found off the DTM."""
     if flight.nav is not None:
         values = gtsam.Values()
         bias = initial_bias(flight.config.initial_state)
         for k in range(len(flight.frames)):
             insert_state(values, k, flight.nav.world_T_body[k], flight.nav.velocity_mps[k],
                          bias)
-        return values, "nav.csv"
+        return values, "nav.csv", np.zeros(0, np.int64)
     incremental = replace(settings, mode=SmootherMode.INCREMENTAL, lag_s=None)
     smoother = IncrementalSmoother(flight.config, dtm, incremental, imu=flight.imu)
     smoother.run(flight, progress)
-    return smoother.values(), "incremental pass"
+    return smoother.values(), "incremental pass", smoother.mismatched_tracks
 
 
 def build_log_graph(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
-                    initial: gtsam.Values) -> LogGraph:
+                    initial: gtsam.Values, off_map: np.ndarray | None = None) -> LogGraph:
     """Priors, IMU factors and C-DTM factors of the whole log, planes cast from ``initial``.
 
     Sightings are paired frame by frame as the incremental smoother pairs them
     (:class:`~cdtm_graph.tracks.SightingPairs`: wrong matches left out against the
-    initial guess's relative poses).
+    initial guess's relative poses). Tracks in ``off_map`` (found off the DTM by the
+    incremental pass) are left out, counted as ``Rejection.MAP_MISMATCH``.
     """
     K = len(flight.frames)
     t = flight.frames.t_ns
@@ -143,7 +181,13 @@ def build_log_graph(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
     pairs = []
     for frame in replay(flight):
         if len(frame.track_id):
-            pairs += pairing.add_frame(frame.k, frame.track_id, frame.uv_px, poses.__getitem__)
+            for pair in pairing.add_frame(frame.k, frame.track_id, frame.uv_px,
+                                          poses.__getitem__):
+                off = (np.isin(pair.track_id, off_map) if off_map is not None
+                       else np.zeros(pair.track_id.size, dtype=bool))
+                rejections.add(Rejection.MAP_MISMATCH, frame.k, int(off.sum()))
+                if not off.all():
+                    pairs.append(pair.subset(~off) if off.any() else pair)
     build = cdtm_factors(pairs, poses, camera.body_T_cam, dtm,
                          feature_noise(flight.config, dtm, settings.graph), settings.graph,
                          rejections)
@@ -154,7 +198,7 @@ def build_log_graph(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
         K, pairing.table.n_tracks, pairing.n_observations, pairing.n_pairs, build.n_features,
         len(build.factors), K - 1, per_frame, outliers_per_frame=np.zeros(K, dtype=int),
         rejected_per_frame=rejections.per_frame(K))
-    return LogGraph(graph, initial, counts, build.factors)
+    return LogGraph(graph, initial, counts, build.factors, build.track_ids, rejections)
 
 
 def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None,
@@ -182,8 +226,8 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
         dt_s = float(np.max(np.diff(flight.frames.t_ns))) * 1e-9
         smoother = IncrementalSmoother(flight.config, dtm, settings, frame_interval_s=dt_s)
         return smoother.run(flight, progress)
-    initial, source = _initial_values(flight, dtm, settings, progress)
-    built = build_log_graph(flight, dtm, settings, initial)
+    initial, source, off_map = _initial_values(flight, dtm, settings, progress)
+    built = build_log_graph(flight, dtm, settings, initial, off_map)
     solver = LinearSolver()
     values, first = levenberg_marquardt(built.graph, initial, settings.max_iterations,
                                         settings.relative_error_tol, solver=solver)
@@ -193,18 +237,38 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     graph = built.graph
     values, stats = levenberg_marquardt(graph, values, settings.max_iterations,
                                         settings.relative_error_tol, solver=solver)
+    iterations = first.iterations + stats.iterations
+    # Terrain the DTM lacks: drop the tracks off the map and solve again, until none is.
+    mismatch = settings.graph.mismatch
+    noise = feature_noise(flight.config, dtm, settings.graph)
+    for _ in range(MISMATCH_ROUNDS if mismatch is not None else 0):
+        assert mismatch is not None
+        if not built.drop_mismatched(values, dtm, noise, flight.config.camera.body_T_cam,
+                                     mismatch):
+            break
+        graph = built.graph
+        values, more = levenberg_marquardt(graph, values, settings.max_iterations,
+                                           settings.relative_error_tol, solver=solver)
+        iterations += more.iterations
+        stats = replace(more, time_s=stats.time_s + more.time_s)
     K = len(flight.frames)
     start = time.perf_counter()
     covariances = (marginals(graph, values, K) if settings.marginals else
                    StateCovariances(np.full((K, 6, 6), np.nan), np.full((K, 3, 3), np.nan),
                                     np.full((K, 6, 6), np.nan)))
-    stats = SolverStats(stats.solver, first.iterations + stats.iterations, first.initial_error,
+    stats = SolverStats(stats.solver, iterations, first.initial_error,
                         stats.final_error, stats.converged, first.time_s + stats.time_s,
                         time.perf_counter() - start)
     settings_dict = settings.to_dict()
     settings_dict["initial_values"] = source
     estimate = _estimate_from_values(values, flight.frames.t_ns)
     n_out, out_per_frame = count_outliers(built.cdtm, estimate.world_T_body, K)
-    counts = replace(built.counts, n_outliers=n_out, outliers_per_frame=out_per_frame)
+    per_frame = np.zeros(K, dtype=int)
+    for f in built.cdtm:
+        per_frame[int(gtsam.Symbol(f.key_b).index())] += f.features.n
+    counts = replace(built.counts, n_cdtm_features=int(per_frame.sum()),
+                     n_cdtm_factors=len(built.cdtm), features_per_frame=per_frame,
+                     n_outliers=n_out, outliers_per_frame=out_per_frame,
+                     rejected_per_frame=built.rejections.per_frame(K))
     return SmootherResult(estimate, covariances, stats, counts, settings_dict,
                           frame_flags(counts))

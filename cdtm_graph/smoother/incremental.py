@@ -37,9 +37,11 @@ from cdtm_graph.imu import (
     navstate_predict,
     propagate_covariance,
 )
+from cdtm_graph.mismatch import TrackObservations, mismatched, track_heights
 from cdtm_graph.replay import replay
 from cdtm_graph.results import (
     GraphCounts,
+    Rejection,
     Rejections,
     SmootherResult,
     Solver,
@@ -110,7 +112,10 @@ class IncrementalSmoother:
                                       config.camera.pixel_sigma_px, graph.epipolar,
                                       self.rejections)
         self._gate = InnovationGate(settings.innovation_gate, max(abs(dtm.dx), abs(dtm.dy)),
-                                    self.rejections)
+                                    self.rejections, graph.mismatch)
+        # terrain the DTM lacks: tracks found off the map, and what they were seen as
+        self.mismatched_tracks = np.zeros(0, np.int64)  # sorted
+        self._observations = TrackObservations()
         self._backend: Backend = (
             FullHistory() if settings.lag_s is None
             else FixedLag(settings.lag_s, frame_interval_s))
@@ -124,8 +129,10 @@ class IncrementalSmoother:
         self._biases: dict[int, gtsam.imuBias.ConstantBias] = {}
         self._settled = 0  # fixed lag: frames before this one have left the window
         self._exit_cov: dict[int, tuple[np.ndarray, ...]] = {}  # ... their (X, V, B) then
-        self._cdtm: list[CdtmPairFactor] = []  # every C-DTM factor (outliers, refresh)
-        self._cdtm_slots: list[int] = []  # ... their solver slots (full history)
+        # every C-DTM factor (outliers, refresh); None where its features all went
+        self._cdtm: list[CdtmPairFactor | None] = []
+        self._cdtm_slots: list[int] = []  # ... their solver slots
+        self._cdtm_ids: list[np.ndarray] = []  # ... their features' track ids
         self._converging = True  # the newest update moved its frame far from the prediction
         self._features_per_frame: dict[int, int] = {}
         self.n_features = self.n_cdtm_factors = 0
@@ -198,19 +205,28 @@ class IncrementalSmoother:
         self._poses[k], self._velocities[k], self._biases[k] = predicted, velocity, bias
         if k:
             self._leave_window(k)
-        new = self._new_cdtm(k, *seen) if seen is not None else []
+        new, new_ids = self._new_cdtm(k, *seen) if seen is not None else ([], [])
+        flagged = np.zeros(0, np.int64)
         if new and link is not None:
             # Each feature's innovation against the IMU's prediction: the kernel's scale,
-            # and the gate (not while the solution still converges from a loose prior:
-            # the linearized test would misjudge good features).
-            new = self._gate.apply(k, new, self._pose_guess, self._pair_prior(k, link, values),
-                                   test=not self._converging)
+            # the gate and the ground regions that disagree with the prior together (not
+            # while the solution still converges from a loose prior: the linearized test
+            # would misjudge good features).
+            new, new_ids, flagged = self._gate.apply(
+                k, new, new_ids, self._pose_guess, self._pair_prior(k, link, values),
+                test=not self._converging)
+        if new and self.settings.graph.mismatch is not None and not self._converging \
+                and self._settled_enough():
+            new, new_ids, off_map = self._off_map(k, new, new_ids)
+            flagged = np.r_[flagged, off_map]
+        if flagged.size:
+            self._forget_tracks(k, flagged)
         n_new = sum(f.features.n for f in new)
         for f in new:
             graph.add(f.factor)
         slots = self._update(graph, values, k)
-        self._commit(k, new, slots[len(slots) - len(new):] if slots else [])
-        if new and self._backend.can_replace:
+        self._commit(k, new, new_ids, slots[len(slots) - len(new):] if slots else [])
+        if new:
             self._refresh_newest_noise(k, predicted, len(new))
         self._converging = self._moved_far(k, predicted)
         self._state_cov = self._backend.joint_marginal(list(frame_keys(k)))
@@ -258,7 +274,7 @@ class IncrementalSmoother:
         return ids, uv
 
     def _new_cdtm(self, k: int, track_id: np.ndarray, uv_px: np.ndarray
-                  ) -> list[CdtmPairFactor]:
+                  ) -> tuple[list[CdtmPairFactor], list[np.ndarray]]:
         """The C-DTM factors frame k's sightings close (counted, not yet in the graph).
 
         A fixed lag has let go of frames before the window: their pairs are dropped
@@ -268,20 +284,113 @@ class IncrementalSmoother:
         table = self._pairing.table
         if self.settings.lag_s is not None and len(table) > 4 * len(track_id):
             table.forget_before(self._settled)
+            self._observations.forget_before(self._settled)
+        if self.mismatched_tracks.size:  # tracks found off the map stay out
+            kept = []
+            for pair in pairs:
+                off = np.isin(pair.track_id, self.mismatched_tracks)
+                self.rejections.add(Rejection.MAP_MISMATCH, k, int(off.sum()))
+                if not off.all():
+                    kept.append(pair.subset(~off) if off.any() else pair)
+            pairs = kept
         build = cdtm_factors(pairs, self._poses, self._body_T_cam, self.dtm, self._noise,
                              self.settings.graph, self.rejections)
-        return build.factors
+        return build.factors, build.track_ids
 
     def _pose_guess(self, j: int) -> np.ndarray:
         """Frame j's pose as the solver has it now (the newest frame: its prediction)."""
-        if j != len(self._t_ns) - 1:  # fetch only the poses the new pairs need
+        # fetch only the poses asked for; frames out of a lag window keep their last
+        if self._settled <= j != len(self._t_ns) - 1:
             self._poses[j] = self._backend.pose(j)
         return self._poses[j]
 
-    def _commit(self, k: int, factors: list[CdtmPairFactor], slots: list[int]) -> None:
+    def _position_sigma_m(self) -> float:
+        """The newest estimated frame's largest position 1-sigma (m)."""
+        return float(np.sqrt(np.linalg.eigvalsh(self._state_cov[3:6, 3:6]).max()))
+
+    def _settled_enough(self) -> bool:
+        """Whether the newest pose is known well enough (within a DTM cell) to judge a
+        track's height against the DTM."""
+        return self._position_sigma_m() <= max(abs(self.dtm.dx), abs(self.dtm.dy))
+
+    def _off_map(self, k: int, factors: list[CdtmPairFactor], track_ids: list[np.ndarray]
+                 ) -> tuple[list[CdtmPairFactor], list[np.ndarray], np.ndarray]:
+        """Frame k's factors without the tracks that, triangulated from everything seen of
+        them so far and this frame, lie off the DTM (:mod:`cdtm_graph.mismatch`)."""
+        settings = self.settings.graph.mismatch
+        assert settings is not None
+        ids_now = np.concatenate(track_ids)
+        tid, frame, q = self._observations.of(ids_now)
+        # this frame's observations (and the earlier ones of tracks seen for the first time)
+        tid = np.r_[tid, *track_ids, *track_ids]
+        frame = np.r_[frame, *(np.full(i.size, k) for i in track_ids),
+                      *(np.full(i.size, int(gtsam.Symbol(f.key_a).index()))
+                        for f, i in zip(factors, track_ids))]
+        q = np.r_[q, *(f.features.q_b for f in factors), *(f.features.q_a for f in factors)]
+        _, first = np.unique(np.c_[tid, frame], axis=0, return_index=True)
+        tid, frame, q = tid[first], frame[first], q[first]
+        frames = np.unique(frame)
+        world_T_cam = np.stack([self._pose_guess(int(j)) @ self._body_T_cam for j in frames])
+        at = np.searchsorted(frames, frame)
+        heights = track_heights(tid, world_T_cam[at, :3, 3],
+                                np.einsum("mij,mj->mi", world_T_cam[at, :3, :3], q),
+                                float(np.mean(self._noise.sigma_q_xy)), self.dtm,
+                                self._noise.sigma_h_m, self._position_sigma_m())
+        off = heights.track_id[mismatched(heights, self._noise.sigma_h_m, settings)]
+        if off.size == 0:
+            return factors, track_ids, off
+        kept, kept_ids = [], []
+        for f, ids in zip(factors, track_ids):
+            hit = np.isin(ids, off)
+            self.rejections.add(Rejection.MAP_MISMATCH, k, int(hit.sum()))
+            if not hit.all():
+                kept.append(f.with_features(~hit) if hit.any() else f)
+                kept_ids.append(ids[~hit])
+        return kept, kept_ids, off
+
+    def _forget_tracks(self, k: int, track_ids: np.ndarray) -> None:
+        """Keep these tracks out from now on, and take their features that entered
+        earlier out of the solver (those still in it)."""
+        self.mismatched_tracks = np.union1d(self.mismatched_tracks, track_ids)
+        graph = gtsam.NonlinearFactorGraph()
+        slots, changed = [], []
+        for i, ids in enumerate(self._cdtm_ids):
+            f = self._cdtm[i]
+            if f is None or int(gtsam.Symbol(f.key_a).index()) < self._settled:
+                continue
+            hit = np.isin(ids, track_ids)
+            if not hit.any():
+                continue
+            self.rejections.add(Rejection.MAP_MISMATCH, int(gtsam.Symbol(f.key_b).index()),
+                                int(hit.sum()))
+            slots.append(self._cdtm_slots[i])
+            replacement = f.with_features(~hit) if not hit.all() else None
+            if replacement is not None:
+                graph.add(replacement.factor)
+            changed.append((i, replacement, ids[~hit]))
+        if not slots:
+            return
+        new_slots = self._backend.replace(graph, slots)
+        at = 0
+        for i, replacement, ids in changed:
+            self._cdtm[i], self._cdtm_ids[i] = replacement, ids
+            if replacement is not None:
+                self._cdtm_slots[i] = new_slots[at]
+                at += 1
+            else:
+                self._cdtm_slots[i] = -1
+
+    def _commit(self, k: int, factors: list[CdtmPairFactor], track_ids: list[np.ndarray],
+                slots: list[int]) -> None:
         n_features = sum(f.features.n for f in factors)
         self._cdtm.extend(factors)
+        self._cdtm_ids.extend(track_ids)
         self._cdtm_slots.extend(slots)
+        for f, ids in zip(factors, track_ids):
+            a = int(gtsam.Symbol(f.key_a).index())
+            self._observations.add(np.r_[ids, ids], np.r_[np.full(ids.size, a),
+                                                          np.full(ids.size, k)],
+                                   np.r_[f.features.q_a, f.features.q_b])
         self.n_features += n_features
         self.n_cdtm_factors += len(factors)
         self._features_per_frame[k] = n_features
@@ -305,6 +414,10 @@ class IncrementalSmoother:
             return
         margin_ns = self._t_ns[k] - self._t_ns[k - 1]
         horizon = self._t_ns[k] - lag_s * 1e9 + margin_ns
+        if self._converging and self._settled < k and self._t_ns[self._settled] < horizon:
+            # A state is marginalized at its linearization point: not while the solution
+            # still converges (from a loose prior), or that point is frozen where it was.
+            self._iterate(self.settings.final_iterations)
         while self._settled < k and self._t_ns[self._settled] < horizon:
             j = self._settled
             self._fetch(j)
@@ -331,7 +444,7 @@ class IncrementalSmoother:
         its solution. Only the newest factors change: a local re-elimination."""
         if not self._moved_far(k, predicted):
             return
-        old = self._cdtm[-n:]
+        old = [f for f in self._cdtm[-n:] if f is not None]  # (all are: just committed)
         refreshed = [f.refreshed(self._backend.pose(int(gtsam.Symbol(f.key_a).index())),
                                  self._poses[k]).with_robust_scale(f.features.robust_scale)
                      for f in old]
@@ -339,7 +452,7 @@ class IncrementalSmoother:
         for f in refreshed:
             graph.add(f.factor)
         self._cdtm_slots[-n:] = self._backend.replace(graph, self._cdtm_slots[-n:])
-        self._cdtm[-n:] = refreshed
+        self._cdtm[-n:] = list(refreshed)
         self._fetch(k)
 
     # -- results ----------------------------------------------------------------------
@@ -360,6 +473,20 @@ class IncrementalSmoother:
             first step that does not gain.
         """
         steps = self.settings.final_iterations if iterations is None else iterations
+        previous, done, best = self._iterate(steps, relative_tol)
+        self._refresh(self._backend.estimate())
+        if self._t_ns:  # more frames may follow: the next interval at the new bias estimate
+            k = len(self._t_ns) - 1
+            self._imu.start(self._t_ns[k], self._biases[k])
+            self._imu.advance()
+        self.final_error = previous
+        self.converged = done and previous <= best * (1.0 + self.CONVERGED_SPREAD)
+        return self.converged
+
+    def _iterate(self, steps: int, relative_tol: float = 1e-6) -> tuple[float, bool, float]:
+        """Relinearizing updates with no new data until one gains less than
+        ``relative_tol`` (at most ``steps``): the final error, whether it stopped by
+        itself, and the lowest error seen."""
         previous = best = self._backend.error()
         done = False
         for _ in range(steps):
@@ -370,14 +497,7 @@ class IncrementalSmoother:
             previous = error
             if done:
                 break
-        self._refresh(self._backend.estimate())
-        if self._t_ns:  # more frames may follow: the next interval at the new bias estimate
-            k = len(self._t_ns) - 1
-            self._imu.start(self._t_ns[k], self._biases[k])
-            self._imu.advance()
-        self.final_error = previous
-        self.converged = done and previous <= best * (1.0 + self.CONVERGED_SPREAD)
-        return self.converged
+        return previous, done, best
 
     def _refresh(self, estimate: gtsam.Values) -> None:
         for key in estimate.keys():
@@ -453,7 +573,8 @@ class IncrementalSmoother:
         t0 = time.perf_counter()
         covariances = self.covariances()
         estimate = self.estimate()
-        n_out, out_per_frame = count_outliers(self._cdtm, estimate.world_T_body, K)
+        n_out, out_per_frame = count_outliers([f for f in self._cdtm if f is not None],
+                                              estimate.world_T_body, K)
         counts = GraphCounts(
             K, self._pairing.table.n_tracks, self._pairing.n_observations,
             self._pairing.n_pairs, self.n_features,

@@ -1,0 +1,238 @@
+"""Terrain the DTM lacks: tracks whose ground point is not where the map says.
+
+Buildings, forest, a quarry, changed ground: a feature on them lies metres off the DTM.
+One C-DTM pair barely sees it (a 20 m height error moves a feature by half a pixel at
+1800 m with a 150 m baseline, within the noise), but the features on it agree with each
+other and pull the estimate along together. A track seen over several frames has the
+baseline to tell: triangulated from its observations at the current pose estimates, its
+ground point's height against the DTM's there is a direct measure of the mismatch
+(``dh``), with an uncertainty from the triangulation geometry and the DTM's own error.
+
+Two views decide:
+
+* a track whose ``dh`` fails a chi-square(1) test is a mismatch (a building, a tree);
+* neighbouring tracks share a mismatch (a pit, changed ground): the weighted mean ``dh``
+  of the tracks around each track is tested too (short tracks, too weak alone, count by
+  their weight), and a neighbourhood that fails goes whole. The mean's uncertainty
+  keeps a floor of the DTM's own error: a DTM may be off by that much over a region, and
+  the estimate's own small bias must not condemn good ground.
+
+The smoothers drop the features of mismatched tracks (counted per frame as
+``Rejection.MAP_MISMATCH``) and solve again: the estimate then rests on the IMU and the
+ground the DTM knows, and where nothing is left its covariance grows honestly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from cdtm_graph.dtm import Dtm
+
+#: chi-square(1) at 99.9%.
+CHI2_1DOF_999 = 10.827566170662733
+
+
+@dataclass(frozen=True)
+class MismatchSettings:
+    """How tracks are tested against the DTM.
+
+    Attributes:
+        min_observations: tracks seen fewer times are not tested (too little baseline).
+        max_sigma_m: tracks whose height is known worse than this are not tested alone
+            (they still count in their cell).
+        gate: squared ``dh / sigma`` a track must pass.
+        radius_m: radius of a track's neighbourhood in the spatial view (m).
+        min_neighbours: neighbourhoods with fewer tracks are not judged.
+        neighbourhood_gate: squared ``mean dh / sigma`` a neighbourhood must pass
+            (5 sigma: overlapping neighbourhoods make many tests).
+        region_m: incremental smoothers: side of the ground cells whose features are
+            tested together against the prior (:func:`coherent_test`).
+        region_probability: that test's chi-square probability.
+    """
+
+    min_observations: int = 3
+    max_sigma_m: float = 15.0
+    gate: float = CHI2_1DOF_999
+    radius_m: float = 300.0
+    min_neighbours: int = 5
+    neighbourhood_gate: float = 25.0
+    region_m: float = 500.0
+    region_probability: float = 0.999
+
+
+@dataclass(frozen=True)
+class TrackHeights:
+    """Tracks triangulated at the current poses and compared with the DTM.
+
+    Attributes:
+        track_id: (T,) ids. point_m: (T, 3) ground points. n_observations: (T,).
+        dh_m: (T,) point height minus the DTM's there (NaN off the DTM).
+        sigma_m: (T,) 1-sigma of ``dh`` (triangulation and DTM error).
+    """
+
+    track_id: np.ndarray
+    point_m: np.ndarray
+    n_observations: np.ndarray
+    dh_m: np.ndarray
+    sigma_m: np.ndarray
+
+
+def triangulate(track_index: np.ndarray, n_tracks: int, centre_m: np.ndarray,
+                ray_world: np.ndarray, sigma_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares points of many tracks at once, and their covariances.
+
+    Each observation constrains its track's point to its ray; the point minimizes the
+    sum of squared angular errors (perpendicular distance over range, ranges from a
+    first unweighted pass).
+
+    Args:
+        track_index: (M,) which track (0..T-1) each observation belongs to.
+        n_tracks: T.
+        centre_m: (M, 3) the observing camera's centre. ray_world: (M, 3) its ray.
+        sigma_rad: 1-sigma angular error of one observation.
+
+    Returns:
+        points (T, 3) and covariances (T, 3, 3); NaN where the rays do not fix a point.
+    """
+    d = ray_world / np.linalg.norm(ray_world, axis=1, keepdims=True)
+    P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]  # projector off each ray
+    weight = np.ones(d.shape[0])
+    points = np.full((n_tracks, 3), np.nan)
+    cov = np.full((n_tracks, 3, 3), np.nan)
+    for _ in range(2):
+        A = np.zeros((n_tracks, 3, 3))
+        b = np.zeros((n_tracks, 3))
+        np.add.at(A, track_index, weight[:, None, None] * P)
+        np.add.at(b, track_index, weight[:, None] * np.einsum("mij,mj->mi", P, centre_m))
+        ok = np.linalg.cond(A) < 1e12
+        points = np.full((n_tracks, 3), np.nan)
+        points[ok] = np.linalg.solve(A[ok], b[ok][..., None])[..., 0]
+        cov = np.full((n_tracks, 3, 3), np.nan)
+        cov[ok] = np.linalg.inv(A[ok])  # with weights 1/(sigma r)^2: the covariance
+        r = np.linalg.norm(points[track_index] - centre_m, axis=1)
+        weight = 1.0 / np.maximum(sigma_rad * np.where(np.isfinite(r), r, 1.0), 1e-12) ** 2
+    return points, cov
+
+
+def track_heights(track_id: np.ndarray, centre_m: np.ndarray, ray_world: np.ndarray,
+                  sigma_rad: float, dtm: Dtm, sigma_h_m: float, pose_sigma_m: float = 0.0
+                  ) -> TrackHeights:
+    """Triangulate every track of a set of observations and compare it with the DTM.
+
+    Args:
+        track_id: (M,) each observation's track. centre_m, ray_world: (M, 3) its camera
+            centre and ray (world). sigma_rad: one observation's angular 1-sigma.
+        dtm: the map. sigma_h_m: its height 1-sigma.
+        pose_sigma_m: 1-sigma of the camera positions (a shift of all of them moves every
+            point by as much): added to each ``sigma``.
+    """
+    ids, index, counts = np.unique(track_id, return_inverse=True, return_counts=True)
+    points, cov = triangulate(index, ids.size, centre_m, ray_world, sigma_rad)
+    ground, normal = dtm.height_and_normal(points[:, 0], points[:, 1])
+    dh = points[:, 2] - ground
+    # d(dh) = n . dX with n = (-dh/dx, -dh/dy, 1), the DTM's upward normal
+    var = np.einsum("ti,tij,tj->t", normal, cov, normal) + sigma_h_m**2 + pose_sigma_m**2
+    return TrackHeights(ids, points, counts, dh, np.sqrt(var))
+
+
+def mismatched(heights: TrackHeights, sigma_h_m: float,
+               settings: MismatchSettings | None = None) -> np.ndarray:
+    """Which tracks lie off the DTM, (T,) bool: alone, or with their neighbourhood.
+
+    Args:
+        heights: the tracks. sigma_h_m: the DTM's height 1-sigma (the floor of a
+            neighbourhood mean's uncertainty). settings: the tests.
+    """
+    s = settings or MismatchSettings()
+    known = np.isfinite(heights.dh_m) & np.isfinite(heights.sigma_m)
+    tested = known & (heights.n_observations >= s.min_observations)
+    z2 = np.where(known, (heights.dh_m / np.where(known, heights.sigma_m, 1.0)) ** 2, 0.0)
+    out = tested & (heights.sigma_m <= s.max_sigma_m) & (z2 > s.gate)
+    rest = np.flatnonzero(known & ~out)
+    if rest.size >= s.min_neighbours:
+        tree = cKDTree(heights.point_m[rest, :2])
+        pairs = tree.query_pairs(s.radius_m, output_type="ndarray")
+        i = np.r_[pairs[:, 0], pairs[:, 1], np.arange(rest.size)]  # each is its own too
+        j = np.r_[pairs[:, 1], pairs[:, 0], np.arange(rest.size)]
+        w = 1.0 / heights.sigma_m[rest] ** 2
+        sum_w = np.bincount(i, weights=w[j], minlength=rest.size)
+        mean = np.bincount(i, weights=(w * heights.dh_m[rest])[j], minlength=rest.size) / sum_w
+        count = np.bincount(i, minlength=rest.size)
+        var_mean = 1.0 / sum_w + sigma_h_m**2
+        bad = (count >= s.min_neighbours) & (mean**2 / var_mean > s.neighbourhood_gate)
+        # a failed neighbourhood goes whole: its members share the mismatch
+        members = np.zeros(rest.size, dtype=bool)
+        members[j[bad[i]]] = True
+        out[rest[members]] = True
+    return out
+
+
+class TrackObservations:
+    """The observations that entered the graph, by track: what the incremental smoother
+    triangulates a track from when it is seen again."""
+
+    def __init__(self) -> None:
+        self._id = np.zeros(0, np.int64)
+        self._frame = np.zeros(0, np.int64)
+        self._q = np.zeros((0, 3))
+
+    def add(self, track_id: np.ndarray, frame: np.ndarray, q: np.ndarray) -> None:
+        """Record observations ((n,) ids, (n,) frames, (n, 3) rays); repeats are ignored."""
+        self._id = np.r_[self._id, track_id]
+        self._frame = np.r_[self._frame, frame]
+        self._q = np.r_[self._q, q]
+
+    def of(self, track_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The observations of these tracks, once each: (ids, frames, rays)."""
+        rows = np.flatnonzero(np.isin(self._id, track_ids))
+        if rows.size == 0:
+            return self._id[:0], self._frame[:0], self._q[:0]
+        _, first = np.unique(np.c_[self._id[rows], self._frame[rows]], axis=0,
+                             return_index=True)
+        rows = rows[first]
+        return self._id[rows], self._frame[rows], self._q[rows]
+
+    def forget_before(self, frame: int) -> None:
+        keep = self._frame >= frame
+        self._id, self._frame, self._q = self._id[keep], self._frame[keep], self._q[keep]
+
+    def __len__(self) -> int:
+        return int(self._id.size)
+
+
+def coherent_test(e: np.ndarray, H: np.ndarray, R: np.ndarray, P: np.ndarray
+                  ) -> tuple[float, int]:
+    """Whether a group of features agrees with the prior as a whole (not feature by feature).
+
+    Features on terrain the DTM lacks are each within their noise, but they agree with
+    each other, and together they ask the poses to move further than the prior allows.
+    Under the model ``e_i = H_i x + v_i``, ``x ~ N(0, P)``, ``v_i ~ N(0, R_i)``, the
+    group's information vector ``b = sum H_i^T R_i^-1 e_i`` is ``Lambda x + noise`` with
+    ``Lambda = sum H_i^T R_i^-1 H_i``. With ``P = L L^T``, ``b' = L^T b`` has covariance
+    ``Lambda'^2 + Lambda'``, ``Lambda' = L^T Lambda L = U diag(lambda) U^T``, so
+    ``T = sum_j (u_j . b')^2 / (lambda_j^2 + lambda_j)`` is chi-square with as many
+    degrees of freedom as the group has informative directions.
+
+    Args:
+        e: (n, 2) innovations. H: (n, 2, m) their Jacobians. R: (n, 2, 2) their noise.
+        P: (m, m) the prior covariance.
+
+    Returns:
+        ``T`` and its degrees of freedom (0: the group says nothing).
+    """
+    Rinv = np.linalg.inv(R)
+    HtRinv = np.swapaxes(H, 1, 2) @ Rinv
+    Lam = np.einsum("nij,njk->ik", HtRinv, H)
+    b = np.einsum("nij,nj->i", HtRinv, e)
+    w, V = np.linalg.eigh(0.5 * (P + P.T))
+    L = V * np.sqrt(np.clip(w, 0.0, None))  # P = L L^T
+    lam, U = np.linalg.eigh(L.T @ Lam @ L)
+    informative = lam > 1e-6 * max(float(lam.max()), 1e-300)
+    if not informative.any():
+        return 0.0, 0
+    proj = U[:, informative].T @ (L.T @ b)
+    lam = lam[informative]
+    return float(np.sum(proj**2 / (lam**2 + lam))), int(informative.sum())
