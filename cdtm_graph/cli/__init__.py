@@ -16,7 +16,7 @@ import sys
 from cdtm_graph.errors import CdtmError
 
 #: Subcommand modules, in the order ``cdtm --help`` lists them.
-SUBCOMMANDS = ("demo", "smooth", "simulate", "analyze", "study", "navsim", "accuracy_map")
+SUBCOMMANDS = ("demo", "smooth", "track", "simulate", "analyze", "study", "navsim", "accuracy_map")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -32,7 +32,7 @@ from cdtm_graph.flightlog.tables import (
 logger = logging.getLogger(__name__)
 
 
-def read_flightlog(path: str | os.PathLike) -> FlightLog:
+def read_flightlog(path: str | os.PathLike, read_tracks: bool = True) -> FlightLog:
     """Read and validate a ``cdtm-flightlog/1`` directory.
 
     Image files named in frames.csv are checked for existence only when there is no
@@ -40,6 +40,8 @@ def read_flightlog(path: str | os.PathLike) -> FlightLog:
 
     Args:
         path: the log directory.
+        read_tracks: False: leave tracks.csv unread (``tracks`` is None) and check the
+            images instead, for a tracker about to replace it.
 
     Returns:
         The flight log; ``root`` and ``config.dtm.path`` are absolute.
@@ -66,7 +68,7 @@ def read_flightlog(path: str | os.PathLike) -> FlightLog:
     frames, frames_first_line = _read_frames(root / FRAMES_CSV, shown(FRAMES_CSV))
 
     tracks = None
-    if (root / TRACKS_CSV).is_file():
+    if read_tracks and (root / TRACKS_CSV).is_file():
         tracks = _read_tracks(root / TRACKS_CSV, shown(TRACKS_CSV), len(frames),
                               config.camera.camera)
     else:

@@ -40,6 +40,7 @@ import dataclasses
 import enum
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -66,6 +67,7 @@ from cdtm_graph.flightlog import (
 from cdtm_graph.geometry import make_pose, rotation_to_quat_wxyz, so3_exp
 from cdtm_graph.imu import NS_PER_S, ImuNoise, SampleHold
 from cdtm_graph.sim.imu import ImuData, simulate_imu
+from cdtm_graph.sim.render import write_images
 from cdtm_graph.sim.terrain import NOMINAL_CORRELATION_LENGTH_M, clone_basic_cell, fractal_terrain
 from cdtm_graph.sim.trajectory import STANDARD_GRAVITY_MPS2, FlightPlan, Trajectory, evaluate
 
@@ -432,11 +434,22 @@ def write_simulated_log(settings: SimulationSettings, out_dir: str | Path) -> Pa
     return write_simulation(simulate(settings), out_dir)
 
 
-def write_simulation(result: SimulationResult, out_dir: str | Path) -> Path:
+def write_simulation(result: SimulationResult, out_dir: str | Path,
+                     images: Sequence[np.ndarray] | None = None) -> Path:
     """Write an already simulated flight (:func:`simulate`) as a log directory.
 
     Same contract as :func:`write_simulated_log`.
+
+    Args:
+        result: the simulation.
+        out_dir: the log directory.
+        images: one image per frame (e.g. :func:`cdtm_graph.sim.render.render_flight`),
+            written as PNG under ``images/`` and listed in frames.csv.
     """
+    log = result.log
+    if images is not None and len(images) != len(log.frames):
+        raise SimulationError(f"{len(images)} images for {len(log.frames)} frames, "
+                              "expected one per frame")
     out = Path(out_dir)
     if out.exists():
         if not out.is_dir():
@@ -447,7 +460,10 @@ def write_simulation(result: SimulationResult, out_dir: str | Path) -> Path:
                                   "expected a new, empty or flight-log directory")
     with atomic_output_dir(out) as tmp:
         save_dtm_npz(result.dtm, tmp / DTM_FILENAME)
-        write_flightlog(result.log, tmp)
+        if images is not None:
+            log = dataclasses.replace(log, frames=Frames(log.frames.t_ns,
+                                                         write_images(images, tmp)))
+        write_flightlog(log, tmp)
     logger.info("wrote simulated flight log %s", out)
     return out
 
