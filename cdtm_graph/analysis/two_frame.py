@@ -25,7 +25,7 @@ from cdtm_graph.analysis.closed_form import (
     theta_jacobian_wrt_body_tangents,
 )
 from cdtm_graph.errors import DegenerateGeometryError, FlightLogError, SolverError
-from cdtm_graph.frontend.epipolar import FitMethod, fit_essential, triangulate_depths
+from cdtm_graph.frontend.epipolar import FitMethod, estimate_relative_pose, triangulate_depths
 from cdtm_graph.geometry import make_pose
 from cdtm_graph.graph import dtm_ray_caster
 from cdtm_graph.optimizer import levenberg_marquardt
@@ -212,8 +212,9 @@ def epipolar_initial_pose_b(q_a: np.ndarray, q_b: np.ndarray, raycast: RayCaster
                             noise: FeatureNoise) -> np.ndarray:
     """An initial pose b from the matches alone, given a rough pose a (the paper's conclusion).
 
-    The essential matrix (five-point RANSAC, :func:`~cdtm_graph.frontend.epipolar.fit_essential`)
-    gives the ego-motion's rotation ``R12`` and the direction of ``p12``; its length comes
+    The essential matrix (five-point RANSAC, refined:
+    :func:`~cdtm_graph.frontend.epipolar.estimate_relative_pose`) gives the ego-motion's
+    rotation ``R12`` and the direction of ``p12``; its length comes
     from the DTM: each inlier's ray from camera a is cast into the DTM, and the ratio of
     that depth to the depth triangulated with a unit baseline is the scale (median over
     the inliers). The C-DTM solve then fixes the absolute pose and refines everything.
@@ -233,7 +234,7 @@ def epipolar_initial_pose_b(q_a: np.ndarray, q_b: np.ndarray, raycast: RayCaster
             direction, or no inlier ray meets the DTM in front of both cameras.
     """
     sigma = max(noise.sigma_q_xy)
-    fit = fit_essential(q_a, q_b, EPIPOLAR_THRESHOLD_SIGMAS * sigma)
+    fit = estimate_relative_pose(q_a, q_b, sigma, EPIPOLAR_THRESHOLD_SIGMAS)
     if fit.method is not FitMethod.ESSENTIAL or fit.inliers.sum() < 6:
         raise DegenerateGeometryError(
             f"degenerate geometry: {int(np.sum(fit.inliers))} of {q_a.shape[0]} matches fit "

@@ -29,13 +29,16 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.optimize import least_squares
 
 __all__ = [
     "EpipolarFit",
     "FitMethod",
     "epipolar_residual_rad",
+    "estimate_relative_pose",
     "fit_essential",
     "fit_translation_given_rotation",
+    "refine_relative_pose",
     "triangulate_depths",
 ]
 
@@ -234,7 +237,12 @@ def fit_translation_given_rotation(rays_a: np.ndarray, rays_b: np.ndarray, a_R_b
 
 def fit_essential(rays_a: np.ndarray, rays_b: np.ndarray, threshold_rad: float,
                   confidence: float = 0.999, max_iterations: int = 1000) -> EpipolarFit:
-    """Five-point RANSAC on the essential matrix (OpenCV), then the pose it holds.
+    """Five-point RANSAC on the essential matrix (OpenCV's USAC), then the pose it holds.
+
+    The pose is the minimal model's: good for sorting matches. With a small baseline
+    over deep terrain a rotation can mimic most of the translation's flow (a model with
+    ``t`` along the optical axis and a few degrees of extra rotation fits nearly every
+    match); :func:`estimate_relative_pose` resolves that for a pose.
 
     Args:
         rays_a, rays_b: (N, 3) matched rays with ``z > 0`` (others are outliers).
@@ -256,18 +264,133 @@ def fit_essential(rays_a: np.ndarray, rays_b: np.ndarray, threshold_rad: float,
         return _nothing_fitted(n_matches, np.eye(3))
     pa = np.ascontiguousarray(fa[front, :2] / fa[front, 2:])
     pb = np.ascontiguousarray(fb[front, :2] / fb[front, 2:])
-    E, mask = cv2.findEssentialMat(pa, pb, np.eye(3), cv2.RANSAC, confidence, threshold_rad,
-                                   max_iterations)
-    if E is None or E.shape != (3, 3):  # no model, or several stacked (ambiguous)
-        if E is None or E.shape[0] < 3:
-            return _nothing_fitted(n_matches, np.eye(3))
-        E = E[:3]
-    _, b_R_a, b_t_a, _ = cv2.recoverPose(E, pa, pb, np.eye(3), mask=mask.copy())
+    E, mask = cv2.findEssentialMat(pa, pb, np.eye(3), cv2.USAC_ACCURATE, confidence,
+                                   threshold_rad, max_iterations)
+    if E is None or E.shape[0] < 3 or mask is None:
+        return _nothing_fitted(n_matches, np.eye(3))
+    _, b_R_a, b_t_a, _ = cv2.recoverPose(E[:3], pa, pb, np.eye(3), mask=mask.copy())
     a_R_b = b_R_a.T
     a_t_b = _unit(-(b_R_a.T @ b_t_a.ravel()))
     residual, inliers = _inliers(fa, fb, a_R_b, a_t_b, threshold_rad)
-    inliers &= front
-    return EpipolarFit(a_R_b, a_t_b, inliers, residual, FitMethod.ESSENTIAL)
+    return EpipolarFit(a_R_b, a_t_b, inliers & front, residual, FitMethod.ESSENTIAL)
+
+
+def estimate_relative_pose(rays_a: np.ndarray, rays_b: np.ndarray, sigma_rad: float,
+                           threshold_sigmas: float = 3.0) -> EpipolarFit:
+    """The relative pose of two views, for initializing a solver: R12 and the direction of p12.
+
+    :func:`fit_essential` gives a first pose; then the pose is refined by robust least
+    squares (Cauchy, scale ``sigma_rad``) on all matches, started from the fitted
+    translation direction and from the three axes (each with the rotation that best
+    explains the flow with it), keeping the lowest cost. The extra starts get out of
+    the rotation-for-translation basin the five-point fit can land in: on the paper's
+    nominal pair (40 m baseline at 500 m, 0.5 px) it was off by 4-5 deg in 8 of 30
+    draws; refined this way, by at most 0.3 deg in 30 of 30 (~0.2 s a call).
+
+    Args:
+        rays_a, rays_b: (N, 3) matched rays.
+        sigma_rad: registration noise (an angle: pixels / focal length).
+        threshold_sigmas: inlier bound in sigmas.
+
+    Returns:
+        The fit (``method`` NONE with too few matches).
+    """
+    threshold = threshold_sigmas * sigma_rad
+    fit = fit_essential(rays_a, rays_b, threshold)
+    if fit.method is not FitMethod.ESSENTIAL:
+        return fit
+    fa, fb = _unit(np.asarray(rays_a, float)), _unit(np.asarray(rays_b, float))
+    best = None
+    for start in (fit.a_t_b, *np.eye(3)):  # (the residual does not see the sign of t)
+        # the rotation that best explains the flow with this direction, then both
+        R, _, _ = refine_relative_pose(fa, fb, fit.a_R_b, start, sigma_rad, fix_translation=True)
+        R, t, cost = refine_relative_pose(fa, fb, R, start, sigma_rad)
+        if best is None or cost < best[2]:
+            best = (R, t, cost)
+    assert best is not None
+    R, t, _ = best
+    t = _in_front(fa, fb, R, t)
+    residual, inliers = _inliers(fa, fb, R, t, threshold)
+    return EpipolarFit(R, t, inliers, residual, FitMethod.ESSENTIAL)
+
+
+def _in_front(fa: np.ndarray, fb: np.ndarray, a_R_b: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``t`` or ``-t``, whichever puts most triangulated points in front of camera a."""
+    la, _ = triangulate_depths(fa, fb, a_R_b, t)
+    return -t if np.sum(la < 0) > np.sum(la > 0) else t
+
+
+def refine_relative_pose(rays_a: np.ndarray, rays_b: np.ndarray, a_R_b: np.ndarray,
+                         a_t_b: np.ndarray, robust_scale_rad: float | None = None,
+                         fix_translation: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
+    """Least-squares relative pose (five parameters; scipy's Levenberg-Marquardt).
+
+    Minimizes the signed epipolar residuals (the angles of :func:`epipolar_residual_rad`)
+    over a rotation increment ``a_R_b Exp(w)`` and a translation direction moved in its
+    tangent plane. The residual does not see the sign of ``t``.
+
+    Args:
+        rays_a, rays_b: (N, 3) rays, N >= 5.
+        a_R_b: (3, 3) starting rotation. a_t_b: (3,) starting direction.
+        robust_scale_rad: None: plain least squares; else the Cauchy loss of this scale
+            (each residual r becomes ``sign(r) sqrt(log(1 + (r/s)^2))``).
+        fix_translation: refine the rotation only.
+
+    Returns:
+        The refined ``a_R_b``, unit ``a_t_b`` and the final cost (half the sum of squares).
+    """
+    fa = _unit(np.asarray(rays_a, dtype=float))
+    fb = _unit(np.asarray(rays_b, dtype=float))
+    t0 = _unit(np.asarray(a_t_b, dtype=float))
+    R0 = np.asarray(a_R_b, dtype=float)
+    # an orthonormal basis of the tangent plane of the sphere at t0
+    e1 = _unit(np.cross(t0, [1.0, 0.0, 0.0] if abs(t0[0]) < 0.9 else [0.0, 1.0, 0.0]))
+    e2 = np.cross(t0, e1)
+    n_params = 3 if fix_translation else 5
+
+    def poses(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(P, n_params) parameters -> (P, 3, 3) rotations, (P, 3) directions."""
+        R = R0 @ _so3_exp(x[:, :3])
+        if fix_translation:
+            return R, np.broadcast_to(t0, (x.shape[0], 3))
+        return R, _unit(t0 + x[:, 3:4] * e1 + x[:, 4:5] * e2)
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        """(P, n_params) -> (P, N), all parameter vectors at once."""
+        R, t = poses(x)
+        fb_in_a = np.einsum("pij,nj->pni", R, fb)
+        det = np.einsum("pni,pi->pn", np.cross(fb_in_a, fa[None]), t)
+        sine = np.minimum(np.linalg.norm(np.cross(t[:, None, :], fa[None]), axis=2),
+                          np.linalg.norm(np.cross(t[:, None, :], fb_in_a), axis=2))
+        r = det / np.maximum(sine, 1e-12)
+        if robust_scale_rad is None:
+            return r
+        return np.sign(r) * np.sqrt(np.log1p((r / robust_scale_rad) ** 2))
+
+    step = 1e-7  # forward differences of one batched evaluation (angles ~1e-3 rad)
+
+    def jacobian(x: np.ndarray) -> np.ndarray:
+        r = residuals(np.vstack([x, x + step * np.eye(n_params)]))
+        return ((r[1:] - r[0]) / step).T
+
+    solution = least_squares(lambda x: residuals(x[None])[0], np.zeros(n_params),
+                             jac=jacobian, method="lm")
+    R, t = poses(solution.x[None])
+    return R[0], t[0], float(solution.cost)
+
+
+def _so3_exp(w: np.ndarray) -> np.ndarray:
+    """(P, 3) rotation vectors -> (P, 3, 3) rotations (Rodrigues)."""
+    theta = np.linalg.norm(w, axis=1)
+    small = theta < 1e-12
+    k = w / np.where(small, 1.0, theta)[:, None]
+    K = np.zeros((w.shape[0], 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    s, c = np.sin(theta)[:, None, None], np.cos(theta)[:, None, None]
+    R = np.eye(3) + s * K + (1.0 - c) * (K @ K)
+    R[small] = np.eye(3)
+    return R
 
 
 def _nothing_fitted(n_matches: int, a_R_b: np.ndarray) -> EpipolarFit:

@@ -114,7 +114,12 @@ class TrackerSettings:
             features.
         quality_level: Shi-Tomasi threshold, relative to the image's strongest corner.
         block_size_px: Shi-Tomasi neighbourhood.
-        window_px: Lucas-Kanade window side (odd).
+        window_px: Lucas-Kanade window side (odd). Small on purpose: over relief the
+            flow varies inside the window (parallax), and Lucas-Kanade returns the
+            window's gradient-weighted mean motion, not its centre's. Measured on
+            rendered flights at 1000 m, 1 fps: along-flow error std 0.21-0.26 px with 15 px,
+            0.27-0.34 px with 21, 0.40-0.48 px with 31 at 320x240 (and a position ANEES of
+            17-35 with 31); at 640x480, 15 and 21 px did alike.
         pyramid_levels: Lucas-Kanade pyramid levels above the image (OpenCV's maxLevel):
             the residual flow after prediction the pyramid can absorb is about
             ``window_px / 2 * 2**levels``.
@@ -136,7 +141,7 @@ class TrackerSettings:
     min_distance_px: float = 12.0
     quality_level: float = 0.01
     block_size_px: int = 7
-    window_px: int = 21
+    window_px: int = 15
     pyramid_levels: int = 4
     klt_iterations: int = 30
     klt_epsilon_px: float = 0.01
@@ -319,9 +324,7 @@ class FeatureTracker:
         mean, std = cv2.meanStdDev(img)
         alpha = _NORMALIZED_STD / max(float(std[0, 0]), 1e-6)
         beta = _NORMALIZED_MEAN - alpha * float(mean[0, 0])
-        if img.dtype == np.uint8:
-            return cv2.addWeighted(img, alpha, img, 0.0, beta)
-        return np.clip(img * alpha + beta, 0, 255).astype(np.uint8)
+        return cv2.addWeighted(img, alpha, img, 0.0, beta, dtype=cv2.CV_8U)
 
     def _predict(self, prev_uv: np.ndarray, R: np.ndarray | None) -> np.ndarray:
         """Where the features should be in the new image: rotated, then shifted."""
@@ -455,13 +458,16 @@ class FeatureTracker:
         uv = corners.reshape(-1, 2).astype(float)
         if self._has_shift:  # predicted to leave the image before the next one: skip
             uv = uv[self._inside(uv + self._shift_px, margin_px=1.0)]
-        # Strongest first (goodFeaturesToTrack's order); at most the deficit per cell.
+        # Per cell, strongest first (goodFeaturesToTrack's order), up to its share. The
+        # emptiest cells are served first: a corner's fill level is the cell's count with
+        # it, so every cell gets one before any gets two more than the others.
         cell = cell_of(uv)
         order = np.argsort(cell, kind="stable")
         sorted_cell = cell[order]
         first = np.searchsorted(sorted_cell, sorted_cell, side="left")
         rank = np.empty_like(order)
         rank[order] = np.arange(order.size) - first
-        keep = rank < (per_cell - occupied[cell])
-        uv = uv[keep]
-        return uv[:need]
+        fill = occupied[cell] + rank
+        keep = np.flatnonzero(fill < per_cell)
+        keep = keep[np.argsort(fill[keep], kind="stable")]
+        return uv[keep[:need]]
