@@ -1,4 +1,4 @@
-"""The visual front-end: tracker accuracy against the renderer's truth, each check with its fault."""
+"""The visual front-end: accuracy against the renderer's truth; each check with its fault."""
 
 from __future__ import annotations
 
