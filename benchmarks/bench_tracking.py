@@ -11,7 +11,8 @@
   (:func:`cdtm_graph.sim.tracking_truth.match_errors`): pair error median / 95th
   percentile of the kept matches, drift along tracks, wrong-match fractions (> 2 px)
   of the raw Lucas-Kanade output, before and after the epipolar verification; clean
-  images and with +-10 % exposure jitter and 1 px motion blur.
+  images, with +-10 % exposure jitter and 1 px motion blur, and a harder flight
+  (600 m over the 300 m relief, 4 DN of noise, jitter and blur).
 
 Run: ``python benchmarks/bench_tracking.py [--frames 60] [--repeats 3]``; ends with one line
 ``render_s_per_frame=... tracker_ms=... bare_ms=... ratio=...``.
@@ -35,7 +36,7 @@ from cdtm_graph.frontend import (  # noqa: E402
     TrackerSettings,
     camera_rotations_from_imu,
 )
-from cdtm_graph.sim.render import RenderSettings, render_flight  # noqa: E402
+from cdtm_graph.sim.render import Renderer, RenderSettings, render_flight  # noqa: E402
 from cdtm_graph.sim.simulate import SimulationSettings, simulate  # noqa: E402
 from cdtm_graph.sim.tracking_truth import match_errors  # noqa: E402
 
@@ -100,11 +101,8 @@ def main(argv: list[str] | None = None) -> dict:
     result = simulate(SimulationSettings(frames=args.frames, resolution_px=(640, 480),
                                          seed=args.seed))
     camera = result.log.config.camera.camera
-    render_flight_warmup = RenderSettings(seed=args.seed)
-    from cdtm_graph.sim.render import Renderer  # noqa: PLC0415
-
     Renderer(result.terrain, camera).render(result.world_T_cam[0])  # compile / cache load
-    clean = render_flight(result, render_flight_warmup)
+    clean = render_flight(result, RenderSettings(seed=args.seed))
     print(f"rendering: {clean.seconds_per_frame:.3f} s per 640x480 frame "
           f"({args.frames} frames)")
     rotations = camera_rotations_from_imu(result.log)
@@ -136,6 +134,15 @@ def main(argv: list[str] | None = None) -> dict:
     outputs_j, _ = run_tracker(camera, jittered.images, rotations, settings)
     accuracy["jitter_10pct_blur_1px"] = match_errors(result.terrain, camera, result.world_T_cam,
                                                      outputs_j).as_dict()
+    # A harder flight: 600 m over the same 300 m relief (more parallax and occlusion,
+    # ~185 px of flow per frame), 4 DN of sensor noise, jitter and blur.
+    low = simulate(SimulationSettings(frames=args.frames, resolution_px=(640, 480),
+                                      seed=args.seed, alt_m=600.0))
+    hard = render_flight(low, RenderSettings(seed=args.seed, noise_sigma_dn=4.0,
+                                             exposure_jitter=0.1, motion_blur_px=1.0))
+    outputs_h, _ = run_tracker(camera, hard.images, camera_rotations_from_imu(low.log), settings)
+    accuracy["alt_600m_noise_4dn_jitter_blur"] = match_errors(
+        low.terrain, camera, low.world_T_cam, outputs_h).as_dict()
     print("accuracy against the renderer's truth:")
     print(json.dumps(accuracy, indent=2))
     summary = {"render_s_per_frame": clean.seconds_per_frame, "tracker_ms": tracker_median,

@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
+from cdtm_graph.camera import PinholeCamera
 from cdtm_graph.errors import CdtmError
 from cdtm_graph.frontend import (
     FeatureTracker,
@@ -24,7 +25,13 @@ from cdtm_graph.frontend.epipolar import (
     triangulate_depths,
 )
 from cdtm_graph.geometry import so3_exp, so3_log
-from cdtm_graph.sim.render import RenderSettings, render_flight, true_correspondences
+from cdtm_graph.sim.render import (
+    ProceduralTexture,
+    Renderer,
+    RenderSettings,
+    render_flight,
+    true_correspondences,
+)
 from cdtm_graph.sim.simulate import SimulationSettings, simulate
 from cdtm_graph.sim.tracking_truth import WRONG_MATCH_PX, match_errors
 
@@ -63,6 +70,28 @@ def test_tracked_pixels_match_the_renderers_truth(flight, tracked):
     assert figures["pair_error_p95_px"] < P95_PX, figures
     assert figures["wrong_fraction_after_verification"] < 0.01, figures
     assert figures["matches_kept"] > 100 * (FLIGHT.frames - 1)
+
+
+def test_tracking_through_a_distorted_lens(flight):
+    """Images through a strong radtan lens: prediction and verification go through the
+    camera model, the tracks stay as accurate (against the distorted truth)."""
+    result, _ = flight
+    plain = _camera(result)
+    lens = PinholeCamera(plain.width, plain.height, plain.fx, plain.fy, plain.cx, plain.cy,
+                         (-0.25, 0.06, 0.001, -0.001))
+    renderer = Renderer(result.terrain, lens, ProceduralTexture(seed=3))
+    frames = 4
+    rng = np.random.default_rng(6)
+    images = [renderer.render(result.world_T_cam[k], rng=rng) for k in range(frames)]
+    rotations = camera_rotations_from_imu(result.log)
+    tracker = FeatureTracker(lens)
+    outputs = [tracker.track(images[k], rotations[k]) for k in range(frames)]
+    figures = match_errors(result.terrain, lens, result.world_T_cam[:frames], outputs).as_dict()
+    assert figures["pair_error_median_px"] < MEDIAN_PX, figures
+    assert figures["wrong_fraction_after_verification"] < 0.01, figures
+    assert all(o.fit is not None and o.fit.method is FitMethod.ROTATION_PRIOR
+               for o in outputs[1:])
+    assert min(o.counts()["tracked"] for o in outputs[1:]) > 100
 
 
 def test_gyro_rotation_between_frames_matches_the_cameras(flight):

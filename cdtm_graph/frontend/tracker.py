@@ -376,9 +376,11 @@ class FeatureTracker:
         status[candidates[~fit.inliers]] = MatchStatus.EPIPOLAR
 
         good = status == MatchStatus.TRACKED
-        if good.sum() >= 3:  # the translational part of the flow, for the next prediction
+        if good.sum() >= MIN_MATCHES:  # the translational flow, for the next prediction
             self._shift_px = np.asarray(np.median(matched[good] - rotated[good], axis=0), float)
             self._has_shift = True
+        else:  # tracking broke down: find the flow by phase correlation next time
+            self._has_shift = False
         return matched, status, fit if fit.method is not FitMethod.NONE else None
 
     def _global_shift(self, gray: np.ndarray) -> np.ndarray:
