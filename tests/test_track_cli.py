@@ -139,3 +139,12 @@ def test_live_tracking_script_feeds_the_incremental_smoother(image_log, capsys):
                              run_name="not_main")["main"]([str(image_log)])
     assert summary["frames"] == 4
     assert summary["smoothed_rms_error_m"] < 10.0
+
+
+def test_a_log_without_images_is_named(tmp_path, capsys):
+    log = tmp_path / "log"
+    assert main(["simulate", str(log), "--frames", "3", "--features", "20"]) == 0
+    capsys.readouterr()
+    assert main(["track", str(log), "--force", "--quiet"]) == 1
+    err = _one_line_error(capsys)
+    assert "frames.csv:2" in err and "frame 0 has no image" in err and "to track" in err

@@ -72,15 +72,18 @@ def read_flightlog(path: str | os.PathLike, read_tracks: bool = True) -> FlightL
         tracks = _read_tracks(root / TRACKS_CSV, shown(TRACKS_CSV), len(frames),
                               config.camera.camera)
     else:
+        # (without read_tracks the images are about to become the tracks: no alternative)
+        alternative = f", or a {TRACKS_CSV}" if read_tracks else " to track"
         for k, image in enumerate(frames.image):
             if not image:
                 _fail(shown(FRAMES_CSV), frames_first_line + k,
-                      f"frame {k} has no image and there is no {TRACKS_CSV}",
-                      f"an image path for every frame, or a {TRACKS_CSV}")
+                      f"frame {k} has no image" + (f" and there is no {TRACKS_CSV}"
+                                                   if read_tracks else ""),
+                      f"an image path for every frame{alternative}")
             if not (root / image).is_file():
                 _fail(shown(FRAMES_CSV), frames_first_line + k,
                       f"image {_show(image)} does not exist",
-                      f"an image file relative to the log directory (or a {TRACKS_CSV})")
+                      f"an image file relative to the log directory{alternative}")
 
     nav = None
     if (root / NAV_CSV).is_file():
