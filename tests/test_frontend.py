@@ -244,7 +244,7 @@ def test_image_types(flight):
         got = [t.track(im) for im in pair][1]
         np.testing.assert_array_equal(got.track_id, expected.track_id)
         np.testing.assert_allclose(got.uv_px, expected.uv_px, atol=0.05)
-    with pytest.raises(CdtmError, match="shape"):
+    with pytest.raises(ValueError, match="shape"):
         FeatureTracker(camera).track(images[0], np.eye(2))
 
 

@@ -9,6 +9,7 @@
 Part of the estimator core: nothing here imports the simulation harness.
 """
 
+from cdtm_graph.errors import ImageError
 from cdtm_graph.frontend.track_log import (
     TrackingReport,
     TrackingResult,
@@ -21,7 +22,6 @@ from cdtm_graph.frontend.tracker import (
     CameraModel,
     FeatureTracker,
     FrameTracks,
-    ImageError,
     MatchStatus,
     TrackerSettings,
 )

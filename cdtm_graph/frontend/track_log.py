@@ -19,15 +19,9 @@ import cv2
 import gtsam
 import numpy as np
 
-from cdtm_graph.errors import CdtmError, FlightLogError
+from cdtm_graph.errors import CdtmError, FlightLogError, ImageError, SolverError
 from cdtm_graph.flightlog import FRAMES_CSV, FlightLog, Tracks
-from cdtm_graph.frontend.tracker import (
-    FeatureTracker,
-    FrameTracks,
-    ImageError,
-    MatchStatus,
-    TrackerSettings,
-)
+from cdtm_graph.frontend.tracker import FeatureTracker, FrameTracks, MatchStatus, TrackerSettings
 from cdtm_graph.imu import ImuIntervals, SampleHold, initial_bias
 
 logger = logging.getLogger(__name__)
@@ -85,7 +79,7 @@ def camera_rotations_from_imu(flight: FlightLog) -> list[np.ndarray | None]:
         try:
             out.append(camera_rotation_from_imu(intervals, config.camera.body_T_cam,
                                                 int(t_ns[k - 1]), int(t_ns[k]), bias))
-        except CdtmError as exc:  # not covered: verify this pair without the prior
+        except SolverError as exc:  # not covered: verify this pair without the prior
             logger.warning("frames %d-%d: no IMU rotation (%s)", k - 1, k, exc)
             out.append(None)
     return out

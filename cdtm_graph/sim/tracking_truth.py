@@ -81,7 +81,9 @@ def match_errors(terrain: Dtm, camera, world_T_cam: np.ndarray,
         The errors.
     """
     klt, verified, accepted, drift = [], [], [], []
-    first: dict[int, tuple[int, np.ndarray]] = {}  # track id -> (frame, pixel) first seen
+    n_ids = 1 + max((int(o.track_id.max()) for o in frames if o.track_id.size), default=-1)
+    first_frame = np.full(n_ids, -1, np.int64)  # per track id: frame and pixel first seen
+    first_uv = np.full((n_ids, 2), np.nan)
     for out in frames:
         k = out.frame
         if k > 0 and out.prev_track_id.size:
@@ -94,18 +96,16 @@ def match_errors(terrain: Dtm, camera, world_T_cam: np.ndarray,
             verified.append(error[np.isin(out.status, [MatchStatus.TRACKED,
                                                        MatchStatus.EPIPOLAR])])
             accepted.append(error[out.status == MatchStatus.TRACKED])
-        old = ~out.is_new
-        by_first: dict[int, list[int]] = {}
-        for i in np.flatnonzero(old):
-            by_first.setdefault(first[int(out.track_id[i])][0], []).append(int(i))
-        for k0, rows in by_first.items():
-            uv0 = np.array([first[int(out.track_id[i])][1] for i in rows])
-            truth, seen = true_correspondences(terrain, camera, world_T_cam[k0],
-                                               world_T_cam[k], uv0)
-            drift.append(np.where(seen, np.linalg.norm(out.uv_px[rows] - truth, axis=1),
-                                  np.inf))
-        for i in np.flatnonzero(out.is_new):
-            first[int(out.track_id[i])] = (k, out.uv_px[i])
+        old_ids = out.track_id[~out.is_new]
+        old_uv = out.uv_px[~out.is_new]
+        for k0 in np.unique(first_frame[old_ids]):  # one cast per frame of first sighting
+            rows = first_frame[old_ids] == k0
+            truth, seen = true_correspondences(terrain, camera, world_T_cam[k0], world_T_cam[k],
+                                               first_uv[old_ids[rows]])
+            drift.append(np.where(seen, np.linalg.norm(old_uv[rows] - truth, axis=1), np.inf))
+        new_ids = out.track_id[out.is_new]
+        first_frame[new_ids] = k
+        first_uv[new_ids] = out.uv_px[out.is_new]
 
     def cat(parts: list[np.ndarray]) -> np.ndarray:
         return np.concatenate(parts) if parts else np.zeros(0)
