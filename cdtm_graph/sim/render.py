@@ -316,10 +316,10 @@ class OrthophotoTexture:
         fp = np.ascontiguousarray(footprint_m, dtype=np.float64).ravel()
         col = (x - self.x0) / self.dx
         row = (y - self.y0) / self.dy
-        # Level where one texel spans the footprint / FADE_START_PX (the procedural
-        # texture's cut-off): finer levels would alias.
+        # Standard mipmapping: the level whose texel spans the footprint (its finest
+        # detail, two texels, is then as long as the procedural texture's faded octaves).
         spacing = min(abs(self.dx), abs(self.dy))
-        level = np.log2(np.maximum(FADE_START_PX * fp / spacing, 1.0))
+        level = np.log2(np.maximum(fp / spacing, 1.0))
         out = np.empty_like(x)
         _trilinear(self._flat, self._offsets, self._shapes, row, col, level, out)
         rows, cols = self.shape
