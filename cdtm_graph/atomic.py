@@ -117,8 +117,11 @@ def read_manifest(directory: str | os.PathLike) -> dict[str, str] | None:
 
 
 def _check_payload_name(name: str) -> None:
-    if (not name or name in (".", "..") or "/" in name or "\\" in name or "\0" in name
-            or name == MANIFEST_NAME or name.startswith(STAGING_TAG)):
+    """A file name, or a relative path of names (``images/000000.png``)."""
+    parts = name.split("/")
+    if (not name or "\\" in name or "\0" in name or parts[0] == MANIFEST_NAME
+            or parts[0].startswith(STAGING_TAG)
+            or any(part in ("", ".", "..") for part in parts)):
         raise ValueError(f"{name!r} is not a plain output file name")
 
 
@@ -224,18 +227,29 @@ class _Staging:
         return cls(path, fd)
 
     def payload(self) -> list[str]:
-        """The names the caller wrote (plain regular files), sorted."""
-        names = sorted(n for n in os.listdir(self.path) if n != STAGING_LOCK_NAME)
-        for name in names:
-            try:
-                _check_payload_name(name)
-            except ValueError as exc:
-                raise ValueError(f"output {exc}") from None
-            p = self.path / name
-            if p.is_symlink() or not p.is_file():
-                raise ValueError(f"output {name!r} is not a regular file; output directories "
-                                 "hold plain files only")
-        return names
+        """The files the caller wrote (plain regular files, in subdirectories too), as
+        relative paths with ``/``, sorted."""
+        names = []
+        for root, dirs, files in os.walk(self.path):
+            here = Path(root).relative_to(self.path)
+            for d in dirs:
+                if (Path(root) / d).is_symlink():
+                    raise ValueError(f"output {str(here / d)!r} is a symbolic link; output "
+                                     "directories hold plain files only")
+            for f in files:
+                if root == str(self.path) and f == STAGING_LOCK_NAME:
+                    continue
+                name = (here / f).as_posix()
+                try:
+                    _check_payload_name(name)
+                except ValueError as exc:
+                    raise ValueError(f"output {exc}") from None
+                p = self.path / name
+                if p.is_symlink() or not p.is_file():
+                    raise ValueError(f"output {name!r} is not a regular file; output "
+                                     "directories hold plain files only")
+                names.append(name)
+        return sorted(names)
 
     def unlock(self) -> None:
         """Drop the lock file (before the directory is renamed into place) and release it."""
@@ -346,9 +360,12 @@ def _check_protected(real_target: str, protected: Iterable[str | os.PathLike],
 
 
 def _foreign_entries(directory: Path, ours: Mapping[str, str]) -> list[str]:
-    """Entries of ``directory`` cdtm did not write (staging directories aside)."""
+    """Entries of ``directory`` cdtm did not write (staging directories aside; a directory
+    holding files cdtm wrote counts as cdtm's)."""
+    folders = {name.split("/", 1)[0] for name in ours if "/" in name}
     return sorted(n for n in os.listdir(directory)
-                  if n != MANIFEST_NAME and n not in ours and not n.startswith(STAGING_TAG))
+                  if n != MANIFEST_NAME and n not in ours and n not in folders
+                  and not n.startswith(STAGING_TAG))
 
 
 def _is_regular_file(path: Path) -> bool:
@@ -356,9 +373,17 @@ def _is_regular_file(path: Path) -> bool:
 
 
 def _clashes(directory: Path, names: Iterable[str], ours: Mapping[str, str]) -> list[str]:
-    """Names that would overwrite something cdtm did not write (or that is no longer a file)."""
-    return [n for n in names if os.path.lexists(directory / n)
-            and (n not in ours or not _is_regular_file(directory / n))]
+    """Names that would overwrite something cdtm did not write (or that is no longer a
+    file), or whose folder is in the way (a file, or a link)."""
+    out = []
+    for n in names:
+        parents = [directory.joinpath(*n.split("/")[:i]) for i in range(1, n.count("/") + 1)]
+        if any(os.path.lexists(d) and (d.is_symlink() or not d.is_dir()) for d in parents):
+            out.append(n)
+        elif os.path.lexists(directory / n) and (n not in ours
+                                                 or not _is_regular_file(directory / n)):
+            out.append(n)
+    return out
 
 
 def _clash_error(shown: str, clashes: list[str]) -> OutputError:
@@ -442,10 +467,16 @@ def _publish_into(target: Path, staging: _Staging, writer: str, names: list[str]
         pending = {**ours, **{n: writer for n in names}}
         _write_manifest(target, pending, complete=False, scratch=staging.path)
         for name in names:
+            (target / name).parent.mkdir(parents=True, exist_ok=True)
             os.replace(staging.path / name, target / name)
         for name in stale:
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(target / name)
+            folder = (target / name).parent
+            while folder != target:  # folders cdtm made and emptied
+                with contextlib.suppress(OSError):
+                    folder.rmdir()  # only if empty
+                folder = folder.parent
         _write_manifest(target, {**kept, **{n: writer for n in names}}, complete=True,
                         scratch=staging.path)
         _fsync_path(target)
@@ -460,8 +491,8 @@ def atomic_output_dir(target: str | os.PathLike, *, writer: str, force: bool = F
 
     The rules are the module docstring's. Everything is checked on entry, before the
     caller's (possibly long) work: write the output files into the yielded directory
-    (plain files, flat); they appear in ``target`` only when the block ends without an
-    exception.
+    (plain files, in subdirectories if need be); they appear in ``target`` only when the
+    block ends without an exception.
 
     Args:
         target: the output directory.

@@ -33,6 +33,10 @@ class DegenerateGeometryError(CdtmError):
         self.reasons = tuple(reasons)
 
 
+class ImageError(CdtmError):
+    """An image cannot be used: unreadable, missing, of the wrong size or type."""
+
+
 class SolverError(CdtmError):
     """The optimizer failed (indeterminate system, divergence); the message names the variable."""
 

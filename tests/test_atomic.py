@@ -202,7 +202,8 @@ def test_a_foreign_manifest_is_refused(tmp_path: Path):
     assert (out / MANIFEST_NAME).read_text() == "not json"
 
 
-@pytest.mark.parametrize("name", ["../escape.txt", "sub/x", MANIFEST_NAME])
+@pytest.mark.parametrize("name", ["../escape.txt", "sub/../../escape.txt", "/abs/x", "a//b",
+                                  MANIFEST_NAME])
 def test_a_manifest_cannot_make_cdtm_delete_outside_its_files(tmp_path: Path, name: str):
     out = tmp_path / "d"
     out.mkdir()
@@ -307,3 +308,32 @@ def test_an_output_of_an_older_cdtm_is_recognised_in_the_message(tmp_path: Path)
                                                             "trajectory.tum"]):
             pass
     assert _snapshot(out) == {"report.json": b"r", "states.csv": b"s"}
+
+
+def test_files_in_subdirectories_are_published_and_their_folder_is_ours(tmp_path: Path):
+    """A log's images/ (files in a folder) appear with the run; a rerun that writes fewer
+    images removes the old ones it wrote, keeps the user's file in the folder, and a
+    folder in the way of a file is a clash."""
+    out = tmp_path / "log"
+    with atomic_output_dir(out, writer="simulate") as staging:
+        (staging / "images").mkdir()
+        for i in range(3):
+            (staging / "images" / f"{i}.png").write_text(str(i))
+        (staging / "flight.yaml").write_text("x")
+    assert sorted(p.name for p in (out / "images").iterdir()) == ["0.png", "1.png", "2.png"]
+    assert read_manifest(out)["images/2.png"] == "simulate"
+    (out / "images" / "notes.txt").write_text("mine")
+    with atomic_output_dir(out, writer="simulate") as staging:  # a rerun: not foreign
+        (staging / "images").mkdir()
+        (staging / "images" / "0.png").write_text("new")
+    assert sorted(p.name for p in (out / "images").iterdir()) == ["0.png", "notes.txt"]
+    assert (out / "images" / "0.png").read_text() == "new"
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / MANIFEST_NAME).write_text(json.dumps({"format": "cdtm-output/1", "files": {}}))
+    (other / "images").write_text("a file where the folder goes")
+    with pytest.raises(OutputError, match="images"):
+        with atomic_output_dir(other, writer="simulate") as staging:
+            (staging / "images").mkdir()
+            (staging / "images" / "0.png").write_text("0")
+    assert (other / "images").read_text() == "a file where the folder goes"

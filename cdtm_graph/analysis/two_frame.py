@@ -8,6 +8,7 @@ eq. 13 and the degeneracy verdict of section V.B.
 
 from __future__ import annotations
 
+import enum
 import logging
 from dataclasses import dataclass, field
 
@@ -24,6 +25,8 @@ from cdtm_graph.analysis.closed_form import (
     theta_jacobian_wrt_body_tangents,
 )
 from cdtm_graph.errors import DegenerateGeometryError, FlightLogError, SolverError
+from cdtm_graph.frontend.epipolar import FitMethod, estimate_relative_pose, triangulate_depths
+from cdtm_graph.geometry import make_pose
 from cdtm_graph.graph import dtm_ray_caster
 from cdtm_graph.optimizer import levenberg_marquardt
 from factors import CdtmPairFactor, FeatureNoise, PairFeatures, PlaneMode, RayCaster, RobustKernel
@@ -31,11 +34,21 @@ from factors import CdtmPairFactor, FeatureNoise, PairFeatures, PlaneMode, RayCa
 log = logging.getLogger(__name__)
 
 
+class TwoFrameInit(enum.Enum):
+    """Where :func:`solve_two_frame` starts."""
+
+    GIVEN = "given"        # both poses as guessed by the caller
+    EPIPOLAR = "epipolar"  # pose a as guessed, pose b from the matches (epipolar_initial_pose_b)
+
+
 @dataclass(frozen=True)
 class TwoFrameSettings:
     """Settings of :func:`solve_two_frame`.
 
     Attributes:
+        initialization: GIVEN starts from both guessed poses; EPIPOLAR replaces the
+            guess of pose b with :func:`epipolar_initial_pose_b` (no prior on the
+            ego-motion needed, only a rough pose a).
         plane_mode: REINTERSECT (default) follows the terrain from a far initial
             guess; FIXED is the paper's single linearization of the DTM.
         robust: per-feature M-estimator.
@@ -47,6 +60,7 @@ class TwoFrameSettings:
             than return a flagged result.
     """
 
+    initialization: TwoFrameInit = TwoFrameInit.GIVEN
     plane_mode: PlaneMode = PlaneMode.REINTERSECT
     robust: RobustKernel = RobustKernel.NONE
     max_iterations: int = 30
@@ -185,12 +199,78 @@ def pair_uncertainty(
     return PairUncertainty(cov, sigma_theta, analysis)
 
 
+#: Epipolar initialization: RANSAC inlier bound in registration sigmas.
+EPIPOLAR_THRESHOLD_SIGMAS = 3.0
+#: ... and the median parallax (angle between the matched rays, rotation undone) must
+#: exceed this many registration sigmas, or the translation direction is noise.
+EPIPOLAR_MIN_PARALLAX_SIGMAS = 10.0
+
+
+def epipolar_initial_pose_b(q_a: np.ndarray, q_b: np.ndarray, raycast: RayCaster,
+                            world_T_body_a: np.ndarray, body_T_cam: np.ndarray,
+                            noise: FeatureNoise) -> np.ndarray:
+    """An initial pose b from the matches alone, given a rough pose a (the paper's conclusion).
+
+    The essential matrix (five-point RANSAC, refined:
+    :func:`~cdtm_graph.frontend.epipolar.estimate_relative_pose`) gives the ego-motion's
+    rotation ``R12`` and the direction of ``p12``; its length comes
+    from the DTM: each inlier's ray from camera a is cast into the DTM, and the ratio of
+    that depth to the depth triangulated with a unit baseline is the scale (median over
+    the inliers). The C-DTM solve then fixes the absolute pose and refines everything.
+
+    Args:
+        q_a, q_b: (n, 3) matched normalized rays (z = 1) in frames a and b.
+        raycast: the DTM ray caster.
+        world_T_body_a: (4, 4) rough pose a.
+        body_T_cam: (4, 4) camera mounting.
+        noise: the registration noise (sets the RANSAC bound).
+
+    Returns:
+        (4, 4) ``world_T_body_b``.
+
+    Raises:
+        DegenerateGeometryError: too few matches, too little parallax for a translation
+            direction, or no inlier ray meets the DTM in front of both cameras.
+    """
+    sigma = max(noise.sigma_q_xy)
+    fit = estimate_relative_pose(q_a, q_b, sigma, EPIPOLAR_THRESHOLD_SIGMAS)
+    if fit.method is not FitMethod.ESSENTIAL or fit.inliers.sum() < 6:
+        raise DegenerateGeometryError(
+            f"degenerate geometry: {int(np.sum(fit.inliers))} of {q_a.shape[0]} matches fit "
+            "an essential matrix; expected enough matches for the epipolar initialization",
+            ("few_features",))
+    inl = fit.inliers
+    rays_a = q_a[inl] / np.linalg.norm(q_a[inl], axis=1, keepdims=True)
+    rays_b = q_b[inl] @ fit.a_R_b.T
+    rays_b /= np.linalg.norm(rays_b, axis=1, keepdims=True)
+    parallax = float(np.median(np.linalg.norm(np.cross(rays_a, rays_b), axis=1)))
+    if parallax < EPIPOLAR_MIN_PARALLAX_SIGMAS * sigma:
+        raise DegenerateGeometryError(
+            f"degenerate geometry: median parallax {parallax:.2e} rad, expected more than "
+            f"{EPIPOLAR_MIN_PARALLAX_SIGMAS:g} registration sigmas for the direction of p12",
+            ("short_baseline",))
+    depth_unit, _ = triangulate_depths(q_a[inl], q_b[inl], fit.a_R_b, fit.a_t_b)
+    wTc_a = world_T_body_a @ body_T_cam
+    ray = q_a[inl] @ wTc_a[:3, :3].T
+    G_E, _, valid = raycast(np.broadcast_to(wTc_a[:3, 3], ray.shape), ray)
+    # z-depth along q_a (z = 1): G = p_a + depth * R_a q_a
+    depth_dtm = np.einsum("ij,ij->i", G_E - wTc_a[:3, 3], ray) / np.einsum("ij,ij->i", ray, ray)
+    ok = valid & (depth_unit > 0) & (depth_dtm > 0)
+    if not ok.any():
+        raise DegenerateGeometryError(
+            "degenerate geometry: no matched ray from the guess of pose a meets the DTM in "
+            "front of both cameras; expected a guess of pose a over the DTM", ("ill_conditioned",))
+    scale = float(np.median(depth_dtm[ok] / depth_unit[ok]))
+    a_T_b = make_pose(fit.a_R_b, scale * fit.a_t_b)
+    return wTc_a @ a_T_b @ np.linalg.inv(body_T_cam)
+
+
 def solve_two_frame(
     q_a: np.ndarray,
     q_b: np.ndarray,
     raycast: RayCaster,
     world_T_body_a: np.ndarray,
-    world_T_body_b: np.ndarray,
+    world_T_body_b: np.ndarray | None,
     body_T_cam: np.ndarray,
     noise: FeatureNoise,
     settings: TwoFrameSettings | None = None,
@@ -200,7 +280,8 @@ def solve_two_frame(
     Args:
         q_a, q_b: (n, 3) normalized rays (z = 1) of the matched features in frames a, b.
         raycast: the DTM ray caster (see :data:`factors.RayCaster`).
-        world_T_body_a, world_T_body_b: (4, 4) initial guess.
+        world_T_body_a, world_T_body_b: (4, 4) initial guess (with
+            ``TwoFrameInit.EPIPOLAR``, b's is not used and may be None).
         body_T_cam: (4, 4) camera mounting.
         noise: data noise (pixels in normalized units, DTM height).
         settings: solver and degeneracy settings.
@@ -213,6 +294,12 @@ def solve_two_frame(
             ``settings.raise_on_degenerate`` is False, then the result is flagged).
     """
     settings = settings or TwoFrameSettings()
+    if settings.initialization is TwoFrameInit.EPIPOLAR:
+        world_T_body_b = epipolar_initial_pose_b(q_a, q_b, raycast, world_T_body_a, body_T_cam,
+                                                 noise)
+    elif world_T_body_b is None:
+        raise ValueError("solve_two_frame: world_T_body_b is needed unless the "
+                         "initialization is TwoFrameInit.EPIPOLAR")
     wTc_a = world_T_body_a @ body_T_cam
     wTc_b = world_T_body_b @ body_T_cam
     ray = q_a @ wTc_a[:3, :3].T

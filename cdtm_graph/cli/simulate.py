@@ -1,12 +1,17 @@
-"""``cdtm simulate OUT``: write a simulated flight log (with its DTM) to a directory."""
+"""``cdtm simulate OUT``: write a simulated flight log (with its DTM, and images) to a directory."""
 
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
+from tqdm import tqdm
+
 from cdtm_graph.cli.outdir import OUT_RULES, add_force_option, output_dir
+from cdtm_graph.errors import CdtmError
 from cdtm_graph.geodesy import VerticalDatum
+from cdtm_graph.sim.render import OrthophotoTexture, RenderSettings, render_flight
 from cdtm_graph.sim.simulate import (
     WRITER,
     NavMode,
@@ -16,15 +21,20 @@ from cdtm_graph.sim.simulate import (
 )
 
 _DEFAULTS = SimulationSettings()
+_RENDER_DEFAULTS = RenderSettings()
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "simulate",
-        help="write a simulated flight log: terrain, IMU, ray-cast feature tracks",
+        help="write a simulated flight log: terrain, IMU, ray-cast feature tracks (and images)",
         description="Simulate a flight over terrain (the paper's section VI.A: a cloned 3x3 km "
                     "fractal cell, or a DTM file) with an IMU and a downward camera, and write "
-                    "it as a cdtm-flightlog/1 directory holding its DTM (dtm.npz).")
+                    "it as a cdtm-flightlog/1 directory holding its DTM (dtm.npz). With "
+                    "--images, also render what the camera sees into images/ (the true "
+                    "terrain, which differs from the log's DTM) and list them in frames.csv; "
+                    "tracks.csv still holds the ideal ray-cast tracks (cdtm track --force "
+                    "replaces them with tracks from the images).")
     parser.add_argument("out", type=Path, metavar="OUT",
                         help=f"log directory to write: {OUT_RULES}")
     add_force_option(parser)
@@ -39,6 +49,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="number of camera frames (default %(default)s)")
     parser.add_argument("--fps", type=float, default=_DEFAULTS.fps,
                         help="frame rate, Hz (default %(default)s)")
+    parser.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"),
+                        default=list(_DEFAULTS.resolution_px),
+                        help="image width and height, pixels (default %(default)s)")
     parser.add_argument("--features", type=int, default=_DEFAULTS.n_features,
                         help="features per consecutive frame pair (default %(default)s)")
     parser.add_argument("--seed", type=int, default=_DEFAULTS.seed,
@@ -68,6 +81,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                      default=VerticalDatum.EGM96.value,
                      help="heights of dem.tif above the geoid or the ellipsoid "
                           "(default %(default)s)")
+    images = parser.add_argument_group("images (--images)")
+    images.add_argument("--images", action="store_true",
+                        help="render the camera's images into OUT/images/")
+    images.add_argument("--orthophoto", type=Path, metavar="TIF",
+                        help="ground texture from this orthophoto GeoTIFF (the DTM's CRS; "
+                             "needs rasterio) instead of a procedural one")
+    images.add_argument("--exposure-jitter", type=float, default=_RENDER_DEFAULTS.exposure_jitter,
+                        help="relative exposure change per frame, uniform in +-this "
+                             "(default %(default)s)")
+    images.add_argument("--motion-blur-px", type=float, default=_RENDER_DEFAULTS.motion_blur_px,
+                        help="motion blur along the image motion, pixels (default %(default)s)")
+    images.add_argument("--image-noise-dn", type=float, default=_RENDER_DEFAULTS.noise_sigma_dn,
+                        help="sensor noise, 8-bit digital numbers (default %(default)s)")
     parser.set_defaults(func=run)
 
 
@@ -77,13 +103,29 @@ def run(args: argparse.Namespace) -> int:
         frames=args.frames,
         fps=args.fps, n_features=args.features, seed=args.seed, noiseless=args.noiseless,
         exact_dtm=args.exact_dtm, dtm_spacing_m=args.dtm_spacing_m, relief_m=args.relief_m,
-        nav=args.nav)
+        nav=args.nav, resolution_px=tuple(args.resolution))
+    render = None
+    if args.images:  # settings checked before the (long) simulation
+        render = RenderSettings(exposure_jitter=args.exposure_jitter,
+                                motion_blur_px=args.motion_blur_px,
+                                noise_sigma_dn=args.image_noise_dn, seed=args.seed)
+        if args.origin is not None:
+            raise CdtmError("--images with --origin: rendering a geodetic log is not supported "
+                            "yet; expected one of the two")
+    texture = OrthophotoTexture.from_geotiff(args.orthophoto) if args.orthophoto else None
     out = args.out
-    protected = [args.terrain] if args.terrain is not None else []
+    protected = [p for p in (args.terrain, args.orthophoto) if p is not None]
     with output_dir(args, out, WRITER, protected=protected, label="OUT") as staging:
         result = simulate(settings)
+        rendered = None
+        if render is not None:
+            with tqdm(total=settings.frames, unit="frame", desc="rendering", file=sys.stderr,
+                      leave=False) as bar:
+                rendered = render_flight(result, render, texture,
+                                         progress=lambda done, total: bar.update(1))
         if args.origin is None:
-            write_simulation_files(result, staging, out)
+            write_simulation_files(result, staging, out,
+                                   None if rendered is None else rendered.images)
         else:
             from cdtm_graph.geodesy import GeodeticOrigin
             from cdtm_graph.sim.geodetic import write_geodetic_simulation_files
@@ -97,4 +139,8 @@ def run(args: argparse.Namespace) -> int:
           f"{stats.n_observations} observations ({stats.pairs_per_frame.mean():.0f} features "
           f"per frame pair), DTM {rows}x{cols} at {result.dtm.grid_spacing_m:g} m "
           f"(sigma_h {result.dtm.sigma_h():g} m)")
+    if rendered is not None:
+        width, height = settings.resolution_px
+        print(f"rendered {len(rendered.images)} images {width}x{height} into {out / 'images'} "
+              f"({rendered.seconds_per_frame:.2f} s per frame)")
     return 0

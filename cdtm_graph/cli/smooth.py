@@ -28,18 +28,31 @@ def add_smoothing_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--plane", choices=[m.value for m in PlaneMode], default="reintersect",
                    help="DTM tangent plane: re-intersect at every linearization (default) "
                         "or fixed at the initial guess (the paper)")
-    p.add_argument("--robust", choices=[k.value for k in RobustKernel], default="none",
-                   help="per-feature M-estimator")
+    p.add_argument("--robust", choices=[k.value for k in RobustKernel], default="cauchy",
+                   help="per-feature M-estimator (default cauchy: redescending, reached from "
+                        "a robust start; none is plain least squares, for studies)")
     p.add_argument("--lag-s", type=float, default=None,
                    help="incremental mode: fixed-lag smoother with this lag (seconds)")
-    p.add_argument("--gate", type=float, default=None, metavar="P",
-                   help="incremental mode: drop features whose innovation against the "
-                        "prior fails the chi-square gate of probability P (e.g. 0.9999)")
+    p.add_argument("--gate", type=_gate_probability, default=0.999, metavar="P",
+                   help="drop features whose innovation against the prior fails the "
+                        "chi-square gate of probability P, as frames arrive (incremental "
+                        "mode, and the batch's incremental first pass); 'none' gates "
+                        "nothing (default %(default)s)")
     p.add_argument("--plots", action="store_true",
                    help="also write trajectory.png (over the DTM, 3-sigma ellipses), "
                         "errors.png (errors inside +-3 sigma) and, for a geodetic log, "
                         "trajectory_dem.png (over the DEM in its own coordinates)")
     p.add_argument("--quiet", action="store_true", help="no progress bar, no summary")
+
+
+def _gate_probability(text: str) -> float | None:
+    """``--gate``: a probability, or 'none'."""
+    if text.strip().lower() == "none":
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a probability or 'none'") from None
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -60,8 +73,6 @@ def settings_from_args(args: argparse.Namespace) -> SmootherSettings:
         raise CdtmError("--lag-s needs --mode incremental")
     if args.gate is not None and not 0.0 < args.gate < 1.0:
         raise CdtmError(f"--gate {args.gate}: expected a probability strictly between 0 and 1")
-    if args.gate is not None and args.mode != "incremental":
-        raise CdtmError("--gate needs --mode incremental (a prior for each frame as it arrives)")
     return SmootherSettings(
         graph=GraphSettings(plane_mode=PlaneMode(args.plane), robust=RobustKernel(args.robust)),
         mode=SmootherMode(args.mode), lag_s=args.lag_s, innovation_gate=args.gate)

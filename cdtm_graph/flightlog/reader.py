@@ -41,7 +41,7 @@ from cdtm_graph.flightlog.tables import (
 logger = logging.getLogger(__name__)
 
 
-def read_flightlog(path: str | os.PathLike) -> FlightLog:
+def read_flightlog(path: str | os.PathLike, read_tracks: bool = True) -> FlightLog:
     """Read and validate a ``cdtm-flightlog/1`` directory.
 
     Image files named in frames.csv are checked for existence only when there is no
@@ -49,6 +49,8 @@ def read_flightlog(path: str | os.PathLike) -> FlightLog:
 
     Args:
         path: the log directory.
+        read_tracks: False: leave tracks.csv unread (``tracks`` is None) and check the
+            images instead, for a tracker about to replace it.
 
     Returns:
         The flight log; ``root`` and ``config.dtm.path`` are absolute.
@@ -75,19 +77,22 @@ def read_flightlog(path: str | os.PathLike) -> FlightLog:
     frames, frames_first_line = _read_frames(root / FRAMES_CSV, shown(FRAMES_CSV))
 
     tracks = None
-    if (root / TRACKS_CSV).is_file():
+    if read_tracks and (root / TRACKS_CSV).is_file():
         tracks = _read_tracks(root / TRACKS_CSV, shown(TRACKS_CSV), len(frames),
                               config.camera.camera)
     else:
+        # (without read_tracks the images are about to become the tracks: no alternative)
+        alternative = f", or a {TRACKS_CSV}" if read_tracks else " to track"
         for k, image in enumerate(frames.image):
             if not image:
                 _fail(shown(FRAMES_CSV), frames_first_line + k,
-                      f"frame {k} has no image and there is no {TRACKS_CSV}",
-                      f"an image path for every frame, or a {TRACKS_CSV}")
+                      f"frame {k} has no image" + (f" and there is no {TRACKS_CSV}"
+                                                   if read_tracks else ""),
+                      f"an image path for every frame{alternative}")
             if not (root / image).is_file():
                 _fail(shown(FRAMES_CSV), frames_first_line + k,
                       f"image {_show(image)} does not exist",
-                      f"an image file relative to the log directory (or a {TRACKS_CSV})")
+                      f"an image file relative to the log directory{alternative}")
 
     nav = None
     if (root / NAV_CSV).is_file():

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from cdtm_graph.atomic import atomic_output_file
 from cdtm_graph.flightlog.config import _IMU_KEYS, _INITIAL_SIGMAS, _INITIAL_VECTORS
 from cdtm_graph.flightlog.model import (
     FLIGHT_YAML,
@@ -24,6 +25,7 @@ from cdtm_graph.flightlog.model import (
     TRACKS_CSV,
     FlightLog,
     States,
+    Tracks,
     normalized_path,
 )
 from cdtm_graph.flightlog.problems import _fail
@@ -51,6 +53,27 @@ def _states_text(states: States, frame: LocalFrame | None = None) -> str:
         states.position_m, quat_wxyz_to_rotation(states.quaternion_wxyz), states.velocity_mps)
     floats = np.column_stack([lat, lon, h, quat, vel]).reshape(len(states), 10)
     return _csv_text("#t_ns," + ",".join(_GEODETIC_STATE_COLUMNS), [states.t_ns], floats)
+
+
+def _tracks_text(tracks: Tracks) -> str:
+    return _csv_text("#frame,track_id,u,v", [tracks.frame, tracks.track_id], tracks.uv_px)
+
+
+def write_tracks(tracks: Tracks, path: str | os.PathLike) -> None:
+    """Write tracks.csv alone (as :func:`write_flightlog` writes it), atomically.
+
+    The file appears complete or not at all; an existing one is replaced.
+
+    Args:
+        tracks: the tracks (rows sorted by frame, as FLIGHTLOG.md requires).
+        path: the file to write (normally ``<log>/tracks.csv``).
+    """
+    text = _tracks_text(tracks)  # rendered before the disk is touched
+    with atomic_output_file(path) as tmp:
+        with tmp.open("w", encoding="utf-8", newline="\n") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
 
 
 def _initial_state_document(log: FlightLog, geodetic: bool) -> dict[str, Any]:
@@ -151,9 +174,7 @@ def _render(log: FlightLog, target: Path, geodetic: bool = False) -> dict[str, s
                                                  strict=True)),
     }
     if log.tracks is not None:
-        files[TRACKS_CSV] = _csv_text("#frame,track_id,u,v", [log.tracks.frame,
-                                                             log.tracks.track_id],
-                                      log.tracks.uv_px)
+        files[TRACKS_CSV] = _tracks_text(log.tracks)
     frame = log.config.local_frame if geodetic else None
     if log.nav is not None:
         files[NAV_CSV] = _states_text(log.nav, frame)

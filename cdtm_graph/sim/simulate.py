@@ -67,6 +67,7 @@ from cdtm_graph.geometry import make_pose, rotation_to_quat_wxyz, so3_exp
 from cdtm_graph.imu import NS_PER_S, ImuNoise, dead_reckoning
 from cdtm_graph.sim.faults import TerrainMismatch, apply_terrain_mismatch
 from cdtm_graph.sim.imu import ImuData, simulate_imu
+from cdtm_graph.sim.render import write_images
 from cdtm_graph.sim.terrain import NOMINAL_CORRELATION_LENGTH_M, clone_basic_cell, fractal_terrain
 from cdtm_graph.sim.trajectory import STANDARD_GRAVITY_MPS2, FlightPlan, Trajectory, evaluate
 
@@ -478,15 +479,27 @@ def write_simulated_log(settings: SimulationSettings, out_dir: str | Path, *,
     return Path(out_dir)
 
 
-def write_simulation(result: SimulationResult, out_dir: str | Path, *, force: bool = False,
+def write_simulation(result: SimulationResult, out_dir: str | Path,
+                     images: Sequence[np.ndarray] | None = None, *, force: bool = False,
                      protected: Sequence[str | Path] = ()) -> Path:
     """Write an already simulated flight (:func:`simulate`) as a log directory.
 
-    Same contract as :func:`write_simulated_log`; ``protected``: inputs (the terrain
-    file) that ``out_dir`` must not be, be inside or contain.
+    Same contract as :func:`write_simulated_log`.
+
+    Args:
+        result: the simulation.
+        out_dir: the log directory.
+        images: one image per frame (e.g. :func:`cdtm_graph.sim.render.render_flight`),
+            written as PNG under ``images/`` and listed in frames.csv.
+        force, protected: as :func:`cdtm_graph.atomic.atomic_output_dir` (``protected``:
+            inputs, such as the terrain file, that ``out_dir`` must not be, be inside or
+            contain).
     """
+    if images is not None and len(images) != len(result.log.frames):
+        raise SimulationError(f"{len(images)} images for {len(result.log.frames)} frames, "
+                              "expected one per frame")
     with atomic_output_dir(out_dir, writer=WRITER, force=force, protected=protected) as staging:
-        write_simulation_files(result, staging, out_dir)
+        write_simulation_files(result, staging, out_dir, images)
     logger.info("wrote simulated flight log %s", out_dir)
     return Path(out_dir)
 
@@ -496,11 +509,20 @@ WRITER = "simulate"
 
 
 def write_simulation_files(result: SimulationResult, directory: Path,
-                           final_dir: str | Path) -> None:
-    """The log's files and its DTM, into ``directory`` (a staging directory that becomes
-    ``final_dir``), plainly: for callers holding an ``atomic_output_dir`` open."""
+                           final_dir: str | Path,
+                           images: Sequence[np.ndarray] | None = None) -> None:
+    """The log's files, its DTM and its images (``images/``), into ``directory`` (a
+    staging directory that becomes ``final_dir``), plainly: for callers holding an
+    ``atomic_output_dir`` open."""
+    log = result.log
+    if images is not None:
+        if len(images) != len(log.frames):
+            raise SimulationError(f"{len(images)} images for {len(log.frames)} frames, "
+                                  "expected one per frame")
+        log = dataclasses.replace(log, frames=Frames(log.frames.t_ns,
+                                                     write_images(images, directory)))
     save_dtm_npz(result.dtm, directory / DTM_FILENAME)
-    write_flightlog_files(result.log, directory, final_dir)
+    write_flightlog_files(log, directory, final_dir)
 
 
 def simulate(settings: SimulationSettings) -> SimulationResult:
