@@ -112,7 +112,8 @@ def demo(name: str, frames: int = BASE.frames, window: int = 6,
     r = result.searched
     print(f"  acquisition {result.time_s:.2f} s over {r.n_offsets} offsets x "
           f"{len(r.search_headings_deg)} headings ({r.n_tracks} tracks, {r.n_features} "
-          f"C-DTM features): {result.verdict.value}: {result.reason}", flush=True)
+          f"C-DTM features; terrain information {result.information_z:.1f} standard "
+          f"errors): {result.verdict.value}: {result.reason}", flush=True)
     for h in result.hypotheses:
         fixed = h.correction.apply_to_state(window_frames[0].world_T_body, init.velocity_mps)[0]
         print(f"    fix {h.offset_world_m.round(0)} m, {h.correction.heading_deg:+.2f} deg, "

@@ -162,13 +162,17 @@ def test_repeating_terrain_is_ambiguous_and_lists_the_copies():
     assert np.allclose(periods, np.round(periods), atol=FIX_TOLERANCE_M / 3000.0)
 
 
-def test_a_prior_that_misses_the_truth_is_not_acquired(far_flight):
-    """The truth 5 sigma out, outside the search: no fix inside may claim it."""
+@pytest.mark.parametrize("sigma_m, verdict", [
+    (200.0, Verdict.NO_INFORMATION),  # the truth 5 sigma out: nothing inside fits
+    (300.0, Verdict.AT_EDGE),  # 3.3 sigma: the best fix refines out of the region
+])
+def test_a_prior_that_misses_the_truth_is_not_acquired(far_flight, sigma_m, verdict):
     log, dtm = far_flight
     frames, prior = dead_reckoned_window(log, WINDOW)
-    prior = dataclasses.replace(prior, position_covariance_world=np.eye(3) * 200.0 ** 2)
+    prior = dataclasses.replace(prior, position_covariance_world=np.eye(3) * sigma_m ** 2)
     result = acquire(frames, log.config.camera, dtm, prior)
-    assert result.verdict is not Verdict.ACQUIRED, result.reason
+    assert result.verdict is verdict, result.reason
+    assert result.correction is None
 
 
 def test_too_few_tracks_is_no_information(far_flight):
@@ -273,6 +277,17 @@ def test_inconsistent_frames_are_refused_in_one_line(far_flight, change, message
     frames, prior = dead_reckoned_window(log, WINDOW)
     with pytest.raises(FlightLogError, match=message):
         acquire(change(frames), log.config.camera, dtm, prior)
+
+
+def test_a_prior_from_a_smoother_covariance_is_in_the_world_frame():
+    """Body-frame [rotation, translation] covariance of a pose turned 90 deg about z:
+    body x is world y."""
+    pose = make_pose(so3_exp(np.array([0.0, 0.0, np.pi / 2])), np.zeros(3))
+    cov = np.diag(np.r_[np.radians([0.5, 1.0, 3.0]) ** 2, [400.0 ** 2, 100.0 ** 2, 50.0 ** 2]])
+    prior = SearchPrior.from_pose_covariance(pose, cov, np.zeros(3), 1.0, 9.81)
+    assert np.allclose(np.sqrt(np.diag(prior.position_covariance_world)), [100.0, 400.0, 50.0])
+    assert prior.heading_sigma_rad == pytest.approx(np.radians(3.0))
+    assert prior.tilt_sigma_rad == pytest.approx(np.radians(1.0))
 
 
 def test_a_bad_prior_is_refused():

@@ -18,13 +18,16 @@ of a flight (or the frames after a long gap in constraints):
    its heights scored against the DTM with a truncated quadratic.
 3. **Modes.** Local minima at least ``merge_radius_m`` apart; the best few are refined
    with the C-DTM factors themselves (every pair of sightings of every track; rotation,
-   translation and velocity of the first state; truncated Levenberg-Marquardt).
-4. **Decision** by Vuong's test for non-nested models: per track, the difference of the
-   robust costs of two fixes; their sum over its standard error (``sqrt(n)`` times their
-   sample standard deviation) is N(0, 1) when both fit equally well. ACQUIRED when the
-   best mode beats every other by ``separation_z``; AMBIGUOUS when some tie (they are
-   listed); NO_INFORMATION when too few tracks triangulate, or when the best offset is
-   not significantly better than a typical one (flat terrain).
+   translation and velocity of the first state; truncated Levenberg-Marquardt under the
+   prior, kept within half a merge radius of its mode).
+4. **Decision** (:func:`separation_z`): per track, the difference of the robust costs
+   of two fixes, tested by Vuong's test for non-nested models (the gain must be
+   consistent across tracks) and by its likelihood ratio (the gain must be large).
+   ACQUIRED when the best fix beats every other mode by ``separation_z`` standard
+   errors; AMBIGUOUS when some tie (they are listed); NO_INFORMATION when too few tracks
+   triangulate, or when the best offset does not beat a typical one by
+   ``information_z`` (flat terrain, terrain unlike the DTM); AT_EDGE when the best fix
+   refines out of the searched region (the truth may lie outside the prior).
 
 Pure: no I/O, no smoother. The smoother calls :func:`needs_acquisition` on its prior (or
 its covariance after a gap) and, when true, :func:`acquire` on the dead-reckoned frames,

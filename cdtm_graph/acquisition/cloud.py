@@ -235,8 +235,11 @@ def _fit_plane(elev, x0, y0, dx, dy, px, py, pz, xr, yr, w, ox, oy, tau, slope_i
             r2 += wi * diff[i] * yr[i]
         if s00 <= 0.0:
             break
-        c, a, b = _solve_symmetric3(s00, s01, s02, s11 + slope_info, s12, s22 + slope_info,
-                                    r0, r1, r2)
+        c1, a1, b1 = _solve_symmetric3(s00, s01, s02, s11 + slope_info, s12,
+                                       s22 + slope_info, r0, r1, r2)
+        if c1 != c1:  # singular: keep the last fit
+            break
+        c, a, b = c1, a1, b1
     total = slope_info * (a * a + b * b)
     for i in range(n):
         r = diff[i] - c - a * xr[i] - b * yr[i]

@@ -18,7 +18,9 @@ from factors import CdtmPairFactor, FeatureNoise, PairFeatures, PlaneMode
 
 @dataclass(frozen=True)
 class Features:
-    """Every pair of sightings of every track, grouped by frame pair."""
+    """Every pair of sightings of every track (not only consecutive ones: a pair's
+    residual grows with its baseline, and the terrain is what is sought), grouped by
+    frame pair."""
 
     groups: list[tuple[int, int, np.ndarray]]  # (frame a, frame b, feature indices)
     q_a: np.ndarray
@@ -31,6 +33,7 @@ class Features:
 
 
 def pair_features(window: Window) -> Features:
+    """The window's :class:`Features`: ``m (m - 1) / 2`` per track of ``m`` sightings."""
     counts = np.diff(window.starts)
     rows_a, rows_b = [], []
     for m in np.unique(counts):  # all pairs k < l, vectorized per track length
@@ -50,6 +53,8 @@ def pair_features(window: Window) -> Features:
 
 @dataclass(frozen=True)
 class Refined:
+    """A refined fix and its robust cost (the sum of ``feature_costs``)."""
+
     correction: Correction
     feature_costs: np.ndarray  # (F,) truncated whitened squared residuals
     cost: float
@@ -59,8 +64,8 @@ class Refiner:
     """C-DTM refinement of a fix: rotation, translation and velocity of the first state.
 
     Levenberg-Marquardt on the truncated quadratic (features past the truncation weigh
-    nothing in a step), planes re-intersected at every evaluation, the velocity held to
-    its prior.
+    nothing in a step) plus the search prior on all nine, planes re-intersected at every
+    evaluation.
     """
 
     #: Converged when a step moves the fix less than this (m, rad).

@@ -32,6 +32,8 @@ class Verdict(enum.Enum):
     ACQUIRED = "acquired"              # one fix, clearly better than every other
     AMBIGUOUS = "ambiguous"            # several fixes fit about equally well
     NO_INFORMATION = "no_information"  # the data cannot place the window (flat, too few)
+    AT_EDGE = "at_edge"                # the best fix leaves the searched region: the
+    #                                    truth may lie outside the prior
 
 
 @dataclass(frozen=True)
@@ -93,11 +95,13 @@ class AcquisitionResult:
     """The verdict, the ranked fixes and what was searched.
 
     Attributes:
-        verdict: ACQUIRED, AMBIGUOUS or NO_INFORMATION.
+        verdict: ACQUIRED, AMBIGUOUS, NO_INFORMATION or AT_EDGE.
         hypotheses: refined fixes, best first (empty for NO_INFORMATION).
         reason: one line saying why.
         searched: the region and data.
         time_s: wall time of the search.
+        information_z: how many standard errors the best offset of the terrain search
+            beat a typical one by (NaN if the search did not get that far).
     """
 
     verdict: Verdict
@@ -105,6 +109,7 @@ class AcquisitionResult:
     reason: str
     searched: SearchRegion
     time_s: float
+    information_z: float = float("nan")
 
     @property
     def correction(self) -> Correction | None:
@@ -352,10 +357,12 @@ def acquire(frames: Sequence[AcquisitionFrame], camera: CameraConfig, dtm: Dtm,
                           (float(np.degrees(headings[0])), float(np.degrees(headings[-1]))),
                           s.heading_step_deg, (), len(frames), window.n_tracks, 0)
 
+    z = float("nan")
+
     def done(verdict: Verdict, reason: str, hypotheses: Sequence[Hypothesis] = ()
              ) -> AcquisitionResult:
         return AcquisitionResult(verdict, tuple(hypotheses), reason, region,
-                                 time.perf_counter() - start)
+                                 time.perf_counter() - start, z)
 
     n_points = int(clouds[best].valid.sum())
     if n_points < s.min_tracks:
@@ -392,6 +399,11 @@ def acquire(frames: Sequence[AcquisitionFrame], camera: CameraConfig, dtm: Dtm,
                            for h in [hypotheses[0], *rivals])
         return done(Verdict.AMBIGUOUS, f"{len(rivals) + 1} fixes fit about equally well "
                     f"(best first, offsets from the prior mean): {listed}", hypotheses)
+    if hypotheses[0].prior_sigmas > s.n_sigma:
+        return done(Verdict.AT_EDGE,
+                    f"the best fix, {_describe(hypotheses[0])} from the prior mean, lies "
+                    f"{hypotheses[0].prior_sigmas:.1f} sigmas out, past the {s.n_sigma:g}-sigma "
+                    "region searched: the truth may lie outside the prior", hypotheses)
     runner_up = (f"the next fix is {hypotheses[1].separation_z:.1f} standard errors worse"
                  if len(hypotheses) > 1 else "no other mode")
     return done(Verdict.ACQUIRED,

@@ -19,6 +19,7 @@ from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import CameraConfig, FlightLog, InitialState
 from cdtm_graph.geometry import make_pose
 from cdtm_graph.imu import SampleHold, dead_reckoning
+from cdtm_graph.results import pose_covariance_in_world
 from cdtm_graph.tracks import check_unique
 
 NS_PER_S = 1_000_000_000
@@ -91,6 +92,26 @@ class SearchPrior:
         return cls(np.eye(3) * initial.sigma_position_m ** 2, att, att,
                    np.asarray(initial.velocity_mps, dtype=float),
                    float(initial.sigma_velocity_mps), float(gravity_mps2))
+
+    @classmethod
+    def from_pose_covariance(cls, world_T_body: np.ndarray, pose_covariance: np.ndarray,
+                             velocity_world_mps: np.ndarray, velocity_sigma_mps: float,
+                             gravity_mps2: float) -> SearchPrior:
+        """The spread of a smoother's current estimate (re-acquisition after a gap).
+
+        Args:
+            world_T_body: (4, 4) the estimate. pose_covariance: (6, 6) its marginal in
+                GTSAM's order [rotation, translation], right perturbation (body frame).
+            velocity_world_mps: (3,) its velocity. velocity_sigma_mps: 1-sigma of each
+                component (e.g. the square root of the largest eigenvalue of its marginal).
+            gravity_mps2: gravity magnitude.
+        """
+        orientation, position = pose_covariance_in_world(
+            np.asarray(world_T_body, dtype=float)[None], np.asarray(pose_covariance)[None])
+        heading = math.sqrt(orientation[0, 2, 2])
+        tilt = math.sqrt(max(orientation[0, 0, 0], orientation[0, 1, 1]))
+        return cls(position[0], heading, tilt, np.asarray(velocity_world_mps, dtype=float),
+                   float(velocity_sigma_mps), float(gravity_mps2))
 
     @property
     def gravity_world(self) -> np.ndarray:
