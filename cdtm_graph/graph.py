@@ -250,3 +250,17 @@ def without_tracks(factors: Sequence[CdtmPairFactor], track_ids: Sequence[np.nda
         replacements.append(f.with_features(~hit) if not hit.all() else None)
         kept_ids.append(tid[~hit])
     return changed, replacements, kept_ids
+
+
+def cdtm_information(factors: Sequence[CdtmPairFactor], world_T_body: Callable[[int], np.ndarray],
+                     n_frames: int) -> np.ndarray:
+    """(K, 6, 6) information the C-DTM factors give each pose on its own at the given poses
+    (``SmootherResult.cdtm_information``): each factor's ``H_a^T H_a`` and ``H_b^T H_b``."""
+    info = np.zeros((n_frames, 6, 6))
+    for f in factors:
+        a = int(gtsam.Symbol(f.key_a).index())
+        b = int(gtsam.Symbol(f.key_b).index())
+        _, H_a, H_b = f.evaluate(world_T_body(a), world_T_body(b))
+        info[a] += np.einsum("nki,nkj->ij", H_a, H_a)
+        info[b] += np.einsum("nki,nkj->ij", H_b, H_b)
+    return info

@@ -172,6 +172,11 @@ class SmootherResult:
         counts: graph contents.
         settings: the settings used, as a plain dict (for report.json).
         flags: per-frame warnings, e.g. ``{12: ["no_features"]}``.
+        cdtm_information: (K, 6, 6) information the C-DTM features give each pose at the
+            solution, on its own (``sum H^T H`` of the whitened, robustly weighted rows that
+            involve it; GTSAM tangent [rot, trans], body frame): what the camera and the
+            DTM say about a pose, without the IMU. Its eigen-structure over a few frames
+            names a weak geometry (flat terrain, few features, a narrow footprint).
     """
 
     estimate: TrajectoryEstimate
@@ -180,6 +185,7 @@ class SmootherResult:
     counts: GraphCounts
     settings: dict = field(default_factory=dict)
     flags: dict = field(default_factory=dict)
+    cdtm_information: np.ndarray | None = None
 
 
 def frame_flags(counts: GraphCounts) -> dict[int, list[str]]:

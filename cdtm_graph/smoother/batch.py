@@ -21,6 +21,7 @@ from cdtm_graph.flightlog import FlightLog
 from cdtm_graph.gating import count_outliers
 from cdtm_graph.graph import (
     cdtm_factors,
+    cdtm_information,
     feature_noise,
     imu_factor,
     insert_state,
@@ -271,4 +272,5 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
                      n_outliers=n_out, outliers_per_frame=out_per_frame,
                      rejected_per_frame=built.rejections.per_frame(K))
     return SmootherResult(estimate, covariances, stats, counts, settings_dict,
-                          frame_flags(counts))
+                          frame_flags(counts), cdtm_information(
+                              built.cdtm, estimate.world_T_body.__getitem__, K))

@@ -25,6 +25,7 @@ from cdtm_graph.gating import InnovationGate, count_outliers
 from cdtm_graph.geometry import so3_log
 from cdtm_graph.graph import (
     cdtm_factors,
+    cdtm_information,
     feature_noise,
     imu_factor,
     insert_state,
@@ -588,5 +589,7 @@ class IncrementalSmoother:
             time.perf_counter() - t0, tuple(self.update_times_s), tuple(self.imu_times_s),
             float(np.median(nis)) if nis.size else float("nan"),
             float(np.mean(nis)) if nis.size else float("nan"))
+        information = cdtm_information([f for f in self._cdtm if f is not None],
+                                       estimate.world_T_body.__getitem__, K)
         return SmootherResult(estimate, covariances, stats, counts, self.settings.to_dict(),
-                              frame_flags(counts))
+                              frame_flags(counts), information)
