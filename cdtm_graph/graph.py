@@ -18,7 +18,12 @@ from cdtm_graph.dtm import Dtm, grazing_hits
 from cdtm_graph.epipolar import EpipolarSettings
 from cdtm_graph.flightlog import FlightConfig, InitialState
 from cdtm_graph.imu import SampleHold, initial_bias
-from cdtm_graph.mismatch import MismatchSettings, mismatched, track_heights
+from cdtm_graph.mismatch import (
+    MismatchSettings,
+    mismatched,
+    track_heights,
+    with_crowded_frames,
+)
 from cdtm_graph.results import Rejection, Rejections
 from cdtm_graph.tracks import FramePairObservations
 from factors import CdtmPairFactor, FeatureNoise, PairFeatures, PlaneMode, RobustKernel
@@ -227,7 +232,8 @@ def mismatched_tracks(factors: Sequence[CdtmPairFactor], track_ids: Sequence[np.
     ray = np.einsum("mij,mj->mi", world_T_cam[at, :3, :3], q)
     heights = track_heights(tid, centre, ray, float(np.mean(noise.sigma_q_xy)), dtm,
                             noise.sigma_h_m)
-    return heights.track_id[mismatched(heights, noise.sigma_h_m, settings)]
+    off = heights.track_id[mismatched(heights, noise.sigma_h_m, settings)]
+    return with_crowded_frames(tid, frame, off, settings.frame_fraction)
 
 
 def without_tracks(factors: Sequence[CdtmPairFactor], track_ids: Sequence[np.ndarray],

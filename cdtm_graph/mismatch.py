@@ -51,6 +51,9 @@ class MismatchSettings:
         region_m: incremental smoothers: side of the ground cells whose features are
             tested together against the prior (:func:`coherent_test`).
         region_probability: that test's chi-square probability.
+        frame_fraction: a frame whose tracks are off the DTM for more than this fraction
+            sees a region the map lacks; its other tracks are not trusted either
+            (:func:`with_crowded_frames`).
     """
 
     min_observations: int = 3
@@ -61,6 +64,7 @@ class MismatchSettings:
     neighbourhood_gate: float = 25.0
     region_m: float = 500.0
     region_probability: float = 0.999
+    frame_fraction: float = 0.3
 
 
 @dataclass(frozen=True)
@@ -118,23 +122,28 @@ def triangulate(track_index: np.ndarray, n_tracks: int, centre_m: np.ndarray,
 
 
 def track_heights(track_id: np.ndarray, centre_m: np.ndarray, ray_world: np.ndarray,
-                  sigma_rad: float, dtm: Dtm, sigma_h_m: float, pose_sigma_m: float = 0.0
-                  ) -> TrackHeights:
+                  sigma_rad: float, dtm: Dtm, sigma_h_m: float,
+                  pose_sigma_m: float | np.ndarray = 0.0) -> TrackHeights:
     """Triangulate every track of a set of observations and compare it with the DTM.
 
     Args:
         track_id: (M,) each observation's track. centre_m, ray_world: (M, 3) its camera
             centre and ray (world). sigma_rad: one observation's angular 1-sigma.
         dtm: the map. sigma_h_m: its height 1-sigma.
-        pose_sigma_m: 1-sigma of the camera positions (a shift of all of them moves every
-            point by as much): added to each ``sigma``.
+        pose_sigma_m: 1-sigma of the camera positions, scalar or (M,) per observation (a
+            shift of a track's cameras moves its point by as much): each track's largest
+            is added to its ``sigma``.
     """
     ids, index, counts = np.unique(track_id, return_inverse=True, return_counts=True)
+    index = index.reshape(-1)
     points, cov = triangulate(index, ids.size, centre_m, ray_world, sigma_rad)
+    pose_var = np.zeros(ids.size)
+    np.maximum.at(pose_var, index, np.broadcast_to(np.asarray(pose_sigma_m, float) ** 2,
+                                                   index.shape))
     ground, normal = dtm.height_and_normal(points[:, 0], points[:, 1])
     dh = points[:, 2] - ground
     # d(dh) = n . dX with n = (-dh/dx, -dh/dy, 1), the DTM's upward normal
-    var = np.einsum("ti,tij,tj->t", normal, cov, normal) + sigma_h_m**2 + pose_sigma_m**2
+    var = np.einsum("ti,tij,tj->t", normal, cov, normal) + sigma_h_m**2 + pose_var
     return TrackHeights(ids, points, counts, dh, np.sqrt(var))
 
 
@@ -195,6 +204,10 @@ class TrackObservations:
         rows = rows[first]
         return self._id[rows], self._frame[rows], self._q[rows]
 
+    def since(self, frame: int) -> np.ndarray:
+        """Ids of the tracks observed at or after ``frame``."""
+        return np.unique(self._id[self._frame >= frame])
+
     def forget_before(self, frame: int) -> None:
         keep = self._frame >= frame
         self._id, self._frame, self._q = self._id[keep], self._frame[keep], self._q[keep]
@@ -236,3 +249,27 @@ def coherent_test(e: np.ndarray, H: np.ndarray, R: np.ndarray, P: np.ndarray
     proj = U[:, informative].T @ (L.T @ b)
     lam = lam[informative]
     return float(np.sum(proj**2 / (lam**2 + lam))), int(informative.sum())
+
+
+def with_crowded_frames(track_id: np.ndarray, frame: np.ndarray, off: np.ndarray,
+                        fraction: float) -> np.ndarray:
+    """``off`` (track ids) and every track seen in a frame where more than ``fraction`` of
+    the tracks are off: where most of the ground is not what the DTM says (a pit, a new
+    quarry), the rest of it in view is not to be trusted either, and the estimate, pulled
+    by what was not caught, must not be left to the remainder. ``off`` must hold only
+    tracks found off by the tests themselves (not earlier crowding): crowding must not
+    feed on itself.
+
+    Args:
+        track_id, frame: (M,) the observations' tracks and frames (the tracks already
+            left out too, so the shares are of everything the frames saw).
+        off: ids of the tracks the tests found off the DTM.
+    """
+    if off.size == 0 or track_id.size == 0:
+        return off
+    frames, index = np.unique(frame, return_inverse=True)
+    bad = np.isin(track_id, off)
+    share = np.bincount(index, weights=bad, minlength=frames.size) / np.bincount(
+        index, minlength=frames.size)
+    crowded = share[index] > fraction
+    return np.union1d(off, track_id[crowded])

@@ -38,7 +38,12 @@ from cdtm_graph.imu import (
     navstate_predict,
     propagate_covariance,
 )
-from cdtm_graph.mismatch import TrackObservations, mismatched, track_heights
+from cdtm_graph.mismatch import (
+    TrackObservations,
+    mismatched,
+    track_heights,
+    with_crowded_frames,
+)
 from cdtm_graph.replay import replay
 from cdtm_graph.results import (
     GraphCounts,
@@ -116,7 +121,9 @@ class IncrementalSmoother:
                                     self.rejections, graph.mismatch)
         # terrain the DTM lacks: tracks found off the map, and what they were seen as
         self.mismatched_tracks = np.zeros(0, np.int64)  # sorted
+        self._found_off = np.zeros(0, np.int64)  # ... of them, those the tests found
         self._observations = TrackObservations()
+        self._judge_from: int | None = None  # tracks seen from this frame on may be judged
         self._backend: Backend = (
             FullHistory() if settings.lag_s is None
             else FixedLag(settings.lag_s, frame_interval_s))
@@ -227,6 +234,9 @@ class IncrementalSmoother:
             graph.add(f.factor)
         slots = self._update(graph, values, k)
         self._commit(k, new, new_ids, slots[len(slots) - len(new):] if slots else [])
+        if (self.settings.graph.mismatch is not None and self._judge_from is not None
+                and k % self.MISMATCH_EVERY_FRAMES == 0):
+            self._mismatch_round(k, max(self._judge_from, k - self.MISMATCH_WINDOW_FRAMES))
         if new:
             self._refresh_newest_noise(k, predicted, len(new))
         self._converging = self._moved_far(k, predicted)
@@ -309,10 +319,23 @@ class IncrementalSmoother:
         """The newest estimated frame's largest position 1-sigma (m)."""
         return float(np.sqrt(np.linalg.eigvalsh(self._state_cov[3:6, 3:6]).max()))
 
+    def _frame_position_sigma_m(self, j: int) -> float:
+        """Frame j's largest position 1-sigma (m) now (as it left the window, if it has)."""
+        if j < self._settled:
+            cov = self._exit_cov[j][0] if j in self._exit_cov else None
+        else:
+            cov = self._backend.marginal(X(j))
+        if cov is None:
+            return self._position_sigma_m()
+        return float(np.sqrt(np.linalg.eigvalsh(cov[3:6, 3:6]).max()))
+
     def _settled_enough(self) -> bool:
-        """Whether the newest pose is known well enough (within a DTM cell) to judge a
-        track's height against the DTM."""
-        return self._position_sigma_m() <= max(abs(self.dtm.dx), abs(self.dtm.dy))
+        """Whether the poses are known well enough to judge a track's height against the
+        DTM: the newest within twice the DTM's height error (after the first frames under
+        a loose prior; from then on, ``_judge_from`` is the first frame so known)."""
+        if self._judge_from is None and self._position_sigma_m() <= 2 * self._noise.sigma_h_m:
+            self._judge_from = len(self._t_ns) - 1
+        return self._judge_from is not None
 
     def _off_map(self, k: int, factors: list[CdtmPairFactor], track_ids: list[np.ndarray]
                  ) -> tuple[list[CdtmPairFactor], list[np.ndarray], np.ndarray]:
@@ -320,8 +343,7 @@ class IncrementalSmoother:
         them so far and this frame, lie off the DTM (:mod:`cdtm_graph.mismatch`)."""
         settings = self.settings.graph.mismatch
         assert settings is not None
-        ids_now = np.concatenate(track_ids)
-        tid, frame, q = self._observations.of(ids_now)
+        tid, frame, q = self._observations.of(np.concatenate(track_ids))
         # this frame's observations (and the earlier ones of tracks seen for the first time)
         tid = np.r_[tid, *track_ids, *track_ids]
         frame = np.r_[frame, *(np.full(i.size, k) for i in track_ids),
@@ -330,6 +352,12 @@ class IncrementalSmoother:
         q = np.r_[q, *(f.features.q_b for f in factors), *(f.features.q_a for f in factors)]
         _, first = np.unique(np.c_[tid, frame], axis=0, return_index=True)
         tid, frame, q = tid[first], frame[first], q[first]
+        # tracks seen before the poses settled are not judged (their early poses were off)
+        assert self._judge_from is not None
+        judged = ~np.isin(tid, tid[frame < self._judge_from])
+        tid, frame, q = tid[judged], frame[judged], q[judged]
+        if tid.size == 0:
+            return factors, track_ids, np.zeros(0, np.int64)
         frames = np.unique(frame)
         world_T_cam = np.stack([self._pose_guess(int(j)) @ self._body_T_cam for j in frames])
         at = np.searchsorted(frames, frame)
@@ -338,6 +366,7 @@ class IncrementalSmoother:
                                 float(np.mean(self._noise.sigma_q_xy)), self.dtm,
                                 self._noise.sigma_h_m, self._position_sigma_m())
         off = heights.track_id[mismatched(heights, self._noise.sigma_h_m, settings)]
+        self._found_off = np.union1d(self._found_off, off)
         if off.size == 0:
             return factors, track_ids, off
         kept, kept_ids = [], []
@@ -348,6 +377,46 @@ class IncrementalSmoother:
                 kept.append(f.with_features(~hit) if hit.any() else f)
                 kept_ids.append(ids[~hit])
         return kept, kept_ids, off
+
+    #: Every this many frames, the tracks of the last ``MISMATCH_WINDOW_FRAMES`` frames are
+    #: judged against the DTM together at the current estimate (a pit the first frames'
+    #: features pulled the estimate into shows once some of them are gone).
+    MISMATCH_EVERY_FRAMES = 5
+    MISMATCH_WINDOW_FRAMES = 20
+    #: finalize(): rounds of "judge every track, take out the ones off the map, relinearize".
+    MISMATCH_ROUNDS = 8
+
+    def _mismatch_round(self, k: int, since_frame: int) -> int:
+        """Judge the tracks seen since ``since_frame`` (and after the poses settled) at the
+        current estimate; take the ones off the DTM out. Returns how many."""
+        settings = self.settings.graph.mismatch
+        if settings is None or self._judge_from is None:
+            return 0
+        seen = self._observations.since(max(since_frame, self._judge_from))
+        all_tid, all_frame, _ = self._observations.of(seen)  # the off ones too: crowding
+        tid, frame, q = self._observations.of(np.setdiff1d(seen, self.mismatched_tracks))
+        judged = ~np.isin(tid, tid[frame < self._judge_from])
+        tid, frame, q = tid[judged], frame[judged], q[judged]
+        if tid.size == 0:
+            return 0
+        frames = np.unique(frame)
+        world_T_cam = np.stack([self._pose_guess(int(j)) @ self._body_T_cam for j in frames])
+        # each frame's own position uncertainty: where features went, the poses are weak
+        sigma = np.array([self._frame_position_sigma_m(int(j)) for j in frames])
+        at = np.searchsorted(frames, frame)
+        heights = track_heights(tid, world_T_cam[at, :3, 3],
+                                np.einsum("mij,mj->mi", world_T_cam[at, :3, :3], q),
+                                float(np.mean(self._noise.sigma_q_xy)), self.dtm,
+                                self._noise.sigma_h_m, sigma[at])
+        found = heights.track_id[mismatched(heights, self._noise.sigma_h_m, settings)]
+        self._found_off = np.union1d(self._found_off, found)
+        off = np.setdiff1d(with_crowded_frames(all_tid, all_frame, self._found_off,
+                                               settings.frame_fraction),
+                           self.mismatched_tracks)
+        if off.size:
+            self._forget_tracks(k, off)
+            self._fetch(k)
+        return int(off.size)
 
     def _forget_tracks(self, k: int, track_ids: np.ndarray) -> None:
         """Keep these tracks out from now on, and take their features that entered
@@ -475,6 +544,13 @@ class IncrementalSmoother:
         """
         steps = self.settings.final_iterations if iterations is None else iterations
         previous, done, best = self._iterate(steps, relative_tol)
+        if self._t_ns and self.settings.graph.mismatch is not None:
+            # the tracks in the solver, judged at the converged estimate, until none is off
+            k = len(self._t_ns) - 1
+            for _ in range(self.MISMATCH_ROUNDS):
+                if not self._mismatch_round(k, self._settled):
+                    break
+                previous, done, best = self._iterate(steps, relative_tol)
         self._refresh(self._backend.estimate())
         if self._t_ns:  # more frames may follow: the next interval at the new bias estimate
             k = len(self._t_ns) - 1
