@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.stats import chi2
 
 from cdtm_graph.dtm import Dtm
 
@@ -53,7 +54,9 @@ class MismatchSettings:
         region_probability: that test's chi-square probability.
         frame_fraction: a frame whose tracks are off the DTM for more than this fraction
             sees a region the map lacks; its other tracks are not trusted either
-            (:func:`with_crowded_frames`).
+            (:func:`untrusted`).
+        fit_probability: a track whose rays miss their common point beyond this
+            chi-square probability holds a wrong match (one the epipolar check let by).
     """
 
     min_observations: int = 3
@@ -62,9 +65,10 @@ class MismatchSettings:
     radius_m: float = 300.0
     min_neighbours: int = 5
     neighbourhood_gate: float = 25.0
-    region_m: float = 500.0
+    region_m: float | None = 500.0
     region_probability: float = 0.999
     frame_fraction: float = 0.3
+    fit_probability: float = 0.999
 
 
 @dataclass(frozen=True)
@@ -75,6 +79,8 @@ class TrackHeights:
         track_id: (T,) ids. point_m: (T, 3) ground points. n_observations: (T,).
         dh_m: (T,) point height minus the DTM's there (NaN off the DTM).
         sigma_m: (T,) 1-sigma of ``dh`` (triangulation and DTM error).
+        fit_chi2: (T,) how far the rays miss the point, chi-square with ``2 n - 3``
+            degrees of freedom for a consistent track.
     """
 
     track_id: np.ndarray
@@ -82,11 +88,19 @@ class TrackHeights:
     n_observations: np.ndarray
     dh_m: np.ndarray
     sigma_m: np.ndarray
+    fit_chi2: np.ndarray
+
+    def subset(self, keep: np.ndarray) -> TrackHeights:
+        """The tracks where ``keep`` (T,) is True."""
+        return TrackHeights(self.track_id[keep], self.point_m[keep],
+                            self.n_observations[keep], self.dh_m[keep], self.sigma_m[keep],
+                            self.fit_chi2[keep])
 
 
 def triangulate(track_index: np.ndarray, n_tracks: int, centre_m: np.ndarray,
-                ray_world: np.ndarray, sigma_rad: float) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares points of many tracks at once, and their covariances.
+                ray_world: np.ndarray, sigma_rad: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least-squares points of many tracks at once, their covariances and fit.
 
     Each observation constrains its track's point to its ray; the point minimizes the
     sum of squared angular errors (perpendicular distance over range, ranges from a
@@ -99,7 +113,9 @@ def triangulate(track_index: np.ndarray, n_tracks: int, centre_m: np.ndarray,
         sigma_rad: 1-sigma angular error of one observation.
 
     Returns:
-        points (T, 3) and covariances (T, 3, 3); NaN where the rays do not fix a point.
+        points (T, 3), covariances (T, 3, 3) and the fit's chi-square (T,) (squared angular
+        misses in sigmas, ``2 n - 3`` degrees of freedom for n rays); NaN where the rays do
+        not fix a point.
     """
     d = ray_world / np.linalg.norm(ray_world, axis=1, keepdims=True)
     P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]  # projector off each ray
@@ -118,7 +134,10 @@ def triangulate(track_index: np.ndarray, n_tracks: int, centre_m: np.ndarray,
         cov[ok] = np.linalg.inv(A[ok])  # with weights 1/(sigma r)^2: the covariance
         r = np.linalg.norm(points[track_index] - centre_m, axis=1)
         weight = 1.0 / np.maximum(sigma_rad * np.where(np.isfinite(r), r, 1.0), 1e-12) ** 2
-    return points, cov
+    miss = np.einsum("mij,mj->mi", P, points[track_index] - centre_m)
+    chi2_fit = np.bincount(track_index, weights=weight * np.einsum("mi,mi->m", miss, miss),
+                           minlength=n_tracks)
+    return points, cov, np.where(np.isfinite(points[:, 0]), chi2_fit, np.nan)
 
 
 def track_heights(track_id: np.ndarray, centre_m: np.ndarray, ray_world: np.ndarray,
@@ -136,7 +155,7 @@ def track_heights(track_id: np.ndarray, centre_m: np.ndarray, ray_world: np.ndar
     """
     ids, index, counts = np.unique(track_id, return_inverse=True, return_counts=True)
     index = index.reshape(-1)
-    points, cov = triangulate(index, ids.size, centre_m, ray_world, sigma_rad)
+    points, cov, chi2_fit = triangulate(index, ids.size, centre_m, ray_world, sigma_rad)
     pose_var = np.zeros(ids.size)
     np.maximum.at(pose_var, index, np.broadcast_to(np.asarray(pose_sigma_m, float) ** 2,
                                                    index.shape))
@@ -144,7 +163,7 @@ def track_heights(track_id: np.ndarray, centre_m: np.ndarray, ray_world: np.ndar
     dh = points[:, 2] - ground
     # d(dh) = n . dX with n = (-dh/dx, -dh/dy, 1), the DTM's upward normal
     var = np.einsum("ti,tij,tj->t", normal, cov, normal) + sigma_h_m**2 + pose_var
-    return TrackHeights(ids, points, counts, dh, np.sqrt(var))
+    return TrackHeights(ids, points, counts, dh, np.sqrt(var), chi2_fit)
 
 
 def mismatched(heights: TrackHeights, sigma_h_m: float,
@@ -156,11 +175,15 @@ def mismatched(heights: TrackHeights, sigma_h_m: float,
             neighbourhood mean's uncertainty). settings: the tests.
     """
     s = settings or MismatchSettings()
-    known = np.isfinite(heights.dh_m) & np.isfinite(heights.sigma_m)
+    known = (np.isfinite(heights.dh_m) & np.isfinite(heights.sigma_m)
+             & ~inconsistent(heights, s))
     tested = known & (heights.n_observations >= s.min_observations)
     z2 = np.where(known, (heights.dh_m / np.where(known, heights.sigma_m, 1.0)) ** 2, 0.0)
     out = tested & (heights.sigma_m <= s.max_sigma_m) & (z2 > s.gate)
-    rest = np.flatnonzero(known & ~out)
+    # The neighbourhood means are taken over the tracks within their own gate: a wild
+    # untested track (a wrong match that slipped through, rays almost parallel) is no
+    # evidence about its neighbours' ground, and one such would condemn them all.
+    rest = np.flatnonzero(known & ~out & (z2 <= s.gate))
     if rest.size >= s.min_neighbours:
         tree = cKDTree(heights.point_m[rest, :2])
         pairs = tree.query_pairs(s.radius_m, output_type="ndarray")
@@ -172,11 +195,58 @@ def mismatched(heights: TrackHeights, sigma_h_m: float,
         count = np.bincount(i, minlength=rest.size)
         var_mean = 1.0 / sum_w + sigma_h_m**2
         bad = (count >= s.min_neighbours) & (mean**2 / var_mean > s.neighbourhood_gate)
-        # a failed neighbourhood goes whole: its members share the mismatch
+        # a failed neighbourhood goes whole, the wild tracks in it too: they share it
         members = np.zeros(rest.size, dtype=bool)
         members[j[bad[i]]] = True
         out[rest[members]] = True
+        wild = np.flatnonzero(known & ~out & (z2 > s.gate))
+        if wild.size and bad.any():
+            near = cKDTree(heights.point_m[rest[bad], :2]).query(
+                heights.point_m[wild, :2], distance_upper_bound=s.radius_m)[0]
+            out[wild[np.isfinite(near)]] = True
     return out
+
+
+def inconsistent(heights: TrackHeights, settings: MismatchSettings | None = None
+                 ) -> np.ndarray:
+    """(T,) tracks whose rays do not meet in a point: one of the observations is a wrong
+    match (the epipolar check of single pairs let it by)."""
+    s = settings or MismatchSettings()
+    dof = 2 * heights.n_observations - 3
+    limit = chi2.ppf(s.fit_probability, np.maximum(dof, 1))
+    return (dof >= 1) & np.isfinite(heights.fit_chi2) & (heights.fit_chi2 > limit)
+
+
+@dataclass(frozen=True)
+class TrackJudgement:
+    """What the tests found in a set of tracks (sorted ids).
+
+    Attributes:
+        off_map: tracks off the DTM, alone or with their neighbourhood.
+        inconsistent: tracks whose rays do not meet (a wrong match).
+        on_map: tested tracks on the map.
+    """
+
+    off_map: np.ndarray
+    inconsistent: np.ndarray
+    on_map: np.ndarray
+
+    @classmethod
+    def none(cls) -> TrackJudgement:
+        empty = np.zeros(0, np.int64)
+        return cls(empty, empty, empty)
+
+
+def judge(heights: TrackHeights, sigma_h_m: float,
+          settings: MismatchSettings | None = None) -> TrackJudgement:
+    """Every test on a set of tracks (:func:`mismatched`, :func:`inconsistent`)."""
+    s = settings or MismatchSettings()
+    off = mismatched(heights, sigma_h_m, s)
+    wrong = inconsistent(heights, s)
+    on = (~off & ~wrong & np.isfinite(heights.dh_m)
+          & (heights.n_observations >= s.min_observations) & (heights.sigma_m <= s.max_sigma_m))
+    return TrackJudgement(heights.track_id[off], heights.track_id[wrong],
+                          heights.track_id[on])
 
 
 class TrackObservations:
@@ -251,25 +321,26 @@ def coherent_test(e: np.ndarray, H: np.ndarray, R: np.ndarray, P: np.ndarray
     return float(np.sum(proj**2 / (lam**2 + lam))), int(informative.sum())
 
 
-def with_crowded_frames(track_id: np.ndarray, frame: np.ndarray, off: np.ndarray,
-                        fraction: float) -> np.ndarray:
+def untrusted(track_id: np.ndarray, frame: np.ndarray, off: np.ndarray,
+              fraction: float) -> np.ndarray:
     """``off`` (track ids) and every track seen in a frame where more than ``fraction`` of
     the tracks are off: where most of the ground is not what the DTM says (a pit, a new
     quarry), the rest of it in view is not to be trusted either, and the estimate, pulled
     by what was not caught, must not be left to the remainder. ``off`` must hold only
-    tracks found off by the tests themselves (not earlier crowding): crowding must not
+    tracks found off by the tests themselves (not earlier distrust): distrust must not
     feed on itself.
 
     Args:
         track_id, frame: (M,) the observations' tracks and frames (the tracks already
             left out too, so the shares are of everything the frames saw).
-        off: ids of the tracks the tests found off the DTM.
+        off: ids of the tracks the tests found off the DTM (now or earlier).
+        fraction: the share beyond which a frame's tracks are all distrusted.
     """
     if off.size == 0 or track_id.size == 0:
         return off
     frames, index = np.unique(frame, return_inverse=True)
+    index = index.reshape(-1)
     bad = np.isin(track_id, off)
     share = np.bincount(index, weights=bad, minlength=frames.size) / np.bincount(
         index, minlength=frames.size)
-    crowded = share[index] > fraction
-    return np.union1d(off, track_id[crowded])
+    return np.union1d(off, track_id[share[index] > fraction])
