@@ -210,8 +210,12 @@ def test_cli_says_what_comes_next_and_refuses_foreign_tracks(native, files, tmp_
     assert f"next: cdtm track {out}" in printed and "ground truth" in printed
     assert main(["track", str(out), "--quiet"]) == 0
     assert main(args) == 1  # cdtm track's tracks.csv would not match a new import
-    assert "tracks.csv that would not match" in capsys.readouterr().err
+    assert "holds tracks.csv that this import did not write" in capsys.readouterr().err
     assert (out / "tracks.csv").is_file()
+    (out / "tracks.csv").unlink()
+    (out / "nav.csv").write_text("#t_ns,px,py,pz,qw,qx,qy,qz,vx,vy,vz\n")  # by hand
+    assert main(args + ["--force"]) == 1  # not even with --force: it would be read too
+    assert "holds nav.csv" in capsys.readouterr().err
 
 
 def test_cli_names_the_missing_initial_state(native, files, tmp_path, capsys):

@@ -11,7 +11,15 @@ from tqdm import tqdm
 from cdtm_graph.atomic import read_manifest
 from cdtm_graph.cli.outdir import OUT_RULES, add_force_option, output_dir
 from cdtm_graph.errors import CdtmError, OutputError
-from cdtm_graph.flightlog import LOG_FILES, TRACKS_CSV, FlightLog, write_tracks
+from cdtm_graph.flightlog import (
+    FLIGHT_YAML,
+    FRAMES_CSV,
+    IMU_CSV,
+    LOG_FILES,
+    TRACKS_CSV,
+    FlightLog,
+    write_tracks,
+)
 from cdtm_graph.geodesy import GeodeticOrigin, VerticalDatum
 
 #: Who writes an imported log (the output manifest's writer names).
@@ -147,19 +155,42 @@ def _settings(args: argparse.Namespace):
     return ImportSettings(dtm, args.pixel_sigma_px, args.gravity_mps2, initial)
 
 
-def _refuse_stale_tracks(out: Path, writer: str) -> None:
-    """An earlier log's tracks.csv that this import does not own (``cdtm track`` wrote it,
-    so the manifest does not list it) would stay beside new frames it does not belong to:
-    refused, not silently kept."""
-    if not (out / TRACKS_CSV).exists():
+def _refuse_foreign_log_files(out: Path, writer: str) -> None:
+    """Log files in ``--out`` this import did not write (``cdtm track``'s tracks.csv, a
+    nav.csv put there by hand, another import's files) would stay beside the new ones and
+    be read with them: refused before any work, not silently combined."""
+    present = [name for name in LOG_FILES if (out / name).exists()]
+    if not present:
         return
     try:
         ours = read_manifest(out) or {}
     except CdtmError:
         ours = {}
-    if ours.get(TRACKS_CSV) != writer:
-        raise OutputError(f"--out {out}: holds a {TRACKS_CSV} that would not match the "
-                          f"imported frames; expected it removed first")
+    foreign = [name for name in present if ours.get(name) != writer]
+    if foreign:
+        raise OutputError(f"--out {out}: holds {', '.join(foreign)} that this import did not "
+                          "write and that would be read with the imported log; expected them "
+                          "removed first (or a new --out)")
+
+
+class _LazyBar:
+    """A progress bar that appears with the first progress report (not before an error)."""
+
+    def __init__(self, unit: str, quiet: bool):
+        self.unit, self.quiet = unit, quiet
+        self.bar: tqdm | None = None
+
+    def __call__(self, done: int, total: int) -> None:
+        if self.quiet:
+            return
+        if self.bar is None:
+            self.bar = tqdm(total=total, unit=self.unit, desc="importing", file=sys.stderr,
+                            leave=False)
+        self.bar.update(done - self.bar.n)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
 
 
 def run(args: argparse.Namespace) -> int:
@@ -167,21 +198,15 @@ def run(args: argparse.Namespace) -> int:
 
     settings = _settings(args)  # checked before any reading
     out = Path(args.out)
-    _refuse_stale_tracks(out, WRITERS[args.source])
+    _refuse_foreign_log_files(out, WRITERS[args.source])
     source = args.mav0 if args.source == "euroc" else args.bag
     protected = [source, *args.dtm, *(p for p in (args.kalibr, args.kalibr_imu,
                                                   getattr(args, "groundtruth", None)) if p)]
-    names = list(LOG_FILES) if args.track else [n for n in LOG_FILES if n != TRACKS_CSV]
-    if args.copy_dtm:
-        names += [p.name for p in args.dtm]
+    names = [FLIGHT_YAML, IMU_CSV, FRAMES_CSV, *([TRACKS_CSV] if args.track else []),
+             *(p.name for p in args.dtm if args.copy_dtm)]
+    progress = _LazyBar("msg" if args.source == "rosbag" else "image", args.quiet)
     with output_dir(args, out, WRITERS[args.source], protected=protected, names=names,
-                    label="--out") as staging, \
-            tqdm(unit="msg" if args.source == "rosbag" else "image", desc="importing",
-                 file=sys.stderr, disable=args.quiet, leave=False) as bar:
-        def progress(done: int, total: int) -> None:
-            bar.total = total
-            bar.update(done - bar.n)
-
+                    label="--out") as staging:
         contents = None
         if args.source == "euroc":
             log = import_euroc(args.mav0, staging, out, settings, kalibr=args.kalibr,
@@ -189,6 +214,7 @@ def run(args: argparse.Namespace) -> int:
                                progress=progress)
         else:
             log, contents = _import_bag(args, staging, out, settings, progress)
+        progress.close()
         tracked = _track(log, staging, args.quiet) if args.track else None
     if not args.quiet:
         print(_summary(log, out, contents, tracked))
