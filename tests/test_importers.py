@@ -379,3 +379,34 @@ def test_a_geodetic_import_places_the_prior_by_latitude_and_longitude(native, fi
     position = local_frame(origin).geodetic_to_world(*[np.array([v]) for v in start])[0]
     np.testing.assert_allclose(log.config.initial_state.position_m, position, atol=1e-6)
     assert "vertical_datum: egm96" in (tmp_path / "out" / "flight.yaml").read_text()
+
+
+def test_euroc_coefficients_without_a_model_are_refused(native, files, tmp_path):
+    shutil.copytree(files / "plain" / "mav0", tmp_path / "mav0")
+    path = tmp_path / "mav0" / "cam0" / "sensor.yaml"
+    sensor = yaml.safe_load(path.read_text())
+    del sensor["distortion_model"]
+    sensor["distortion_coefficients"] = [-0.28, 0.07, 0.0002, 0.00002]
+    path.write_text(yaml.safe_dump(sensor, sort_keys=False))
+    with pytest.raises(FlightLogError, match=r"sensor.yaml:\d+: distortion_coefficients "
+                                             "without a distortion_model"):
+        import_euroc(tmp_path / "mav0", tmp_path / "out", tmp_path / "out", _settings(native))
+
+
+def test_frames_before_the_imu_starts_are_left_out(native, files, tmp_path):
+    late = dataclasses.replace(native, imu=dataclasses.replace(
+        native.imu, t_ns=native.imu.t_ns[300:], gyro_radps=native.imu.gyro_radps[300:],
+        acc_mps2=native.imu.acc_mps2[300:]))  # the IMU starts at 1.5 s
+    write_bag(late, tmp_path / "late.bag", ros=1)
+    log, contents = import_rosbag(
+        tmp_path / "late.bag", tmp_path / "out", tmp_path / "out", _settings(native),
+        camera=read_kalibr_camchain(files / "camchain.yaml"),
+        imu=read_kalibr_imu(files / "imu.yaml"),
+        groundtruth=read_groundtruth(NATIVE / "groundtruth.csv", None))
+    assert len(contents.images) == 4
+    np.testing.assert_array_equal(log.frames.t_ns, native.frames.t_ns[2:])
+    assert sorted(p.name for p in (tmp_path / "out" / "images").iterdir()) == [
+        "2000000000.png", "3000000000.png"]
+    assert log.config.extra["import"]["frames_outside_imu"] == 2
+    truth = native.groundtruth.interpolate(native.frames.t_ns[2])
+    np.testing.assert_array_equal(log.config.initial_state.position_m, truth.position_m[0])

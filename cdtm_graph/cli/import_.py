@@ -260,6 +260,9 @@ def _summary(log: FlightLog, out: Path, contents, tracked) -> str:
              f"{'ground truth' if log.groundtruth is not None else 'no ground truth'}",
              f"camera {cam.camera.width}x{cam.camera.height} {cam.camera.model.value}, "
              f"time offset {cam.time_offset_s * 1e3:g} ms (t_imu = t_cam + offset)"]
+    outside = log.config.extra.get("import", {}).get("frames_outside_imu", 0)
+    if outside:
+        lines.append(f"left out {outside} frames outside the IMU's time span")
     if contents is not None and (contents.duplicate_imu or contents.duplicate_frames):
         lines.append(f"left out {contents.duplicate_imu} IMU and {contents.duplicate_frames} "
                      "image messages repeating an earlier stamp")

@@ -177,6 +177,10 @@ def _camera(y: _SensorYaml, m: dict[str, yaml.Node], name: str, line: int, *,
                           f"{name}intrinsics", (4,))
     lens = DistortionModel.NONE
     coeffs: tuple[float, ...] = ()
+    if (("distortion_model" not in m or y.value(m["distortion_model"]) is None)
+            and coeffs_key in m and any(v != 0 for v in (y.value(m[coeffs_key]) or [0]))):
+        y.fail(m[coeffs_key], f"{name}{coeffs_key} without a distortion_model",
+               "distortion_model: radtan (radial-tangential) or equidistant beside them")
     if "distortion_model" in m and y.value(m["distortion_model"]) is not None:
         text = str(y.value(m["distortion_model"]))
         if text not in DISTORTION_NAMES:

@@ -188,13 +188,13 @@ def import_euroc(path: str | os.PathLike, directory: str | os.PathLike,
                                     imu=imu)
     check_prior(settings, recording.groundtruth is not None, recording.source)
     directory = Path(directory)
-    names = tuple(f"{IMAGE_DIR}/{source.name}" for source in sources)
-    log = assemble_flightlog(recording, names, settings)  # checked before the copying
+    source_of = {f"{IMAGE_DIR}/{source.name}": source for source in sources}
+    log = assemble_flightlog(recording, tuple(source_of), settings)  # before the copying
     (directory / IMAGE_DIR).mkdir(parents=True, exist_ok=True)
-    for k, (source, name) in enumerate(zip(sources, names, strict=True)):
-        shutil.copyfile(source, directory / name)
+    for k, name in enumerate(log.frames.image):
+        shutil.copyfile(source_of[name], directory / name)
         if progress is not None:
-            progress(k + 1, len(sources))
+            progress(k + 1, len(log.frames))
     return write_imported_log(log, settings, directory, final_dir)
 
 

@@ -258,7 +258,9 @@ def assemble_flightlog(recording: SensorRecording, images: tuple[str, ...],
     """The flight log of a recording (``root`` a placeholder: ``Path(".")``).
 
     The frames are moved onto the IMU clock by the camera's ``time_offset_s``, which
-    flight.yaml keeps (frames.csv holds the camera stamps). The initial state at the first
+    flight.yaml keeps (frames.csv holds the camera stamps); frames outside the IMU's time
+    span are left out (counted in ``extra.import.frames_outside_imu``). The initial state
+    at the first
     frame is the ground truth there (biases too when it has them), field by field
     overridden by ``settings.initial``; what neither gives is an error.
 
@@ -268,14 +270,14 @@ def assemble_flightlog(recording: SensorRecording, images: tuple[str, ...],
         settings: DTM, pixel noise, gravity, prior.
 
     Raises:
-        SensorDataError: the initial state is not known; the frames lie outside the IMU's
-            time span.
+        SensorDataError: the initial state is not known; fewer than 2 frames lie inside
+            the IMU's time span.
     """
     cam = recording.camera
     camera_config = CameraConfig(cam.camera, settings.pixel_sigma_px, cam.body_T_cam,
                                  cam.time_offset_s)
-    frames = Frames(recording.frame_t_cam_ns + camera_config.time_offset_ns, images)
-    _check_frames_inside_imu(recording, frames)
+    frames = _frames_inside_imu(recording, Frames(
+        recording.frame_t_cam_ns + camera_config.time_offset_ns, images))
     dtm = settings.dtm
     origin = dtm.origin
     if settings.gravity_mps2 is not None:
@@ -295,26 +297,31 @@ def assemble_flightlog(recording: SensorRecording, images: tuple[str, ...],
     dtm_config = DtmConfig(names[0], dtm.sigma_h_m, (0.0, 0.0, 0.0), tuple(names[1:]),
                            dtm.vertical_datum, dtm.crs)
     initial = _initial_state(recording, int(frames.t_ns[0]), settings.initial, origin)
-    extra = {"import": {"source": recording.source, **recording.provenance}}
+    extra = {"import": {"source": recording.source, **recording.provenance,
+                        "frames_outside_imu": len(images) - len(frames)}}
     config = FlightConfig(gravity, dtm_config, camera_config, recording.imu_config, initial,
                           extra, origin)
     return FlightLog(Path("."), config, recording.imu, frames, None, None,
                      recording.groundtruth)
 
 
-def _check_frames_inside_imu(recording: SensorRecording, frames: Frames) -> None:
+def _frames_inside_imu(recording: SensorRecording, frames: Frames) -> Frames:
+    """The frames inside the IMU's time span: the smoother needs samples around every frame,
+    and a recording's camera often starts before its IMU (or ends after it)."""
     t_imu = recording.imu.t_ns
     inside = (frames.t_ns >= t_imu[0]) & (frames.t_ns <= t_imu[-1])
-    if not inside.any():
+    if inside.sum() < 2:
         raise SensorDataError(
-            f"{recording.source}: no frame lies inside the IMU's time span [{int(t_imu[0])}, "
-            f"{int(t_imu[-1])}] ns (frames {int(frames.t_ns[0])}..{int(frames.t_ns[-1])} ns "
-            "on the IMU clock); expected camera and IMU stamps on one clock, up to "
-            "timeshift_cam_imu")
-    if not inside.all():
-        logger.warning("%s: %d of %d frames lie outside the IMU's time span; smoothing needs "
-                       "IMU samples around every frame", recording.source,
-                       int((~inside).sum()), len(frames))
+            f"{recording.source}: {int(inside.sum())} frame(s) inside the IMU's time span "
+            f"[{int(t_imu[0])}, {int(t_imu[-1])}] ns (frames {int(frames.t_ns[0])}.."
+            f"{int(frames.t_ns[-1])} ns on the IMU clock); expected at least 2, with camera "
+            "and IMU stamps on one clock up to timeshift_cam_imu")
+    if inside.all():
+        return frames
+    logger.warning("%s: %d of %d frames lie outside the IMU's time span and are left out",
+                   recording.source, int((~inside).sum()), len(frames))
+    keep = np.flatnonzero(inside)
+    return Frames(frames.t_ns[keep], tuple(frames.image[k] for k in keep))
 
 
 _PRIOR_FLAGS = (("position_m", "--initial-position X Y Z"),

@@ -269,4 +269,6 @@ def import_rosbag(bag: str | os.PathLike, directory: str | os.PathLike,
     recording = SensorRecording(str(bag), contents.imu, contents.frame_t_cam_ns, camera,
                                 imu.imu, truth, bias, provenance)
     log = assemble_flightlog(recording, contents.images, settings)
+    for name in set(contents.images) - set(log.frames.image):  # outside the IMU's span
+        (directory / name).unlink()
     return write_imported_log(log, settings, directory, final_dir), contents
