@@ -115,12 +115,15 @@ def write_euroc(log: FlightLog, mav0: Path, *, camera_stamp_shift_ns: int = 0) -
 
 
 def write_bag(log: FlightLog, path: Path, ros: int, *, compressed: bool = False,
-              shuffle_seed: int | None = None) -> None:
+              shuffle_seed: int | None = None, record_delay_ns: int = 0,
+              zero_stamps: bool = False) -> None:
     """A ROS1 ``.bag`` (``ros=1``) or ROS2 bag directory (``ros=2``) of a log's IMU samples
     (``sensor_msgs/Imu``) and images (``sensor_msgs/Image`` mono8, or CompressedImage PNG).
 
     Messages are written in time order, or with ``shuffle_seed`` in a shuffled order of
-    record times (the header stamps stay the sensor times).
+    record times (the header stamps stay the sensor times). Each is recorded
+    ``record_delay_ns`` after its stamp; ``zero_stamps``: a driver that leaves
+    ``header.stamp`` at zero.
     """
     from rosbags.rosbag1 import Writer as Writer1
     from rosbags.rosbag2 import Writer as Writer2
@@ -137,6 +140,7 @@ def write_bag(log: FlightLog, path: Path, ros: int, *, compressed: bool = False,
     ImageMsg = types[image_type]
 
     def header(t_ns: int, frame_id: str):
+        t_ns = 0 if zero_stamps else t_ns
         stamp = Time(sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)
         if ros == 1:
             return Header(seq=0, stamp=stamp, frame_id=frame_id)
@@ -169,7 +173,7 @@ def write_bag(log: FlightLog, path: Path, ros: int, *, compressed: bool = False,
                            encoding="mono8", is_bigendian=0, step=width,
                            data=np.ascontiguousarray(pixels).ravel())
         messages.append((t, "image", serialize(msg, image_type)))
-    record_t = np.array([m[0] for m in messages], dtype=np.int64)
+    record_t = np.array([m[0] for m in messages], dtype=np.int64) + record_delay_ns
     order = np.argsort(record_t, kind="stable")
     if shuffle_seed is not None:
         order = np.random.default_rng(shuffle_seed).permutation(len(messages))
@@ -181,4 +185,4 @@ def write_bag(log: FlightLog, path: Path, ros: int, *, compressed: bool = False,
         for i, k in enumerate(order):
             _, kind, raw = messages[k]
             writer.write(conns[kind], int(record_t[i] if shuffle_seed is not None
-                                          else messages[k][0]), raw)
+                                          else record_t[k]), raw)

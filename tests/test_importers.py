@@ -27,6 +27,7 @@ from cdtm_graph.flightlog.importers import (
     DtmSource,
     ImportSettings,
     InitialPrior,
+    StampSource,
     import_euroc,
     import_rosbag,
     read_groundtruth,
@@ -410,3 +411,22 @@ def test_frames_before_the_imu_starts_are_left_out(native, files, tmp_path):
     assert log.config.extra["import"]["frames_outside_imu"] == 2
     truth = native.groundtruth.interpolate(native.frames.t_ns[2])
     np.testing.assert_array_equal(log.config.initial_state.position_m, truth.position_m[0])
+
+
+def test_recording_times_on_request_and_zero_stamps_refused(native, files, tmp_path):
+    delay_ns = 5_000_000  # the recorder gets each message 5 ms after its stamp
+    write_bag(native, tmp_path / "late.bag", ros=1, record_delay_ns=delay_ns)
+    kwargs = dict(camera=read_kalibr_camchain(files / "camchain.yaml"),
+                  imu=read_kalibr_imu(files / "imu.yaml"),
+                  groundtruth=read_groundtruth(NATIVE / "groundtruth.csv", None))
+    header, _ = import_rosbag(tmp_path / "late.bag", tmp_path / "a", tmp_path / "a",
+                              _settings(native), **kwargs)
+    recorded, _ = import_rosbag(tmp_path / "late.bag", tmp_path / "b", tmp_path / "b",
+                                _settings(native), stamps=StampSource.BAG, **kwargs)
+    np.testing.assert_array_equal(header.frames.t_ns, native.frames.t_ns)
+    np.testing.assert_array_equal(recorded.frames.t_ns, native.frames.t_ns + delay_ns)
+    np.testing.assert_array_equal(recorded.imu.t_ns, native.imu.t_ns + delay_ns)
+    write_bag(native, tmp_path / "unstamped.bag", ros=1, zero_stamps=True)
+    with pytest.raises(SensorDataError, match="header stamps are zero.*--stamps bag"):
+        import_rosbag(tmp_path / "unstamped.bag", tmp_path / "c", tmp_path / "c",
+                      _settings(native), **kwargs)
