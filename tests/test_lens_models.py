@@ -81,3 +81,18 @@ def test_an_equidistant_log_smooths_as_accurately_as_a_radtan_one(tmp_path):
 def test_the_simulator_refuses_a_bad_lens(lens):
     with pytest.raises(SimulationError, match="distortion"):
         _settings(lens, 0)
+
+
+def test_cdtm_simulate_takes_the_lens(tmp_path, capsys):
+    from cdtm_graph.cli import main
+
+    coeffs = [str(c) for c in EQUIDISTANT[1]]
+    assert main(["simulate", str(tmp_path / "fisheye"), "--frames", "3", "--features", "40",
+                 "--distortion-model", "equidistant", "--distortion-coeffs", *coeffs]) == 0
+    camera = read_flightlog(tmp_path / "fisheye").config.camera.camera
+    assert camera.model is DistortionModel.EQUIDISTANT
+    assert camera.distortion == EQUIDISTANT[1]
+    assert main(["simulate", str(tmp_path / "bad"), "--distortion-model", "equidistant",
+                 "--distortion-coeffs", "0.1"]) == 1
+    assert "must have 4 coefficients" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
