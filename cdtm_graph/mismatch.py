@@ -49,9 +49,6 @@ class MismatchSettings:
         min_neighbours: neighbourhoods with fewer tracks are not judged.
         neighbourhood_gate: squared ``mean dh / sigma`` a neighbourhood must pass
             (5 sigma: overlapping neighbourhoods make many tests).
-        region_m: incremental smoothers: side of the ground cells whose features are
-            tested together against the prior (:func:`coherent_test`).
-        region_probability: that test's chi-square probability.
         frame_fraction: a frame whose tracks are off the DTM for more than this fraction
             sees a region the map lacks; its other tracks are not trusted either
             (:func:`untrusted`).
@@ -65,8 +62,6 @@ class MismatchSettings:
     radius_m: float = 300.0
     min_neighbours: int = 5
     neighbourhood_gate: float = 25.0
-    region_m: float | None = 500.0
-    region_probability: float = 0.999
     frame_fraction: float = 0.3
     fit_probability: float = 0.999
 
@@ -284,41 +279,6 @@ class TrackObservations:
 
     def __len__(self) -> int:
         return int(self._id.size)
-
-
-def coherent_test(e: np.ndarray, H: np.ndarray, R: np.ndarray, P: np.ndarray
-                  ) -> tuple[float, int]:
-    """Whether a group of features agrees with the prior as a whole (not feature by feature).
-
-    Features on terrain the DTM lacks are each within their noise, but they agree with
-    each other, and together they ask the poses to move further than the prior allows.
-    Under the model ``e_i = H_i x + v_i``, ``x ~ N(0, P)``, ``v_i ~ N(0, R_i)``, the
-    group's information vector ``b = sum H_i^T R_i^-1 e_i`` is ``Lambda x + noise`` with
-    ``Lambda = sum H_i^T R_i^-1 H_i``. With ``P = L L^T``, ``b' = L^T b`` has covariance
-    ``Lambda'^2 + Lambda'``, ``Lambda' = L^T Lambda L = U diag(lambda) U^T``, so
-    ``T = sum_j (u_j . b')^2 / (lambda_j^2 + lambda_j)`` is chi-square with as many
-    degrees of freedom as the group has informative directions.
-
-    Args:
-        e: (n, 2) innovations. H: (n, 2, m) their Jacobians. R: (n, 2, 2) their noise.
-        P: (m, m) the prior covariance.
-
-    Returns:
-        ``T`` and its degrees of freedom (0: the group says nothing).
-    """
-    Rinv = np.linalg.inv(R)
-    HtRinv = np.swapaxes(H, 1, 2) @ Rinv
-    Lam = np.einsum("nij,njk->ik", HtRinv, H)
-    b = np.einsum("nij,nj->i", HtRinv, e)
-    w, V = np.linalg.eigh(0.5 * (P + P.T))
-    L = V * np.sqrt(np.clip(w, 0.0, None))  # P = L L^T
-    lam, U = np.linalg.eigh(L.T @ Lam @ L)
-    informative = lam > 1e-6 * max(float(lam.max()), 1e-300)
-    if not informative.any():
-        return 0.0, 0
-    proj = U[:, informative].T @ (L.T @ b)
-    lam = lam[informative]
-    return float(np.sum(proj**2 / (lam**2 + lam))), int(informative.sum())
 
 
 def untrusted(track_id: np.ndarray, frame: np.ndarray, off: np.ndarray,

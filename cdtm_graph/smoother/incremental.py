@@ -134,7 +134,7 @@ class IncrementalSmoother:
                                       config.camera.pixel_sigma_px, graph.epipolar,
                                       self.rejections)
         self._gate = InnovationGate(settings.innovation_gate, max(abs(dtm.dx), abs(dtm.dy)),
-                                    self.rejections, graph.mismatch)
+                                    self.rejections)
         # terrain the DTM lacks: tracks found off the map, and what they were seen as
         self.mismatched_tracks = np.zeros(0, np.int64)  # sorted
         self._found_off = np.zeros(0, np.int64)  # ... of them, those the tests found
@@ -166,7 +166,10 @@ class IncrementalSmoother:
         self._cdtm: list[CdtmPairFactor | None] = []
         self._cdtm_slots: list[int] = []  # ... their solver slots
         self._cdtm_ids: list[np.ndarray] = []  # ... their features' track ids
-        self._converging = True  # the newest update moved its frame far from the prediction
+        # Warm-up: from a loose prior (or an acquired fix) every update moves its frame far
+        # from the prediction, until one does not; nothing is judged meanwhile. Not a test
+        # per update: outliers that moved one would switch off the tests that stop them.
+        self._converging = True
         self._features_per_frame: dict[int, int] = {}
         self.n_features = self.n_cdtm_factors = 0
         self.update_times_s: list[float] = []
@@ -246,24 +249,20 @@ class IncrementalSmoother:
             seen = None  # held back: no C-DTM factor until the fix is found
             self._frame_flags.setdefault(k, []).append("no_fix")
         new, new_ids = self._new_cdtm(k, *seen) if seen is not None else ([], [])
-        flagged = np.zeros(0, np.int64)
         if new and link is not None:
-            # Each feature's innovation against the IMU's prediction: the kernel's scale,
-            # the gate and the ground regions that disagree with the prior together (not
-            # while the solution still converges from a loose prior: the linearized test
-            # would misjudge good features).
-            new, new_ids, flagged = self._gate.apply(
+            # Each feature's innovation against the IMU's prediction: the kernel's scale
+            # and the gate (not while the solution still converges from a loose prior: the
+            # linearized test would misjudge good features).
+            new, new_ids = self._gate.apply(
                 k, new, new_ids, self._pose_guess, self._pair_prior(k, link, values),
                 test=not self._converging)
-        wrong = np.zeros(0, np.int64)
         if new and self.settings.graph.mismatch is not None and not self._converging \
                 and self._settled_enough():
             new, new_ids, off_map, wrong = self._off_map(k, new, new_ids)
-            flagged = np.r_[flagged, off_map]
-        if flagged.size:
-            self._forget_tracks(k, flagged, Rejection.MAP_MISMATCH)
-        if wrong.size:
-            self._forget_tracks(k, wrong, Rejection.WRONG_MATCH)
+            if off_map.size:
+                self._forget_tracks(k, off_map, Rejection.MAP_MISMATCH)
+            if wrong.size:
+                self._forget_tracks(k, wrong, Rejection.WRONG_MATCH)
         n_new = sum(f.features.n for f in new)
         for f in new:
             graph.add(f.factor)
@@ -274,7 +273,7 @@ class IncrementalSmoother:
             self._mismatch_round(k, max(self._judge_from, k - self.MISMATCH_WINDOW_FRAMES))
         if new:
             self._refresh_newest_noise(k, predicted, len(new))
-        self._converging = self._moved_far(k, predicted)
+        self._converging = self._converging and self._moved_far(k, predicted)
         self._state_cov = self._backend.joint_marginal(list(frame_keys(k)))
         if self._acquiring:
             self._try_acquisition(k)
