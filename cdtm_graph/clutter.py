@@ -38,6 +38,9 @@ from cdtm_graph.results import StateCovariances, TerrainFindings
 
 #: Clutter heights the expectation-maximization starts from (pits and objects), m.
 _STARTS_M = (-30.0, -15.0, 15.0, 30.0)
+#: Clutter is the minority of what a camera sees; where it covers more (a dense forest's
+#: canopy), the tracks cannot say which surface the DTM describes.
+MAX_SHARE = 0.45
 
 
 @dataclass(frozen=True)
@@ -188,7 +191,8 @@ def _em(dh: np.ndarray, var: np.ndarray, H: float, iterations: int
     w = np.zeros(dh.size)
     for _ in range(iterations):
         w = _posterior(dh, var, np.full(dh.size, p), H, tau2, b)
-        p = float(np.clip(w.mean(), 1e-6, 1 - 1e-6))
+        # the ground is the majority: else the labels swap, and the ground goes as clutter
+        p = float(np.clip(w.mean(), 1e-6, MAX_SHARE))
         v1 = var + tau2
         # b from the ground tracks and the clutter tracks alike (both sit on b)
         b = float(np.sum((1 - w) * dh / var + w * (dh - H) / v1)

@@ -17,9 +17,16 @@ Two views decide:
   keeps a floor of the DTM's own error: a DTM may be off by that much over a region, and
   the estimate's own small bias must not condemn good ground.
 
+A third view comes with the triangulation: a track whose rays do not meet in a point
+(their misses fail a chi-square test) holds a wrong match the epipolar check of single
+pairs let by (the random pixel fell near its epipolar line); it goes as such, and is no
+evidence about the ground (:func:`inconsistent`). A population of tracks each within
+its noise but many on the same side (a forest) is :mod:`cdtm_graph.clutter`'s view.
+
 The smoothers drop the features of mismatched tracks (counted per frame as
-``Rejection.MAP_MISMATCH``) and solve again: the estimate then rests on the IMU and the
-ground the DTM knows, and where nothing is left its covariance grows honestly.
+``Rejection.MAP_MISMATCH``, or ``WRONG_MATCH``) and solve again: the estimate then rests
+on the IMU and the ground the DTM knows, and where nothing is left its covariance grows
+honestly.
 """
 
 from __future__ import annotations
@@ -219,29 +226,23 @@ class TrackJudgement:
     Attributes:
         off_map: tracks off the DTM, alone or with their neighbourhood.
         inconsistent: tracks whose rays do not meet (a wrong match).
-        on_map: tested tracks on the map.
     """
 
     off_map: np.ndarray
     inconsistent: np.ndarray
-    on_map: np.ndarray
 
     @classmethod
     def none(cls) -> TrackJudgement:
         empty = np.zeros(0, np.int64)
-        return cls(empty, empty, empty)
+        return cls(empty, empty)
 
 
 def judge(heights: TrackHeights, sigma_h_m: float,
           settings: MismatchSettings | None = None) -> TrackJudgement:
     """Every test on a set of tracks (:func:`mismatched`, :func:`inconsistent`)."""
     s = settings or MismatchSettings()
-    off = mismatched(heights, sigma_h_m, s)
-    wrong = inconsistent(heights, s)
-    on = (~off & ~wrong & np.isfinite(heights.dh_m)
-          & (heights.n_observations >= s.min_observations) & (heights.sigma_m <= s.max_sigma_m))
-    return TrackJudgement(heights.track_id[off], heights.track_id[wrong],
-                          heights.track_id[on])
+    return TrackJudgement(heights.track_id[mismatched(heights, sigma_h_m, s)],
+                          heights.track_id[inconsistent(heights, s)])
 
 
 class TrackObservations:
