@@ -153,7 +153,8 @@ class InnovationGate:
         kept_ids: list[np.ndarray] = []
         n_gated = 0
         for f, ids, d, j in zip(scaled, track_ids, distances, judged):
-            passed = d / spread <= self.threshold if j else np.ones(d.size, dtype=bool)
+            passed = (d / spread <= self.threshold if j and self.threshold is not None
+                      else np.ones(d.size, dtype=bool))
             n_gated += int((~passed).sum())
             if passed.all():
                 kept.append(f)

@@ -223,6 +223,8 @@ def heights_at(track_id: np.ndarray, frame: np.ndarray, ray_cam: np.ndarray,
     """Tracks triangulated from their observations ((M,) ids, (M,) frames, (M, 3) rays in
     the camera) at the given poses, against the DTM (:func:`cdtm_graph.mismatch.
     track_heights`)."""
+    if track_id.size == 0:
+        return TrackHeights.empty()
     frames = np.unique(frame)
     world_T_cam = np.stack([world_T_body(int(k)) @ body_T_cam for k in frames])
     at = np.searchsorted(frames, frame)

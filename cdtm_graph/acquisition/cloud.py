@@ -334,7 +334,7 @@ class _Points:
     def of(cls, cloud: Cloud) -> _Points:
         ok = cloud.valid
         P = cloud.points[ok]
-        centre = P.mean(axis=0)
+        centre = P.mean(axis=0) if len(P) else np.zeros(3)  # (no track triangulated)
         return cls(*(np.ascontiguousarray(v) for v in (
             P[:, 0], P[:, 1], P[:, 2], P[:, 0] - centre[0], P[:, 1] - centre[1],
             1.0 / cloud.sigma_m[ok] ** 2)))

@@ -47,7 +47,9 @@ class AcquisitionSettings:
         window_frames: the smoothers search on this many frames (6 at 1 fps held a
             margin of 7.3-9.0 standard errors with 30% wrong matches; 4 gave 5.2-6.8).
         retry_every_frames: without a fix, the smoothers search again on the newest
-            window this many frames later.
+            window this many frames later, and twice as long after each further failed
+            search (terrain that could not tell the fix apart rarely can a few frames on;
+            a search costs about a second).
     """
 
     n_sigma: float = 3.0

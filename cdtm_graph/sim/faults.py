@@ -94,8 +94,9 @@ def apply_terrain_mismatch(truth: Dtm, mismatch: TerrainMismatch,
         ys = rng.uniform(y.min(), y.max(), n)
         sides = rng.uniform(*mismatch.size_m, (n, 2))
         tops = rng.uniform(*mismatch.height_m, n)
-        for i in range(n):
-            if raised.mean() >= mismatch.coverage:
+        covered, enough = 0, mismatch.coverage * raised.size  # (a running count: a mean
+        for i in range(n):                                     # per block is quadratic)
+            if covered >= enough:
                 break
             c0, c1 = np.searchsorted(x, [xs[i], xs[i] + sides[i, 0]])
             ys_sorted = y if truth.dy > 0 else y[::-1]
@@ -103,6 +104,7 @@ def apply_terrain_mismatch(truth: Dtm, mismatch: TerrainMismatch,
             if truth.dy < 0:
                 r0, r1 = rows - r1, rows - r0
             block = (slice(r0, r1), slice(c0, c1))
+            covered += int(np.count_nonzero(~raised[block]))
             raised[block] = True
             heights[block] = tops[i]
         elevation += heights

@@ -147,6 +147,7 @@ class IncrementalSmoother:
         self._acquiring = False
         self._held: list[tuple[int, np.ndarray, np.ndarray]] = []  # (frame, ids, pixels)
         self._tries_at: int | None = None  # frame of the last search
+        self._failed_searches = 0  # since the last fix: each doubles the wait
         self.acquisitions: list[dict] = []  # each search: frame, verdict, reason
         self._frame_flags: dict[int, list[str]] = {}
         self._backend: Backend = (
@@ -273,7 +274,8 @@ class IncrementalSmoother:
             self._mismatch_round(k, max(self._judge_from, k - self.MISMATCH_WINDOW_FRAMES))
         if new:
             self._refresh_newest_noise(k, predicted, len(new))
-        self._converging = self._converging and self._moved_far(k, predicted)
+            # (a frame without factors cannot move: it says nothing of convergence)
+            self._converging = self._converging and self._moved_far(k, predicted)
         self._state_cov = self._backend.joint_marginal(list(frame_keys(k)))
         if self._acquiring:
             self._try_acquisition(k)
@@ -334,8 +336,9 @@ class IncrementalSmoother:
         while len(self._held) > window:
             j, ids, _ = self._held.pop(0)
             self.rejections.add(Rejection.NO_FIX, j, len(ids))
+        wait = settings.retry_every_frames * 2 ** max(self._failed_searches - 1, 0)
         if len(self._held) < window or (self._tries_at is not None
-                                        and k - self._tries_at < settings.retry_every_frames):
+                                        and k - self._tries_at < wait):
             return
         self._tries_at = k
         frames = [AcquisitionFrame(self._t_ns[j], self._pose_guess(j), ids, uv)
@@ -349,9 +352,11 @@ class IncrementalSmoother:
         self.acquisitions.append({"frame": k, "window": [j0, k],
                                   "verdict": result.verdict.value, "reason": result.reason})
         if result.correction is None:
+            self._failed_searches += 1
             return
         self._apply_fix(result.correction, j0, k)
         self._acquiring = False
+        self._failed_searches = 0
         for j, _, _ in self._held:  # their sightings are in now
             self._frame_flags[j].remove("no_fix")
             if not self._frame_flags[j]:
@@ -446,17 +451,16 @@ class IncrementalSmoother:
 
     def _position_sigma_m(self) -> float:
         """The newest estimated frame's largest position 1-sigma (m)."""
-        return float(np.sqrt(np.linalg.eigvalsh(self._state_cov[3:6, 3:6]).max()))
+        return _largest_sigmas(self._state_cov)[0]
 
-    def _frame_position_sigma_m(self, j: int) -> float:
-        """Frame j's largest position 1-sigma (m) now (as it left the window, if it has)."""
+    def _frame_sigmas(self, j: int) -> tuple[float, float]:
+        """Frame j's largest position (m) and attitude (rad) 1-sigmas now (as it left the
+        window, if it has)."""
         if j < self._settled:
             cov = self._exit_cov[j][0] if j in self._exit_cov else None
         else:
             cov = self._backend.marginal(X(j))
-        if cov is None:
-            return self._position_sigma_m()
-        return float(np.sqrt(np.linalg.eigvalsh(cov[3:6, 3:6]).max()))
+        return _largest_sigmas(self._state_cov if cov is None else cov)
 
     def _settled_enough(self) -> bool:
         """Whether the poses are known well enough to judge a track's height against the
@@ -489,7 +493,7 @@ class IncrementalSmoother:
         tid, frame, q = tid[judged], frame[judged], q[judged]
         if tid.size == 0:
             return factors, track_ids, none, none
-        judgement = judge(self._track_heights(tid, frame, q, self._position_sigma_m()),
+        judgement = judge(self._track_heights(tid, frame, q, *_largest_sigmas(self._state_cov)),
                           self._noise.sigma_h_m, settings)
         off, wrong = judgement.off_map, judgement.inconsistent
         self._found_off = np.union1d(self._found_off, off)
@@ -507,17 +511,23 @@ class IncrementalSmoother:
         return kept, kept_ids, off, wrong
 
     def _track_heights(self, tid: np.ndarray, frame: np.ndarray, q: np.ndarray,
-                       pose_sigma_m: float | np.ndarray) -> TrackHeights:
-        """These observations' tracks triangulated at the current estimate."""
+                       position_sigma_m: float | np.ndarray,
+                       attitude_sigma_rad: float | np.ndarray) -> TrackHeights:
+        """These observations' tracks triangulated at the current estimate (the frames'
+        pose 1-sigmas scalar or per frame of ``np.unique(frame)``)."""
         frames = np.unique(frame)
         world_T_cam = np.stack([self._pose_guess(int(j)) @ self._body_T_cam for j in frames])
         at = np.searchsorted(frames, frame)
-        sigma = np.asarray(pose_sigma_m, dtype=float)
-        sigma = sigma[at] if sigma.ndim else sigma
+
+        def per_observation(sigma: float | np.ndarray) -> np.ndarray:
+            sigma = np.asarray(sigma, dtype=float)
+            return sigma[at] if sigma.ndim else sigma
+
         return track_heights(tid, world_T_cam[at, :3, 3],
                              np.einsum("mij,mj->mi", world_T_cam[at, :3, :3], q),
                              float(np.mean(self._noise.sigma_q_xy)), self.dtm,
-                             self._noise.sigma_h_m, sigma)
+                             self._noise.sigma_h_m, per_observation(position_sigma_m),
+                             per_observation(attitude_sigma_rad))
 
     #: Every this many frames, the tracks of the last ``MISMATCH_WINDOW_FRAMES`` frames are
     #: judged against the DTM together at the current estimate (a pit the first frames'
@@ -543,9 +553,9 @@ class IncrementalSmoother:
             return 0
         # each frame's own position uncertainty: where features went, the poses are weak
         frames = np.unique(frame)
-        sigma = np.array([self._frame_position_sigma_m(int(j)) for j in frames])
+        sigma = np.array([self._frame_sigmas(int(j)) for j in frames])
         clutter_settings = self.settings.graph.clutter
-        judgement, self.clutter = assess(self._track_heights(tid, frame, q, sigma),
+        judgement, self.clutter = assess(self._track_heights(tid, frame, q, *sigma.T),
                                          self._noise.sigma_h_m, settings, clutter_settings)
         self._found_off = np.union1d(self._found_off, judgement.off_map)
         off = np.setdiff1d(np.union1d(untrusted(all_tid, all_frame, self._found_off,
@@ -846,3 +856,10 @@ class IncrementalSmoother:
                 flags.setdefault(k, []).extend(v)
         return SmootherResult(estimate, covariances, stats, counts, settings,
                               frame_flags(counts, flags), information, terrain)
+
+
+def _largest_sigmas(pose_cov: np.ndarray) -> tuple[float, float]:
+    """The largest position (m) and attitude (rad) 1-sigmas of a pose covariance (rotation
+    first, GTSAM's order)."""
+    return (float(np.sqrt(np.linalg.eigvalsh(pose_cov[3:6, 3:6]).max())),
+            float(np.sqrt(np.linalg.eigvalsh(pose_cov[:3, :3]).max())))

@@ -72,7 +72,7 @@ def _wrong(fraction: float) -> Callable[[FlightLog, np.random.Generator], Flight
     return lambda log, rng: with_wrong_matches(log, fraction, rng)[0]
 
 
-def _far(metres: float, heading_deg: float) -> dict:
+def _far(metres: float, heading_deg: float, terrain_cell_m: float = 12000.0) -> dict:
     # a horizontal error of `metres` with an honest sigma, the DTM wide enough to search
     angle = np.radians(35.0)
     # (a 12 km terrain cell: the default 3 km cell repeats within the search region of a
@@ -80,7 +80,7 @@ def _far(metres: float, heading_deg: float) -> dict:
     return dict(sigma_position_m=metres, sigma_attitude_deg=max(heading_deg, 1.0),
                 initial_error_m=(metres * np.cos(angle), -metres * np.sin(angle), 0.0),
                 initial_error_deg=(0.0, 0.0, heading_deg),
-                region_margin_m=max(400.0, 3.5 * metres), terrain_cell_m=12000.0)
+                region_margin_m=max(400.0, 3.5 * metres), terrain_cell_m=terrain_cell_m)
 
 
 SCENARIOS: dict[str, Scenario] = {s.name: s for s in (
@@ -96,6 +96,8 @@ SCENARIOS: dict[str, Scenario] = {s.name: s for s in (
     Scenario("far300", _far(300.0, 3.0)),
     Scenario("far600", _far(600.0, 3.0)),
     Scenario("far1000", _far(1000.0, 3.0)),
+    # the terrain repeats every 3 km: within a 1000 m prior the fix is truly ambiguous
+    Scenario("far1000_periodic", _far(1000.0, 3.0, terrain_cell_m=3000.0)),
     Scenario("imu_gap", fault=lambda log, rng: with_imu_gap(log, 19.0, 5.0)),
     Scenario("focal1pct", fault=lambda log, rng: with_calibration_error(log, focal_scale=1.01)),
     Scenario("mount05deg", fault=lambda log, rng: with_calibration_error(

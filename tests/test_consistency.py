@@ -1,0 +1,53 @@
+"""Monte Carlo consistency of the smoothers with every default defence on.
+
+Independent clean flights (seeds): one frame of each run is an independent draw of the
+position error, so the sum of their NEES is chi-square with 3 dof per run, a bound with a
+stated probability whatever the correlation along a run. The issue's own band (ANEES
+1.2-4.5 on clean flights, neither pessimistic nor optimistic) is checked over the seeds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from cdtm_graph.run import smooth_and_evaluate
+from cdtm_graph.smoother import SmootherSettings
+from cdtm_graph.studies.robustness import BASE, Mode
+
+SEEDS = range(101, 109)
+FRAMES = 30
+#: the frame each run contributes (the middle: not the prior's, not the open end's)
+FRAME = FRAMES // 2
+#: two-sided probability of the chi-square band
+BAND = 0.99
+ANEES_RANGE = (1.2, 4.5)
+
+
+@pytest.fixture(scope="module")
+def runs() -> dict[Mode, list]:
+    out: dict[Mode, list] = {mode: [] for mode in Mode}
+    for seed in SEEDS:
+        from cdtm_graph.sim.simulate import simulate_flight
+
+        log, dtm = simulate_flight(dataclasses.replace(BASE, frames=FRAMES, seed=seed))
+        for mode in Mode:
+            out[mode].append(smooth_and_evaluate(log, dtm, mode.settings(SmootherSettings())))
+    return out
+
+
+@pytest.mark.parametrize("mode", list(Mode), ids=lambda m: m.value)
+def test_position_errors_over_independent_flights_are_chi_square(runs, mode):
+    nees = np.array([r.errors.position_nees[FRAME] for r in runs[mode]])
+    dof = 3 * nees.size
+    lo, hi = chi2.ppf([(1 - BAND) / 2, (1 + BAND) / 2], dof)
+    assert lo <= nees.sum() <= hi, (nees.sum(), (lo, hi))
+
+
+@pytest.mark.parametrize("mode", list(Mode), ids=lambda m: m.value)
+def test_clean_flights_are_neither_pessimistic_nor_optimistic(runs, mode):
+    anees = np.mean([r.errors.anees_position for r in runs[mode]])
+    assert ANEES_RANGE[0] <= anees <= ANEES_RANGE[1], anees
