@@ -106,7 +106,7 @@ class IncrementalSmoother:
         self.settings = settings = settings or SmootherSettings()
         graph = settings.graph
         self._noise = feature_noise(config, dtm, graph)
-        self._imu = ImuFeed(config, graph.imu_hold, imu)
+        self._imu = ImuFeed(config, graph.imu_hold, imu, graph.earth_physics, graph.imu_gap_noise)
         self.rejections = Rejections()  # features left out, by reason and frame
         self._pairing = SightingPairs(config.camera.camera, config.camera.body_T_cam, dtm,
                                       config.camera.pixel_sigma_px, graph.epipolar,
@@ -195,7 +195,7 @@ class IncrementalSmoother:
             velocity = np.asarray(init.velocity_mps, float)
         else:
             bias = self._biases[k - 1]  # the IMU feed's linearization point too
-            pim = self._imu.finish(int(t_ns))
+            pim = self._imu.finish(int(t_ns), (self._poses[k - 1], self._velocities[k - 1]))
             link = imu_factor(k - 1, pim)
             graph.add(link)
             predicted, velocity = navstate_predict(pim, self._poses[k - 1],

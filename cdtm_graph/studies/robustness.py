@@ -95,6 +95,8 @@ SCENARIOS: dict[str, Scenario] = {s.name: s for s in (
     Scenario("far600", _far(600.0, 3.0)),
     Scenario("far1000", _far(1000.0, 3.0)),
     Scenario("imu_gap", fault=lambda log, rng: with_imu_gap(log, 19.0, 5.0)),
+    # 5 s missing across the roll into the first turn (it starts at 10 s)
+    Scenario("imu_gap_turn", fault=lambda log, rng: with_imu_gap(log, 8.0, 5.0)),
     Scenario("focal1pct", fault=lambda log, rng: with_calibration_error(log, focal_scale=1.01)),
     Scenario("mount05deg", fault=lambda log, rng: with_calibration_error(
         log, mount_rotation_deg=(0.3, 0.4, 0.0))),
