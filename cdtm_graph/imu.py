@@ -431,12 +431,15 @@ class Preintegration(gtsam.PreintegratedCombinedMeasurements):
 
     Attributes:
         interval_params: the parameters GTSAM reads while integrating and predicting.
+        spans_gap: some of it was held across an IMU gap (:class:`GapNoise`): its mean is
+            a guess, and a prediction through it a poor linearization point.
     """
 
     def __init__(self, params: gtsam.PreintegrationCombinedParams,
                  bias: gtsam.imuBias.ConstantBias):
         super().__init__(params, bias)
         self.interval_params = params
+        self.spans_gap = False
 
 
 class EarthImu:
@@ -627,6 +630,7 @@ class ImuIntervals:
                 params.setGyroscopeCovariance(gyro_cov + q_gyro * eye)
                 for k in range(a, b):
                     pim.integrateMeasurement(f[k], w[k], float(dt_s[k]))
+            pim.spans_gap = pim.spans_gap or bool(np.any(piece_gap > 0))
         finally:
             params.setAccelerometerCovariance(acc_cov)
             params.setGyroscopeCovariance(gyro_cov)

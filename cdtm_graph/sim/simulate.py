@@ -19,7 +19,8 @@ as a ``cdtm-flightlog/1`` log (docs/flightlog.md) plus the DTM to ship with it:
   wobble so the camera is never exactly level.
 * **IMU**. :func:`~cdtm_graph.imu.simulate_imu` at 200 Hz with white noise and bias
   random walks at flight.yaml's densities; the initial biases are drawn from their
-  priors.
+  priors. With a geodetic ``origin`` it senses the Earth's rotation and WGS84 normal
+  gravity (:func:`~cdtm_graph.sim.imu.earth_imu`).
 * **Tracks**. Ground features made by ray casting from the true camera into the true
   terrain and followed by projecting their ground points into later frames, each
   observation occlusion-checked (a ray from the camera toward the point must first hit

@@ -228,6 +228,9 @@ class IncrementalSmoother:
         self._commit(k, new, new_ids, slots[len(slots) - len(new):] if slots else [])
         if new:
             self._refresh_newest_noise(k, predicted, len(new))
+        if link is not None and pim.spans_gap:  # predicted across an IMU gap: a poor
+            self._iterate(self.settings.final_iterations)  # linearization point, iterate
+            self._fetch(k)
         self._converging = self._moved_far(k, predicted)
         self._state_cov = self._backend.joint_marginal(list(frame_keys(k)))
         self._imu.start(int(t_ns), self._biases[k])
