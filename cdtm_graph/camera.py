@@ -1,4 +1,4 @@
-"""Pinhole camera with OpenCV radial-tangential ("radtan") distortion.
+"""Pinhole camera with OpenCV radial-tangential ("radtan") or equidistant (fisheye) distortion.
 
 Conventions (docs/flightlog.md): the camera frame ``cam`` is OpenCV's (x right, y down,
 z along the optical axis); pixel (0, 0) is the *centre* of the top-left pixel, so the
@@ -11,10 +11,23 @@ The distortion model is OpenCV's with coefficients ``(k1, k2, p1, p2[, k3])``::
     x_d = x radial + 2 p1 x y + p2 (r2 + 2 x^2)
     y_d = y radial + p1 (r2 + 2 y^2) + 2 p2 x y
     u = fx x_d + cx,  v = fy y_d + cy
+
+The equidistant model (Kannala-Brandt, OpenCV's ``cv2.fisheye``, Kalibr's ``equidistant``)
+has coefficients ``(k1, k2, k3, k4)``::
+
+    r = sqrt(x^2 + y^2),  theta = atan(r)
+    theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)
+    x_d = (theta_d / r) x,  y_d = (theta_d / r) y
+    u = fx x_d + cx,  v = fy y_d + cy
+
+Rays are written ``(x, y, 1)``, so only directions less than 90 degrees from the optical
+axis have one: a fisheye pixel seeing further gets a NaN ray, as does any pixel where a
+model does not invert.
 """
 
 from __future__ import annotations
 
+import enum
 import math
 from dataclasses import dataclass
 
@@ -31,7 +44,25 @@ UNDISTORT_MAX_ITERATIONS = 200
 #: its ray is reported as NaN instead of a wrong direction.
 UNDISTORT_CHECK_TOL_PX = 1e-6
 
-_ALLOWED_DISTORTION_LENGTHS = (0, 4, 5)
+
+
+class DistortionModel(enum.Enum):
+    """The lens distortion model (flight.yaml ``camera.distortion_model``, Kalibr's names)."""
+
+    NONE = "none"
+    RADTAN = "radtan"            # OpenCV k1 k2 p1 p2 [k3]
+    EQUIDISTANT = "equidistant"  # OpenCV fisheye (Kannala-Brandt) k1 k2 k3 k4
+
+
+#: How many coefficients each model takes.
+DISTORTION_LENGTHS: dict[DistortionModel, tuple[int, ...]] = {
+    DistortionModel.NONE: (0,),
+    DistortionModel.RADTAN: (4, 5),
+    DistortionModel.EQUIDISTANT: (4,),
+}
+_COEFFICIENT_NAMES = {DistortionModel.NONE: "none",
+                      DistortionModel.RADTAN: "k1 k2 p1 p2 [k3]",
+                      DistortionModel.EQUIDISTANT: "k1 k2 k3 k4"}
 
 
 #: A downward camera on a level body (body x forward, y left, z up): cam x = body x,
@@ -41,7 +72,7 @@ DOWNWARD_BODY_T_CAM = np.diag([1.0, -1.0, -1.0, 1.0])
 
 @dataclass(frozen=True)
 class PinholeCamera:
-    """Intrinsics of a pinhole camera with optional OpenCV radtan distortion.
+    """Intrinsics of a pinhole camera with optional radtan or equidistant distortion.
 
     Attributes:
         width: image width in pixels.
@@ -50,13 +81,16 @@ class PinholeCamera:
         fy: focal length along v, pixels.
         cx: principal point u, pixels (pixel-centre convention).
         cy: principal point v, pixels.
-        distortion: OpenCV radtan coefficients ``(k1, k2, p1, p2)`` or
-            ``(k1, k2, p1, p2, k3)``; ``()`` means no distortion.
+        distortion: the model's coefficients: radtan ``(k1, k2, p1, p2)`` or
+            ``(k1, k2, p1, p2, k3)``, equidistant ``(k1, k2, k3, k4)``; ``()`` means no
+            distortion.
+        distortion_model: a :class:`DistortionModel` (or its name); None (the default):
+            radtan when there are coefficients, else none.
 
     Raises:
         ValueError: non-positive or non-integer sizes, non-positive or non-finite
-            focal lengths, non-finite principal point or coefficients, or a
-            distortion vector that is not of length 0, 4 or 5.
+            focal lengths, non-finite principal point or coefficients, an unknown model,
+            or a number of coefficients the model does not take.
     """
 
     width: int
@@ -66,6 +100,7 @@ class PinholeCamera:
     cx: float
     cy: float
     distortion: tuple[float, ...] = ()
+    distortion_model: DistortionModel | str | None = None
 
     def __post_init__(self) -> None:
         for name in ("width", "height"):
@@ -79,12 +114,26 @@ class PinholeCamera:
                 raise ValueError(f"camera {name} must be positive, got {value!r}")
             object.__setattr__(self, name, value)
         coeffs = tuple(_finite_float(c, "distortion coefficient") for c in self.distortion)
-        if len(coeffs) not in _ALLOWED_DISTORTION_LENGTHS:
+        model = self.distortion_model
+        if model is None:
+            model = DistortionModel.RADTAN if coeffs else DistortionModel.NONE
+        try:
+            model = DistortionModel(model)
+        except ValueError:
+            names = ", ".join(m.value for m in DistortionModel)
+            raise ValueError(f"camera distortion model {model!r} is not one of {names}") from None
+        if len(coeffs) not in DISTORTION_LENGTHS[model]:
+            want = " or ".join(str(n) for n in DISTORTION_LENGTHS[model])
             raise ValueError(
-                f"camera distortion must have 0, 4 or 5 coefficients (k1 k2 p1 p2 [k3]), "
-                f"got {len(coeffs)}"
-            )
+                f"camera distortion {model.value} must have {want} coefficients "
+                f"({_COEFFICIENT_NAMES[model]}), got {len(coeffs)}")
         object.__setattr__(self, "distortion", coeffs)
+        object.__setattr__(self, "distortion_model", model)
+
+    @property
+    def model(self) -> DistortionModel:
+        """The distortion model (``distortion_model`` after ``__post_init__``)."""
+        return DistortionModel(self.distortion_model)
 
     @classmethod
     def from_fov(cls, width: int, height: int, fov_deg: float) -> PinholeCamera:
@@ -114,7 +163,8 @@ class PinholeCamera:
 
     @property
     def dist_coeffs(self) -> np.ndarray:
-        """(0,), (4,) or (5,) distortion coefficients as OpenCV takes them."""
+        """(0,), (4,) or (5,) distortion coefficients as OpenCV takes them (``cv2`` for
+        radtan, ``cv2.fisheye`` for equidistant)."""
         return np.array(self.distortion, dtype=float)
 
     @property
@@ -143,9 +193,11 @@ class PinholeCamera:
     def pixels_to_rays(self, uv: np.ndarray) -> np.ndarray:
         """Undistorted normalized rays of pixels.
 
-        Uses OpenCV's iterative undistortion with a tight stopping rule
-        (:data:`UNDISTORT_EPS_PX`), then checks by reprojection: pixels where the
-        distortion model cannot be inverted get NaN rays.
+        Uses OpenCV's iterative undistortion (``cv2.undistortPoints``, or
+        ``cv2.fisheye.undistortPoints`` for the equidistant model) with a tight stopping
+        rule (:data:`UNDISTORT_EPS_PX`), then checks by reprojection: pixels where the
+        distortion model cannot be inverted, or whose direction is 90 degrees or more
+        from the optical axis, get NaN rays.
 
         Args:
             uv: (N, 2) pixel coordinates (u, v).
@@ -157,11 +209,14 @@ class PinholeCamera:
         rays = np.ones((uv.shape[0], 3))
         if uv.shape[0] == 0:
             return rays
-        if not self.distortion:
+        if self.model is DistortionModel.NONE:
             rays[:, 0] = (uv[:, 0] - self.cx) / self.fx
             rays[:, 1] = (uv[:, 1] - self.cy) / self.fy
             return rays
-        rays[:, :2] = _undistort_normalized(uv, self.K, self.dist_coeffs)
+        if self.model is DistortionModel.EQUIDISTANT:
+            rays[:, :2] = _undistort_fisheye_normalized(uv, self.K, self.dist_coeffs)
+        else:
+            rays[:, :2] = _undistort_normalized(uv, self.K, self.dist_coeffs)
         error_px = np.linalg.norm(self.rays_to_pixels(rays) - uv, axis=1)
         not_invertible = ~(error_px <= UNDISTORT_CHECK_TOL_PX)
         rays[not_invertible, :2] = np.nan
@@ -182,7 +237,9 @@ class PinholeCamera:
         z_safe = np.where(in_front, z, 1.0)
         x = p[:, 0] / z_safe
         y = p[:, 1] / z_safe
-        if self.distortion:
+        if self.model is DistortionModel.EQUIDISTANT:
+            x, y = _equidistant(x, y, self.distortion)
+        elif self.model is DistortionModel.RADTAN:
             k1, k2, p1, p2 = self.distortion[:4]
             k3 = self.distortion[4] if len(self.distortion) == 5 else 0.0
             r2 = x * x + y * y
@@ -228,6 +285,29 @@ def _finite_float(value: object, name: str) -> float:
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     cos = float(a @ b) / float(np.linalg.norm(a) * np.linalg.norm(b))
     return math.degrees(math.acos(min(1.0, max(-1.0, cos))))
+
+
+def _equidistant(x: np.ndarray, y: np.ndarray, coeffs: tuple[float, ...]
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Normalized (N,) x, y -> distorted x_d, y_d of the equidistant model (module docstring)."""
+    k1, k2, k3, k4 = coeffs
+    r = np.hypot(x, y)
+    theta = np.arctan(r)
+    t2 = theta * theta
+    theta_d = theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+    # theta_d / r -> 1 as r -> 0 (theta ~ r): the optical axis maps to the principal point.
+    safe_r = np.where(r > 0.0, r, 1.0)
+    scale = np.where(r > 0.0, theta_d / safe_r, 1.0)
+    return x * scale, y * scale
+
+
+def _undistort_fisheye_normalized(uv: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """(N, 2) distorted pixels -> (N, 2) undistorted normalized coordinates via cv2.fisheye."""
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS,
+                UNDISTORT_MAX_ITERATIONS, UNDISTORT_EPS_PX)
+    out = cv2.fisheye.undistortPoints(uv.reshape(-1, 1, 2), K, dist.reshape(4, 1),
+                                      criteria=criteria)
+    return np.asarray(out, dtype=float).reshape(-1, 2)
 
 
 def _undistort_normalized(uv: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:

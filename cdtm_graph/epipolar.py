@@ -64,13 +64,16 @@ class EpipolarCheck:
 
 def _sampson_sq(q_a: np.ndarray, q_b: np.ndarray, R_ba: np.ndarray,
                 t_b: np.ndarray) -> np.ndarray:
-    """Squared Sampson distances (n,) of ``q_b^T E q_a = 0``, E = [t]x R, normalized units."""
+    """Squared Sampson distances of ``q_b^T E q_a = 0``, E = [t]x R, normalized units:
+    (n,) for one direction ``t_b`` (3,), (h, n) for h directions (h, 3) at once."""
+    t = np.atleast_2d(t_b)[:, None, :]   # (h, 1, 3)
     Rq = q_a @ R_ba.T
-    Eq_a = np.cross(t_b, Rq)           # E q_a
-    Et_q_b = np.cross(q_b, t_b) @ R_ba  # E^T q_b = R^T [t]x^T q_b = R^T (q_b x t)
-    num = np.einsum("ni,ni->n", q_b, Eq_a) ** 2
-    den = Eq_a[:, 0] ** 2 + Eq_a[:, 1] ** 2 + Et_q_b[:, 0] ** 2 + Et_q_b[:, 1] ** 2
-    return num / np.maximum(den, 1e-300)
+    Eq_a = np.cross(t, Rq)              # E q_a, (h, n, 3)
+    Et_q_b = np.cross(q_b, t) @ R_ba    # E^T q_b = R^T [t]x^T q_b = R^T (q_b x t)
+    num = np.einsum("ni,hni->hn", q_b, Eq_a) ** 2
+    den = Eq_a[..., 0] ** 2 + Eq_a[..., 1] ** 2 + Et_q_b[..., 0] ** 2 + Et_q_b[..., 1] ** 2
+    d2 = num / np.maximum(den, 1e-300)
+    return d2 if np.ndim(t_b) == 2 else d2[0]
 
 
 def check_pair(q_a: np.ndarray, q_b: np.ndarray, R_ba: np.ndarray, t_b: np.ndarray,
@@ -108,19 +111,16 @@ def check_pair(q_a: np.ndarray, q_b: np.ndarray, R_ba: np.ndarray, t_b: np.ndarr
     # the sign of t: the one closer to the IMU's (a direction and its opposite fit alike)
     candidates *= np.where(candidates @ prior < 0, -1.0, 1.0)[:, None]
     candidates = np.vstack([prior, candidates])
-    best, best_count, best_cost = prior, -1, np.inf
-    for t in candidates:
-        d2 = _sampson_sq(q_a, q_b, R_ba, t)
-        inside = d2 < limit
-        count = int(inside.sum())
-        cost = float(np.minimum(d2, limit).sum())  # MSAC: ties go to the tighter fit
-        if count > best_count or (count == best_count and cost < best_cost):
-            best, best_count, best_cost = t, count, cost
+    d2 = _sampson_sq(q_a, q_b, R_ba, candidates)  # (h, n): every hypothesis at once
+    counts = (d2 < limit).sum(axis=1)
+    costs = np.minimum(d2, limit).sum(axis=1)  # MSAC: ties go to the tighter fit
+    # the most inliers, then the lowest cost, then the earliest (the IMU's own first)
+    best = candidates[np.lexsort((np.arange(len(counts)), costs, -counts))[0]]
     inlier = _sampson_sq(q_a, q_b, R_ba, best) < limit
     # refine the direction on the inliers (smallest singular vector of their normals)
     if inlier.sum() >= 3:
         _, _, vt = np.linalg.svd(normals[inlier] / np.linalg.norm(
-            normals[inlier], axis=1, keepdims=True))
+            normals[inlier], axis=1, keepdims=True), full_matrices=False)
         refined = vt[-1] * (1.0 if vt[-1] @ prior >= 0 else -1.0)
         inlier = _sampson_sq(q_a, q_b, R_ba, refined) < limit
         best = refined

@@ -33,6 +33,11 @@ class DegenerateGeometryError(CdtmError):
         self.reasons = tuple(reasons)
 
 
+class SensorDataError(CdtmError):
+    """Sensor recordings (a EuRoC folder, a ROS bag) cannot become a flight log: a topic
+    or file is missing, a message is of the wrong type, the initial state is unknown."""
+
+
 class ImageError(CdtmError):
     """An image cannot be used: unreadable, missing, of the wrong size or type."""
 

@@ -11,9 +11,7 @@ from collections.abc import Callable, Sequence
 
 import gtsam
 import numpy as np
-from scipy.stats import chi2
 
-from cdtm_graph.mismatch import MismatchSettings, coherent_test
 from cdtm_graph.results import Rejection, Rejections
 from factors import CdtmPairFactor
 
@@ -42,6 +40,7 @@ def innovation_mahalanobis(e: np.ndarray, H_a: np.ndarray, H_b: np.ndarray, P: n
 
 #: Inlier gate without a robust kernel: chi-square with 2 dof, 99.9%.
 CHI2_2DOF_999 = chi2_2dof_quantile(0.999)
+CHI2_2DOF_MEDIAN = chi2_2dof_quantile(0.5)  # 2 ln 2
 
 
 def count_outliers(factors: Sequence[CdtmPairFactor],
@@ -81,7 +80,12 @@ class InnovationGate:
       as they settle, it tightens to the measurement noise. The kernel is reached
       without its local-minimum trap (graduated by the prior, not by a schedule).
     * with a ``probability``, the chi-square(2) gate: a feature whose squared Mahalanobis
-      distance ``e^T S^-1 e`` fails it is dropped before it enters (counted).
+      distance ``e^T S^-1 e`` fails it is dropped before it enters (counted). The
+      distances are first divided by the frame's robust over-dispersion (their median
+      over chi-square(2)'s, when above 1, with enough features): while the solution
+      still settles, the prior is too tight for every feature alike, which is not what
+      an outlier looks like (half of a frame's features would have to be outliers to
+      move the median).
 
     ``R`` includes the first observation's pixel noise, which the factors leave to the
     previous pair: a fresh innovation carries it (without it the innovations were 1.8x
@@ -95,21 +99,20 @@ class InnovationGate:
         rejections: where the dropped features are counted (``Rejection.GATED``).
 
     Attributes:
-        nis: squared Mahalanobis distance of every innovation tested, per call.
+        nis: squared Mahalanobis distance of every innovation tested, per call (as
+            measured, before the over-dispersion is divided out).
     """
 
     def __init__(self, probability: float | None, dtm_spacing_m: float,
-                 rejections: Rejections, mismatch: MismatchSettings | None = None):
+                 rejections: Rejections):
         self.threshold = None if probability is None else chi2_2dof_quantile(probability)
         self._spacing_m = float(dtm_spacing_m)
         self._rejections = rejections
-        self._mismatch = mismatch
         self.nis: list[np.ndarray] = []
 
     def apply(self, k: int, factors: Sequence[CdtmPairFactor], track_ids: Sequence[np.ndarray],
               pose: Callable[[int], np.ndarray], prior: Callable[[int], np.ndarray],
-              test: bool = True
-              ) -> tuple[list[CdtmPairFactor], list[np.ndarray], np.ndarray]:
+              test: bool = True) -> tuple[list[CdtmPairFactor], list[np.ndarray]]:
         """Frame k's factors with their kernels scaled, and only the features that pass.
 
         Args:
@@ -117,42 +120,41 @@ class InnovationGate:
             factors: its new C-DTM factors; track_ids: their features' track ids.
             pose: frame -> current (4, 4) ``world_T_body`` guess.
             prior: earlier frame a -> (12, 12) prior covariance of ``(X(a), X(k))``.
-            test: False while the solution is still converging: scale, do not drop.
+            test: False while the solution still warms up from a loose prior: scale, do
+                not drop.
 
         Returns:
-            The factors, their features' track ids, and the ids of tracks whose ground
-            region failed the coherent test (:func:`cdtm_graph.mismatch.coherent_test`:
-            terrain the DTM lacks); those features are left out.
+            The factors and their features' track ids.
         """
-        kept: list[CdtmPairFactor] = []
-        kept_ids: list[np.ndarray] = []
-        flagged: list[np.ndarray] = []
-        n_gated = n_mismatch = 0
+        scaled: list[CdtmPairFactor] = []
+        distances: list[np.ndarray] = []
+        judged: list[bool] = []
         pose_k = pose(k)
-        for f, ids in zip(factors, track_ids):
+        for f in factors:
             a = int(gtsam.Symbol(f.key_a).index())
             P = prior(a)
-            pose_a = pose(a)
-            e, H_a, H_b = f.innovations(pose_a, pose_k)
+            e, H_a, H_b = f.innovations(pose(a), pose_k)
             H = np.concatenate([H_a, H_b], axis=2)
             R = f.features.whitened_full_covariance()
             S = H @ P @ np.swapaxes(H, 1, 2) + R
-            f = f.with_robust_scale(np.sqrt(0.5 * np.trace(S, axis1=1, axis2=2)))
+            scaled.append(f.with_robust_scale(np.sqrt(0.5 * np.trace(S, axis1=1, axis2=2))))
+            distances.append(np.einsum("ni,ni->n", e, np.linalg.solve(S, e[..., None])[..., 0]))
             # the DTM plane at the guess means nothing a cell away: no judging there
-            uncertain = np.sqrt(np.linalg.eigvalsh(P[9:, 9:]).max()) > self._spacing_m
-            passed = np.ones(f.features.n, dtype=bool)
-            if test and not uncertain:
-                if self._mismatch is not None:
-                    region = self._regions_off_prior(f.features.G_E, e, H, R, P)
-                    n_mismatch += int(region.sum())
-                    flagged.append(ids[region])
-                    passed &= ~region
-                if self.threshold is not None:
-                    d = np.einsum("ni,ni->n", e, np.linalg.solve(S, e[..., None])[..., 0])
-                    self.nis.append(d[passed])
-                    gated = passed & (d > self.threshold)
-                    n_gated += int(gated.sum())
-                    passed &= ~gated
+            judged.append(test and self.threshold is not None
+                          and np.sqrt(np.linalg.eigvalsh(P[9:, 9:]).max()) <= self._spacing_m)
+        tested = [d for d, j in zip(distances, judged) if j]
+        if not tested:
+            return scaled, list(track_ids)
+        d_all = np.concatenate(tested)
+        self.nis.append(d_all)
+        spread = (max(1.0, float(np.median(d_all)) / CHI2_2DOF_MEDIAN)
+                  if d_all.size >= self.MIN_FOR_SPREAD else 1.0)
+        kept: list[CdtmPairFactor] = []
+        kept_ids: list[np.ndarray] = []
+        n_gated = 0
+        for f, ids, d, j in zip(scaled, track_ids, distances, judged):
+            passed = d / spread <= self.threshold if j else np.ones(d.size, dtype=bool)
+            n_gated += int((~passed).sum())
             if passed.all():
                 kept.append(f)
                 kept_ids.append(ids)
@@ -160,25 +162,10 @@ class InnovationGate:
                 kept.append(f.with_features(passed))
                 kept_ids.append(ids[passed])
         self._rejections.add(Rejection.GATED, k, n_gated)
-        self._rejections.add(Rejection.MAP_MISMATCH, k, n_mismatch)
-        return kept, kept_ids, (np.concatenate(flagged) if flagged else np.zeros(0, np.int64))
+        return kept, kept_ids
 
-    def _regions_off_prior(self, G_E: np.ndarray, e: np.ndarray, H: np.ndarray,
-                           R: np.ndarray, P: np.ndarray) -> np.ndarray:
-        """(n,) features in a ground cell whose features, together, fail the coherent test."""
-        assert self._mismatch is not None
-        cell = np.floor(G_E[:, :2] / self._mismatch.region_m).astype(np.int64)
-        _, which = np.unique(cell, axis=0, return_inverse=True)
-        which = which.reshape(-1)
-        out = np.zeros(e.shape[0], dtype=bool)
-        for c in range(int(which.max()) + 1 if which.size else 0):
-            members = which == c
-            if members.sum() < self._mismatch.min_neighbours:
-                continue
-            T, dof = coherent_test(e[members], H[members], R[members], P)
-            if dof and T > chi2.ppf(self._mismatch.region_probability, dof):
-                out |= members
-        return out
+    #: Fewer tested features than this: their median says too little to rescale by.
+    MIN_FOR_SPREAD = 20
 
     @property
     def all_nis(self) -> np.ndarray:

@@ -14,11 +14,12 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 
+from cdtm_graph.clutter import ClutterSettings
 from cdtm_graph.dtm import Dtm, grazing_hits
 from cdtm_graph.epipolar import EpipolarSettings
 from cdtm_graph.flightlog import FlightConfig, InitialState
 from cdtm_graph.imu import GapNoise, SampleHold, initial_bias
-from cdtm_graph.mismatch import MismatchSettings, mismatched, track_heights
+from cdtm_graph.mismatch import MismatchSettings, TrackHeights, track_heights
 from cdtm_graph.results import Rejection, Rejections
 from cdtm_graph.tracks import FramePairObservations
 from factors import CdtmPairFactor, FeatureNoise, PairFeatures, PlaneMode, RobustKernel
@@ -62,6 +63,10 @@ class GraphSettings:
         mismatch: tracks whose triangulated ground point lies off the DTM (terrain the
             map lacks) lose their features (:mod:`cdtm_graph.mismatch`). ``None``: no
             test.
+        clutter: with ``mismatch``, the tracks' heights are also seen as a population of
+            ground and clutter (forest, towns: :mod:`cdtm_graph.clutter`); the likely
+            clutter goes, and what may remain is a considered bias of the frames'
+            vertical covariance. ``None``: no such view.
     """
 
     plane_mode: PlaneMode = PlaneMode.REINTERSECT
@@ -75,6 +80,7 @@ class GraphSettings:
     epipolar: EpipolarSettings | None = field(default_factory=EpipolarSettings)
     grazing_turn_cells: float | None = 1.0
     mismatch: MismatchSettings | None = field(default_factory=MismatchSettings)
+    clutter: ClutterSettings | None = field(default_factory=ClutterSettings)
 
 
 def dtm_ray_caster(dtm: Dtm):
@@ -220,23 +226,19 @@ def track_observations(factors: Sequence[CdtmPairFactor], track_ids: Sequence[np
     return track_id[first], frame[first], ray[first]
 
 
-def mismatched_tracks(factors: Sequence[CdtmPairFactor], track_ids: Sequence[np.ndarray],
-                      world_T_body: Callable[[int], np.ndarray], body_T_cam: np.ndarray,
-                      dtm: Dtm, noise: FeatureNoise, settings: MismatchSettings
-                      ) -> np.ndarray:
-    """Ids of the tracks whose ground point, triangulated from the factors' observations
-    at the given poses, lies off the DTM (:func:`cdtm_graph.mismatch.mismatched`)."""
-    tid, frame, q = track_observations(factors, track_ids)
-    if tid.size == 0:
-        return np.zeros(0, np.int64)
+def heights_at(track_id: np.ndarray, frame: np.ndarray, ray_cam: np.ndarray,
+               world_T_body: Callable[[int], np.ndarray], body_T_cam: np.ndarray,
+               dtm: Dtm, noise: FeatureNoise) -> TrackHeights:
+    """Tracks triangulated from their observations ((M,) ids, (M,) frames, (M, 3) rays in
+    the camera) at the given poses, against the DTM (:func:`cdtm_graph.mismatch.
+    track_heights`)."""
     frames = np.unique(frame)
     world_T_cam = np.stack([world_T_body(int(k)) @ body_T_cam for k in frames])
     at = np.searchsorted(frames, frame)
     centre = world_T_cam[at, :3, 3]
-    ray = np.einsum("mij,mj->mi", world_T_cam[at, :3, :3], q)
-    heights = track_heights(tid, centre, ray, float(np.mean(noise.sigma_q_xy)), dtm,
-                            noise.sigma_h_m)
-    return heights.track_id[mismatched(heights, noise.sigma_h_m, settings)]
+    ray = np.einsum("mij,mj->mi", world_T_cam[at, :3, :3], ray_cam)
+    return track_heights(track_id, centre, ray, float(np.mean(noise.sigma_q_xy)), dtm,
+                         noise.sigma_h_m)
 
 
 def without_tracks(factors: Sequence[CdtmPairFactor], track_ids: Sequence[np.ndarray],
@@ -259,3 +261,17 @@ def without_tracks(factors: Sequence[CdtmPairFactor], track_ids: Sequence[np.nda
         replacements.append(f.with_features(~hit) if not hit.all() else None)
         kept_ids.append(tid[~hit])
     return changed, replacements, kept_ids
+
+
+def cdtm_information(factors: Sequence[CdtmPairFactor], world_T_body: Callable[[int], np.ndarray],
+                     n_frames: int) -> np.ndarray:
+    """(K, 6, 6) information the C-DTM factors give each pose on its own at the given poses
+    (``SmootherResult.cdtm_information``): each factor's ``H_a^T H_a`` and ``H_b^T H_b``."""
+    info = np.zeros((n_frames, 6, 6))
+    for f in factors:
+        a = int(gtsam.Symbol(f.key_a).index())
+        b = int(gtsam.Symbol(f.key_b).index())
+        _, H_a, H_b = f.evaluate(world_T_body(a), world_T_body(b))
+        info[a] += np.einsum("nki,nkj->ij", H_a, H_a)
+        info[b] += np.einsum("nki,nkj->ij", H_b, H_b)
+    return info

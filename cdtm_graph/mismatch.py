@@ -17,9 +17,16 @@ Two views decide:
   keeps a floor of the DTM's own error: a DTM may be off by that much over a region, and
   the estimate's own small bias must not condemn good ground.
 
+A third view comes with the triangulation: a track whose rays do not meet in a point
+(their misses fail a chi-square test) holds a wrong match the epipolar check of single
+pairs let by (the random pixel fell near its epipolar line); it goes as such, and is no
+evidence about the ground (:func:`inconsistent`). A population of tracks each within
+its noise but many on the same side (a forest) is :mod:`cdtm_graph.clutter`'s view.
+
 The smoothers drop the features of mismatched tracks (counted per frame as
-``Rejection.MAP_MISMATCH``) and solve again: the estimate then rests on the IMU and the
-ground the DTM knows, and where nothing is left its covariance grows honestly.
+``Rejection.MAP_MISMATCH``, or ``WRONG_MATCH``) and solve again: the estimate then rests
+on the IMU and the ground the DTM knows, and where nothing is left its covariance grows
+honestly.
 """
 
 from __future__ import annotations
@@ -28,6 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.stats import chi2
 
 from cdtm_graph.dtm import Dtm
 
@@ -48,9 +56,11 @@ class MismatchSettings:
         min_neighbours: neighbourhoods with fewer tracks are not judged.
         neighbourhood_gate: squared ``mean dh / sigma`` a neighbourhood must pass
             (5 sigma: overlapping neighbourhoods make many tests).
-        region_m: incremental smoothers: side of the ground cells whose features are
-            tested together against the prior (:func:`coherent_test`).
-        region_probability: that test's chi-square probability.
+        frame_fraction: a frame whose tracks are off the DTM for more than this fraction
+            sees a region the map lacks; its other tracks are not trusted either
+            (:func:`untrusted`).
+        fit_probability: a track whose rays miss their common point beyond this
+            chi-square probability holds a wrong match (one the epipolar check let by).
     """
 
     min_observations: int = 3
@@ -59,8 +69,8 @@ class MismatchSettings:
     radius_m: float = 300.0
     min_neighbours: int = 5
     neighbourhood_gate: float = 25.0
-    region_m: float = 500.0
-    region_probability: float = 0.999
+    frame_fraction: float = 0.3
+    fit_probability: float = 0.999
 
 
 @dataclass(frozen=True)
@@ -71,6 +81,8 @@ class TrackHeights:
         track_id: (T,) ids. point_m: (T, 3) ground points. n_observations: (T,).
         dh_m: (T,) point height minus the DTM's there (NaN off the DTM).
         sigma_m: (T,) 1-sigma of ``dh`` (triangulation and DTM error).
+        fit_chi2: (T,) how far the rays miss the point, chi-square with ``2 n - 3``
+            degrees of freedom for a consistent track.
     """
 
     track_id: np.ndarray
@@ -78,11 +90,19 @@ class TrackHeights:
     n_observations: np.ndarray
     dh_m: np.ndarray
     sigma_m: np.ndarray
+    fit_chi2: np.ndarray
+
+    def subset(self, keep: np.ndarray) -> TrackHeights:
+        """The tracks where ``keep`` (T,) is True."""
+        return TrackHeights(self.track_id[keep], self.point_m[keep],
+                            self.n_observations[keep], self.dh_m[keep], self.sigma_m[keep],
+                            self.fit_chi2[keep])
 
 
 def triangulate(track_index: np.ndarray, n_tracks: int, centre_m: np.ndarray,
-                ray_world: np.ndarray, sigma_rad: float) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares points of many tracks at once, and their covariances.
+                ray_world: np.ndarray, sigma_rad: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least-squares points of many tracks at once, their covariances and fit.
 
     Each observation constrains its track's point to its ray; the point minimizes the
     sum of squared angular errors (perpendicular distance over range, ranges from a
@@ -95,7 +115,9 @@ def triangulate(track_index: np.ndarray, n_tracks: int, centre_m: np.ndarray,
         sigma_rad: 1-sigma angular error of one observation.
 
     Returns:
-        points (T, 3) and covariances (T, 3, 3); NaN where the rays do not fix a point.
+        points (T, 3), covariances (T, 3, 3) and the fit's chi-square (T,) (squared angular
+        misses in sigmas, ``2 n - 3`` degrees of freedom for n rays); NaN where the rays do
+        not fix a point.
     """
     d = ray_world / np.linalg.norm(ray_world, axis=1, keepdims=True)
     P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]  # projector off each ray
@@ -114,28 +136,36 @@ def triangulate(track_index: np.ndarray, n_tracks: int, centre_m: np.ndarray,
         cov[ok] = np.linalg.inv(A[ok])  # with weights 1/(sigma r)^2: the covariance
         r = np.linalg.norm(points[track_index] - centre_m, axis=1)
         weight = 1.0 / np.maximum(sigma_rad * np.where(np.isfinite(r), r, 1.0), 1e-12) ** 2
-    return points, cov
+    miss = np.einsum("mij,mj->mi", P, points[track_index] - centre_m)
+    chi2_fit = np.bincount(track_index, weights=weight * np.einsum("mi,mi->m", miss, miss),
+                           minlength=n_tracks)
+    return points, cov, np.where(np.isfinite(points[:, 0]), chi2_fit, np.nan)
 
 
 def track_heights(track_id: np.ndarray, centre_m: np.ndarray, ray_world: np.ndarray,
-                  sigma_rad: float, dtm: Dtm, sigma_h_m: float, pose_sigma_m: float = 0.0
-                  ) -> TrackHeights:
+                  sigma_rad: float, dtm: Dtm, sigma_h_m: float,
+                  pose_sigma_m: float | np.ndarray = 0.0) -> TrackHeights:
     """Triangulate every track of a set of observations and compare it with the DTM.
 
     Args:
         track_id: (M,) each observation's track. centre_m, ray_world: (M, 3) its camera
             centre and ray (world). sigma_rad: one observation's angular 1-sigma.
         dtm: the map. sigma_h_m: its height 1-sigma.
-        pose_sigma_m: 1-sigma of the camera positions (a shift of all of them moves every
-            point by as much): added to each ``sigma``.
+        pose_sigma_m: 1-sigma of the camera positions, scalar or (M,) per observation (a
+            shift of a track's cameras moves its point by as much): each track's largest
+            is added to its ``sigma``.
     """
     ids, index, counts = np.unique(track_id, return_inverse=True, return_counts=True)
-    points, cov = triangulate(index, ids.size, centre_m, ray_world, sigma_rad)
+    index = index.reshape(-1)
+    points, cov, chi2_fit = triangulate(index, ids.size, centre_m, ray_world, sigma_rad)
+    pose_var = np.zeros(ids.size)
+    np.maximum.at(pose_var, index, np.broadcast_to(np.asarray(pose_sigma_m, float) ** 2,
+                                                   index.shape))
     ground, normal = dtm.height_and_normal(points[:, 0], points[:, 1])
     dh = points[:, 2] - ground
     # d(dh) = n . dX with n = (-dh/dx, -dh/dy, 1), the DTM's upward normal
-    var = np.einsum("ti,tij,tj->t", normal, cov, normal) + sigma_h_m**2 + pose_sigma_m**2
-    return TrackHeights(ids, points, counts, dh, np.sqrt(var))
+    var = np.einsum("ti,tij,tj->t", normal, cov, normal) + sigma_h_m**2 + pose_var
+    return TrackHeights(ids, points, counts, dh, np.sqrt(var), chi2_fit)
 
 
 def mismatched(heights: TrackHeights, sigma_h_m: float,
@@ -147,11 +177,15 @@ def mismatched(heights: TrackHeights, sigma_h_m: float,
             neighbourhood mean's uncertainty). settings: the tests.
     """
     s = settings or MismatchSettings()
-    known = np.isfinite(heights.dh_m) & np.isfinite(heights.sigma_m)
+    known = (np.isfinite(heights.dh_m) & np.isfinite(heights.sigma_m)
+             & ~inconsistent(heights, s))
     tested = known & (heights.n_observations >= s.min_observations)
     z2 = np.where(known, (heights.dh_m / np.where(known, heights.sigma_m, 1.0)) ** 2, 0.0)
     out = tested & (heights.sigma_m <= s.max_sigma_m) & (z2 > s.gate)
-    rest = np.flatnonzero(known & ~out)
+    # The neighbourhood means are taken over the tracks within their own gate: a wild
+    # untested track (a wrong match that slipped through, rays almost parallel) is no
+    # evidence about its neighbours' ground, and one such would condemn them all.
+    rest = np.flatnonzero(known & ~out & (z2 <= s.gate))
     if rest.size >= s.min_neighbours:
         tree = cKDTree(heights.point_m[rest, :2])
         pairs = tree.query_pairs(s.radius_m, output_type="ndarray")
@@ -163,11 +197,52 @@ def mismatched(heights: TrackHeights, sigma_h_m: float,
         count = np.bincount(i, minlength=rest.size)
         var_mean = 1.0 / sum_w + sigma_h_m**2
         bad = (count >= s.min_neighbours) & (mean**2 / var_mean > s.neighbourhood_gate)
-        # a failed neighbourhood goes whole: its members share the mismatch
+        # a failed neighbourhood goes whole, the wild tracks in it too: they share it
         members = np.zeros(rest.size, dtype=bool)
         members[j[bad[i]]] = True
         out[rest[members]] = True
+        wild = np.flatnonzero(known & ~out & (z2 > s.gate))
+        if wild.size and bad.any():
+            near = cKDTree(heights.point_m[rest[bad], :2]).query(
+                heights.point_m[wild, :2], distance_upper_bound=s.radius_m)[0]
+            out[wild[np.isfinite(near)]] = True
     return out
+
+
+def inconsistent(heights: TrackHeights, settings: MismatchSettings | None = None
+                 ) -> np.ndarray:
+    """(T,) tracks whose rays do not meet in a point: one of the observations is a wrong
+    match (the epipolar check of single pairs let it by)."""
+    s = settings or MismatchSettings()
+    dof = 2 * heights.n_observations - 3
+    limit = chi2.ppf(s.fit_probability, np.maximum(dof, 1))
+    return (dof >= 1) & np.isfinite(heights.fit_chi2) & (heights.fit_chi2 > limit)
+
+
+@dataclass(frozen=True)
+class TrackJudgement:
+    """What the tests found in a set of tracks (sorted ids).
+
+    Attributes:
+        off_map: tracks off the DTM, alone or with their neighbourhood.
+        inconsistent: tracks whose rays do not meet (a wrong match).
+    """
+
+    off_map: np.ndarray
+    inconsistent: np.ndarray
+
+    @classmethod
+    def none(cls) -> TrackJudgement:
+        empty = np.zeros(0, np.int64)
+        return cls(empty, empty)
+
+
+def judge(heights: TrackHeights, sigma_h_m: float,
+          settings: MismatchSettings | None = None) -> TrackJudgement:
+    """Every test on a set of tracks (:func:`mismatched`, :func:`inconsistent`)."""
+    s = settings or MismatchSettings()
+    return TrackJudgement(heights.track_id[mismatched(heights, sigma_h_m, s)],
+                          heights.track_id[inconsistent(heights, s)])
 
 
 class TrackObservations:
@@ -195,6 +270,10 @@ class TrackObservations:
         rows = rows[first]
         return self._id[rows], self._frame[rows], self._q[rows]
 
+    def since(self, frame: int) -> np.ndarray:
+        """Ids of the tracks observed at or after ``frame``."""
+        return np.unique(self._id[self._frame >= frame])
+
     def forget_before(self, frame: int) -> None:
         keep = self._frame >= frame
         self._id, self._frame, self._q = self._id[keep], self._frame[keep], self._q[keep]
@@ -203,36 +282,26 @@ class TrackObservations:
         return int(self._id.size)
 
 
-def coherent_test(e: np.ndarray, H: np.ndarray, R: np.ndarray, P: np.ndarray
-                  ) -> tuple[float, int]:
-    """Whether a group of features agrees with the prior as a whole (not feature by feature).
-
-    Features on terrain the DTM lacks are each within their noise, but they agree with
-    each other, and together they ask the poses to move further than the prior allows.
-    Under the model ``e_i = H_i x + v_i``, ``x ~ N(0, P)``, ``v_i ~ N(0, R_i)``, the
-    group's information vector ``b = sum H_i^T R_i^-1 e_i`` is ``Lambda x + noise`` with
-    ``Lambda = sum H_i^T R_i^-1 H_i``. With ``P = L L^T``, ``b' = L^T b`` has covariance
-    ``Lambda'^2 + Lambda'``, ``Lambda' = L^T Lambda L = U diag(lambda) U^T``, so
-    ``T = sum_j (u_j . b')^2 / (lambda_j^2 + lambda_j)`` is chi-square with as many
-    degrees of freedom as the group has informative directions.
+def untrusted(track_id: np.ndarray, frame: np.ndarray, off: np.ndarray,
+              fraction: float) -> np.ndarray:
+    """``off`` (track ids) and every track seen in a frame where more than ``fraction`` of
+    the tracks are off: where most of the ground is not what the DTM says (a pit, a new
+    quarry), the rest of it in view is not to be trusted either, and the estimate, pulled
+    by what was not caught, must not be left to the remainder. ``off`` must hold only
+    tracks found off by the tests themselves (not earlier distrust): distrust must not
+    feed on itself.
 
     Args:
-        e: (n, 2) innovations. H: (n, 2, m) their Jacobians. R: (n, 2, 2) their noise.
-        P: (m, m) the prior covariance.
-
-    Returns:
-        ``T`` and its degrees of freedom (0: the group says nothing).
+        track_id, frame: (M,) the observations' tracks and frames (the tracks already
+            left out too, so the shares are of everything the frames saw).
+        off: ids of the tracks the tests found off the DTM (now or earlier).
+        fraction: the share beyond which a frame's tracks are all distrusted.
     """
-    Rinv = np.linalg.inv(R)
-    HtRinv = np.swapaxes(H, 1, 2) @ Rinv
-    Lam = np.einsum("nij,njk->ik", HtRinv, H)
-    b = np.einsum("nij,nj->i", HtRinv, e)
-    w, V = np.linalg.eigh(0.5 * (P + P.T))
-    L = V * np.sqrt(np.clip(w, 0.0, None))  # P = L L^T
-    lam, U = np.linalg.eigh(L.T @ Lam @ L)
-    informative = lam > 1e-6 * max(float(lam.max()), 1e-300)
-    if not informative.any():
-        return 0.0, 0
-    proj = U[:, informative].T @ (L.T @ b)
-    lam = lam[informative]
-    return float(np.sum(proj**2 / (lam**2 + lam))), int(informative.sum())
+    if off.size == 0 or track_id.size == 0:
+        return off
+    frames, index = np.unique(frame, return_inverse=True)
+    index = index.reshape(-1)
+    bad = np.isin(track_id, off)
+    share = np.bincount(index, weights=bad, minlength=frames.size) / np.bincount(
+        index, minlength=frames.size)
+    return np.union1d(off, track_id[share[index] > fraction])

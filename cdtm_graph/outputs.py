@@ -204,6 +204,7 @@ def run_report(result: SmootherResult, report: Mapping[str, Any]) -> dict[str, A
         "solver": result.stats,
         "settings": result.settings,
         "flags": result.flags,
+        "terrain": result.terrain,
         "conventions": {
             "world": "local ENU, metres",
             "pose": "world_T_body (body = IMU)",

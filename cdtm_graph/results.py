@@ -94,6 +94,7 @@ class Rejection(enum.Enum):
     MAP_MISMATCH = "map_mismatch"  # its ground point is not where the DTM says
     GATED = "gated"                # its innovation failed the gate against the prior
     TOO_OLD = "too_old"            # its earlier frame had left the fixed lag's window
+    NO_FIX = "no_fix"              # seen while the fix was not acquired (prior too wide)
 
 
 class Rejections:
@@ -162,6 +163,30 @@ class GraphCounts:
 
 
 @dataclass(frozen=True)
+class TerrainFindings:
+    """What the smoother found of the ground against the DTM, seen as a population of
+    ground and clutter (:mod:`cdtm_graph.clutter`).
+
+    Attributes:
+        clutter_found: the tracks' heights show clutter (forest, buildings) the DTM lacks.
+        clutter_share: its share of the tracks. clutter_height_m: its height over the
+            ground. clutter_spread_m: the spread of that height.
+        ground_offset_m: where the ground tracks lie against the DTM at the solution.
+        likelihood_ratio: ``2 log`` of the clutter mixture's likelihood over the ground's.
+        considered_vertical_m: (K,) the vertical offset each frame's features may still
+            carry; its square is in the frame's position covariance (world up).
+    """
+
+    clutter_found: bool
+    clutter_share: float
+    clutter_height_m: float
+    clutter_spread_m: float
+    ground_offset_m: float
+    likelihood_ratio: float
+    considered_vertical_m: np.ndarray
+
+
+@dataclass(frozen=True)
 class SmootherResult:
     """Everything a smoothing run produced (``smooth(...)`` or the incremental smoother).
 
@@ -172,6 +197,12 @@ class SmootherResult:
         counts: graph contents.
         settings: the settings used, as a plain dict (for report.json).
         flags: per-frame warnings, e.g. ``{12: ["no_features"]}``.
+        cdtm_information: (K, 6, 6) information the C-DTM features give each pose at the
+            solution, on its own (``sum H^T H`` of the whitened, robustly weighted rows that
+            involve it; GTSAM tangent [rot, trans], body frame): what the camera and the
+            DTM say about a pose, without the IMU. Its eigen-structure over a few frames
+            names a weak geometry (flat terrain, few features, a narrow footprint).
+        terrain: the ground against the DTM (clutter), when the smoother looked.
     """
 
     estimate: TrajectoryEstimate
@@ -180,15 +211,19 @@ class SmootherResult:
     counts: GraphCounts
     settings: dict = field(default_factory=dict)
     flags: dict = field(default_factory=dict)
+    cdtm_information: np.ndarray | None = None
+    terrain: TerrainFindings | None = None
 
 
-def frame_flags(counts: GraphCounts) -> dict[int, list[str]]:
-    """Per-frame warnings from what went into the graph: ``{k: ["no_features"]}``."""
-    flags: dict[int, list[str]] = {}
+def frame_flags(counts: GraphCounts, extra: dict[int, list[str]] | None = None
+                ) -> dict[int, list[str]]:
+    """Per-frame warnings from what went into the graph: ``{k: ["no_features"]}``, with
+    the smoother's own (``extra``, e.g. ``no_fix`` while the fix was not acquired)."""
+    flags: dict[int, list[str]] = {k: list(v) for k, v in (extra or {}).items()}
     for k in range(1, counts.n_frames):
         if counts.features_per_frame[k] == 0:
             flags.setdefault(k, []).append("no_features")
-    return flags
+    return dict(sorted(flags.items()))
 
 
 def pose_covariance_in_world(world_T_body: np.ndarray, pose_cov: np.ndarray

@@ -4,8 +4,10 @@ For each flight: the first frames are dead-reckoned from the log's initial state
 searched (:func:`cdtm_graph.acquisition.acquire`); when the fix is ACQUIRED, a copy of the
 log gets the corrected initial position and attitude (the prior's sigmas unchanged, so
 only the smoothers' linearization point moves) and is smoothed in every mode. Beside
-it: the log smoothed as it is, and the same flight under a clean prior (the truth, 50 m
-and 1 deg), the yardstick of "RMSE <= 1.5x clean".
+it: the log as it is, smoothed with the smoothers' own search (the default: their first
+frames' features wait for the fix) and without it (``acquisition=None``: what the search
+prevents), and the same flight under a clean prior (the truth, 50 m and 1 deg), the
+yardstick of "RMSE <= 1.5x clean".
 
 Flights: ``far1000`` as in ``scripts/robustness_matrix.py`` (its terrain is the 3 km
 fractal cell tiled, so the 1000 m prior's 3-sigma region holds copies of the truth) and
@@ -84,9 +86,10 @@ class Row:
                 f"3d {self.rmse_3d_m:8.2f} m   anees {self.anees:12.2f}")
 
 
-def smooth_row(label: str, log: FlightLog, dtm, mode: Mode) -> Row:
+def smooth_row(label: str, log: FlightLog, dtm, mode: Mode,
+               settings: SmootherSettings | None = None) -> Row:
     try:
-        out = smooth_and_evaluate(log, dtm, mode.settings(SmootherSettings()))
+        out = smooth_and_evaluate(log, dtm, mode.settings(settings or SmootherSettings()))
     except CdtmError:
         return Row(label, mode, np.full(3, np.nan), np.nan, np.nan)
     e = out.errors
@@ -97,7 +100,8 @@ def smooth_row(label: str, log: FlightLog, dtm, mode: Mode) -> Row:
 
 def demo(name: str, frames: int = BASE.frames, window: int = 6,
          modes: list[Mode] | None = None) -> tuple[AcquisitionResult, list[Row]]:
-    """Acquire on one flight, then smooth it as logged, acquired (if so) and clean."""
+    """Acquire on one flight, then smooth it without a search, as logged (the smoothers
+    search), acquired up front (if so) and from a clean prior."""
     modes = modes or list(Mode)
     log, dtm = flight(name, frames)
     init = log.config.initial_state
@@ -119,15 +123,17 @@ def demo(name: str, frames: int = BASE.frames, window: int = 6,
         print(f"    fix {h.offset_world_m.round(0)} m, {h.correction.heading_deg:+.2f} deg, "
               f"z {h.separation_z:5.1f}, {h.prior_sigmas:.2f} prior sigmas, "
               f"{np.linalg.norm(fixed[:3, 3] - truth[:3, 3]):7.1f} m from the truth")
-    runs = [("as logged", log), ("clean prior", with_initial_pose(log, truth, 50.0, 1.0))]
+    no_search = SmootherSettings(acquisition=None)
+    runs = [("no search", log, no_search), ("as logged", log, None),
+            ("clean prior", with_initial_pose(log, truth, 50.0, 1.0), None)]
     if result.verdict is Verdict.ACQUIRED:
         assert result.correction is not None
         pose, _ = result.correction.apply_to_state(init.world_T_body, init.velocity_mps)
-        runs.insert(1, ("acquired", with_initial_pose(log, pose)))
+        runs.insert(2, ("acquired", with_initial_pose(log, pose), no_search))
     rows = []
-    for label, run_log in runs:
+    for label, run_log, settings in runs:
         for mode in modes:
-            rows.append(smooth_row(label, run_log, dtm, mode))
+            rows.append(smooth_row(label, run_log, dtm, mode, settings))
             print(rows[-1], flush=True)
     return result, rows
 

@@ -309,15 +309,17 @@ def test_identity_correction_changes_nothing(far_flight):
 
 
 def test_the_demo_acquires_then_every_mode_smooths_as_from_a_clean_prior():
-    """scripts/acquisition_demo.py on a short far300 flight: without acquisition iSAM2
-    ends hundreds of metres off; with it every mode is within 1.5x of the clean prior's
-    error, with a consistent covariance."""
+    """scripts/acquisition_demo.py on a short far300 flight: without a search iSAM2 ends
+    hundreds of metres off; acquired up front, or by the smoothers' own search on the
+    log as it is, every mode is within 1.5x of the clean prior's error, with a
+    consistent covariance."""
     demo = runpy.run_path(str(ROOT / "scripts" / "acquisition_demo.py"))["demo"]
     result, rows = demo("far300", frames=15)
     assert result.verdict is Verdict.ACQUIRED, result.reason
     by = {(r.label, r.mode.value): r for r in rows}
-    assert by[("as logged", "isam2")].rmse_3d_m > 100.0  # what acquisition prevents
+    assert by[("no search", "isam2")].rmse_3d_m > 100.0  # what acquisition prevents
     for mode in ("batch", "isam2", "fixed_lag"):
-        acquired, clean = by[("acquired", mode)], by[("clean prior", mode)]
-        assert acquired.rmse_3d_m <= 1.5 * clean.rmse_3d_m
-        assert acquired.anees <= 6.0
+        clean = by[("clean prior", mode)]
+        for label in ("acquired", "as logged"):
+            assert by[(label, mode)].rmse_3d_m <= 1.5 * clean.rmse_3d_m, (label, mode)
+            assert by[(label, mode)].anees <= 6.0, (label, mode)

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from cdtm_graph.camera import PinholeCamera
+from cdtm_graph.camera import DistortionModel, PinholeCamera
 
 ROUND_TRIP_TOL_PX = 1e-6      # the brief's bound for pixels -> rays -> pixels
 OPENCV_AGREEMENT_TOL_PX = 1e-9  # same formula as cv2.projectPoints, float rounding only
@@ -20,6 +20,17 @@ EUROC_CAM0 = PinholeCamera(752, 480, 458.654, 457.296, 367.215, 248.375,
 # A milder lens with a k3 term (5 coefficients) and an off-centre principal point.
 MILD_K3 = PinholeCamera(640, 512, 520.0, 518.0, 322.3, 251.7,
                         (-0.12, 0.03, 8e-4, -5e-4, -0.004))
+
+# TUM-VI cam0 (Kalibr pinhole-equidistant): a 195-degree fisheye, whose image corners see
+# beyond 90 degrees from the optical axis.
+TUMVI_FISHEYE = PinholeCamera(512, 512, 190.97847715128717, 190.9733070521226,
+                              254.93170605935475, 256.8974428996504,
+                              (0.0034823894022493434, 0.0007150348452162257,
+                               -0.0020532361418706202, 0.00020293673591811182), "equidistant")
+# The equidistant model on an ordinary 60-degree aerial camera (theta instead of tan theta:
+# 10% compression at the image edge) with a little k1.
+NARROW_EQUIDISTANT = PinholeCamera(400, 300, 346.4, 345.0, 201.3, 148.9,
+                                   (0.02, -0.004, 0.0, 0.0), "equidistant")
 
 
 @pytest.fixture
@@ -159,3 +170,70 @@ def test_numpy_scalars_are_normalized_to_python_types() -> None:
     assert type(cam.width) is int and type(cam.fy) is float
     assert cam.distortion == (0.1, 0.0, 0.0, 0.0)
     assert cam == PinholeCamera(400, 300, 300.0, 300.0, 199.5, 149.5, (0.1, 0.0, 0.0, 0.0))
+
+
+# --------------------------------------------------------------------------- equidistant
+
+
+@pytest.mark.parametrize("cam", [TUMVI_FISHEYE, NARROW_EQUIDISTANT], ids=["tumvi", "narrow"])
+def test_equidistant_round_trip_over_the_image(cam: PinholeCamera) -> None:
+    uv = _grid_over_image(cam)
+    rays = cam.pixels_to_rays(uv)
+    finite = np.isfinite(rays).all(axis=1)
+    # Every pixel whose ray is less than 90 deg off the axis has one, and round-trips
+    # (TUM-VI's theta_d is 1.554 rad at theta = 90 deg; 1.5 rad is 87 deg).
+    x_d = (uv[:, 0] - cam.cx) / cam.fx
+    y_d = (uv[:, 1] - cam.cy) / cam.fy
+    theta_d = np.hypot(x_d, y_d)
+    assert np.all(finite[theta_d < 1.5])
+    err = np.linalg.norm(cam.rays_to_pixels(rays[finite]) - uv[finite], axis=1)
+    assert err.max() < ROUND_TRIP_TOL_PX
+
+
+def test_fisheye_pixels_beyond_90_degrees_get_nan_rays() -> None:
+    corner = np.array([[-0.5, -0.5], [511.5, 511.5]])  # theta_d ~ 1.9 rad
+    assert np.all(np.isnan(TUMVI_FISHEYE.pixels_to_rays(corner)[:, :2]))
+    rays = TUMVI_FISHEYE.pixels_to_rays(_grid_over_image(TUMVI_FISHEYE))
+    assert 0.05 < np.mean(np.isnan(rays[:, 0])) < 0.2  # the corners outside the 90-deg circle
+
+
+@pytest.mark.parametrize("cam", [TUMVI_FISHEYE, NARROW_EQUIDISTANT], ids=["tumvi", "narrow"])
+def test_equidistant_projection_agrees_with_opencv_fisheye(cam: PinholeCamera, rng) -> None:
+    n = 500
+    points = np.column_stack([rng.uniform(-2.0, 2.0, n), rng.uniform(-2.0, 2.0, n),
+                              np.ones(n)]) * rng.uniform(0.5, 50.0, (n, 1))
+    points = np.vstack([points, [[0.0, 0.0, 3.0]]])  # the optical axis: r = 0
+    expected, _ = cv2.fisheye.projectPoints(points.reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
+                                            cam.K, cam.dist_coeffs)
+    np.testing.assert_allclose(cam.rays_to_pixels(points), expected.reshape(-1, 2), rtol=0,
+                               atol=OPENCV_AGREEMENT_TOL_PX)
+    assert np.all(np.isnan(cam.rays_to_pixels(np.array([[0.1, 0.2, -1.0]]))))
+
+
+def test_equidistant_is_not_radtan_with_the_same_numbers() -> None:
+    # Guards the tests above against a model switch that is ignored.
+    radtan = PinholeCamera(*[getattr(NARROW_EQUIDISTANT, k) for k in
+                             ("width", "height", "fx", "fy", "cx", "cy", "distortion")])
+    assert radtan.model is DistortionModel.RADTAN
+    ray = np.array([[0.5, 0.3, 1.0]])
+    assert np.linalg.norm(radtan.rays_to_pixels(ray) - NARROW_EQUIDISTANT.rays_to_pixels(ray)) > 10
+
+
+@pytest.mark.parametrize("kwargs", [
+    dict(distortion=(0.1, 0.0, 0.0, 0.0, 0.0), distortion_model="equidistant"),
+    dict(distortion=(), distortion_model="equidistant"),
+    dict(distortion=(0.1, 0.0, 0.0, 0.0), distortion_model="none"),
+    dict(distortion=(), distortion_model="radtan"),
+    dict(distortion=(0.1, 0.0, 0.0, 0.0), distortion_model="fisheye"),
+])
+def test_model_and_coefficients_must_agree(kwargs) -> None:
+    with pytest.raises(ValueError):
+        PinholeCamera(400, 300, 300.0, 300.0, 199.5, 149.5, **kwargs)
+
+
+def test_the_model_defaults_from_the_coefficients() -> None:
+    assert PinholeCamera(4, 3, 3.0, 3.0, 1.5, 1.0).model is DistortionModel.NONE
+    assert EUROC_CAM0.model is DistortionModel.RADTAN
+    assert NARROW_EQUIDISTANT == PinholeCamera(400, 300, 346.4, 345.0, 201.3, 148.9,
+                                               (0.02, -0.004, 0.0, 0.0),
+                                               DistortionModel.EQUIDISTANT)

@@ -6,13 +6,14 @@ Every malformed-log test asserts that the error names the file and the line
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from cdtm_graph.camera import PinholeCamera
+from cdtm_graph.camera import DistortionModel, PinholeCamera
 from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import (
     CameraConfig,
@@ -408,12 +409,80 @@ def test_duplicate_key(log: FlightLog) -> None:
     _expect_error(log.root, "flight.yaml", line, "duplicate key 'gravity_mps2'")
 
 
-@pytest.mark.parametrize("model", ["equidistant", "radtan8", "fisheye"])
+@pytest.mark.parametrize("model", ["radtan8", "fisheye", "kannala_brandt"])
 def test_bad_distortion_model(log: FlightLog, model: str) -> None:
     path = log.root / "flight.yaml"
     line = _line_of(path, "distortion_model:")
     _set_line(path, line, f"  distortion_model: {model}")
-    _expect_error(log.root, "flight.yaml", line, model, "radtan")
+    _expect_error(log.root, "flight.yaml", line, model, "radtan", "equidistant")
+
+
+def test_equidistant_lens_round_trips_and_needs_four_coefficients(tmp_path: Path, rng) -> None:
+    the_log = _make_log(tmp_path / "log", rng)
+    cam = the_log.config.camera.camera
+    fisheye = PinholeCamera(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy,
+                            (0.0034, 0.0007, -0.0021, 0.0002), "equidistant")
+    the_log = dataclasses.replace(the_log, config=dataclasses.replace(
+        the_log.config, camera=dataclasses.replace(the_log.config.camera, camera=fisheye)))
+    write_flightlog(the_log, the_log.root)
+    _write_dtm(the_log.root / "dtm.npz")
+    path = the_log.root / "flight.yaml"
+    assert "  distortion_model: equidistant\n" in path.read_text()
+    back = read_flightlog(the_log.root)
+    assert back == the_log and back.config.camera.camera.model is DistortionModel.EQUIDISTANT
+    line = _line_of(path, "distortion_coeffs:")
+    _set_line(path, line, "  distortion_coeffs: [0.1, 0.2, 0.0, 0.0, 0.0]")
+    _expect_error(the_log.root, "flight.yaml", line, "camera.distortion_coeffs has 5 values",
+                  "4 finite numbers")
+
+
+def _with_time_offset(the_log: FlightLog, offset_s: float) -> FlightLog:
+    camera = dataclasses.replace(the_log.config.camera, time_offset_s=offset_s)
+    return dataclasses.replace(the_log, config=dataclasses.replace(the_log.config,
+                                                                    camera=camera))
+
+
+@pytest.mark.parametrize("offset_s", [0.0123456789, -0.25])
+def test_time_offset_moves_frames_onto_the_imu_clock(tmp_path: Path, rng,
+                                                     offset_s: float) -> None:
+    # In memory frames are on the IMU clock (nav.csv's times equal them); frames.csv holds
+    # the camera's stamps, t_cam = t_imu - offset, and reads back to the same log.
+    the_log = _with_time_offset(_make_log(tmp_path / "log", rng), offset_s)
+    write_flightlog(the_log, the_log.root)
+    _write_dtm(the_log.root / "dtm.npz")
+    offset_ns = round(offset_s * 1e9)
+    stamps = [int(line.split(",")[0]) for line in _lines(the_log.root / "frames.csv")[1:-1]]
+    assert stamps == (the_log.frames.t_ns - offset_ns).tolist()
+    back = read_flightlog(the_log.root)
+    assert back == the_log
+    assert back.config.camera.time_offset_s == offset_s
+    np.testing.assert_array_equal(back.frame_t_cam_ns, stamps)
+    np.testing.assert_array_equal(back.frames.t_ns, back.nav.t_ns)
+
+
+def test_time_offset_absent_is_zero_and_not_written(log: FlightLog) -> None:
+    assert "time_offset_s" not in (log.root / "flight.yaml").read_text()
+    back = read_flightlog(log.root)
+    assert back.config.camera.time_offset_s == 0.0
+    np.testing.assert_array_equal(back.frame_t_cam_ns, back.frames.t_ns)
+
+
+@pytest.mark.parametrize("value", ["12.0", "-10.5", "nan", "fast"])
+def test_time_offset_out_of_range_or_not_a_number(log: FlightLog, value: str) -> None:
+    path = log.root / "flight.yaml"
+    line = _line_of(path, "pixel_sigma_px:") + 1
+    _insert_line(path, line, f"  time_offset_s: {value}")
+    _expect_error(log.root, "flight.yaml", line, "camera.time_offset_s", "[-10, 10] s")
+
+
+def test_a_stamp_the_time_offset_pushes_out_of_int64_is_refused(tmp_path: Path, rng) -> None:
+    the_log = _with_time_offset(_make_log(tmp_path / "log", rng), 0.5)
+    write_flightlog(the_log, the_log.root)
+    _write_dtm(the_log.root / "dtm.npz")
+    path = the_log.root / "frames.csv"
+    last = _data_line(N_FRAMES - 1)
+    _set_value(path, last, 0, str(np.iinfo(np.int64).max - 1000))
+    _expect_error(the_log.root, "frames.csv", last, "int64")
 
 
 def test_distortion_model_none_or_absent_means_no_distortion(log: FlightLog) -> None:

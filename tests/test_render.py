@@ -187,11 +187,12 @@ def test_motion_blur_kernel_is_a_centred_segment(du, dv):
     assert (kernel * across ** 2).sum() < 0.25
 
 
-def test_lens_distortion_is_the_camera_models():
+@pytest.mark.parametrize("model, coeffs", [("radtan", (-0.2, 0.05, 0.001, -0.001)),
+                                           ("equidistant", (0.01, -0.002, 0.0, 0.0))])
+def test_lens_distortion_is_the_camera_models(model, coeffs):
     """A distorted camera sees at pixel p what an undistorted one sees along p's ray."""
     plain = PinholeCamera.from_fov(80, 60, 60.0)
-    distorted = PinholeCamera(80, 60, plain.fx, plain.fy, plain.cx, plain.cy,
-                              (-0.2, 0.05, 0.001, -0.001))
+    distorted = PinholeCamera(80, 60, plain.fx, plain.fy, plain.cx, plain.cy, coeffs, model)
     terrain = _flat()
     pose = _nadir()
     warped = Renderer(terrain, distorted, COARSE_TEXTURE).radiance(pose)

@@ -420,18 +420,23 @@ def test_sample_log_residuals_match_its_stated_noise():
     from gtsam.symbol_shorthand import X
 
     from cdtm_graph.graph import GraphSettings, cdtm_factors, feature_noise
+    from cdtm_graph.results import Rejection, Rejections
     from cdtm_graph.tracks import frame_pair_observations
+    from factors import RobustKernel
 
     log = read_flightlog(SAMPLE_LOG)
     dtm = load_dtm(log.config.dtm.path, sigma_h_m=log.config.dtm.sigma_h_m)
     world_T_body = log.groundtruth.interpolate(log.frames.t_ns).world_T_body
-    settings = GraphSettings(first_observation_noise=True)
+    # every feature, unweighted: the noise model itself is what is checked
+    settings = GraphSettings(first_observation_noise=True, robust=RobustKernel.NONE,
+                             grazing_turn_cells=None)
+    rejections = Rejections()
     build = cdtm_factors(frame_pair_observations(log.tracks, log.config.camera.camera),
                          list(world_T_body), log.config.camera.body_T_cam, dtm,
-                         feature_noise(log.config, dtm, settings), settings)
+                         feature_noise(log.config, dtm, settings), settings, rejections)
     values = gtsam.Values()
     for k, T in enumerate(world_T_body):
         values.insert(X(k), gtsam.Pose3(T))
     chi2 = 2.0 * sum(f.factor.error(values) for f in build.factors)
-    assert build.n_missed == 0
+    assert rejections.total(Rejection.MISSED_DTM) == rejections.total() == 0
     assert chi2 / (2 * build.n_features) == pytest.approx(1.0, abs=SAMPLE_CHI2_PER_DOF_TOL)

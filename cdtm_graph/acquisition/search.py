@@ -139,7 +139,11 @@ def needs_acquisition(position_covariance_world: np.ndarray, heading_sigma_rad: 
     P = np.asarray(position_covariance_world, dtype=float)[:2, :2]
     reach_m = settings.n_sigma * math.sqrt(max(float(np.linalg.eigvalsh(P)[-1]), 0.0))
     reach_deg = settings.n_sigma * math.degrees(heading_sigma_rad)
-    return reach_m > settings.pull_in_m or reach_deg > settings.pull_in_heading_deg
+    # (a prior exactly at the pull-in, e.g. 50 m at 3 sigma, needs no search: round-off
+    # in the eigenvalues must not decide)
+    slack = 1.0 + 1e-9
+    return (reach_m > settings.pull_in_m * slack
+            or reach_deg > settings.pull_in_heading_deg * slack)
 
 
 def separation_z(costs_a: np.ndarray, costs_b: np.ndarray) -> float:

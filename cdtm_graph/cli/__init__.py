@@ -23,21 +23,30 @@ from collections.abc import Iterator
 from cdtm_graph.errors import CdtmError
 
 #: Subcommand modules, in the order ``cdtm --help`` lists them.
-SUBCOMMANDS = ("demo", "smooth", "track", "simulate", "analyze", "study", "navsim", "accuracy_map")
+SUBCOMMANDS = ("demo", "smooth", "import_", "track", "simulate", "analyze", "study", "navsim",
+               "accuracy_map")
 
 
-#: The worked example ``cdtm --help`` ends with (docs/geodesy.md has the whole story).
+#: The worked example ``cdtm --help`` ends with (README and docs/flightlog.md tell it whole;
+#: tests/test_worked_example.py runs it).
 GEODETIC_EXAMPLE = """\
-a flight in latitude/longitude over an EPSG:4326 DEM with EGM96 heights (SRTM, Copernicus):
-  cdtm simulate my_flight --origin 36.5 127.25 120 --nav noisy_truth
+worked example: a flight in latitude/longitude over an EPSG:4326 DEM with EGM96 heights
+(as SRTM and Copernicus GLO-30 tiles come), end to end:
+  cdtm simulate my_flight --origin 36.5 127.25 120
   cdtm smooth my_flight --out my_run --plots
   flight.yaml:  origin: {latitude_deg: 36.5, longitude_deg: 127.25, height_m: 120.0}
-                dtm: {path: [N36E127.tif, N36E128.tif], vertical_datum: egm96}
+                dtm: {path: dem.tif, vertical_datum: egm96}  (a real flight: its tiles,
+                path: [N36E127.tif, N36E128.tif])
                 initial_state: latitude_deg/longitude_deg/height_m (attitude, velocity
                 in the local ENU there) instead of position_m
   nav.csv, groundtruth.csv: #t_ns,latitude_deg,longitude_deg,height_m,qw,qx,qy,qz,ve,vn,vu
   my_run/trajectory_geodetic.csv (lat, lon, ellipsoidal height, 1-sigma north/east/up),
-  my_run/trajectory.geojson, my_run/trajectory_dem.png (over the DEM in its own CRS)
+  my_run/trajectory.geojson, my_run/trajectory_dem.png (over the DEM in its own CRS);
+  cdtm smooth ... --scene adds my_run/scene.glb (3-D, any glTF viewer)
+from sensor recordings:
+  cdtm import euroc MH_01/mav0 --dtm DEM --out my_log [--kalibr camchain-imucam.yaml]
+  cdtm import rosbag flight.bag --kalibr CAMCHAIN --kalibr-imu IMU_YAML --dtm DEM --out my_log
+  cdtm track my_log && cdtm smooth my_log --out my_run
 """
 
 

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from cdtm_graph.camera import DistortionModel
 from cdtm_graph.cli.outdir import OUT_RULES, add_force_option, output_dir
 from cdtm_graph.errors import CdtmError
 from cdtm_graph.geodesy import GeodeticOrigin, VerticalDatum
@@ -52,6 +53,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"),
                         default=list(_DEFAULTS.resolution_px),
                         help="image width and height, pixels (default %(default)s)")
+    parser.add_argument("--distortion-model", choices=[m.value for m in DistortionModel],
+                        default=DistortionModel.NONE.value,
+                        help="the lens the features are projected through (default "
+                             "%(default)s): radtan (k1 k2 p1 p2 [k3]) or equidistant (fisheye, "
+                             "k1 k2 k3 k4)")
+    parser.add_argument("--distortion-coeffs", type=float, nargs="+", default=[], metavar="K",
+                        help="the lens's coefficients")
     parser.add_argument("--features", type=int, default=_DEFAULTS.n_features,
                         help="features per consecutive frame pair (default %(default)s)")
     parser.add_argument("--seed", type=int, default=_DEFAULTS.seed,
@@ -105,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
         fps=args.fps, n_features=args.features, seed=args.seed, noiseless=args.noiseless,
         exact_dtm=args.exact_dtm, dtm_spacing_m=args.dtm_spacing_m, relief_m=args.relief_m,
         nav=args.nav, resolution_px=tuple(args.resolution),
+        distortion_model=args.distortion_model, distortion_coeffs=tuple(args.distortion_coeffs),
         origin=GeodeticOrigin(*args.origin) if args.origin is not None else None)
     render = None
     if args.images:  # settings checked before the (long) simulation

@@ -20,6 +20,8 @@ from factors import PlaneMode, RobustKernel
 PROGRESS_MIN_FRAMES = 100
 #: The plots ``--plots`` may write (errors.png only with ground truth).
 PLOT_FILES = ("trajectory.png", "errors.png", "trajectory_dem.png")
+#: The 3-D scene ``--scene`` writes.
+SCENE_FILE = "scene.glb"
 
 
 def add_smoothing_options(p: argparse.ArgumentParser) -> None:
@@ -42,7 +44,24 @@ def add_smoothing_options(p: argparse.ArgumentParser) -> None:
                    help="also write trajectory.png (over the DTM, 3-sigma ellipses), "
                         "errors.png (errors inside +-3 sigma) and, for a geodetic log, "
                         "trajectory_dem.png (over the DEM in its own coordinates)")
+    p.add_argument("--scene", action="store_true",
+                   help="also write scene.glb, a 3-D scene for any glTF viewer: the terrain "
+                        "under the flight (hillshaded), the estimated (and true) trajectory, "
+                        "3-sigma position ellipsoids and camera footprints every N frames")
+    p.add_argument("--scene-every", type=_positive_int, default=10, metavar="N",
+                   help="frames between ellipsoids and footprints in scene.glb "
+                        "(default %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress bar, no summary")
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected an integer >= 1")
+    return value
 
 
 def _gate_probability(text: str) -> float | None:
@@ -122,6 +141,16 @@ def plot_writers(out: RunOutput, dtm, flight) -> list:
     return writers
 
 
+def scene_writer(out: RunOutput, dtm, flight, every: int) -> tuple:
+    """``("scene.glb", writer)`` for the run's extra files (``--scene``)."""
+    from cdtm_graph.plots.scene import SceneSettings, write_scene
+
+    est = out.result.estimate
+    return (SCENE_FILE, lambda p: write_scene(p, dtm, est, out.result.covariances.pose,
+                                              flight.config.camera, flight.groundtruth,
+                                              SceneSettings(every=every)))
+
+
 def summary(out: RunOutput, out_dir: Path) -> str:
     r = out.result
     total_s = out.report["timings_s"]["total"]
@@ -152,11 +181,15 @@ def smooth_log_to_dir(log_dir: str, out_dir: Path, args: argparse.Namespace) -> 
     directory made) before the log is read, so a bad ``--out`` fails before any work."""
     settings = settings_from_args(args)
     # (the geodetic files only come with an origin; unknown before the log is read)
-    names = [*RUN_FILES, *GEODETIC_RUN_FILES, *(PLOT_FILES if args.plots else ())]
+    scene = bool(getattr(args, "scene", False))
+    names = [*RUN_FILES, *GEODETIC_RUN_FILES, *(PLOT_FILES if args.plots else ()),
+             *((SCENE_FILE,) if scene else ())]
     with output_dir(args, out_dir, RUN_WRITER, protected=[log_dir], names=names) as staging:
         flight, dtm = load_log_and_dtm(log_dir)
         out = smooth_and_evaluate(flight, dtm, settings, progress_bar(args.quiet))
         extras = plot_writers(out, dtm, flight) if args.plots else []
+        if scene:
+            extras.append(scene_writer(out, dtm, flight, args.scene_every))
         write_run_files(staging, out.result, out.report, extras,
                         frame=flight.config.local_frame)
     return out

@@ -18,7 +18,7 @@ from typing import Any, NoReturn
 import numpy as np
 import yaml
 
-from cdtm_graph.camera import PinholeCamera
+from cdtm_graph.camera import DISTORTION_LENGTHS, DistortionModel, PinholeCamera
 from cdtm_graph.errors import CdtmError
 from cdtm_graph.flightlog.model import (
     DTM_SUFFIXES,
@@ -63,6 +63,9 @@ RANGES: dict[str, Range] = {
     "camera.pixel_sigma_px": Range(1e-3, 100.0, "px"),
     "camera.distortion_coeffs": Range(-1e3, 1e3),
     "camera.body_T_cam.translation_m": Range(-100.0, 100.0, "m"),
+    # Camera-IMU clock offsets are milliseconds to a few hundred (USB cameras); seconds
+    # mean clocks on different bases, to be fixed in the stamps, not here.
+    "camera.time_offset_s": Range(-10.0, 10.0, "s"),
     "imu.rate_hz": Range(1.0, 1e5, "Hz"),
     "imu.gyroscope_noise_density": Range(1e-9, 1e-1, "rad/s/sqrt(Hz)"),
     "imu.accelerometer_noise_density": Range(1e-7, 1.0, "m/s^2/sqrt(Hz)"),
@@ -373,7 +376,7 @@ def _parse_camera(y: _Yaml, node: yaml.Node, line: int) -> CameraConfig:
     pairs = y.pairs(node, "camera", line)
     m = y.keys(pairs, "camera", line,
                ("resolution", "intrinsics", "pixel_sigma_px", "body_T_cam"),
-               ("distortion_model", "distortion_coeffs"))
+               ("distortion_model", "distortion_coeffs", "time_offset_s"))
     res_node = m["resolution"]
     if not isinstance(res_node, yaml.SequenceNode) or len(res_node.value) != 2:
         y.fail(res_node, "camera.resolution is not two values", "[width, height] in pixels")
@@ -385,24 +388,9 @@ def _parse_camera(y: _Yaml, node: yaml.Node, line: int) -> CameraConfig:
                f"[width, height], each from {lo_px} to {hi_px} px")
     fx, fy, cx, cy = _intrinsics(y, m["intrinsics"], width, height)
 
-    model_node = m.get("distortion_model")
-    model = None if model_node is None else y.value(model_node)
-    distortion: tuple[float, ...] = ()
-    if model == "radtan":
-        if "distortion_coeffs" not in m:
-            y.fail(model_node, "distortion_model radtan without distortion_coeffs",
-                   "camera.distortion_coeffs: [k1, k2, p1, p2] or [k1, k2, p1, p2, k3]")
-        distortion = tuple(y.vector(m["distortion_coeffs"], "camera.distortion_coeffs",
-                                    (4, 5), True).tolist())
-    elif model is None or model == "none":
-        if "distortion_coeffs" in m:
-            y.fail(m["distortion_coeffs"], "distortion_coeffs given without a distortion model",
-                   "camera.distortion_model: radtan, or no distortion_coeffs")
-    else:
-        y.fail(model_node, f"distortion_model {_show(str(model))} is not supported",
-               "radtan (OpenCV k1 k2 p1 p2 [k3]) or none")
+    model, distortion = _distortion(y, m)
     try:
-        camera = PinholeCamera(width, height, fx, fy, cx, cy, distortion)
+        camera = PinholeCamera(width, height, fx, fy, cx, cy, distortion, model)
     except ValueError as exc:
         y.fail(m["intrinsics"], f"invalid camera: {exc}",
                "positive focal lengths fx, fy and a finite principal point cx, cy")
@@ -414,7 +402,44 @@ def _parse_camera(y: _Yaml, node: yaml.Node, line: int) -> CameraConfig:
     translation = y.vector(mount["translation_m"], "camera.body_T_cam.translation_m", (3,),
                            True)
     quat = y.quaternion(mount["quaternion_wxyz"], "camera.body_T_cam.quaternion_wxyz")
-    return CameraConfig(camera, sigma, make_pose(quat_wxyz_to_rotation(quat), translation))
+    offset_s = (y.bounded(m["time_offset_s"], "camera.time_offset_s")
+                if "time_offset_s" in m else 0.0)
+    return CameraConfig(camera, sigma, make_pose(quat_wxyz_to_rotation(quat), translation),
+                        offset_s)
+
+
+#: What ``camera.distortion_coeffs`` holds for each model (docs/flightlog.md, camera).
+_COEFFS_EXPECTED = {
+    DistortionModel.RADTAN: "[k1, k2, p1, p2] or [k1, k2, p1, p2, k3]",
+    DistortionModel.EQUIDISTANT: "[k1, k2, k3, k4]",
+}
+
+
+def _distortion(y: _Yaml, m: dict[str, yaml.Node]
+                ) -> tuple[DistortionModel, tuple[float, ...]]:
+    """``camera.distortion_model`` and ``camera.distortion_coeffs``, checked together."""
+    model_node = m.get("distortion_model")
+    name = None if model_node is None else y.value(model_node)
+    if name is None or name == "none":
+        if "distortion_coeffs" in m:
+            y.fail(m["distortion_coeffs"], "distortion_coeffs given without a distortion model",
+                   "camera.distortion_model: radtan or equidistant, or no distortion_coeffs")
+        return DistortionModel.NONE, ()
+    assert model_node is not None
+    try:
+        model = DistortionModel(name)
+    except ValueError:
+        model = None
+    if model is None or model is DistortionModel.NONE:
+        y.fail(model_node, f"distortion_model {_show(str(name))} is not supported",
+               "radtan (OpenCV k1 k2 p1 p2 [k3]), equidistant (OpenCV fisheye k1 k2 k3 k4) "
+               "or none")
+    if "distortion_coeffs" not in m:
+        y.fail(model_node, f"distortion_model {model.value} without distortion_coeffs",
+               f"camera.distortion_coeffs: {_COEFFS_EXPECTED[model]}")
+    coeffs = y.vector(m["distortion_coeffs"], "camera.distortion_coeffs",
+                      DISTORTION_LENGTHS[model], True)
+    return model, tuple(coeffs.tolist())
 
 
 _IMU_KEYS = ("rate_hz", "gyroscope_noise_density", "accelerometer_noise_density",

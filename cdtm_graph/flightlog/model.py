@@ -152,15 +152,29 @@ class CameraConfig(_ArrayEq):
         camera: intrinsics and distortion.
         pixel_sigma_px: 1-sigma feature location error in pixels.
         body_T_cam: (4, 4) pose of the camera in the body (IMU) frame.
+        time_offset_s: the camera clock's offset, Kalibr's ``timeshift_cam_imu``:
+            ``t_imu = t_cam + time_offset_s``. frames.csv holds camera stamps; the reader
+            adds the offset (:attr:`time_offset_ns`), so :attr:`FlightLog.frames` is on the
+            IMU clock, and the writer takes it off again. An online estimate of the
+            offset starts from this value as its prior.
     """
 
     camera: PinholeCamera
     pixel_sigma_px: float
     body_T_cam: np.ndarray
+    time_offset_s: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "pixel_sigma_px", float(self.pixel_sigma_px))
         object.__setattr__(self, "body_T_cam", _as_float("body_T_cam", self.body_T_cam, (4, 4)))
+        object.__setattr__(self, "time_offset_s", float(self.time_offset_s))
+        if not math.isfinite(self.time_offset_s):
+            raise ValueError(f"time_offset_s must be finite, got {self.time_offset_s!r}")
+
+    @property
+    def time_offset_ns(self) -> int:
+        """``time_offset_s`` in integer nanoseconds (rounded): ``t_imu_ns = t_cam_ns + this``."""
+        return int(round(self.time_offset_s * 1e9))
 
 
 @dataclass(frozen=True)
@@ -440,7 +454,8 @@ class FlightLog:
         root: the log directory (absolute).
         config: flight.yaml.
         imu: imu.csv.
-        frames: frames.csv.
+        frames: frames.csv, with times on the IMU clock: frames.csv's camera stamps plus
+            ``config.camera.time_offset_s`` (:attr:`frame_t_cam_ns` gives the stamps).
         tracks: tracks.csv, or None when absent.
         nav: nav.csv (one state per frame), or None.
         groundtruth: groundtruth.csv (any rate), or None.
@@ -453,6 +468,12 @@ class FlightLog:
     tracks: Tracks | None = None
     nav: States | None = None
     groundtruth: States | None = None
+
+    @property
+    def frame_t_cam_ns(self) -> np.ndarray:
+        """(K,) int64 frame times on the camera's clock, as frames.csv holds them:
+        ``frames.t_ns - config.camera.time_offset_ns``."""
+        return self.frames.t_ns - self.config.camera.time_offset_ns
 
 
 def _slerp(q0: np.ndarray, q1: np.ndarray, s: np.ndarray) -> np.ndarray:

@@ -21,6 +21,7 @@ from cdtm_graph.flightlog.model import (
     TRACKS_CSV,
     FlightConfig,
     FlightLog,
+    Frames,
     States,
     normalized_path,
 )
@@ -75,6 +76,8 @@ def read_flightlog(path: str | os.PathLike, read_tracks: bool = True) -> FlightL
     config = _parse_flight_yaml(root / FLIGHT_YAML, shown(FLIGHT_YAML), root)
     imu = _read_imu(root / IMU_CSV, shown(IMU_CSV))
     frames, frames_first_line = _read_frames(root / FRAMES_CSV, shown(FRAMES_CSV))
+    frames = _on_imu_clock(frames, config.camera.time_offset_ns, shown(FRAMES_CSV),
+                           frames_first_line)
 
     tracks = None
     if read_tracks and (root / TRACKS_CSV).is_file():
@@ -112,6 +115,21 @@ def read_flightlog(path: str | os.PathLike, read_tracks: bool = True) -> FlightL
                  len(frames), "no" if tracks is None else len(tracks))
     return FlightLog(root, config, imu, frames, tracks, nav, groundtruth)
 
+
+
+def _on_imu_clock(frames: Frames, offset_ns: int, shown: str, first_line: int) -> Frames:
+    """frames.csv's camera stamps moved onto the IMU clock: ``t_imu = t_cam + offset``
+    (docs/flightlog.md, frames.csv); the one place the offset is applied."""
+    if offset_ns == 0 or len(frames) == 0:
+        return frames
+    limit = np.iinfo(np.int64)
+    outside = ((frames.t_ns > limit.max - offset_ns) if offset_ns > 0
+               else (frames.t_ns < limit.min - offset_ns))
+    if outside.any():
+        k = int(np.flatnonzero(outside)[0])
+        _fail(shown, first_line + k, f"t_ns {int(frames.t_ns[k])} plus camera.time_offset_s "
+              "leaves the int64 range", "frame times within int64 on the IMU clock")
+    return Frames(frames.t_ns + offset_ns, frames.image)
 
 
 def _read_world_states(path: Path, shown: str, spec: _CsvSpec,
@@ -162,8 +180,9 @@ def dem_region_m(flight: FlightLog) -> tuple[float, float, float, float]:
 
     The prior track is what is known before smoothing: the initial position and nav.csv's
     positions when there is a nav.csv; else the IMU dead-reckoned from the initial state
-    (flat model), whose drift the margin then also covers. The margin is ``dtm.margin_m``
-    (default :data:`cdtm_graph.dem.DEFAULT_MARGIN_M`), plus, for a dead-reckoned track,
+    (the smoother's IMU model), whose drift the margin then also covers. The margin is
+    ``dtm.margin_m`` (default :data:`cdtm_graph.dem.DEFAULT_MARGIN_M`), plus, for a
+    dead-reckoned track,
     :data:`DEAD_RECKONING_MARGIN_FRACTION` of its length. Ground truth is never used, so
     a log smooths the same with or without it.
     """

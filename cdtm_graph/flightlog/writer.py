@@ -13,6 +13,7 @@ import numpy as np
 import yaml
 
 from cdtm_graph.atomic import atomic_output_file
+from cdtm_graph.camera import DistortionModel
 from cdtm_graph.flightlog.config import _IMU_KEYS, _INITIAL_SIGMAS, _INITIAL_VECTORS
 from cdtm_graph.flightlog.model import (
     FLIGHT_YAML,
@@ -122,10 +123,12 @@ def _yaml_document(log: FlightLog, target: Path, geodetic: bool = False) -> str:
         "resolution": [cam.width, cam.height],
         "intrinsics": [cam.fx, cam.fy, cam.cx, cam.cy],
     }
-    if cam.distortion:
-        camera["distortion_model"] = "radtan"
+    if cam.distortion_model is not DistortionModel.NONE:
+        camera["distortion_model"] = cam.model.value
         camera["distortion_coeffs"] = list(cam.distortion)
     camera["pixel_sigma_px"] = float(cfg.camera.pixel_sigma_px)
+    if cfg.camera.time_offset_s != 0.0:
+        camera["time_offset_s"] = float(cfg.camera.time_offset_s)
     camera["body_T_cam"] = {
         "translation_m": body_T_cam[:3, 3].tolist(),
         "quaternion_wxyz": rotation_to_quat_wxyz(body_T_cam[:3, :3]).tolist(),
@@ -169,9 +172,10 @@ def _render(log: FlightLog, target: Path, geodetic: bool = False) -> dict[str, s
         FLIGHT_YAML: _yaml_document(log, target, geodetic),
         IMU_CSV: _csv_text("#t_ns,gyro_x,gyro_y,gyro_z,acc_x,acc_y,acc_z", [log.imu.t_ns],
                            np.hstack([log.imu.gyro_radps, log.imu.acc_mps2])),
+        # frames.csv holds the camera's stamps (docs/flightlog.md, frames.csv)
         FRAMES_CSV: "#t_ns,image\n" + "".join(
-            f"{t},{image}\n" for t, image in zip(log.frames.t_ns.tolist(), log.frames.image,
-                                                 strict=True)),
+            f"{t},{image}\n" for t, image in zip(log.frame_t_cam_ns.tolist(),
+                                                 log.frames.image, strict=True)),
     }
     if log.tracks is not None:
         files[TRACKS_CSV] = _tracks_text(log.tracks)

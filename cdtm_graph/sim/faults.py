@@ -19,7 +19,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cdtm_graph.camera import PinholeCamera
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.flightlog import FlightLog, Frames, ImuSamples
 from cdtm_graph.geometry import make_pose, so3_exp
@@ -153,8 +152,7 @@ def with_calibration_error(log: FlightLog, focal_scale: float = 1.0,
     """
     cfg = log.config
     cam = cfg.camera.camera
-    camera = PinholeCamera(cam.width, cam.height, cam.fx * focal_scale, cam.fy * focal_scale,
-                           cam.cx, cam.cy, cam.distortion)
+    camera = dataclasses.replace(cam, fx=cam.fx * focal_scale, fy=cam.fy * focal_scale)
     turn = make_pose(so3_exp(np.radians(np.asarray(mount_rotation_deg, dtype=float))),
                      np.zeros(3))
     camera_cfg = dataclasses.replace(cfg.camera, camera=camera,

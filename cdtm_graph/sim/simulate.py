@@ -48,7 +48,7 @@ from pathlib import Path
 import numpy as np
 
 from cdtm_graph.atomic import atomic_output_dir
-from cdtm_graph.camera import DOWNWARD_BODY_T_CAM, PinholeCamera
+from cdtm_graph.camera import DOWNWARD_BODY_T_CAM, DistortionModel, PinholeCamera
 from cdtm_graph.dtm import Dtm, RayStatus, load_dtm, save_dtm_npz, sigma_h_from_grid_spacing
 from cdtm_graph.errors import CdtmError, SimulationError  # noqa: F401  (re-exported)
 from cdtm_graph.flightlog import (
@@ -184,7 +184,12 @@ class SimulationSettings:
         fps: frame rate (Hz).
         n_features: target number of features per consecutive frame pair.
         resolution_px: image (width, height) in pixels.
-        fov_deg: horizontal field of view (deg).
+        fov_deg: horizontal field of view (deg) of the undistorted camera: it sets the
+            focal length (:meth:`PinholeCamera.from_fov`), which a lens model then keeps.
+        distortion_model: the lens (:class:`~cdtm_graph.camera.DistortionModel` or its
+            name): features are projected through it, and flight.yaml states it.
+        distortion_coeffs: its coefficients (radtan k1 k2 p1 p2 [k3], equidistant
+            k1 k2 k3 k4; none: empty).
         pixel_sigma_px: 1-sigma pixel noise of every observation.
         camera_tilt_deg: the camera looks this far forward of the body's -z axis (deg),
             so the mounting ``body_T_cam`` is not a bare axis permutation.
@@ -242,6 +247,8 @@ class SimulationSettings:
     n_features: int = 170
     resolution_px: tuple[int, int] = (400, 400)
     fov_deg: float = 60.0
+    distortion_model: DistortionModel | str = DistortionModel.NONE
+    distortion_coeffs: tuple[float, ...] = ()
     pixel_sigma_px: float = 0.5
     camera_tilt_deg: float = 2.0
     camera_offset_m: tuple[float, float, float] = (0.3, 0.0, -0.2)
@@ -336,6 +343,15 @@ class SimulationSettings:
         object.__setattr__(self, "resolution_px", tuple(int(n) for n in self.resolution_px))
         object.__setattr__(self, "camera_offset_m",
                            tuple(float(v) for v in self.camera_offset_m))
+        try:
+            lens = PinholeCamera(2, 2, 1.0, 1.0, 0.5, 0.5, tuple(self.distortion_coeffs),
+                                 self.distortion_model)
+        except (TypeError, ValueError) as exc:
+            raise SimulationError(f"distortion_model = {self.distortion_model!r}, "
+                                  f"distortion_coeffs = {self.distortion_coeffs!r}: {exc}"
+                                  ) from None
+        object.__setattr__(self, "distortion_model", lens.model)
+        object.__setattr__(self, "distortion_coeffs", lens.distortion)
 
     @property
     def nav_mode(self) -> NavMode:
@@ -344,8 +360,10 @@ class SimulationSettings:
 
     @property
     def camera(self) -> PinholeCamera:
-        """The undistorted pinhole camera of ``resolution_px`` and ``fov_deg``."""
-        return PinholeCamera.from_fov(*self.resolution_px, self.fov_deg)
+        """The camera of ``resolution_px`` and ``fov_deg``, with the lens model."""
+        plain = PinholeCamera.from_fov(*self.resolution_px, self.fov_deg)
+        return dataclasses.replace(plain, distortion=self.distortion_coeffs,
+                                   distortion_model=self.distortion_model)
 
     @property
     def body_T_cam(self) -> np.ndarray:

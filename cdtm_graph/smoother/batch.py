@@ -9,27 +9,38 @@ values, which makes an iteration quadratic in the flight length.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 
+from cdtm_graph.clutter import (
+    Clutter,
+    ClutterSettings,
+    assess,
+    clutter_flags,
+    considered_offsets,
+    findings,
+    with_vertical_bias,
+)
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import FlightLog
 from cdtm_graph.gating import count_outliers
 from cdtm_graph.graph import (
     cdtm_factors,
+    cdtm_information,
     feature_noise,
+    heights_at,
     imu_factor,
     insert_state,
-    mismatched_tracks,
     prior_factors,
+    track_observations,
     without_tracks,
 )
 from cdtm_graph.imu import ImuIntervals, initial_bias
-from cdtm_graph.mismatch import MismatchSettings
+from cdtm_graph.mismatch import MismatchSettings, TrackJudgement, untrusted
 from cdtm_graph.optimizer import LinearSolver, explain_indeterminant, levenberg_marquardt
 from cdtm_graph.preflight import check_constraints
 from cdtm_graph.replay import replay
@@ -103,6 +114,12 @@ class LogGraph:
     cdtm: list[CdtmPairFactor]
     track_ids: list[np.ndarray]  # each C-DTM factor's features'
     rejections: Rejections
+    # every observation that entered a factor (the tracks dropped since too: the shares of
+    # off-map tracks are of everything a frame saw), and the tracks the tests found off
+    observed: tuple[np.ndarray, np.ndarray, np.ndarray] = (
+        np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)))
+    found_off: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    clutter: Clutter = field(default_factory=Clutter.none)  # the latest fit
 
     @property
     def graph(self) -> gtsam.NonlinearFactorGraph:
@@ -112,17 +129,35 @@ class LogGraph:
             graph.add(f.factor)
         return graph
 
+    def assess(self, values: gtsam.Values, dtm: Dtm, noise: FeatureNoise,
+               body_T_cam: np.ndarray, mismatch: MismatchSettings,
+               clutter: ClutterSettings | None) -> TrackJudgement:
+        """Judge every track that entered at ``values`` (the ones dropped since too: a
+        population's clutter is seen with its tallest members); keeps the clutter fit."""
+        judged, self.clutter = assess(
+            heights_at(*self.observed, lambda k: values.atPose3(X(k)).matrix(), body_T_cam,
+                       dtm, noise), noise.sigma_h_m, mismatch, clutter)
+        return judged
+
     def drop_mismatched(self, values: gtsam.Values, dtm: Dtm, noise: FeatureNoise,
-                        body_T_cam: np.ndarray, settings: MismatchSettings) -> int:
-        """Drop the features of tracks that lie off the DTM at ``values``; how many."""
-        drop = mismatched_tracks(self.cdtm, self.track_ids,
-                                 lambda k: values.atPose3(X(k)).matrix(), body_T_cam, dtm,
-                                 noise, settings)
+                        body_T_cam: np.ndarray, mismatch: MismatchSettings,
+                        clutter: ClutterSettings | None) -> int:
+        """Drop the features of tracks judged at ``values`` off the DTM (or not to be
+        trusted beside those, :func:`~cdtm_graph.mismatch.untrusted`), likely on clutter
+        (:mod:`cdtm_graph.clutter`) or holding a wrong match; how many features went."""
+        judged = self.assess(values, dtm, noise, body_T_cam, mismatch, clutter)
+        self.found_off = np.union1d(self.found_off, judged.off_map)
+        off = untrusted(*self.observed[:2], self.found_off, mismatch.frame_fraction)
+        before = self.rejections.total()
+        self._drop(judged.inconsistent, Rejection.WRONG_MATCH)
+        self._drop(np.union1d(off, self.clutter.likely(clutter)), Rejection.MAP_MISMATCH)
+        return self.rejections.total() - before
+
+    def _drop(self, drop: np.ndarray, reason: Rejection) -> None:
         if drop.size == 0:
-            return 0
-        before = self.rejections.total(Rejection.MAP_MISMATCH)
+            return
         changed, replacements, kept = without_tracks(self.cdtm, self.track_ids, drop,
-                                                     Rejection.MAP_MISMATCH, self.rejections)
+                                                     reason, self.rejections)
         swap = dict(zip(changed, zip(replacements, kept)))
         cdtm, track_ids = [], []
         for i, (f, ids) in enumerate(zip(self.cdtm, self.track_ids)):
@@ -131,7 +166,6 @@ class LogGraph:
                 cdtm.append(g)
                 track_ids.append(g_ids)
         self.cdtm, self.track_ids = cdtm, track_ids
-        return self.rejections.total(Rejection.MAP_MISMATCH) - before
 
     def refresh_noise(self, values: gtsam.Values) -> None:
         """Re-linearize every C-DTM factor's planes and noise at ``values``."""
@@ -140,31 +174,50 @@ class LogGraph:
                                  poses[int(gtsam.Symbol(f.key_b).index())]) for f in self.cdtm]
 
 
+@dataclass
+class InitialGuess:
+    """The batch solver's starting point, and what the incremental pass learned."""
+
+    values: gtsam.Values
+    source: str  # "nav.csv" or "incremental pass"
+    off_map: np.ndarray  # tracks found off the DTM
+    unfixed_frames: np.ndarray  # frames whose sightings wait for a fix never found
+    acquisitions: list[dict]  # the pass's fix searches
+    frame_flags: dict[int, list[str]]
+
+
 def _initial_values(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
-                    progress: Progress | None) -> tuple[gtsam.Values, str, np.ndarray]:
+                    progress: Progress | None) -> InitialGuess:
     """Initial guess: nav.csv if present, else the incremental pass (dead reckoning
-    corrected frame by frame); and the tracks that pass found off the DTM."""
+    corrected frame by frame, the fix acquired where the prior is too loose)."""
     if flight.nav is not None:
         values = gtsam.Values()
         bias = initial_bias(flight.config.initial_state)
         for k in range(len(flight.frames)):
             insert_state(values, k, flight.nav.world_T_body[k], flight.nav.velocity_mps[k],
                          bias)
-        return values, "nav.csv", np.zeros(0, np.int64)
+        none = np.zeros(0, np.int64)
+        return InitialGuess(values, "nav.csv", none, none, [], {})
     incremental = replace(settings, mode=SmootherMode.INCREMENTAL, lag_s=None)
     smoother = IncrementalSmoother(flight.config, dtm, incremental, imu=flight.imu)
-    smoother.run(flight, progress)
-    return smoother.values(), "incremental pass", smoother.mismatched_tracks
+    result = smoother.run(flight, progress)
+    flags = {k: [f for f in v if f == "no_fix"] for k, v in result.flags.items()}
+    return InitialGuess(smoother.values(), "incremental pass", smoother.mismatched_tracks,
+                        smoother.unfixed_frames, smoother.acquisitions,
+                        {k: v for k, v in flags.items() if v})
 
 
 def build_log_graph(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
-                    initial: gtsam.Values, off_map: np.ndarray | None = None) -> LogGraph:
+                    initial: gtsam.Values, off_map: np.ndarray | None = None,
+                    unfixed_frames: np.ndarray | None = None) -> LogGraph:
     """Priors, IMU factors and C-DTM factors of the whole log, planes cast from ``initial``.
 
     Sightings are paired frame by frame as the incremental smoother pairs them
     (:class:`~cdtm_graph.tracks.SightingPairs`: wrong matches left out against the
     initial guess's relative poses). Tracks in ``off_map`` (found off the DTM by the
-    incremental pass) are left out, counted as ``Rejection.MAP_MISMATCH``.
+    incremental pass) are left out, counted as ``Rejection.MAP_MISMATCH``, and so are
+    the sightings of ``unfixed_frames`` (``Rejection.NO_FIX``: the pass never found the fix
+    their linearization needs).
     """
     K = len(flight.frames)
     t = flight.frames.t_ns
@@ -181,8 +234,11 @@ def build_log_graph(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
     pairing = SightingPairs(camera.camera, camera.body_T_cam, dtm, camera.pixel_sigma_px,
                             settings.graph.epipolar, rejections)
     pairs = []
+    unfixed = set() if unfixed_frames is None else set(unfixed_frames.tolist())
     for frame in replay(flight):
-        if len(frame.track_id):
+        if frame.k in unfixed:
+            rejections.add(Rejection.NO_FIX, frame.k, len(frame.track_id))
+        elif len(frame.track_id):
             for pair in pairing.add_frame(frame.k, frame.track_id, frame.uv_px,
                                           poses.__getitem__):
                 off = (np.isin(pair.track_id, off_map) if off_map is not None
@@ -200,7 +256,9 @@ def build_log_graph(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
         K, pairing.table.n_tracks, pairing.n_observations, pairing.n_pairs, build.n_features,
         len(build.factors), K - 1, per_frame, outliers_per_frame=np.zeros(K, dtype=int),
         rejected_per_frame=rejections.per_frame(K))
-    return LogGraph(graph, initial, counts, build.factors, build.track_ids, rejections)
+    observed = track_observations(build.factors, build.track_ids)
+    return LogGraph(graph, initial, counts, build.factors, build.track_ids, rejections,
+                    observed)
 
 
 def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None,
@@ -228,8 +286,10 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
         dt_s = float(np.max(np.diff(flight.frames.t_ns))) * 1e-9
         smoother = IncrementalSmoother(flight.config, dtm, settings, frame_interval_s=dt_s)
         return smoother.run(flight, progress)
-    initial, source, off_map = _initial_values(flight, dtm, settings, progress)
-    built = build_log_graph(flight, dtm, settings, initial, off_map)
+    guess = _initial_values(flight, dtm, settings, progress)
+    initial = guess.values
+    built = build_log_graph(flight, dtm, settings, initial, guess.off_map,
+                            guess.unfixed_frames)
     solver = LinearSolver()
     values, first = levenberg_marquardt(built.graph, initial, settings.max_iterations,
                                         settings.relative_error_tol, solver=solver)
@@ -243,10 +303,11 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     # Terrain the DTM lacks: drop the tracks off the map and solve again, until none is.
     mismatch = settings.graph.mismatch
     noise = feature_noise(flight.config, dtm, settings.graph)
+    body_T_cam = flight.config.camera.body_T_cam
     for _ in range(MISMATCH_ROUNDS if mismatch is not None else 0):
         assert mismatch is not None
-        if not built.drop_mismatched(values, dtm, noise, flight.config.camera.body_T_cam,
-                                     mismatch):
+        if not built.drop_mismatched(values, dtm, noise, body_T_cam, mismatch,
+                                     settings.graph.clutter):
             break
         graph = built.graph
         values, more = levenberg_marquardt(graph, values, settings.max_iterations,
@@ -258,12 +319,23 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     covariances = (marginals(graph, values, K) if settings.marginals else
                    StateCovariances(np.full((K, 6, 6), np.nan), np.full((K, 3, 3), np.nan),
                                     np.full((K, 6, 6), np.nan)))
+    estimate = _estimate_from_values(values, flight.frames.t_ns)
+    # what clutter may remain in the features: a considered vertical bias per frame
+    terrain, flags = None, dict(guess.frame_flags)
+    if mismatch is not None and settings.graph.clutter is not None:
+        built.assess(values, dtm, noise, body_T_cam, mismatch, settings.graph.clutter)
+        offsets = considered_offsets(built.clutter, [f.key_a for f in built.cdtm],
+                                     [f.key_b for f in built.cdtm], built.track_ids, K)
+        covariances = with_vertical_bias(covariances, estimate.world_T_body, offsets)
+        terrain = findings(built.clutter, offsets)
+        for k, v in clutter_flags(offsets, settings.graph.clutter).items():
+            flags.setdefault(k, []).extend(v)
     stats = SolverStats(stats.solver, iterations, first.initial_error,
                         stats.final_error, stats.converged, first.time_s + stats.time_s,
                         time.perf_counter() - start)
     settings_dict = settings.to_dict()
-    settings_dict["initial_values"] = source
-    estimate = _estimate_from_values(values, flight.frames.t_ns)
+    settings_dict["initial_values"] = guess.source
+    settings_dict["acquisitions"] = guess.acquisitions
     n_out, out_per_frame = count_outliers(built.cdtm, estimate.world_T_body, K)
     per_frame = np.zeros(K, dtype=int)
     for f in built.cdtm:
@@ -273,4 +345,5 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
                      n_outliers=n_out, outliers_per_frame=out_per_frame,
                      rejected_per_frame=built.rejections.per_frame(K))
     return SmootherResult(estimate, covariances, stats, counts, settings_dict,
-                          frame_flags(counts))
+                          frame_flags(counts, flags), cdtm_information(
+                              built.cdtm, estimate.world_T_body.__getitem__, K), terrain)

@@ -16,8 +16,23 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import X
+from gtsam.symbol_shorthand import V, X
 
+from cdtm_graph.acquisition import (
+    AcquisitionFrame,
+    Correction,
+    SearchPrior,
+    acquire,
+    needs_acquisition,
+)
+from cdtm_graph.clutter import (
+    Clutter,
+    assess,
+    clutter_flags,
+    considered_offsets,
+    findings,
+    with_vertical_bias,
+)
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import FlightConfig, FlightLog
@@ -25,6 +40,7 @@ from cdtm_graph.gating import InnovationGate, count_outliers
 from cdtm_graph.geometry import so3_log
 from cdtm_graph.graph import (
     cdtm_factors,
+    cdtm_information,
     feature_noise,
     imu_factor,
     insert_state,
@@ -37,7 +53,13 @@ from cdtm_graph.imu import (
     navstate_predict,
     propagate_covariance,
 )
-from cdtm_graph.mismatch import TrackObservations, mismatched, track_heights
+from cdtm_graph.mismatch import (
+    TrackHeights,
+    TrackObservations,
+    judge,
+    track_heights,
+    untrusted,
+)
 from cdtm_graph.replay import replay
 from cdtm_graph.results import (
     GraphCounts,
@@ -112,10 +134,21 @@ class IncrementalSmoother:
                                       config.camera.pixel_sigma_px, graph.epipolar,
                                       self.rejections)
         self._gate = InnovationGate(settings.innovation_gate, max(abs(dtm.dx), abs(dtm.dy)),
-                                    self.rejections, graph.mismatch)
+                                    self.rejections)
         # terrain the DTM lacks: tracks found off the map, and what they were seen as
         self.mismatched_tracks = np.zeros(0, np.int64)  # sorted
+        self._found_off = np.zeros(0, np.int64)  # ... of them, those the tests found
         self._observations = TrackObservations()
+        self._judge_from: int | None = None  # tracks seen from this frame on may be judged
+        self.clutter = Clutter.none()  # the latest fit of the tracks' heights
+        self._considered_m: dict[int, float] = {}  # frame -> vertical offset it may carry
+        # fix acquisition: while the pose is too uncertain for the C-DTM linearization,
+        # sightings are held back until a search over the newest frames finds the fix
+        self._acquiring = False
+        self._held: list[tuple[int, np.ndarray, np.ndarray]] = []  # (frame, ids, pixels)
+        self._tries_at: int | None = None  # frame of the last search
+        self.acquisitions: list[dict] = []  # each search: frame, verdict, reason
+        self._frame_flags: dict[int, list[str]] = {}
         self._backend: Backend = (
             FullHistory() if settings.lag_s is None
             else FixedLag(settings.lag_s, frame_interval_s))
@@ -133,7 +166,10 @@ class IncrementalSmoother:
         self._cdtm: list[CdtmPairFactor | None] = []
         self._cdtm_slots: list[int] = []  # ... their solver slots
         self._cdtm_ids: list[np.ndarray] = []  # ... their features' track ids
-        self._converging = True  # the newest update moved its frame far from the prediction
+        # Warm-up: from a loose prior (or an acquired fix) every update moves its frame far
+        # from the prediction, until one does not; nothing is judged meanwhile. Not a test
+        # per update: outliers that moved one would switch off the tests that stop them.
+        self._converging = True
         self._features_per_frame: dict[int, int] = {}
         self.n_features = self.n_cdtm_factors = 0
         self.update_times_s: list[float] = []
@@ -196,6 +232,8 @@ class IncrementalSmoother:
         else:
             bias = self._biases[k - 1]  # the IMU feed's linearization point too
             pim = self._imu.finish(int(t_ns), (self._poses[k - 1], self._velocities[k - 1]))
+            if pim.spans_gap:  # predicted across an IMU gap: a guess, judge nothing by it
+                self._converging = True
             link = imu_factor(k - 1, pim)
             graph.add(link)
             predicted, velocity = navstate_predict(pim, self._poses[k - 1],
@@ -205,34 +243,45 @@ class IncrementalSmoother:
         self._poses[k], self._velocities[k], self._biases[k] = predicted, velocity, bias
         if k:
             self._leave_window(k)
+        if self._should_acquire(k):
+            self._acquiring = True
+        if self._acquiring:
+            if seen is not None:
+                self._held.append((k, *seen))
+            seen = None  # held back: no C-DTM factor until the fix is found
+            self._frame_flags.setdefault(k, []).append("no_fix")
         new, new_ids = self._new_cdtm(k, *seen) if seen is not None else ([], [])
-        flagged = np.zeros(0, np.int64)
         if new and link is not None:
-            # Each feature's innovation against the IMU's prediction: the kernel's scale,
-            # the gate and the ground regions that disagree with the prior together (not
-            # while the solution still converges from a loose prior: the linearized test
-            # would misjudge good features).
-            new, new_ids, flagged = self._gate.apply(
+            # Each feature's innovation against the IMU's prediction: the kernel's scale
+            # and the gate (not while the solution still converges from a loose prior: the
+            # linearized test would misjudge good features).
+            new, new_ids = self._gate.apply(
                 k, new, new_ids, self._pose_guess, self._pair_prior(k, link, values),
                 test=not self._converging)
         if new and self.settings.graph.mismatch is not None and not self._converging \
                 and self._settled_enough():
-            new, new_ids, off_map = self._off_map(k, new, new_ids)
-            flagged = np.r_[flagged, off_map]
-        if flagged.size:
-            self._forget_tracks(k, flagged)
+            new, new_ids, off_map, wrong = self._off_map(k, new, new_ids)
+            if off_map.size:
+                self._forget_tracks(k, off_map, Rejection.MAP_MISMATCH)
+            if wrong.size:
+                self._forget_tracks(k, wrong, Rejection.WRONG_MATCH)
         n_new = sum(f.features.n for f in new)
         for f in new:
             graph.add(f.factor)
         slots = self._update(graph, values, k)
         self._commit(k, new, new_ids, slots[len(slots) - len(new):] if slots else [])
+        if (self.settings.graph.mismatch is not None and self._judge_from is not None
+                and k % self.MISMATCH_EVERY_FRAMES == 0):
+            self._mismatch_round(k, max(self._judge_from, k - self.MISMATCH_WINDOW_FRAMES))
         if new:
             self._refresh_newest_noise(k, predicted, len(new))
         if link is not None and pim.spans_gap:  # predicted across an IMU gap: a poor
             self._iterate(self.settings.final_iterations)  # linearization point, iterate
             self._fetch(k)
-        self._converging = self._moved_far(k, predicted)
+        self._converging = self._converging and self._moved_far(k, predicted)
         self._state_cov = self._backend.joint_marginal(list(frame_keys(k)))
+        if self._acquiring:
+            self._try_acquisition(k)
         self._imu.start(int(t_ns), self._biases[k])
         elapsed = time.perf_counter() - start
         self.update_times_s.append(elapsed)
@@ -263,6 +312,99 @@ class IncrementalSmoother:
             return cache[a]
 
         return prior
+
+    def _should_acquire(self, k: int) -> bool:
+        """Whether frame k starts a search for the fix: the prior (frame 0) or, after a
+        long stretch without camera constraints, the newest covariance reaches farther than
+        the smoothers pull in."""
+        settings = self.settings.acquisition
+        if settings is None or self._acquiring:
+            return False
+        if k == 0:
+            init = self.config.initial_state
+            return needs_acquisition(np.eye(3) * init.sigma_position_m**2,
+                                     init.sigma_attitude_rad, settings)
+        R = self._poses[k - 1][:3, :3]
+        position = R @ self._state_cov[3:6, 3:6] @ R.T
+        heading = float(np.sqrt(max((R @ self._state_cov[:3, :3] @ R.T)[2, 2], 0.0)))
+        return needs_acquisition(position, heading, settings)
+
+    def _try_acquisition(self, k: int) -> None:
+        """Search the newest held frames for the fix; on success, move the estimate there
+        and let the held sightings in. Frames older than the window lose their sightings
+        (counted as ``no_fix``)."""
+        settings = self.settings.acquisition
+        assert settings is not None
+        window = settings.window_frames
+        while len(self._held) > window:
+            j, ids, _ = self._held.pop(0)
+            self.rejections.add(Rejection.NO_FIX, j, len(ids))
+        if len(self._held) < window or (self._tries_at is not None
+                                        and k - self._tries_at < settings.retry_every_frames):
+            return
+        self._tries_at = k
+        frames = [AcquisitionFrame(self._t_ns[j], self._pose_guess(j), ids, uv)
+                  for j, ids, uv in self._held]
+        j0 = self._held[0][0]
+        velocity_cov = self._backend.marginal(V(j0))
+        prior = SearchPrior.from_pose_covariance(
+            self._poses[j0], self._backend.marginal(X(j0)), self._backend.velocity(j0),
+            float(np.sqrt(np.linalg.eigvalsh(velocity_cov).max())), self.config.gravity_mps2)
+        result = acquire(frames, self.config.camera, self.dtm, prior, settings)
+        self.acquisitions.append({"frame": k, "window": [j0, k],
+                                  "verdict": result.verdict.value, "reason": result.reason})
+        if result.correction is None:
+            return
+        self._apply_fix(result.correction, j0, k)
+        self._acquiring = False
+        for j, _, _ in self._held:  # their sightings are in now
+            self._frame_flags[j].remove("no_fix")
+            if not self._frame_flags[j]:
+                del self._frame_flags[j]
+        self._held = []
+
+    #: While the estimate moves to an acquired fix, the first window frame is held there by
+    #: a temporary prior this tight (rad, m, m/s).
+    ANCHOR_SIGMAS = (np.radians(0.2), 2.0, 0.2)
+
+    def _apply_fix(self, correction: Correction, j0: int, k: int) -> None:
+        """Move the estimate to the acquired fix, then add the held sightings.
+
+        iSAM2 cannot be told new linearization points: a temporary prior holds the first
+        window frame at the corrected state while relinearizing steps carry the IMU chain
+        there; then the held frames' C-DTM factors (built at the corrected poses) go in and
+        the temporary prior comes out.
+        """
+        pose, velocity = correction.apply_to_state(self._poses[j0], self._velocities[j0])
+        rot, pos, vel = self.ANCHOR_SIGMAS
+        anchor = gtsam.NonlinearFactorGraph()
+        anchor.add(gtsam.PriorFactorPose3(X(j0), gtsam.Pose3(pose),
+                                          gtsam.noiseModel.Diagonal.Sigmas(
+                                              np.r_[[rot] * 3, [pos] * 3])))
+        anchor.add(gtsam.PriorFactorVector(V(j0), velocity,
+                                           gtsam.noiseModel.Isotropic.Sigma(3, vel)))
+        slots = self._backend.update(anchor, gtsam.Values(), {})
+        self._iterate(2 * self.settings.final_iterations)
+        for j in range(j0, k + 1):
+            self._fetch(j)
+        graph = gtsam.NonlinearFactorGraph()
+        committed = []
+        for j, ids, uv in self._held:
+            factors, track_ids = self._new_cdtm(j, ids, uv)
+            for f in factors:
+                graph.add(f.factor)
+            committed.append((j, factors, track_ids))
+        new_slots = self._backend.update(graph, gtsam.Values(), {})
+        at = 0
+        for j, factors, track_ids in committed:
+            self._commit(j, factors, track_ids, new_slots[at:at + len(factors)])
+            at += len(factors)
+        self._iterate(self.settings.final_iterations)
+        self._backend.replace(gtsam.NonlinearFactorGraph(), slots)
+        self._iterate(self.settings.final_iterations)
+        self._fetch(k)
+        self._state_cov = self._backend.joint_marginal(list(frame_keys(k)))
+        self._converging = True  # judge nothing until the estimate has settled
 
     def _checked_sightings(self, k: int, track_id: np.ndarray | None, uv_px: np.ndarray | None
                            ) -> tuple[np.ndarray, np.ndarray] | None:
@@ -311,19 +453,33 @@ class IncrementalSmoother:
         """The newest estimated frame's largest position 1-sigma (m)."""
         return float(np.sqrt(np.linalg.eigvalsh(self._state_cov[3:6, 3:6]).max()))
 
+    def _frame_position_sigma_m(self, j: int) -> float:
+        """Frame j's largest position 1-sigma (m) now (as it left the window, if it has)."""
+        if j < self._settled:
+            cov = self._exit_cov[j][0] if j in self._exit_cov else None
+        else:
+            cov = self._backend.marginal(X(j))
+        if cov is None:
+            return self._position_sigma_m()
+        return float(np.sqrt(np.linalg.eigvalsh(cov[3:6, 3:6]).max()))
+
     def _settled_enough(self) -> bool:
-        """Whether the newest pose is known well enough (within a DTM cell) to judge a
-        track's height against the DTM."""
-        return self._position_sigma_m() <= max(abs(self.dtm.dx), abs(self.dtm.dy))
+        """Whether the poses are known well enough to judge a track's height against the
+        DTM: the newest within twice the DTM's height error (after the first frames under
+        a loose prior; from then on, ``_judge_from`` is the first frame so known)."""
+        if self._judge_from is None and self._position_sigma_m() <= 2 * self._noise.sigma_h_m:
+            self._judge_from = len(self._t_ns) - 1
+        return self._judge_from is not None
 
     def _off_map(self, k: int, factors: list[CdtmPairFactor], track_ids: list[np.ndarray]
-                 ) -> tuple[list[CdtmPairFactor], list[np.ndarray], np.ndarray]:
+                 ) -> tuple[list[CdtmPairFactor], list[np.ndarray], np.ndarray, np.ndarray]:
         """Frame k's factors without the tracks that, triangulated from everything seen of
-        them so far and this frame, lie off the DTM (:mod:`cdtm_graph.mismatch`)."""
+        them so far and this frame, lie off the DTM or hold a wrong match
+        (:mod:`cdtm_graph.mismatch`); and the ids of both."""
         settings = self.settings.graph.mismatch
         assert settings is not None
-        ids_now = np.concatenate(track_ids)
-        tid, frame, q = self._observations.of(ids_now)
+        none = np.zeros(0, np.int64)
+        tid, frame, q = self._observations.of(np.concatenate(track_ids))
         # this frame's observations (and the earlier ones of tracks seen for the first time)
         tid = np.r_[tid, *track_ids, *track_ids]
         frame = np.r_[frame, *(np.full(i.size, k) for i in track_ids),
@@ -332,28 +488,94 @@ class IncrementalSmoother:
         q = np.r_[q, *(f.features.q_b for f in factors), *(f.features.q_a for f in factors)]
         _, first = np.unique(np.c_[tid, frame], axis=0, return_index=True)
         tid, frame, q = tid[first], frame[first], q[first]
-        frames = np.unique(frame)
-        world_T_cam = np.stack([self._pose_guess(int(j)) @ self._body_T_cam for j in frames])
-        at = np.searchsorted(frames, frame)
-        heights = track_heights(tid, world_T_cam[at, :3, 3],
-                                np.einsum("mij,mj->mi", world_T_cam[at, :3, :3], q),
-                                float(np.mean(self._noise.sigma_q_xy)), self.dtm,
-                                self._noise.sigma_h_m, self._position_sigma_m())
-        off = heights.track_id[mismatched(heights, self._noise.sigma_h_m, settings)]
-        if off.size == 0:
-            return factors, track_ids, off
+        # tracks seen before the poses settled are not judged (their early poses were off)
+        assert self._judge_from is not None
+        judged = ~np.isin(tid, tid[frame < self._judge_from])
+        tid, frame, q = tid[judged], frame[judged], q[judged]
+        if tid.size == 0:
+            return factors, track_ids, none, none
+        judgement = judge(self._track_heights(tid, frame, q, self._position_sigma_m()),
+                          self._noise.sigma_h_m, settings)
+        off, wrong = judgement.off_map, judgement.inconsistent
+        self._found_off = np.union1d(self._found_off, off)
+        if off.size == 0 and wrong.size == 0:
+            return factors, track_ids, off, wrong
         kept, kept_ids = [], []
         for f, ids in zip(factors, track_ids):
-            hit = np.isin(ids, off)
-            self.rejections.add(Rejection.MAP_MISMATCH, k, int(hit.sum()))
+            hit_off, hit_wrong = np.isin(ids, off), np.isin(ids, wrong)
+            self.rejections.add(Rejection.MAP_MISMATCH, k, int(hit_off.sum()))
+            self.rejections.add(Rejection.WRONG_MATCH, k, int((hit_wrong & ~hit_off).sum()))
+            hit = hit_off | hit_wrong
             if not hit.all():
                 kept.append(f.with_features(~hit) if hit.any() else f)
                 kept_ids.append(ids[~hit])
-        return kept, kept_ids, off
+        return kept, kept_ids, off, wrong
 
-    def _forget_tracks(self, k: int, track_ids: np.ndarray) -> None:
+    def _track_heights(self, tid: np.ndarray, frame: np.ndarray, q: np.ndarray,
+                       pose_sigma_m: float | np.ndarray) -> TrackHeights:
+        """These observations' tracks triangulated at the current estimate."""
+        frames = np.unique(frame)
+        world_T_cam = np.stack([self._pose_guess(int(j)) @ self._body_T_cam for j in frames])
+        at = np.searchsorted(frames, frame)
+        sigma = np.asarray(pose_sigma_m, dtype=float)
+        sigma = sigma[at] if sigma.ndim else sigma
+        return track_heights(tid, world_T_cam[at, :3, 3],
+                             np.einsum("mij,mj->mi", world_T_cam[at, :3, :3], q),
+                             float(np.mean(self._noise.sigma_q_xy)), self.dtm,
+                             self._noise.sigma_h_m, sigma)
+
+    #: Every this many frames, the tracks of the last ``MISMATCH_WINDOW_FRAMES`` frames are
+    #: judged against the DTM together at the current estimate (a pit the first frames'
+    #: features pulled the estimate into shows once some of them are gone).
+    MISMATCH_EVERY_FRAMES = 5
+    MISMATCH_WINDOW_FRAMES = 20
+    #: finalize(): rounds of "judge every track, take out the ones off the map, relinearize".
+    MISMATCH_ROUNDS = 8
+
+    def _mismatch_round(self, k: int, since_frame: int) -> int:
+        """Judge the tracks seen since ``since_frame`` (and after the poses settled) at the
+        current estimate; take the ones off the DTM out. Returns how many."""
+        settings = self.settings.graph.mismatch
+        if settings is None or self._judge_from is None:
+            return 0
+        since_frame = max(since_frame, self._judge_from)
+        seen = self._observations.since(since_frame)
+        # every observation of them, the tracks left out too (crowding, clutter)
+        all_tid, all_frame, all_q = self._observations.of(seen)
+        judged = ~np.isin(all_tid, all_tid[all_frame < self._judge_from])
+        tid, frame, q = all_tid[judged], all_frame[judged], all_q[judged]
+        if tid.size == 0:
+            return 0
+        # each frame's own position uncertainty: where features went, the poses are weak
+        frames = np.unique(frame)
+        sigma = np.array([self._frame_position_sigma_m(int(j)) for j in frames])
+        clutter_settings = self.settings.graph.clutter
+        judgement, self.clutter = assess(self._track_heights(tid, frame, q, sigma),
+                                         self._noise.sigma_h_m, settings, clutter_settings)
+        self._found_off = np.union1d(self._found_off, judgement.off_map)
+        off = np.setdiff1d(np.union1d(untrusted(all_tid, all_frame, self._found_off,
+                                                settings.frame_fraction),
+                                      self.clutter.likely(clutter_settings)),
+                           self.mismatched_tracks)
+        wrong = np.setdiff1d(judgement.inconsistent, np.r_[self.mismatched_tracks, off])
+        if off.size:
+            self._forget_tracks(k, off, Rejection.MAP_MISMATCH)
+        if wrong.size:
+            self._forget_tracks(k, wrong, Rejection.WRONG_MATCH)
+        if off.size or wrong.size:
+            self._fetch(k)
+        # the clutter the window's features may still hold, frame by frame
+        live = [(f, ids) for f, ids in zip(self._cdtm, self._cdtm_ids)
+                if f is not None and int(gtsam.Symbol(f.key_b).index()) >= since_frame]
+        offsets = considered_offsets(self.clutter, [f.key_a for f, _ in live],
+                                     [f.key_b for f, _ in live], [i for _, i in live], k + 1)
+        for j in range(since_frame, k + 1):
+            self._considered_m[j] = float(offsets[j])
+        return int(off.size + wrong.size)
+
+    def _forget_tracks(self, k: int, track_ids: np.ndarray, reason: Rejection) -> None:
         """Keep these tracks out from now on, and take their features that entered
-        earlier out of the solver (those still in it)."""
+        earlier out of the solver (those still in it), counted for ``reason``."""
         self.mismatched_tracks = np.union1d(self.mismatched_tracks, track_ids)
         graph = gtsam.NonlinearFactorGraph()
         slots, changed = [], []
@@ -364,8 +586,7 @@ class IncrementalSmoother:
             hit = np.isin(ids, track_ids)
             if not hit.any():
                 continue
-            self.rejections.add(Rejection.MAP_MISMATCH, int(gtsam.Symbol(f.key_b).index()),
-                                int(hit.sum()))
+            self.rejections.add(reason, int(gtsam.Symbol(f.key_b).index()), int(hit.sum()))
             slots.append(self._cdtm_slots[i])
             replacement = f.with_features(~hit) if not hit.all() else None
             if replacement is not None:
@@ -447,15 +668,23 @@ class IncrementalSmoother:
         its solution. Only the newest factors change: a local re-elimination."""
         if not self._moved_far(k, predicted):
             return
-        old = [f for f in self._cdtm[-n:] if f is not None]  # (all are: just committed)
-        refreshed = [f.refreshed(self._backend.pose(int(gtsam.Symbol(f.key_a).index())),
-                                 self._poses[k]).with_robust_scale(f.features.robust_scale)
-                     for f in old]
+        # (a mismatch round since the commit may have taken some of them out)
+        live = [i for i in range(len(self._cdtm) - n, len(self._cdtm))
+                if self._cdtm[i] is not None]
+        if not live:
+            return
+        refreshed = []
         graph = gtsam.NonlinearFactorGraph()
-        for f in refreshed:
-            graph.add(f.factor)
-        self._cdtm_slots[-n:] = self._backend.replace(graph, self._cdtm_slots[-n:])
-        self._cdtm[-n:] = list(refreshed)
+        for i in live:
+            f = self._cdtm[i]
+            assert f is not None
+            r = f.refreshed(self._backend.pose(int(gtsam.Symbol(f.key_a).index())),
+                            self._poses[k]).with_robust_scale(f.features.robust_scale)
+            refreshed.append(r)
+            graph.add(r.factor)
+        new_slots = self._backend.replace(graph, [self._cdtm_slots[i] for i in live])
+        for i, r, slot in zip(live, refreshed, new_slots):
+            self._cdtm[i], self._cdtm_slots[i] = r, slot
         self._fetch(k)
 
     # -- results ----------------------------------------------------------------------
@@ -477,6 +706,13 @@ class IncrementalSmoother:
         """
         steps = self.settings.final_iterations if iterations is None else iterations
         previous, done, best = self._iterate(steps, relative_tol)
+        if self._t_ns and self.settings.graph.mismatch is not None:
+            # the tracks in the solver, judged at the converged estimate, until none is off
+            k = len(self._t_ns) - 1
+            for _ in range(self.MISMATCH_ROUNDS):
+                if not self._mismatch_round(k, self._settled):
+                    break
+                previous, done, best = self._iterate(steps, relative_tol)
         self._refresh(self._backend.estimate())
         if self._t_ns:  # more frames may follow: the next interval at the new bias estimate
             k = len(self._t_ns) - 1
@@ -518,6 +754,12 @@ class IncrementalSmoother:
         """Squared Mahalanobis distance of every innovation the gate tested, (n,):
         chi-square(2) (median 1.39, mean 2) when the noise model and the prior are honest."""
         return self._gate.all_nis
+
+    @property
+    def unfixed_frames(self) -> np.ndarray:
+        """Frames whose sightings were held back for a fix that was not found (sorted)."""
+        return np.array(sorted(k for k, flags in self._frame_flags.items()
+                               if "no_fix" in flags), dtype=np.int64)
 
     def values(self) -> gtsam.Values:
         """Latest estimate of every frame so far (frames out of a lag window keep the
@@ -572,6 +814,9 @@ class IncrementalSmoother:
             if progress is not None:
                 progress(frame.k + 1, K)
         self.finalize()
+        for j, ids, _ in self._held:  # the log ended before a fix was found
+            self.rejections.add(Rejection.NO_FIX, j, len(ids))
+        self._held = []
         elapsed = time.perf_counter() - start
         t0 = time.perf_counter()
         covariances = self.covariances()
@@ -591,5 +836,18 @@ class IncrementalSmoother:
             time.perf_counter() - t0, tuple(self.update_times_s), tuple(self.imu_times_s),
             float(np.median(nis)) if nis.size else float("nan"),
             float(np.mean(nis)) if nis.size else float("nan"))
-        return SmootherResult(estimate, covariances, stats, counts, self.settings.to_dict(),
-                              frame_flags(counts))
+        information = cdtm_information([f for f in self._cdtm if f is not None],
+                                       estimate.world_T_body.__getitem__, K)
+        settings = self.settings.to_dict()
+        settings["acquisitions"] = self.acquisitions
+        flags = {k: list(v) for k, v in self._frame_flags.items()}
+        terrain = None
+        clutter_settings = self.settings.graph.clutter
+        if self.settings.graph.mismatch is not None and clutter_settings is not None:
+            offsets = np.array([self._considered_m.get(k, 0.0) for k in range(K)])
+            covariances = with_vertical_bias(covariances, estimate.world_T_body, offsets)
+            terrain = findings(self.clutter, offsets)
+            for k, v in clutter_flags(offsets, clutter_settings).items():
+                flags.setdefault(k, []).extend(v)
+        return SmootherResult(estimate, covariances, stats, counts, settings,
+                              frame_flags(counts, flags), information, terrain)

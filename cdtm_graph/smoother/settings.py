@@ -6,6 +6,7 @@ import enum
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
+from cdtm_graph.acquisition import AcquisitionSettings
 from cdtm_graph.graph import GraphSettings
 
 #: ``progress(done, total)``: called once per frame on long runs.
@@ -37,6 +38,10 @@ class SmootherSettings:
             covariances as it leaves the window (about 1 ms per frame; an offline run
             wants them, a live system needs only the newest: set False); otherwise NaN
             for frames older than the lag.
+        acquisition: when the prior (or the covariance after a long gap without camera
+            constraints) is wider than the smoothers pull in, the fix is searched for
+            first (:mod:`cdtm_graph.acquisition`) on the newest frames, their features
+            held back until it is found; ``None``: never search.
         innovation_gate: incremental modes (and the batch's incremental first pass): drop
             each C-DTM feature whose innovation, against the prior covariance of its two
             poses, fails the chi-square(2) gate of this probability; ``None`` gates
@@ -52,6 +57,7 @@ class SmootherSettings:
     marginals: bool = True
     keep_exit_covariances: bool = True
     innovation_gate: float | None = 0.999
+    acquisition: AcquisitionSettings | None = field(default_factory=AcquisitionSettings)
 
     def to_dict(self) -> dict:
         """Plain values for report.json (enums as their values)."""

@@ -75,10 +75,12 @@ def _wrong(fraction: float) -> Callable[[FlightLog, np.random.Generator], Flight
 def _far(metres: float, heading_deg: float) -> dict:
     # a horizontal error of `metres` with an honest sigma, the DTM wide enough to search
     angle = np.radians(35.0)
+    # (a 12 km terrain cell: the default 3 km cell repeats within the search region of a
+    # 1000 m prior, and the fix is then truly ambiguous: real terrain does not repeat)
     return dict(sigma_position_m=metres, sigma_attitude_deg=max(heading_deg, 1.0),
                 initial_error_m=(metres * np.cos(angle), -metres * np.sin(angle), 0.0),
                 initial_error_deg=(0.0, 0.0, heading_deg),
-                region_margin_m=max(400.0, 3.5 * metres))
+                region_margin_m=max(400.0, 3.5 * metres), terrain_cell_m=12000.0)
 
 
 SCENARIOS: dict[str, Scenario] = {s.name: s for s in (

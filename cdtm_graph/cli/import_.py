@@ -1,0 +1,275 @@
+"""``cdtm import euroc|rosbag``: sensor recordings into a ``cdtm-flightlog/1`` directory."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from tqdm import tqdm
+
+from cdtm_graph.atomic import read_manifest
+from cdtm_graph.cli.outdir import OUT_RULES, add_force_option, output_dir
+from cdtm_graph.errors import CdtmError, OutputError
+from cdtm_graph.flightlog import (
+    FLIGHT_YAML,
+    FRAMES_CSV,
+    IMU_CSV,
+    LOG_FILES,
+    TRACKS_CSV,
+    FlightLog,
+    write_tracks,
+)
+from cdtm_graph.geodesy import GeodeticOrigin, VerticalDatum
+
+#: Who writes an imported log (the output manifest's writer names).
+WRITERS = {"euroc": "import euroc", "rosbag": "import rosbag"}
+
+_NEXT_STEP = ("next: cdtm track {log}  (features from the images into tracks.csv), then "
+              "cdtm smooth {log} --out RUN")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "import", help="turn a EuRoC folder or a ROS bag into a flight log",
+        description="Write a cdtm-flightlog/1 directory from sensor recordings: the IMU "
+                    "samples, the frame stamps and images (into images/), the calibration "
+                    "(Kalibr or EuRoC files) and ground truth when there is some. The log "
+                    "has no tracks.csv: run `cdtm track LOG` next (or give --track).")
+    sub = parser.add_subparsers(dest="source", required=True, metavar="SOURCE")
+    euroc = sub.add_parser(
+        "euroc", help="a EuRoC/ASL mav0 folder (imu0, cam0, state_groundtruth_estimate0)",
+        description="Import a EuRoC/ASL mav0 folder: imu0/data.csv, cam0/data.csv and "
+                    "cam0/data/*, the calibration from cam0/ and imu0/sensor.yaml (or "
+                    "Kalibr files), and the initial state from state_groundtruth_estimate0 "
+                    "when it covers the first frame.")
+    euroc.add_argument("mav0", type=Path, metavar="MAV0_DIR",
+                       help="the mav0 folder, or the sequence folder holding it")
+    euroc.add_argument("--camera", default="cam0", help="which camera (default %(default)s)")
+    euroc.add_argument("--imu", default="imu0", help="which IMU (default %(default)s)")
+    _common_options(euroc, kalibr_required=False)
+    euroc.set_defaults(func=run)
+
+    bag = sub.add_parser(
+        "rosbag", help="a ROS1 .bag or ROS2 bag (sensor_msgs/Imu, Image or CompressedImage)",
+        description="Import one IMU topic and one image topic of a ROS1 .bag file or a ROS2 "
+                    "bag directory (read with the pure-Python rosbags package: pip install "
+                    "'cdtm-graph[rosbag]'). The calibration comes from Kalibr files.")
+    bag.add_argument("bag", type=Path, metavar="BAG", help="ROS1 .bag file or ROS2 bag folder")
+    bag.add_argument("--imu-topic", help="sensor_msgs/Imu topic (default: rostopic of the "
+                                         "Kalibr IMU file)")
+    bag.add_argument("--image-topic", help="sensor_msgs/Image or CompressedImage topic "
+                                           "(default: rostopic of the camchain's camera)")
+    bag.add_argument("--camera", default="cam0",
+                     help="the camchain's camera (default %(default)s)")
+    bag.add_argument("--stamps", choices=("header", "bag"), default="header",
+                     help="message times: header.stamp (default) or the recording time")
+    bag.add_argument("--groundtruth", type=Path, metavar="CSV",
+                     help="ground truth on the IMU clock: groundtruth.csv columns, EuRoC's "
+                          "state_groundtruth_estimate0, or latitude/longitude columns")
+    _common_options(bag, kalibr_required=True)
+    bag.set_defaults(func=run)
+
+
+def _common_options(p: argparse.ArgumentParser, kalibr_required: bool) -> None:
+    p.add_argument("--out", type=Path, required=True, metavar="LOG",
+                   help=f"the flight log directory to write: {OUT_RULES}")
+    add_force_option(p)
+    cal = p.add_argument_group("calibration")
+    cal.add_argument("--kalibr", type=Path, metavar="CAMCHAIN", required=kalibr_required,
+                     help="Kalibr camchain-imucam YAML: intrinsics, lens (radtan, equidistant), "
+                          "T_cam_imu (inverted into body_T_cam), timeshift_cam_imu "
+                          "(camera.time_offset_s: t_imu = t_cam + shift)"
+                          + ("" if kalibr_required else "; default: cam0/sensor.yaml"))
+    cal.add_argument("--kalibr-imu", type=Path, metavar="IMU_YAML", required=kalibr_required,
+                     help="Kalibr IMU YAML: noise densities, random walks, update_rate"
+                          + ("" if kalibr_required else "; default: imu0/sensor.yaml"))
+    cal.add_argument("--pixel-sigma-px", type=float, default=0.5,
+                     help="1-sigma of a tracked feature's position (default %(default)s px)")
+    dtm = p.add_argument_group("terrain")
+    dtm.add_argument("--dtm", type=Path, action="append", required=True, metavar="DEM",
+                     help="the DTM under the flight (.npz, .asc, .tif in the world frame); "
+                          "with --origin, DEM tiles in any CRS: --dtm A.tif --dtm B.tif "
+                          "(mosaicked, the first wins where they overlap)")
+    dtm.add_argument("--copy-dtm", action="store_true",
+                     help="copy the DTM files into the log (default: flight.yaml names them "
+                          "where they are)")
+    dtm.add_argument("--dtm-sigma-h-m", type=float, metavar="M",
+                     help="the DTM's 1-sigma height error (default: 0.08 x grid spacing)")
+    dtm.add_argument("--origin", type=float, nargs=3, metavar=("LAT", "LON", "H"),
+                     help="WGS84 latitude, longitude (deg), ellipsoidal height (m) of the "
+                          "world origin: the world is the ENU plane there")
+    dtm.add_argument("--vertical-datum", choices=[d.value for d in VerticalDatum],
+                     help="what the DEM heights are above (with --origin; SRTM and "
+                          "Copernicus: egm96)")
+    dtm.add_argument("--dtm-crs", metavar="CRS", help="CRS of DEM files that carry none")
+    dtm.add_argument("--gravity-mps2", type=float,
+                     help="gravity (default 9.80665, with --origin WGS84 normal gravity)")
+    init = p.add_argument_group(
+        "initial state", "at the first frame; default: the ground truth there. Each given "
+                         "value wins over ground truth")
+    init.add_argument("--initial-position", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                      help="body position in the world frame (m)")
+    init.add_argument("--initial-geodetic", type=float, nargs=3, metavar=("LAT", "LON", "H"),
+                      help="instead of --initial-position, with --origin: WGS84 position "
+                           "(quaternion and velocity then in the local ENU there)")
+    init.add_argument("--initial-quaternion", type=float, nargs=4, metavar=("W", "X", "Y", "Z"),
+                      help="body -> world attitude")
+    init.add_argument("--initial-velocity", type=float, nargs=3, metavar=("VX", "VY", "VZ"),
+                      help="velocity in the world frame (m/s)")
+    init.add_argument("--initial-gyro-bias", type=float, nargs=3, metavar=("BX", "BY", "BZ"),
+                      help="rad/s (default: ground truth's, else 0)")
+    init.add_argument("--initial-accel-bias", type=float, nargs=3, metavar=("BX", "BY", "BZ"),
+                      help="m/s^2 (default: ground truth's, else 0)")
+    init.add_argument("--sigma-position-m", type=float, default=50.0,
+                      help="prior sigma (default %(default)s)")
+    init.add_argument("--sigma-attitude-deg", type=float, default=1.0,
+                      help="prior sigma (default %(default)s)")
+    init.add_argument("--sigma-velocity-mps", type=float, default=1.0,
+                      help="prior sigma (default %(default)s)")
+    init.add_argument("--sigma-gyro-bias", type=float, default=1.0e-4,
+                      help="prior sigma, rad/s (default %(default)s)")
+    init.add_argument("--sigma-accel-bias", type=float, default=1.0e-2,
+                      help="prior sigma, m/s^2 (default %(default)s)")
+    p.add_argument("--track", action="store_true",
+                   help="also track features through the images into tracks.csv (as "
+                        "`cdtm track LOG` does)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar, no summary")
+
+
+def _settings(args: argparse.Namespace):
+    from cdtm_graph.flightlog.importers import DtmSource, ImportSettings, InitialPrior
+
+    origin = GeodeticOrigin(*args.origin) if args.origin is not None else None
+    datum = VerticalDatum(args.vertical_datum) if args.vertical_datum is not None else None
+    dtm = DtmSource(tuple(args.dtm), args.dtm_sigma_h_m, origin, datum, args.dtm_crs,
+                    args.copy_dtm)
+    initial = InitialPrior(
+        position_m=args.initial_position,
+        geodetic=tuple(args.initial_geodetic) if args.initial_geodetic else None,
+        quaternion_wxyz=args.initial_quaternion, velocity_mps=args.initial_velocity,
+        gyro_bias=args.initial_gyro_bias, accel_bias=args.initial_accel_bias,
+        sigma_position_m=args.sigma_position_m, sigma_attitude_deg=args.sigma_attitude_deg,
+        sigma_velocity_mps=args.sigma_velocity_mps, sigma_gyro_bias=args.sigma_gyro_bias,
+        sigma_accel_bias=args.sigma_accel_bias)
+    return ImportSettings(dtm, args.pixel_sigma_px, args.gravity_mps2, initial)
+
+
+def _refuse_foreign_log_files(out: Path, writer: str) -> None:
+    """Log files in ``--out`` this import did not write (``cdtm track``'s tracks.csv, a
+    nav.csv put there by hand, another import's files) would stay beside the new ones and
+    be read with them: refused before any work, not silently combined."""
+    present = [name for name in LOG_FILES if (out / name).exists()]
+    if not present:
+        return
+    try:
+        ours = read_manifest(out) or {}
+    except CdtmError:
+        ours = {}
+    foreign = [name for name in present if ours.get(name) != writer]
+    if foreign:
+        raise OutputError(f"--out {out}: holds {', '.join(foreign)} that this import did not "
+                          "write and that would be read with the imported log; expected them "
+                          "removed first (or a new --out)")
+
+
+class _LazyBar:
+    """A progress bar that appears with the first progress report (not before an error)."""
+
+    def __init__(self, unit: str, quiet: bool):
+        self.unit, self.quiet = unit, quiet
+        self.bar: tqdm | None = None
+
+    def __call__(self, done: int, total: int) -> None:
+        if self.quiet:
+            return
+        if self.bar is None:
+            self.bar = tqdm(total=total, unit=self.unit, desc="importing", file=sys.stderr,
+                            leave=False)
+        self.bar.update(done - self.bar.n)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def run(args: argparse.Namespace) -> int:
+    from cdtm_graph.flightlog.importers import import_euroc
+
+    settings = _settings(args)  # checked before any reading
+    out = Path(args.out)
+    _refuse_foreign_log_files(out, WRITERS[args.source])
+    source = args.mav0 if args.source == "euroc" else args.bag
+    protected = [source, *args.dtm, *(p for p in (args.kalibr, args.kalibr_imu,
+                                                  getattr(args, "groundtruth", None)) if p)]
+    names = [FLIGHT_YAML, IMU_CSV, FRAMES_CSV, *([TRACKS_CSV] if args.track else []),
+             *(p.name for p in args.dtm if args.copy_dtm)]
+    progress = _LazyBar("msg" if args.source == "rosbag" else "image", args.quiet)
+    with output_dir(args, out, WRITERS[args.source], protected=protected, names=names,
+                    label="--out") as staging:
+        contents = None
+        if args.source == "euroc":
+            log = import_euroc(args.mav0, staging, out, settings, kalibr=args.kalibr,
+                               kalibr_imu=args.kalibr_imu, camera=args.camera, imu=args.imu,
+                               progress=progress)
+        else:
+            log, contents = _import_bag(args, staging, out, settings, progress)
+        progress.close()
+        tracked = _track(log, staging, args.quiet) if args.track else None
+    if not args.quiet:
+        print(_summary(log, out, contents, tracked))
+    return 0
+
+
+def _import_bag(args, staging: Path, out: Path, settings, progress):
+    from cdtm_graph.flightlog.importers import (
+        BagTopics,
+        StampSource,
+        import_rosbag,
+        read_groundtruth,
+        read_kalibr_camchain,
+        read_kalibr_imu,
+    )
+
+    camera = read_kalibr_camchain(args.kalibr, args.camera)
+    imu = read_kalibr_imu(args.kalibr_imu)
+    truth = (read_groundtruth(args.groundtruth, settings.dtm.origin)
+             if args.groundtruth is not None else None)
+    return import_rosbag(args.bag, staging, out, settings, camera=camera, imu=imu,
+                         topics=BagTopics(args.imu_topic, args.image_topic), groundtruth=truth,
+                         stamps=StampSource(args.stamps), progress=progress)
+
+
+def _track(log: FlightLog, staging: Path, quiet: bool):
+    from cdtm_graph.frontend import track_log
+
+    with tqdm(total=len(log.frames), unit="frame", desc="tracking", file=sys.stderr,
+              disable=quiet, leave=False) as bar:
+        result = track_log(log, progress=lambda done, total: bar.update(1))
+    write_tracks(result.tracks, staging / TRACKS_CSV)
+    return result
+
+
+def _summary(log: FlightLog, out: Path, contents, tracked) -> str:
+    imu_t, frame_t = log.imu.t_ns, log.frames.t_ns
+    span_s = (frame_t[-1] - frame_t[0]) / 1e9
+    rate_hz = (len(imu_t) - 1) / max((imu_t[-1] - imu_t[0]) / 1e9, 1e-9)
+    cam = log.config.camera
+    lines = [f"wrote {out}: {len(log.frames)} frames over {span_s:.1f} s (images in "
+             f"{out / 'images'}), {len(log.imu)} IMU samples ({rate_hz:.0f} Hz), "
+             f"{'ground truth' if log.groundtruth is not None else 'no ground truth'}",
+             f"camera {cam.camera.width}x{cam.camera.height} {cam.camera.model.value}, "
+             f"time offset {cam.time_offset_s * 1e3:g} ms (t_imu = t_cam + offset)"]
+    outside = log.config.extra.get("import", {}).get("frames_outside_imu", 0)
+    if outside:
+        lines.append(f"left out {outside} frames outside the IMU's time span")
+    if contents is not None and (contents.duplicate_imu or contents.duplicate_frames):
+        lines.append(f"left out {contents.duplicate_imu} IMU and {contents.duplicate_frames} "
+                     "image messages repeating an earlier stamp")
+    if tracked is not None:
+        lines.append(f"wrote {out / TRACKS_CSV}")
+        lines.append(tracked.report.summary())
+        lines.append(f"next: cdtm smooth {out} --out RUN")
+    else:
+        lines.append(_NEXT_STEP.format(log=out))
+    return "\n".join(lines)

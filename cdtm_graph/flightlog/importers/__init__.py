@@ -1,0 +1,36 @@
+"""Sensor recordings into ``cdtm-flightlog/1`` logs: EuRoC folders, ROS bags, Kalibr files.
+
+- :mod:`~cdtm_graph.flightlog.importers.calibration`: Kalibr camchain and IMU files, EuRoC
+  ``sensor.yaml`` (``T_cam_imu`` inverted into ``body_T_cam``, ``timeshift_cam_imu`` as
+  ``camera.time_offset_s``, ``update_rate`` as ``imu.rate_hz``).
+- :mod:`~cdtm_graph.flightlog.importers.recording`: what every importer shares: the DTM,
+  the prior, assembling and writing the log.
+- :mod:`~cdtm_graph.flightlog.importers.euroc` and
+  :mod:`~cdtm_graph.flightlog.importers.rosbag` (needs the ``rosbag`` extra): the readers.
+"""
+
+from cdtm_graph.flightlog.importers.calibration import (
+    CameraCalibration,
+    ImuCalibration,
+    read_euroc_sensor,
+    read_kalibr_camchain,
+    read_kalibr_imu,
+)
+from cdtm_graph.flightlog.importers.euroc import import_euroc, read_euroc
+from cdtm_graph.flightlog.importers.recording import (
+    DtmSource,
+    ImportSettings,
+    InitialPrior,
+    SensorRecording,
+    assemble_flightlog,
+    read_groundtruth,
+    write_imported_log,
+)
+from cdtm_graph.flightlog.importers.rosbag import BagTopics, StampSource, import_rosbag, read_bag
+
+__all__ = [
+    "BagTopics", "CameraCalibration", "DtmSource", "ImportSettings", "ImuCalibration",
+    "InitialPrior", "SensorRecording", "StampSource", "assemble_flightlog", "import_euroc",
+    "import_rosbag", "read_bag", "read_euroc", "read_euroc_sensor", "read_groundtruth",
+    "read_kalibr_camchain", "read_kalibr_imu", "write_imported_log",
+]

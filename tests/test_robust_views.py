@@ -1,0 +1,262 @@
+"""The robust views one by one, each against the fault it guards against.
+
+Wrong matches (the epipolar check, a track whose rays do not meet), rays grazing a ridge,
+terrain the DTM lacks (a track alone, a neighbourhood, a population of clutter) and the
+covariance it leaves. Each on synthetic geometry where the truth is known exactly; the
+smoothers' use of them is in ``tests/test_robustness.py``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cdtm_graph.clutter import (
+    Clutter,
+    ClutterSettings,
+    considered_offsets,
+    fit_clutter,
+    with_vertical_bias,
+)
+from cdtm_graph.dtm import Dtm, grazing_hits
+from cdtm_graph.epipolar import EpipolarSettings, check_pair
+from cdtm_graph.geometry import make_pose, so3_exp
+from cdtm_graph.mismatch import (
+    MismatchSettings,
+    TrackHeights,
+    inconsistent,
+    mismatched,
+    triangulate,
+    untrusted,
+)
+from cdtm_graph.results import StateCovariances
+
+SIGMA_PX = 0.5
+FOCAL_PX = 550.0
+SIGMA_Q = SIGMA_PX / FOCAL_PX
+
+
+# ------------------------------------------------------------------ epipolar check
+
+
+def _pair(rng: np.random.Generator, n: int, wrong_fraction: float):
+    """Two cameras 150 m apart at ~1800 m over ground points; camera b's rays noisy, a
+    fraction replaced by random directions inside the image."""
+    ground = np.c_[rng.uniform(-900, 900, (n, 2)), rng.uniform(-50, 50, n)]
+    centre_a, centre_b = np.array([0.0, 0.0, 1800.0]), np.array([150.0, 10.0, 1801.0])
+    R_a = so3_exp(np.array([np.pi, 0.0, 0.0]))  # looking down
+    R_b = R_a @ so3_exp(np.radians([0.3, -0.2, 0.5]))
+    q_a = (ground - centre_a) @ R_a
+    q_b = (ground - centre_b) @ R_b
+    q_a, q_b = q_a / q_a[:, 2:3], q_b / q_b[:, 2:3]
+    q_a[:, :2] += rng.normal(0, SIGMA_Q, (n, 2))
+    q_b[:, :2] += rng.normal(0, SIGMA_Q, (n, 2))
+    wrong = rng.random(n) < wrong_fraction
+    q_b[wrong, :2] = rng.uniform(-0.55, 0.55, (int(wrong.sum()), 2))
+    R_ba = R_b.T @ R_a
+    t_b = R_b.T @ (centre_a - centre_b)
+    return q_a, q_b, R_ba, t_b, wrong
+
+
+@pytest.mark.parametrize("wrong_fraction", [0.0, 0.15, 0.30])
+def test_the_epipolar_check_rejects_wrong_matches_and_keeps_the_rest(wrong_fraction):
+    rng = np.random.default_rng(11)
+    q_a, q_b, R_ba, t_b, wrong = _pair(rng, 300, wrong_fraction)
+    # the IMU's translation is a degree off: the check finds the direction itself
+    prior = so3_exp(np.radians([1.0, 0.0, 0.0])) @ t_b
+    check = check_pair(q_a, q_b, R_ba, prior, SIGMA_Q, 1800.0)
+    assert check.checked
+    assert np.mean(check.inlier[~wrong]) > 0.99  # the 99.9% gate loses ~0.1%
+    if wrong.any():
+        # a random pixel lands within the gate of its epipolar line a few times in 300
+        assert np.mean(~check.inlier[wrong]) > 0.95
+    # the direction the inliers agree on (the along-axis part is weak over flat ground)
+    assert np.degrees(np.arccos(check.t_dir_b @ t_b / np.linalg.norm(t_b))) < 1.0
+
+
+def test_the_epipolar_check_judges_nothing_without_parallax():
+    rng = np.random.default_rng(12)
+    q_a, q_b, R_ba, t_b, _ = _pair(rng, 50, 0.3)
+    check = check_pair(q_a, q_b, R_ba, t_b * 1e-3, SIGMA_Q, 1800.0, EpipolarSettings())
+    assert not check.checked and check.inlier.all()
+
+
+# ------------------------------------------------------------------ grazing rays
+
+
+def _ridge() -> Dtm:
+    """Flat ground with a 200 m wall one cell thick along x = 0 (a knife-edge ridge)."""
+    x = np.arange(-2010.0, 2010.1, 30.0)
+    elevation = np.zeros((x.size, x.size))
+    elevation[:, np.abs(x) < 1.0] = 200.0
+    return Dtm(elevation, x[0], x[0], 30.0, 30.0, sigma_h_m=2.4)
+
+
+def test_a_ray_grazing_a_ridge_is_recognised_and_one_on_open_ground_is_not():
+    """Paper Fig. 1: from a camera west of the ridge, the ray to the ridge top lands far
+    behind it when turned up by one cell at its range; the ray to the open ground before
+    the ridge moves by about its footprint."""
+    dtm = _ridge()
+    origin = np.array([-1500.0, 0.0, 600.0])
+    targets = np.array([[-2.0, 0.0, 0.0], [-800.0, 100.0, 0.0], [-400.0, -200.0, 0.0]])
+    targets[:, 2] = dtm.height(targets[:, 0], targets[:, 1])  # 2 m below the ridge line
+    directions = targets - origin
+    points, normals, hit = dtm.tangent_planes(origin, directions)
+    assert hit.all()
+    np.testing.assert_allclose(points, targets, atol=1e-6)
+    turn = 30.0 / np.linalg.norm(points - origin, axis=1)
+    grazing = grazing_hits(dtm, origin, directions, points, normals, turn)
+    assert grazing.tolist() == [True, False, False]
+
+
+# ------------------------------------------------------------------ terrain the DTM lacks
+
+
+def _heights(dh: np.ndarray, sigma: np.ndarray, xy: np.ndarray,
+             n_obs: int | np.ndarray = 6) -> TrackHeights:
+    n = dh.size
+    return TrackHeights(np.arange(n), np.c_[xy, dh], np.broadcast_to(n_obs, (n,)).copy(),
+                        dh, sigma, np.zeros(n))
+
+
+def test_a_track_far_off_the_dtm_fails_alone_and_a_pit_fails_as_a_neighbourhood():
+    rng = np.random.default_rng(5)
+    n = 2000
+    xy = rng.uniform(0, 6000, (n, 2))
+    sigma = rng.uniform(3.0, 8.0, n)
+    dh = rng.normal(0.0, sigma)
+    pit = np.linalg.norm(xy - [4500.0, 4500.0], axis=1) < 600.0
+    tower = int(np.flatnonzero(~pit)[0])
+    dh[tower], sigma[tower] = 40.0, 4.0  # 10 sigma alone
+    sigma[pit] = rng.uniform(10.0, 14.0, pit.sum())  # each ~2.5 sigma: mostly together
+    dh[pit] = -30.0 + rng.normal(0.0, sigma[pit])
+    alone = (dh / sigma) ** 2 > MismatchSettings().gate
+    assert alone[pit].mean() < 0.5
+    off = mismatched(_heights(dh, sigma, xy), 2.4)
+    assert off[tower]
+    assert off[pit].mean() > 0.9
+    outside = ~pit & (np.linalg.norm(xy - [4500.0, 4500.0], axis=1) > 900.0)
+    outside[tower] = False
+    assert off[outside].mean() < 0.01
+
+
+def test_a_wild_untested_track_does_not_condemn_its_neighbourhood():
+    """Regression: a two-observation track through a wrong match (rays almost parallel,
+    its point thousands of metres off) dragged its neighbourhood's mean past the gate;
+    30% wrong matches lost a third of their good tracks."""
+    rng = np.random.default_rng(6)
+    n = 200
+    xy = rng.uniform(0, 2000, (n, 2))
+    sigma = rng.uniform(3.0, 6.0, n)
+    dh = rng.normal(0.0, sigma)
+    n_obs = np.full(n, 6)
+    dh[0], sigma[0], n_obs[0] = 3000.0, 60.0, 2  # untested alone (two rays, weak)
+    off = mismatched(_heights(dh, sigma, xy, n_obs), 2.4)
+    assert off[1:].mean() < 0.01
+
+
+def _track_rays(rng, n_obs: int, point: np.ndarray, turn_deg: float = 0.0):
+    centres = np.c_[np.arange(n_obs) * 150.0, np.zeros(n_obs), np.full(n_obs, 1800.0)]
+    rays = point - centres
+    rays += rng.normal(0.0, SIGMA_Q, rays.shape) * np.linalg.norm(rays, axis=1, keepdims=True)
+    if turn_deg:
+        rays[-1] = so3_exp(np.radians([turn_deg, 0.0, 0.0])) @ rays[-1]
+    return centres, rays
+
+
+def test_a_track_whose_rays_do_not_meet_holds_a_wrong_match():
+    """One observation of a six-frame track moved by a wrong match (0.5 deg, ~9 px) makes
+    its rays miss each other; the clean track's misses are chi-square."""
+    rng = np.random.default_rng(7)
+    point = np.array([400.0, 200.0, 30.0])
+    good = _track_rays(rng, 6, point)
+    bad = _track_rays(rng, 6, point, turn_deg=0.5)
+    centres = np.r_[good[0], bad[0]]
+    rays = np.r_[good[1], bad[1]]
+    index = np.repeat([0, 1], 6)
+    points, cov, fit = triangulate(index, 2, centres, rays, SIGMA_Q)
+    assert np.linalg.norm(points[0] - point) < 3 * np.sqrt(np.trace(cov[0]))
+    heights = TrackHeights(np.array([0, 1]), points, np.array([6, 6]), points[:, 2] - 30.0,
+                           np.array([3.0, 3.0]), fit)
+    assert inconsistent(heights).tolist() == [False, True]
+    assert not mismatched(heights, 2.4).any()  # a wrong match is not off the map
+
+
+def test_a_frame_mostly_off_the_map_is_not_trusted_at_all():
+    track_id = np.r_[np.arange(10), np.arange(10, 20)]
+    frame = np.r_[np.zeros(10, int), np.ones(10, int)]
+    off = np.array([0, 1, 2, 3, 10])  # 40% of frame 0, 10% of frame 1
+    out = untrusted(track_id, frame, off, MismatchSettings().frame_fraction)
+    assert set(out) == set(range(10)) | {10}
+
+
+# ------------------------------------------------------------------ clutter
+
+
+def _population(rng, n: int, share: float, height_m: float, region=None):
+    xy = rng.uniform(0, 8000, (n, 2))
+    sigma = np.sqrt(rng.uniform(2.0, 9.0, n) ** 2 + 2.4**2)
+    on = rng.random(n) < share
+    if region is not None:
+        on &= region(xy)
+    dh = -1.0 + rng.normal(0.0, sigma) + on * (height_m + rng.normal(0.0, 3.0, n))
+    return _heights(dh, sigma, xy), on
+
+
+def test_a_clean_population_shows_no_clutter():
+    rng = np.random.default_rng(20)
+    heights, _ = _population(rng, 2000, 0.0, 0.0)
+    fit = fit_clutter(heights)
+    assert not fit.significant
+    assert fit.likelihood_ratio < ClutterSettings().likelihood_ratio
+    assert not fit.posterior.any()
+
+
+def test_a_forest_is_seen_as_a_population_and_its_likely_trees_named():
+    """20% of the tracks on 18 m trees, each alone mostly within 3 sigma of the ground."""
+    rng = np.random.default_rng(21)
+    heights, on = _population(rng, 2000, 0.2, 18.0)
+    assert np.mean(np.abs(heights.dh_m[on] / heights.sigma_m[on]) < 3.3) > 0.4
+    fit = fit_clutter(heights)
+    assert fit.significant
+    assert fit.share == pytest.approx(0.2, abs=0.04)
+    assert fit.height_m == pytest.approx(18.0, abs=2.0)
+    assert fit.ground_offset_m == pytest.approx(-1.0, abs=0.4)
+    likely = np.isin(heights.track_id, fit.likely())
+    assert likely[on].mean() > 0.6 and likely[~on].mean() < 0.03
+
+
+def test_clutter_stays_where_it_is_seen():
+    """A forest over the east half: a weak track in the west keeps a small prior share."""
+    rng = np.random.default_rng(22)
+    heights, on = _population(rng, 3000, 0.3, 18.0, region=lambda xy: xy[:, 0] > 4000.0)
+    fit = fit_clutter(heights)
+    assert fit.significant
+    west = heights.point_m[:, 0] < 3000.0
+    east = heights.point_m[:, 0] > 5000.0
+    assert np.median(fit.posterior[west]) < 0.02 < 0.1 < np.median(fit.posterior[east & on])
+
+
+def test_the_considered_offset_is_the_features_expected_clutter_height():
+    fit = Clutter(np.array([1, 2, 3]), np.array([0.0, 0.5, 1.0]), 0.3, 10.0, 2.0, 0.0, 100.0,
+                  True)
+    from gtsam.symbol_shorthand import X
+    offsets = considered_offsets(fit, [X(0), X(1)], [X(1), X(2)],
+                                 [np.array([1, 2]), np.array([3, 4])], 3)
+    # frame 0: tracks 1, 2 -> (0 + 5) / 2; frame 1: 1, 2, 3, 4 -> (0 + 5 + 10 + 0) / 4
+    assert offsets.tolist() == pytest.approx([2.5, 3.75, 5.0])
+
+
+def test_a_considered_offset_grows_the_world_vertical_variance_only():
+    """Body-frame pose covariance of a banked, pitched pose: the world up variance grows
+    by the offset squared, the horizontal ones and the rotation block do not change."""
+    rng = np.random.default_rng(23)
+    pose = make_pose(so3_exp(np.array([0.3, -0.2, 1.0])), np.zeros(3))
+    A = rng.normal(size=(6, 6))
+    cov = StateCovariances((A @ A.T)[None], np.eye(3)[None], np.eye(6)[None])
+    grown = with_vertical_bias(cov, pose[None], np.array([2.0]))
+    R = pose[:3, :3]
+    before = R @ cov.pose[0, 3:, 3:] @ R.T
+    after = R @ grown.pose[0, 3:, 3:] @ R.T
+    np.testing.assert_allclose(after - before, np.diag([0.0, 0.0, 4.0]), atol=1e-12)
+    np.testing.assert_allclose(grown.pose[0, :3, :], cov.pose[0, :3, :])
