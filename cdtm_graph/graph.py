@@ -18,7 +18,7 @@ from cdtm_graph.clutter import ClutterSettings
 from cdtm_graph.dtm import Dtm, grazing_hits
 from cdtm_graph.epipolar import EpipolarSettings
 from cdtm_graph.flightlog import FlightConfig, InitialState
-from cdtm_graph.imu import SampleHold, initial_bias
+from cdtm_graph.imu import GapNoise, SampleHold, initial_bias
 from cdtm_graph.mismatch import MismatchSettings, TrackHeights, track_heights
 from cdtm_graph.results import Rejection, Rejections
 from cdtm_graph.tracks import FramePairObservations
@@ -39,6 +39,13 @@ class GraphSettings:
             ``NONE`` is plain least squares, for studies.
         imu_hold: which interval an IMU sample stands for (see :mod:`cdtm_graph.imu`);
             MIDPOINT is second-order accurate for instantaneous samples.
+        earth_physics: for a log with a geodetic origin, the IMU model of the rotating,
+            curved Earth (WGS84 normal gravity along the local vertical, the Earth rate and
+            Coriolis; :mod:`cdtm_graph.imu`). False: the flat model (``gravity_mps2``
+            along -z, no Earth rate), for comparisons. No effect without an origin.
+        imu_gap_noise: the maneuver model whose noise the IMU pieces across a gap get
+            (:class:`~cdtm_graph.imu.GapNoise`); None: the sensor's noise only (the
+            covariance then claims to know the motion the gap hides).
         first_observation_noise: also count the pixel noise of the earlier observation
             ``q_a`` (off by default, as the paper's eq. 22). Along a track every
             observation is ``q_b`` of one pair and ``q_a`` of the next, so counting it in
@@ -66,6 +73,8 @@ class GraphSettings:
     robust: RobustKernel = RobustKernel.CAUCHY
     robust_threshold: float | None = None
     imu_hold: SampleHold = SampleHold.MIDPOINT
+    earth_physics: bool = True
+    imu_gap_noise: GapNoise | None = field(default_factory=GapNoise)
     first_observation_noise: bool = False
     shared_dtm_error: bool = True
     epipolar: EpipolarSettings | None = field(default_factory=EpipolarSettings)

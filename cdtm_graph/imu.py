@@ -40,6 +40,32 @@ a small first-order rotation error (about a third of the MIDPOINT figure above) 
 two consecutive preintegrations composed differ from one over the union by ~1e-6.
 ``integrate_interval`` works with either class. ``tests/test_imu.py`` measures all of
 this against the analytic trajectory.
+
+**The Earth** (a log with a geodetic ``origin:``; ``ImuIntervals(.., earth=True)``). The
+world frame is then the ENU tangent plane at the origin, fixed to the rotating Earth, and
+the IMU senses the Earth's rotation and WGS84 normal gravity, whose direction follows the
+local vertical (0.45 deg off the world's -z at 50 km from the origin)::
+
+    gyro_radps = omega_body + R^T Omega_world + gyro_bias + n_g
+    acc_mps2   = R^T (a_world - g_world(p) + 2 Omega_world x v_world) + accel_bias + n_a
+
+Each frame interval then gets its own GTSAM parameters (:class:`EarthImu`):
+``omegaCoriolis`` the Earth rate in the world frame, and as ``n_gravity`` normal gravity at
+the interval's midpoint as the start state predicts it (gravity turns by 1.6e-7 rad per
+metre along the track, so a midpoint a few metres off changes nothing measurable; the
+start point's gravity would: :class:`EarthImu`), corrected for the centrifugal term GTSAM
+4.3 adds on its own (:meth:`~cdtm_graph.geodesy.ImuEnvironment.gtsam_n_gravity`). The
+parameters are fixed when the interval is closed (:meth:`ImuIntervals.place`), from the
+estimate of the interval's first state then. ``earth=False`` is the flat model above
+(constant ``gravity_mps2`` along -z, no Earth rate), for comparisons: on a 50 km flight
+it is hundreds of metres off where the Earth-aware model is not (docs/geodesy.md).
+
+**Gaps** (:mod:`cdtm_graph.imu_faults`). Across consecutive samples more than a few
+nominal periods apart the samples on either side are held as always, but nothing says
+how the aircraft moved in between. The pieces those samples hold get the noise of a
+maneuver model (:class:`GapNoise`), in steps of at most ``GAP_STEP_S`` so GTSAM's
+covariance propagation carries the growing attitude uncertainty into velocity and
+position: the factor's covariance stays honest where its mean is a guess.
 """
 
 from __future__ import annotations
@@ -56,6 +82,8 @@ from numba import njit
 
 from cdtm_graph.errors import FlightLogError, SolverError
 from cdtm_graph.flightlog import FlightConfig, InitialState
+from cdtm_graph.geodesy import LocalFrame
+from cdtm_graph.imu_faults import gap_after
 from cdtm_graph.results import TrajectoryEstimate
 
 NS_PER_S = 1_000_000_000
@@ -98,6 +126,56 @@ class SampleHold(Enum):
 
     ZERO_ORDER = "zero_order"  # sample k over [t_k, t_k+1), given to GTSAM as is
     MIDPOINT = "midpoint"      # sample k over the half-way points; half-step rotation
+
+
+#: Gap pieces are integrated in steps of at most this long (s): GTSAM propagates the
+#: covariance per step, and only across steps does attitude uncertainty built up inside a
+#: gap reach velocity and position (``|f| sigma_theta`` per second).
+GAP_STEP_S = 0.05
+
+
+@dataclass(frozen=True)
+class GapNoise:
+    """What an IMU gap may hide: how far the true motion may stray from the held samples.
+
+    A maneuver model. Across a gap of ``T`` seconds the true specific force and angular
+    rate differ from the samples held there by an unknown amount that builds up over a
+    maneuver's onset and is then bounded: ``sigma(T) = max * min(T / onset_s, 1)`` for
+    each. Taken as constant over the gap, such an error gives a velocity error of
+    ``sigma T`` and an attitude error of ``sigma_rate T``; white noise of density
+    ``q^2 = sigma(T)^2 T`` over the gap's pieces gives the same variance at the gap's
+    end (and a little more in position: ``T^4/3`` against ``T^4/4``), which is what the
+    pieces get on top of the sensor's own noise.
+
+    The defaults are a transport or survey aircraft's maneuvers: a coordinated turn at 30
+    deg of bank changes the specific force by g (1/cos 30 - 1) = 1.5 m/s^2, throttle and
+    pitch changes by under 1 m/s^2, so 2 m/s^2; a bank ramp rolls at 10-15 deg/s for 2 s
+    and a rate-one turn is 3 deg/s, so an attitude that may be 25 deg off after a 5 s gap
+    (5 deg/s): the simulated flights roll 22 deg into their turns in 2 s. Onset 1 s: a
+    roll or a pull-up takes about that long to develop, so a gap of a few samples costs
+    little (10 ms: 0.02 m/s^2 and 0.05 deg/s, comparable to the sensor noise).
+
+    Attributes:
+        accel_mps2: bound of the specific-force error, m/s^2.
+        rate_radps: bound of the angular-rate error, rad/s.
+        onset_s: time over which the errors reach their bounds, s.
+    """
+
+    accel_mps2: float = 2.0
+    rate_radps: float = math.radians(5.0)
+    onset_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("accel_mps2", "rate_radps", "onset_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"GapNoise.{name} must be finite and > 0, got {value}")
+
+    def densities(self, gap_s: float) -> tuple[float, float]:
+        """Continuous-time variance densities (accelerometer (m/s^2)^2 s, gyroscope
+        (rad/s)^2 s) for the pieces of a gap of ``gap_s`` seconds."""
+        scale = min(gap_s / self.onset_s, 1.0)
+        return ((self.accel_mps2 * scale) ** 2 * gap_s, (self.rate_radps * scale) ** 2 * gap_s)
 
 
 def preintegration_params(noise: ImuNoise, gravity_mps2: float,
@@ -342,40 +420,220 @@ class ImuArrays(Protocol):
     def acc_mps2(self) -> np.ndarray: ...
 
 
-class ImuIntervals:
-    """Preintegrates the IMU over frame intervals of one flight."""
+class Preintegration(gtsam.PreintegratedCombinedMeasurements):
+    """A frame interval's preintegration with the parameters it was made with.
 
-    def __init__(self, config: FlightConfig, imu: ImuArrays, hold: SampleHold):
-        self.params = preintegration_params(imu_noise(config), config.gravity_mps2,
-                                            config.imu.rate_hz)
+    GTSAM's Python API does not hand a preintegration's parameters back, and the Earth
+    model sets each interval's gravity when the interval is closed, the gap model its
+    noise while it integrates: both need them. A ``CombinedImuFactor`` made from it
+    shares them (GTSAM keeps a shared pointer), so they are never changed once a factor
+    exists.
+
+    Attributes:
+        interval_params: the parameters GTSAM reads while integrating and predicting.
+        spans_gap: some of it was held across an IMU gap (:class:`GapNoise`): its mean is
+            a guess, and a prediction through it a poor linearization point.
+    """
+
+    def __init__(self, params: gtsam.PreintegrationCombinedParams,
+                 bias: gtsam.imuBias.ConstantBias):
+        super().__init__(params, bias)
+        self.interval_params = params
+        self.spans_gap = False
+
+
+class EarthImu:
+    """The rotating, curved Earth under a geodetic log's IMU: per-interval GTSAM parameters.
+
+    Every interval gets parameters of its own (``omegaCoriolis`` the Earth rate in the
+    world frame) whose ``n_gravity`` :meth:`place` sets from the interval's start state:
+    normal gravity at the interval's midpoint, corrected for GTSAM's own centrifugal term
+    (module docstring).
+
+    The midpoint is ``p + v T / 2`` from the start state. Dead reckoning a noiseless
+    50 km, 200 s geodetic flight (``scripts/earth_imu_error.py``) ends 0.477 m off with
+    it, 0.478 m with GTSAM's predicted midpoint instead (and 0.486 m on the same flight in
+    a flat world: the samples' hold, not the Earth), 3.3 m with gravity at the start
+    position, 4.7 m with gravity 141 m from the midpoint: a few metres of midpoint error
+    do not matter, a start-point gravity does.
+    """
+
+    def __init__(self, frame: LocalFrame, noise: ImuNoise, gravity_mps2: float):
+        self.frame = frame
+        self.noise = noise
+        self.gravity_mps2 = gravity_mps2
+        self.earth_rate_radps = frame.earth_rate_world_radps
+
+    def params(self) -> gtsam.PreintegrationCombinedParams:
+        """Fresh parameters for one interval (gravity still the flat placeholder)."""
+        params = preintegration_params(self.noise, self.gravity_mps2)
+        params.setOmegaCoriolis(self.earth_rate_radps)
+        return params
+
+    def place(self, pim: Preintegration, world_T_body: np.ndarray,
+              velocity_mps: np.ndarray) -> None:
+        """Set the interval's gravity from its start state (after integrating it).
+
+        Args:
+            pim: the interval's preintegration (its ``interval_params`` change).
+            world_T_body: (4, 4) the start state's pose. velocity_mps: (3,) its velocity.
+        """
+        start = np.asarray(world_T_body, dtype=float)[:3, 3]
+        midpoint = start + 0.5 * pim.deltaTij() * np.asarray(velocity_mps, dtype=float)
+        pim.interval_params.n_gravity = self.frame.imu_environment(midpoint).gtsam_n_gravity(
+            start)
+
+
+class ImuIntervals:
+    """Preintegrates the IMU over frame intervals of one flight.
+
+    Args:
+        config: flight.yaml (IMU noise and rate, gravity, origin).
+        imu: the samples (``imu`` may be replaced as more arrive: ``ImuFeed``).
+        hold: how a sample stands for time.
+        earth: with a geodetic origin, the Earth-aware model (module docstring);
+            False, or no origin: the flat model.
+        gap_noise: the maneuver model of IMU gaps; None integrates gaps with the sensor's
+            noise only (the old, overconfident behaviour, for comparisons).
+    """
+
+    def __init__(self, config: FlightConfig, imu: ImuArrays, hold: SampleHold,
+                 earth: bool = True, gap_noise: GapNoise | None = GapNoise()):
+        noise = imu_noise(config)
+        self.params = preintegration_params(noise, config.gravity_mps2, config.imu.rate_hz)
         self.imu = imu
         self.hold = hold
+        frame = config.local_frame if earth else None
+        self.earth = (EarthImu(frame, noise, config.gravity_mps2) if frame is not None
+                      else None)
+        self.rate_hz = config.imu.rate_hz
+        self.gap_noise = gap_noise
 
-    def preintegrate(self, t0_ns: int, t1_ns: int,
-                     bias: gtsam.imuBias.ConstantBias) -> gtsam.PreintegratedCombinedMeasurements:
-        """IMU over exactly [t0, t1], linearized at ``bias``.
+    def new_preintegration(self, bias: gtsam.imuBias.ConstantBias) -> Preintegration:
+        """An empty preintegration linearized at ``bias``: the shared parameters (flat
+        model), or the interval's own (Earth)."""
+        return Preintegration(self.params if self.earth is None else self.earth.params(), bias)
+
+    def preintegrate(self, t0_ns: int, t1_ns: int, bias: gtsam.imuBias.ConstantBias,
+                     start: tuple[np.ndarray, np.ndarray] | None = None) -> Preintegration:
+        """IMU over exactly [t0, t1], linearized at ``bias``, placed (:meth:`place`).
+
+        Args:
+            start: ``(world_T_body (4, 4), velocity_mps (3,))`` at t0: where the interval
+                is on the Earth; needed by the Earth model (ignored by the flat one).
 
         Raises:
             SolverError: the samples do not cover the interval.
+            ValueError: Earth model without ``start``.
         """
-        pim = gtsam.PreintegratedCombinedMeasurements(self.params, bias)
+        pim = self.new_preintegration(bias)
         self.integrate(pim, t0_ns, t1_ns)
+        self.place(pim, start)
         return pim
+
+    def place(self, pim: Preintegration, start: tuple[np.ndarray, np.ndarray] | None) -> None:
+        """Fix an integrated interval's gravity from its start state (Earth model; the
+        flat model has one gravity for all intervals and ignores ``start``).
+
+        Raises:
+            ValueError: Earth model without ``start``.
+        """
+        if self.earth is None:
+            return
+        if start is None:
+            raise ValueError("an Earth-aware IMU interval needs its start state "
+                             "(world_T_body, velocity_mps) to place its gravity")
+        self.earth.place(pim, *start)
 
     def integrate(self, pim: gtsam.PreintegratedCombinedMeasurements, t0_ns: int,
                   t1_ns: int) -> None:
         """Add the IMU over exactly [t0, t1] to ``pim``. Stopping and resuming on a hold
         boundary (:meth:`hold_boundary_before`) feeds GTSAM the same pieces as one call.
+        Pieces held across a gap get the gap's noise (:class:`GapNoise`): ``pim`` must
+        then come from :meth:`new_preintegration`.
 
         Raises:
             SolverError: the samples do not cover the interval.
         """
+        t0_ns, t1_ns = int(t0_ns), int(t1_ns)
         try:  # (it works on the samples near the interval only)
-            integrate_interval(pim, self.imu.t_ns, self.imu.gyro_radps, self.imu.acc_mps2,
-                               int(t0_ns), int(t1_ns), self.hold)
+            gaps = self._gaps_near(t0_ns, t1_ns) if self.gap_noise is not None else None
+            if gaps is None:
+                integrate_interval(pim, self.imu.t_ns, self.imu.gyro_radps, self.imu.acc_mps2,
+                                   t0_ns, t1_ns, self.hold)
+            else:
+                self._integrate_across_gaps(pim, t0_ns, t1_ns, gaps)
         except ValueError as exc:
             raise SolverError(f"imu.csv does not cover the frame interval "
                               f"[{t0_ns}, {t1_ns}] ns: {exc}") from None
+
+    def _gaps_near(self, t0_ns: int, t1_ns: int) -> np.ndarray | None:
+        """(N,) the gap (s) after each sample, 0 for none; None when no sample near
+        [t0, t1] borders a gap (the usual case: nothing to do)."""
+        t = np.asarray(self.imu.t_ns)
+        if t.ndim != 1 or t.shape[0] < 2:
+            return None
+        lo, hi = _near(t, t0_ns, t1_ns)
+        lo, hi = max(lo - 1, 0), min(hi + 1, t.shape[0])
+        gap = gap_after(t[lo:hi], self.rate_hz)
+        if not gap.any():
+            return None
+        after_s = np.zeros(t.shape[0])
+        after_s[lo:hi - 1] = np.where(gap, np.diff(t[lo:hi]) / NS_PER_S, 0.0)
+        return after_s
+
+    def _integrate_across_gaps(self, pim: gtsam.PreintegratedCombinedMeasurements,
+                               t0_ns: int, t1_ns: int, after_s: np.ndarray) -> None:
+        """Like ``integrate_interval``, with the pieces that lie inside a gap (between
+        the two samples around it: a hold piece is cut at its sample's time) integrated
+        in steps of at most ``GAP_STEP_S`` under the gap's noise."""
+        if not isinstance(pim, Preintegration):
+            raise ValueError("an interval with an IMU gap needs a preintegration made by "
+                             "ImuIntervals.new_preintegration (its noise changes per piece)")
+        assert self.gap_noise is not None
+        t = np.asarray(self.imu.t_ns, dtype=np.int64)
+        index, dt_ns = hold_segments(t, t0_ns, t1_ns, self.hold)
+        pieces: list[tuple[int, int, float]] = []  # (sample, duration ns, gap s)
+        begin = t0_ns
+        for j, d in zip(index.tolist(), dt_ns.tolist()):
+            t_j, end = int(t[j]), begin + d
+            before_s, next_s = (float(after_s[j - 1]) if j > 0 else 0.0), float(after_s[j])
+            if begin < t_j < end and before_s != next_s:  # a midpoint hold by a gap: the
+                pieces += [(j, t_j - begin, before_s), (j, end - t_j, next_s)]  # two sides
+            else:
+                pieces.append((j, d, next_s if begin >= t_j else before_s))
+            begin = end
+        index = np.array([p[0] for p in pieces], dtype=np.int64)
+        dt_ns = np.array([p[1] for p in pieces], dtype=np.int64)
+        piece_gap = np.array([p[2] for p in pieces])
+        steps = np.where(piece_gap > 0,
+                         np.ceil(dt_ns / (GAP_STEP_S * NS_PER_S)).astype(np.int64), 1)
+        index, dt_ns = np.repeat(index, steps), _split_ns(dt_ns, steps)
+        piece_gap = np.repeat(piece_gap, steps)
+        midpoint = self.hold is SampleHold.MIDPOINT
+        bias = pim.biasHatVector()  # (accelerometer, gyroscope)
+        b_a, b_g = ((np.ascontiguousarray(bias[:3]), np.ascontiguousarray(bias[3:]))
+                    if midpoint else (np.zeros(3), np.zeros(3)))
+        f, w, dt_s = _held_measurements(np.asarray(self.imu.gyro_radps, dtype=float),
+                                        np.asarray(self.imu.acc_mps2, dtype=float),
+                                        index, dt_ns, midpoint, b_a, b_g)
+        params = pim.interval_params
+        # copies: the getters return views of GTSAM's matrices, which the setters change
+        acc_cov = np.array(params.getAccelerometerCovariance(), copy=True)
+        gyro_cov = np.array(params.getGyroscopeCovariance(), copy=True)
+        eye = np.eye(3)
+        try:
+            for a, b in _equal_runs(piece_gap):
+                q_acc, q_gyro = (self.gap_noise.densities(float(piece_gap[a]))
+                                 if piece_gap[a] > 0 else (0.0, 0.0))
+                params.setAccelerometerCovariance(acc_cov + q_acc * eye)
+                params.setGyroscopeCovariance(gyro_cov + q_gyro * eye)
+                for k in range(a, b):
+                    pim.integrateMeasurement(f[k], w[k], float(dt_s[k]))
+            pim.spans_gap = pim.spans_gap or bool(np.any(piece_gap > 0))
+        finally:
+            params.setAccelerometerCovariance(acc_cov)
+            params.setGyroscopeCovariance(gyro_cov)
 
     def hold_boundary_before(self, limit_ns: int) -> int | None:
         """The latest hold boundary at or before ``limit_ns`` up to which the samples held
@@ -394,6 +652,21 @@ class ImuIntervals:
         return int(t[j - 1] + (t[j] - t[j - 1]) // 2) if j >= 1 else None
 
 
+def _split_ns(dt_ns: np.ndarray, steps: np.ndarray) -> np.ndarray:
+    """Each duration cut into ``steps`` integer-ns parts that sum to it exactly."""
+    out = np.repeat(dt_ns // steps, steps)
+    remainder = np.repeat(dt_ns % steps, steps)
+    rank = np.arange(out.size) - np.repeat(np.cumsum(steps) - steps, steps)
+    return out + (rank < remainder)
+
+
+def _equal_runs(values: np.ndarray) -> list[tuple[int, int]]:
+    """[start, stop) of each run of equal consecutive values."""
+    cuts = np.flatnonzero(values[1:] != values[:-1]) + 1
+    edges = np.r_[0, cuts, values.size]
+    return list(zip(edges[:-1].tolist(), edges[1:].tolist()))
+
+
 class ImuStream:
     """The preintegration after the newest frame, advanced as IMU samples arrive.
 
@@ -408,7 +681,7 @@ class ImuStream:
 
     def __init__(self, intervals: ImuIntervals):
         self.intervals = intervals
-        self._pim: gtsam.PreintegratedCombinedMeasurements | None = None
+        self._pim: Preintegration | None = None
         self._bias = gtsam.imuBias.ConstantBias()
         self._t0_ns = self._done_ns = 0
         self.holdback_ns = 0  # how far the IMU has been seen to run ahead of a frame
@@ -420,7 +693,7 @@ class ImuStream:
 
     def start(self, t0_ns: int, bias: gtsam.imuBias.ConstantBias) -> None:
         """Begin the interval after a frame at ``t0_ns``, linearized at ``bias``."""
-        self._pim = gtsam.PreintegratedCombinedMeasurements(self.intervals.params, bias)
+        self._pim = self.intervals.new_preintegration(bias)
         self._bias = bias
         self._t0_ns = self._done_ns = int(t0_ns)
 
@@ -434,9 +707,12 @@ class ImuStream:
             self.intervals.integrate(self._pim, self._done_ns, horizon)
             self._done_ns = horizon
 
-    def finish(self, t1_ns: int) -> gtsam.PreintegratedCombinedMeasurements:
-        """The preintegration over [t0, t1], t1 the next frame's time. The stream is
-        spent on success only: after an error (samples missing), feed them and retry.
+    def finish(self, t1_ns: int, start: tuple[np.ndarray, np.ndarray] | None = None
+               ) -> Preintegration:
+        """The preintegration over [t0, t1], t1 the next frame's time, placed from
+        ``start`` (``ImuIntervals.place``: the state at t0, needed by the Earth model).
+        The stream is spent on success only: after an error (samples missing), feed them
+        and retry.
 
         Raises:
             SolverError: the samples do not cover the interval.
@@ -445,15 +721,15 @@ class ImuStream:
             raise ValueError("ImuStream.finish before start")
         t1_ns = int(t1_ns)
         if self._done_ns > t1_ns:  # integrated past the frame: redo the interval
-            pim = self.intervals.preintegrate(self._t0_ns, t1_ns, self._bias)
+            pim = self.intervals.preintegrate(self._t0_ns, t1_ns, self._bias, start)
             self.holdback_ns = max(self.holdback_ns, int(self.intervals.imu.t_ns[-1]) - t1_ns)
         else:
             pim = self._pim
             if t1_ns > self._done_ns:  # checks everything before it integrates
                 self.intervals.integrate(pim, self._done_ns, t1_ns)
+            self.intervals.place(pim, start)
         self._pim = None
         return pim
-
 
 
 class _HeldSamples(NamedTuple):
@@ -473,13 +749,19 @@ class ImuFeed:
     closes it at the next frame (``ImuStream``). Samples before the newest frame are
     dropped as new ones arrive (two kept for the holds), so a live feed does not grow.
 
+    Args:
+        config, hold, earth, gap_noise: as :class:`ImuIntervals`.
+        imu: samples known up front (a log), or None (fed with :meth:`add`).
+
     Attributes:
         time_s: time spent preintegrating (``add`` only) since :meth:`take_time_s`.
     """
 
-    def __init__(self, config: FlightConfig, hold: SampleHold, imu: ImuArrays | None = None):
+    def __init__(self, config: FlightConfig, hold: SampleHold, imu: ImuArrays | None = None,
+                 earth: bool = True, gap_noise: GapNoise | None = GapNoise()):
         empty = _HeldSamples(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
-        self.intervals = ImuIntervals(config, imu if imu is not None else empty, hold)
+        self.intervals = ImuIntervals(config, imu if imu is not None else empty, hold, earth,
+                                      gap_noise)
         self.stream = ImuStream(self.intervals)
         self.given_up_front = imu is not None and len(imu.t_ns) > 0
         self._frame_ns: int | None = None  # the newest frame's time
@@ -533,14 +815,19 @@ class ImuFeed:
         spent, self.time_s = self.time_s, 0.0
         return spent
 
-    def finish(self, t_ns: int) -> gtsam.PreintegratedCombinedMeasurements:
+    def finish(self, t_ns: int, start: tuple[np.ndarray, np.ndarray] | None = None
+               ) -> Preintegration:
         """The preintegration from the newest frame to the next one at ``t_ns``.
+
+        Args:
+            start: ``(world_T_body, velocity_mps)`` of the newest frame (the interval's
+                start): needed by the Earth model, ignored by the flat one.
 
         Raises:
             SolverError: the samples do not cover the interval (nothing changes: feed
                 the missing samples and retry).
         """
-        return self.stream.finish(t_ns)
+        return self.stream.finish(t_ns, start)
 
 
 def navstate_predict(pim: gtsam.PreintegratedCombinedMeasurements, world_T_body: np.ndarray,
@@ -552,7 +839,8 @@ def navstate_predict(pim: gtsam.PreintegratedCombinedMeasurements, world_T_body:
 
 
 def dead_reckoning(config: FlightConfig, imu: ImuArrays, t_ns: np.ndarray,
-                   hold: SampleHold = SampleHold.MIDPOINT) -> TrajectoryEstimate:
+                   hold: SampleHold = SampleHold.MIDPOINT, earth: bool = True
+                   ) -> TrajectoryEstimate:
     """IMU-only navigation from the initial state, no corrections: the paper's "Free".
 
     From ``initial_state`` (position, attitude, velocity, biases) at the first frame,
@@ -560,11 +848,13 @@ def dead_reckoning(config: FlightConfig, imu: ImuArrays, t_ns: np.ndarray,
     predicted with ``pim.predict(NavState, bias)``; the biases stay at their prior means.
 
     Args:
-        config: flight.yaml (initial state, IMU noise, gravity).
+        config: flight.yaml (initial state, IMU noise, gravity, origin).
         imu: the samples; they must cover the frame times.
         t_ns: (K,) frame times.
         hold: how a sample stands for time; the default is the smoother's
             (``GraphSettings.imu_hold``), so "Free" and "Compensated" integrate alike.
+        earth: the Earth-aware model for a log with a geodetic origin (module docstring;
+            ``GraphSettings.earth_physics``); False: the flat model.
 
     Returns:
         K states at the frame times (biases constant).
@@ -580,14 +870,15 @@ def dead_reckoning(config: FlightConfig, imu: ImuArrays, t_ns: np.ndarray,
         span = f"[{t_imu[0]}, {t_imu[-1]}]" if t_imu.size else "nothing"
         raise FlightLogError(f"imu.csv: samples span {span} ns; expected them to cover the "
                              f"frames [{t_frames[0]}, {t_frames[-1]}] ns")
-    intervals = ImuIntervals(config, imu, hold)
+    intervals = ImuIntervals(config, imu, hold, earth)
     bias = initial_bias(init)
     poses = np.empty((k_frames, 4, 4))
     velocities = np.empty((k_frames, 3))
     pose, velocity = init.world_T_body, np.asarray(init.velocity_mps, dtype=float)
     for k in range(k_frames):
         if k:
-            pim = intervals.preintegrate(int(t_frames[k - 1]), int(t_frames[k]), bias)
+            pim = intervals.preintegrate(int(t_frames[k - 1]), int(t_frames[k]), bias,
+                                         (pose, velocity))
             pose, velocity = navstate_predict(pim, pose, velocity, bias)
         poses[k], velocities[k] = pose, velocity
     return TrajectoryEstimate(

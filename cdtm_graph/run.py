@@ -5,6 +5,7 @@ No file I/O: :func:`smooth_and_evaluate` returns everything the CLI writes.
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass
 
@@ -12,8 +13,11 @@ from cdtm_graph.dtm import Dtm
 from cdtm_graph.evaluation import ErrorReport, free_vs_compensated, trajectory_errors
 from cdtm_graph.flightlog import FlightLog
 from cdtm_graph.imu import dead_reckoning
+from cdtm_graph.imu_faults import check_imu
 from cdtm_graph.results import SmootherResult, TrajectoryEstimate
 from cdtm_graph.smoother import Progress, SmootherSettings, smooth
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -41,11 +45,17 @@ def smooth_and_evaluate(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
     start = time.perf_counter()
     result = smooth(flight, dtm, settings, progress)
     report: dict = {"input": str(flight.root), "timings_s": {"smooth": time.perf_counter() - start}}
+    # IMU faults (gaps, rate, stuck, saturated), named with the frames they touch
+    imu = flight.imu
+    findings = check_imu(imu.t_ns, imu.gyro_radps, imu.acc_mps2, flight.config.imu.rate_hz)
+    for finding in findings:
+        logger.warning("%s", finding.message)
+    report["imu_findings"] = [f.to_dict(flight.frames.t_ns) for f in findings]
     errors = free = free_errors = None
     if flight.groundtruth is not None:
         errors = trajectory_errors(result.estimate, result.covariances, flight.groundtruth)
         free = dead_reckoning(flight.config, flight.imu, flight.frames.t_ns,
-                              settings.graph.imu_hold)
+                              settings.graph.imu_hold, settings.graph.earth_physics)
         free_errors = trajectory_errors(free, None, flight.groundtruth)
         report["evaluation"] = {
             "compensated": errors.to_dict(),

@@ -39,6 +39,7 @@ from pyproj import Geod
 
 from cdtm_graph.geodesy import GeodeticOrigin, LocalFrame, normal_gravity_mps2
 from cdtm_graph.geometry import so3_exp, so3_log
+from cdtm_graph.sim.imu import earth_imu
 
 #: Finite-difference step of the truth's derivatives (s): the path is analytic on the
 #: scale of seconds, and PROJ's round-off (~1e-9 m) over (0.5 s)^2 stays below 1e-8 m/s^2.
@@ -94,15 +95,11 @@ class Truth:
         omega = (4 * rate(h / 2) - rate(h)) / 3  # Richardson: fourth order
         return p[0], v, a, omega
 
-    def imu(self, t_s: np.ndarray, earth_rate: np.ndarray):
-        """Perfect gyro (rad/s) and accelerometer (m/s^2) readings, (N, 3) each."""
+    def imu(self, t_s: np.ndarray):
+        """Perfect gyro (rad/s) and accelerometer (m/s^2) readings, (N, 3) each: the
+        simulator's Earth-aware IMU (:func:`cdtm_graph.sim.imu.earth_imu`)."""
         p, v, a, omega_wb = self.state(t_s)
-        R = self.rotation(t_s)
-        g = self.frame.gravity_world_mps2(p)
-        f_world = a - g + 2 * np.cross(earth_rate, v)
-        gyro = omega_wb + np.einsum("nji,j->ni", R, earth_rate)
-        acc = np.einsum("nji,nj->ni", R, f_world)
-        return gyro, acc
+        return earth_imu(self.frame, self.rotation(t_s), p, v, a, omega_wb)
 
 
 def integrate_rk4(frame: LocalFrame, truth: Truth, duration_s: float, rate_hz: float,
@@ -112,7 +109,7 @@ def integrate_rk4(frame: LocalFrame, truth: Truth, duration_s: float, rate_hz: f
     n = int(round(duration_s * rate_hz))
     omega = frame.earth_rate_world_radps if earth_rate_on else np.zeros(3)
     t_nodes = np.arange(2 * n + 1) * (dt / 2)
-    gyro, acc = truth.imu(t_nodes, frame.earth_rate_world_radps)
+    gyro, acc = truth.imu(t_nodes)
     p0, v0, _, _ = truth.state(np.array([0.0]))
     p, v, R = p0[0].copy(), v0[0].copy(), truth.rotation(np.array([0.0]))[0]
     g0 = np.array([0.0, 0.0, -float(normal_gravity_mps2(frame.origin.latitude_deg,
@@ -158,7 +155,7 @@ def integrate_gtsam(frame: LocalFrame, truth: Truth, duration_s: float, rate_hz:
     steps = int(round(interval_s * rate_hz))
     n_intervals = int(round(duration_s / interval_s))
     t_mid = (np.arange(n_intervals * steps) + 0.5) * dt  # midpoint samples: second order
-    gyro, acc = truth.imu(t_mid, frame.earth_rate_world_radps)
+    gyro, acc = truth.imu(t_mid)
     p0, v0, _, _ = truth.state(np.array([0.0]))
     state = gtsam.NavState(gtsam.Rot3(truth.rotation(np.array([0.0]))[0]), p0[0], v0[0])
     bias = gtsam.imuBias.ConstantBias()

@@ -337,6 +337,7 @@ def test_a_flat_flight_smooths_the_same_over_npz_and_over_a_georeferenced_tile(t
 
     from cdtm_graph.dtm import save_dtm_npz
     from cdtm_graph.flightlog import DtmConfig, load_log_and_dtm, write_flightlog
+    from cdtm_graph.graph import GraphSettings
     from cdtm_graph.results import pose_covariance_in_world
     from cdtm_graph.sim.simulate import SimulationSettings, simulate, write_simulation
     from cdtm_graph.smoother import SmootherSettings, smooth
@@ -363,8 +364,10 @@ def test_a_flat_flight_smooths_the_same_over_npz_and_over_a_georeferenced_tile(t
         tmp_path / "geo" / "dem.tif", 1.0, vertical_datum=VerticalDatum.EGM96, margin_m=1500.0))
     write_flightlog(dataclasses.replace(sim.log, config=geo_cfg), tmp_path / "geo")
 
-    results = [smooth(*load_log_and_dtm(tmp_path / name), SmootherSettings())
-               for name in ("flat", "geo")]
+    # The same samples on both sides: the flat IMU model for the log placed on the Earth
+    # too (its simulated IMU senses no Earth: tests/test_earth_imu.py has the Earth's).
+    flat_imu = SmootherSettings(graph=GraphSettings(earth_physics=False))
+    results = [smooth(*load_log_and_dtm(tmp_path / name), flat_imu) for name in ("flat", "geo")]
     flat, geo = (r.estimate.position_m for r in results)
     _, cov = pose_covariance_in_world(results[0].estimate.world_T_body,
                                       results[0].covariances.pose)

@@ -27,6 +27,7 @@ import pytest
 from cdtm_graph.flightlog import ImuSamples
 from cdtm_graph.imu import (
     NS_PER_S,
+    GapNoise,
     ImuIntervals,
     ImuNoise,
     ImuStream,
@@ -35,6 +36,7 @@ from cdtm_graph.imu import (
     integrate_interval,
     preintegration_params,
 )
+from cdtm_graph.sim.faults import with_imu_gap
 from cdtm_graph.sim.imu import ImuData, ideal_imu, simulate_imu
 from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
 from cdtm_graph.sim.trajectory import FlightPlan, evaluate, plan_trajectory
@@ -485,3 +487,74 @@ def test_imu_stream_gives_the_interval_preintegration_exactly(hold, rng):
         got = stream.finish(int(t_frames[k + 1]))
         want = reference.preintegrate(int(t_frames[k]), int(t_frames[k + 1]), bias)
         np.testing.assert_array_equal(_pim_state(got), _pim_state(want))
+
+
+# --- gaps ------------------------------------------------------------------------------
+
+#: The gap's variance density lands on the pieces between the two samples around it:
+#: measured against GTSAM's preintegrated covariance to this relative tolerance (the
+#: flight turns a little, so the rotation noise is not summed in exactly one frame).
+GAP_COV_RTOL = 0.02
+
+
+@pytest.fixture(scope="module")
+def gap_flight():
+    """6 s at 1 fps (a straight leg and the roll into a turn) and the same with the IMU
+    samples of [1.3 s, 2.3 s) missing: a spacing of 1.005 s from 1.295 s to 2.3 s."""
+    flight, _ = simulate_flight(SimulationSettings(frames=7, n_features=10, seed=3))
+    return flight, with_imu_gap(flight, 1.3, 1.0)
+
+
+@pytest.mark.parametrize("hold", list(SampleHold))
+def test_a_gap_gets_the_maneuver_models_noise(gap_flight, hold):
+    flight, gappy = gap_flight
+    gap_s, gap_noise = 1.005, GapNoise()
+    t0, t1 = 1 * NS_PER_S, 3 * NS_PER_S
+    bias = gtsam.imuBias.ConstantBias()
+    cov = {name: ImuIntervals(log.config, log.imu, hold, gap_noise=noise).preintegrate(
+        t0, t1, bias).preintMeasCov()
+        for name, log, noise in (("clean", flight, gap_noise), ("modelled", gappy, gap_noise),
+                                 ("unmodelled", gappy, None))}
+    q_acc, q_gyro = gap_noise.densities(gap_s)
+    rotation = np.diag(cov["modelled"])[0:3] - np.diag(cov["clean"])[0:3]
+    np.testing.assert_allclose(rotation, q_gyro * gap_s, rtol=GAP_COV_RTOL)
+    # velocity along the start's body z (gravity's): the accelerometer's part alone
+    vertical = cov["modelled"][8, 8] - cov["clean"][8, 8]
+    assert vertical == pytest.approx(q_acc * gap_s, rel=GAP_COV_RTOL)
+    # ... across it (x, y) the attitude's random walk turns g into velocity as well:
+    # var(g int dtheta) = g^2 q (T^3/3 + T^2 r + T r^2), r the time after the gap (0.7 s);
+    # GTSAM's 50 ms steps couple a step's own rotation noise one step late (-4%)
+    rest = 0.7
+    coupling = G_MPS2 ** 2 * q_gyro * (gap_s ** 3 / 3 + gap_s ** 2 * rest + gap_s * rest ** 2)
+    horizontal = np.diag(cov["modelled"])[6:8] - np.diag(cov["clean"])[6:8]
+    np.testing.assert_allclose(horizontal, q_acc * gap_s + coupling, rtol=0.05)
+    # the sensor's noise alone claims to know the held motion as well as measured motion
+    # (or better: one long GTSAM step couples less noise than many short ones)
+    assert np.all(np.diag(cov["unmodelled"]) <= 1.01 * np.diag(cov["clean"]))
+
+
+@pytest.mark.parametrize("hold", list(SampleHold))
+def test_intervals_beside_a_gap_keep_the_sensors_noise(gap_flight, hold):
+    """Before and after the gap the preintegration is exactly the gapless log's, also
+    after a gap interval was integrated with the same (shared) parameters."""
+    flight, gappy = gap_flight
+    bias = gtsam.imuBias.ConstantBias()
+    clean = ImuIntervals(flight.config, flight.imu, hold)
+    faulty = ImuIntervals(gappy.config, gappy.imu, hold)
+    faulty.preintegrate(1 * NS_PER_S, 3 * NS_PER_S, bias)  # the gap, first
+    for t0, t1 in ((0, 1), (3, 4), (4, 5)):
+        np.testing.assert_array_equal(
+            _pim_state(faulty.preintegrate(t0 * NS_PER_S, t1 * NS_PER_S, bias)),
+            _pim_state(clean.preintegrate(t0 * NS_PER_S, t1 * NS_PER_S, bias)))
+
+
+def test_gap_noise_grows_with_the_gap_to_its_bounds():
+    g = GapNoise(accel_mps2=2.0, rate_radps=0.1, onset_s=1.0)
+    q_acc, q_gyro = g.densities(0.01)
+    assert q_acc == pytest.approx((2.0 * 0.01) ** 2 * 0.01)
+    assert q_gyro == pytest.approx((0.1 * 0.01) ** 2 * 0.01)
+    q_acc, q_gyro = g.densities(5.0)  # past the onset: a bounded error held 5 s
+    assert q_acc * 5.0 == pytest.approx((2.0 * 5.0) ** 2)
+    assert q_gyro * 5.0 == pytest.approx((0.1 * 5.0) ** 2)
+    with pytest.raises(ValueError):
+        GapNoise(accel_mps2=0.0)

@@ -11,7 +11,7 @@ from tqdm import tqdm
 from cdtm_graph.camera import DistortionModel
 from cdtm_graph.cli.outdir import OUT_RULES, add_force_option, output_dir
 from cdtm_graph.errors import CdtmError
-from cdtm_graph.geodesy import VerticalDatum
+from cdtm_graph.geodesy import GeodeticOrigin, VerticalDatum
 from cdtm_graph.sim.render import OrthophotoTexture, RenderSettings, render_flight
 from cdtm_graph.sim.simulate import (
     WRITER,
@@ -82,7 +82,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     geo.add_argument("--origin", type=float, nargs=3, metavar=("LAT", "LON", "H"),
                      help="WGS84 latitude, longitude (deg) and ellipsoidal height (m) of the "
                           "world origin: writes dem.tif instead of dtm.npz, and the initial "
-                          "state, nav.csv and groundtruth.csv in latitude/longitude/height")
+                          "state, nav.csv and groundtruth.csv in latitude/longitude/height; "
+                          "the IMU senses the Earth's rotation and WGS84 normal gravity")
     geo.add_argument("--dem-crs", default="EPSG:4326",
                      help="CRS of dem.tif (default %(default)s, as SRTM and Copernicus)")
     geo.add_argument("--vertical-datum", choices=[d.value for d in VerticalDatum],
@@ -112,7 +113,8 @@ def run(args: argparse.Namespace) -> int:
         fps=args.fps, n_features=args.features, seed=args.seed, noiseless=args.noiseless,
         exact_dtm=args.exact_dtm, dtm_spacing_m=args.dtm_spacing_m, relief_m=args.relief_m,
         nav=args.nav, resolution_px=tuple(args.resolution),
-        distortion_model=args.distortion_model, distortion_coeffs=tuple(args.distortion_coeffs))
+        distortion_model=args.distortion_model, distortion_coeffs=tuple(args.distortion_coeffs),
+        origin=GeodeticOrigin(*args.origin) if args.origin is not None else None)
     render = None
     if args.images:  # settings checked before the (long) simulation
         render = RenderSettings(exposure_jitter=args.exposure_jitter,
@@ -136,11 +138,10 @@ def run(args: argparse.Namespace) -> int:
             write_simulation_files(result, staging, out,
                                    None if rendered is None else rendered.images)
         else:
-            from cdtm_graph.geodesy import GeodeticOrigin
             from cdtm_graph.sim.geodetic import write_geodetic_simulation_files
 
             write_geodetic_simulation_files(
-                result, staging, GeodeticOrigin(*args.origin), args.dem_crs,
+                result, staging, dem_crs=args.dem_crs,
                 vertical_datum=VerticalDatum(args.vertical_datum))
     stats = result.stats
     rows, cols = result.dtm.shape

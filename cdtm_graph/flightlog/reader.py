@@ -180,8 +180,9 @@ def dem_region_m(flight: FlightLog) -> tuple[float, float, float, float]:
 
     The prior track is what is known before smoothing: the initial position and nav.csv's
     positions when there is a nav.csv; else the IMU dead-reckoned from the initial state
-    (flat model), whose drift the margin then also covers. The margin is ``dtm.margin_m``
-    (default :data:`cdtm_graph.dem.DEFAULT_MARGIN_M`), plus, for a dead-reckoned track,
+    (the smoother's IMU model), whose drift the margin then also covers. The margin is
+    ``dtm.margin_m`` (default :data:`cdtm_graph.dem.DEFAULT_MARGIN_M`), plus, for a
+    dead-reckoned track,
     :data:`DEAD_RECKONING_MARGIN_FRACTION` of its length. Ground truth is never used, so
     a log smooths the same with or without it.
     """

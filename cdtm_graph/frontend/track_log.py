@@ -56,7 +56,8 @@ def camera_rotation_from_imu(intervals: ImuIntervals, body_T_cam: np.ndarray, t0
     Raises:
         SolverError: the IMU samples do not cover the interval.
     """
-    pim = intervals.preintegrate(int(t0_ns), int(t1_ns), bias)
+    pim = intervals.new_preintegration(bias)  # the rotation only: no gravity to place
+    intervals.integrate(pim, int(t0_ns), int(t1_ns))
     body_R_cam = np.asarray(body_T_cam, dtype=float)[:3, :3]
     return body_R_cam.T @ np.asarray(pim.deltaRij().matrix()) @ body_R_cam
 

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from cdtm_graph.dtm import Dtm
+from cdtm_graph.errors import SimulationError
 from cdtm_graph.geodesy import GeodeticOrigin, LocalFrame, VerticalDatum, geoid_undulation_m
 from cdtm_graph.sim.simulate import SimulationResult
 
@@ -118,23 +119,23 @@ def write_dem_tile(terrain: Dtm, frame: LocalFrame, path: str | os.PathLike, crs
 
 
 def write_geodetic_simulation(result: SimulationResult, out_dir: str | os.PathLike,
-                              origin: GeodeticOrigin, dem_crs: str = "EPSG:4326",
-                              pixel_size: float | None = None,
+                              origin: GeodeticOrigin | None = None,
+                              dem_crs: str = "EPSG:4326", pixel_size: float | None = None,
                               vertical_datum: VerticalDatum = VerticalDatum.EGM96) -> Path:
-    """Write a simulated flight as a GNSS user would have it: lat/lon and a DEM tile
+    """Write a geodetic simulation as a GNSS user would have it: lat/lon and a DEM tile
     (into a new directory that appears complete; :func:`write_geodetic_simulation_files`
     for a caller that holds the staging directory).
 
-    The simulator's world becomes the ENU tangent plane at ``origin``; the log's DTM is
-    written as a GeoTIFF in ``dem_crs`` (``dem.tif``, heights in ``vertical_datum``), and
-    the initial state, nav.csv and groundtruth.csv in latitude, longitude and ellipsoidal
-    height. The IMU is the simulator's (flat model: constant gravity along the world's
-    -z, no Earth rotation), which is also what the smoother integrates today.
+    The simulator's world is the ENU tangent plane at the result's origin
+    (``SimulationSettings.origin``); the log's DTM is written as a GeoTIFF in ``dem_crs``
+    (``dem.tif``, heights in ``vertical_datum``), and the initial state, nav.csv and
+    groundtruth.csv in latitude, longitude and ellipsoidal height. The IMU is the
+    simulator's, which senses the Earth's rotation and normal gravity.
 
     Args:
-        result: a :func:`~cdtm_graph.sim.simulate.simulate` result.
+        result: a :func:`~cdtm_graph.sim.simulate.simulate` result with an origin.
         out_dir: the log directory (appears complete or not at all).
-        origin: where the world is on the Earth.
+        origin: the result's origin (checked), or None.
         dem_crs: CRS of the DEM tile.
         pixel_size: in CRS units; None: 1 arc-second for a geographic CRS, else the DTM's
             spacing.
@@ -142,18 +143,36 @@ def write_geodetic_simulation(result: SimulationResult, out_dir: str | os.PathLi
 
     Returns:
         The log directory.
+
+    Raises:
+        SimulationError: the result was simulated without that origin (its IMU would not
+            be the Earth's).
     """
     from cdtm_graph.atomic import atomic_output_dir
     from cdtm_graph.sim.simulate import WRITER
 
+    _origin_of(result, origin)  # before the directory is made
     with atomic_output_dir(out_dir, writer=WRITER) as tmp:
         write_geodetic_simulation_files(result, tmp, origin, dem_crs, pixel_size,
                                         vertical_datum)
     return Path(out_dir)
 
 
+def _origin_of(result: SimulationResult, origin: GeodeticOrigin | None) -> GeodeticOrigin:
+    have = result.log.config.origin
+    if have is None:
+        raise SimulationError("a flat simulation written as a geodetic log: its IMU does not "
+                              "sense the Earth; expected one simulated with "
+                              "SimulationSettings(origin=...)")
+    if origin is not None and origin != have:
+        raise SimulationError(f"origin {origin} differs from the simulation's {have}; expected "
+                              "the origin the flight was simulated at")
+    return have
+
+
 def write_geodetic_simulation_files(result: SimulationResult, directory: Path,
-                                    origin: GeodeticOrigin, dem_crs: str = "EPSG:4326",
+                                    origin: GeodeticOrigin | None = None,
+                                    dem_crs: str = "EPSG:4326",
                                     pixel_size: float | None = None,
                                     vertical_datum: VerticalDatum = VerticalDatum.EGM96
                                     ) -> list[str]:
@@ -161,17 +180,20 @@ def write_geodetic_simulation_files(result: SimulationResult, directory: Path,
 
     Returns:
         The names written.
+
+    Raises:
+        SimulationError: as :func:`write_geodetic_simulation`.
     """
     from pyproj import CRS
 
     from cdtm_graph.flightlog import DtmConfig
     from cdtm_graph.flightlog.writer import write_flightlog_files
 
-    frame = LocalFrame(origin)
+    frame = LocalFrame(_origin_of(result, origin))
     if pixel_size is None:
         pixel_size = (1.0 / 3600.0 if CRS.from_user_input(dem_crs).is_geographic
                       else result.dtm.grid_spacing_m)
-    config = dataclasses.replace(result.log.config, origin=origin, dtm=DtmConfig(
+    config = dataclasses.replace(result.log.config, dtm=DtmConfig(
         Path(GEODETIC_DEM_FILENAME), result.dtm.sigma_h_m, vertical_datum=vertical_datum))
     log = dataclasses.replace(result.log, config=config)
     write_dem_tile(result.terrain, frame, directory / GEODETIC_DEM_FILENAME, dem_crs,

@@ -9,6 +9,13 @@ so an IMU at rest, level, reads +g on z. ``n_g``, ``n_a`` are discrete white noi
 sigma = density * sqrt(rate); the biases are random walks whose per-step sigma is
 random_walk * sqrt(dt). Samples are instantaneous values (what the smoother's
 ``SampleHold.MIDPOINT`` assumes).
+
+With a :class:`~cdtm_graph.geodesy.LocalFrame` (a geodetic flight) the world is the ENU
+tangent plane at the origin, fixed to the rotating Earth, and the IMU senses the Earth's
+rotation and WGS84 normal gravity (:func:`earth_imu`)::
+
+    gyro_radps = omega_body + R^T Omega_world + ...
+    acc_mps2   = R^T (a_world - g_world(p) + 2 Omega_world x v_world) + ...
 """
 
 from __future__ import annotations
@@ -18,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cdtm_graph.geodesy import LocalFrame
 from cdtm_graph.imu import NS_PER_S, ImuNoise
 from cdtm_graph.sim.trajectory import FlightPlan, Trajectory, evaluate
 
@@ -48,21 +56,55 @@ class ImuData:
                 raise ValueError(f"ImuData.{name} must have shape ({n}, 3), got {shape}")
 
 
-def ideal_imu(traj: Trajectory, gravity_mps2: float) -> tuple[np.ndarray, np.ndarray]:
+def ideal_imu(traj: Trajectory, gravity_mps2: float,
+              frame: LocalFrame | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Exact, noiseless, bias-free IMU readings along a trajectory.
 
     Args:
         traj: true body states, N samples.
-        gravity_mps2: gravity magnitude; gravity points along -z of world.
+        gravity_mps2: gravity magnitude; gravity points along -z of world (flat world).
+        frame: where the world is on the Earth: then the readings are :func:`earth_imu`'s
+            and ``gravity_mps2`` is not used.
 
     Returns:
         gyro_radps (N, 3): body angular rate in body.
         acc_mps2 (N, 3): specific force ``R^T (a_world + g e_z)`` in body.
     """
     R = traj.rotation_world_body
+    if frame is not None:
+        return earth_imu(frame, R, traj.position_m, traj.velocity_mps, traj.accel_world_mps2,
+                         traj.omega_body_radps)
     f_world = traj.accel_world_mps2 + np.array([0.0, 0.0, gravity_mps2])
     acc = np.einsum("nji,nj->ni", R, f_world)
     return traj.omega_body_radps.copy(), acc
+
+
+def earth_imu(frame: LocalFrame, world_R_body: np.ndarray, position_m: np.ndarray,
+              velocity_mps: np.ndarray, accel_world_mps2: np.ndarray,
+              omega_body_radps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Perfect IMU readings of states given in a geodetic log's world frame.
+
+    The world frame turns with the Earth (rate ``Omega``, :attr:`~cdtm_graph.geodesy.
+    LocalFrame.earth_rate_world_radps`), so the gyro adds ``R^T Omega`` to the body's rate
+    relative to the world, and the specific force is ``a - g(p) + 2 Omega x v`` with
+    WGS84 normal gravity ``g`` (gravitation plus centrifugal,
+    :meth:`~cdtm_graph.geodesy.LocalFrame.gravity_world_mps2`) at each position.
+
+    Args:
+        frame: the world frame on the Earth.
+        world_R_body: (N, 3, 3). position_m, velocity_mps, accel_world_mps2: (N, 3) in the
+            world (velocity and acceleration relative to the world frame).
+        omega_body_radps: (N, 3) the body's angular rate relative to the world, in body.
+
+    Returns:
+        gyro_radps (N, 3), acc_mps2 (N, 3) in body.
+    """
+    earth_rate = frame.earth_rate_world_radps
+    g = frame.gravity_world_mps2(position_m)
+    f_world = accel_world_mps2 - g + 2.0 * np.cross(earth_rate, velocity_mps)
+    gyro = omega_body_radps + np.einsum("nji,j->ni", world_R_body, earth_rate)
+    acc = np.einsum("nji,nj->ni", world_R_body, f_world)
+    return gyro, acc
 
 
 def _check_times_ns(t_ns: np.ndarray, name: str) -> np.ndarray:
@@ -83,6 +125,7 @@ def simulate_imu(
     rng: np.random.Generator,
     initial_gyro_bias: tuple[float, float, float] = (0.0, 0.0, 0.0),
     initial_accel_bias: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    frame: LocalFrame | None = None,
 ) -> ImuData:
     """IMU samples along a flight plan: exact instantaneous values plus bias and noise.
 
@@ -96,6 +139,8 @@ def simulate_imu(
             noise, accel white noise, gyro bias steps, accel bias steps).
         initial_gyro_bias: gyro bias at the first sample, rad/s.
         initial_accel_bias: accelerometer bias at the first sample, m/s^2.
+        frame: the world on the Earth (a geodetic flight): the IMU senses the Earth's
+            rotation and normal gravity (:func:`earth_imu`); None: the flat world.
 
     Returns:
         The samples and the true biases. White noise sigma = density * sqrt(rate) with
@@ -105,7 +150,7 @@ def simulate_imu(
     t = _check_times_ns(t_ns, "t_ns")
     n = t.shape[0]
     traj = evaluate(plan, t.astype(float) / NS_PER_S)
-    gyro, acc = ideal_imu(traj, gravity_mps2)
+    gyro, acc = ideal_imu(traj, gravity_mps2, frame)
     gyro_bias = np.tile(np.asarray(initial_gyro_bias, dtype=float), (n, 1))
     accel_bias = np.tile(np.asarray(initial_accel_bias, dtype=float), (n, 1))
     if noise is not None:

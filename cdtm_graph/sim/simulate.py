@@ -19,7 +19,8 @@ as a ``cdtm-flightlog/1`` log (docs/flightlog.md) plus the DTM to ship with it:
   wobble so the camera is never exactly level.
 * **IMU**. :func:`~cdtm_graph.imu.simulate_imu` at 200 Hz with white noise and bias
   random walks at flight.yaml's densities; the initial biases are drawn from their
-  priors.
+  priors. With a geodetic ``origin`` it senses the Earth's rotation and WGS84 normal
+  gravity (:func:`~cdtm_graph.sim.imu.earth_imu`).
 * **Tracks**. Ground features made by ray casting from the true camera into the true
   terrain and followed by projecting their ground points into later frames, each
   observation occlusion-checked (a ray from the camera toward the point must first hit
@@ -63,6 +64,7 @@ from cdtm_graph.flightlog import (
     Tracks,
     write_flightlog_files,
 )
+from cdtm_graph.geodesy import GeodeticOrigin, local_frame, normal_gravity_mps2
 from cdtm_graph.geometry import make_pose, rotation_to_quat_wxyz, so3_exp
 from cdtm_graph.imu import NS_PER_S, ImuNoise, dead_reckoning
 from cdtm_graph.sim.faults import TerrainMismatch, apply_terrain_mismatch
@@ -222,6 +224,12 @@ class SimulationSettings:
             the body frame, deg), instead of a draw of ``sigma_attitude_deg``.
         terrain_mismatch: terrain the true ground has and the DTM lacks
             (:class:`~cdtm_graph.sim.faults.TerrainMismatch`).
+        origin: where the world is on the Earth (WGS84): the world is the ENU tangent
+            plane there, fixed to the rotating Earth, and the IMU senses the Earth's
+            rotation and WGS84 normal gravity along the local vertical
+            (:func:`~cdtm_graph.sim.imu.earth_imu`); flight.yaml's ``gravity_mps2`` is
+            then normal gravity at the origin. None: the flat world. Such a result is
+            written as a geodetic log (:mod:`cdtm_graph.sim.geodetic`).
         seed: the one seed of every random draw (>= 0).
     """
 
@@ -267,6 +275,7 @@ class SimulationSettings:
     initial_error_m: tuple[float, float, float] | None = None
     initial_error_deg: tuple[float, float, float] | None = None
     terrain_mismatch: TerrainMismatch | None = None
+    origin: GeodeticOrigin | None = None
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -381,6 +390,8 @@ class SimulationSettings:
                 value = dataclasses.asdict(value)
             elif isinstance(value, TerrainMismatch):
                 value = value.to_dict()
+            elif isinstance(value, GeodeticOrigin):
+                value = dataclasses.asdict(value)
             elif isinstance(value, tuple):
                 value = list(value)
             out[f.name] = value
@@ -531,8 +542,19 @@ def write_simulation_files(result: SimulationResult, directory: Path,
                            images: Sequence[np.ndarray] | None = None) -> None:
     """The log's files, its DTM and its images (``images/``), into ``directory`` (a
     staging directory that becomes ``final_dir``), plainly: for callers holding an
-    ``atomic_output_dir`` open."""
+    ``atomic_output_dir`` open. A geodetic result (``SimulationSettings.origin``) is
+    written as a geodetic log (:func:`~cdtm_graph.sim.geodetic.
+    write_geodetic_simulation_files`: an EPSG:4326 EGM96 DEM tile, latitude and
+    longitude; no images)."""
     log = result.log
+    if log.config.origin is not None:
+        if images is not None:
+            raise SimulationError("images of a geodetic simulation: rendering a geodetic "
+                                  "log is not supported yet; expected one of the two")
+        from cdtm_graph.sim.geodetic import write_geodetic_simulation_files
+
+        write_geodetic_simulation_files(result, directory)
+        return
     if images is not None:
         if len(images) != len(log.frames):
             raise SimulationError(f"{len(images)} images for {len(log.frames)} frames, "
@@ -583,9 +605,10 @@ def simulate(settings: SimulationSettings) -> SimulationResult:
     imu_dt_ns = int(round(NS_PER_S / settings.imu_rate_hz))
     imu_end_ns = int(frame_t_ns[-1]) + int(round(IMU_TAIL_S * NS_PER_S))
     imu_t_ns = np.arange(0, imu_end_ns + imu_dt_ns, imu_dt_ns, dtype=np.int64)  # >= the end
+    earth = local_frame(settings.origin) if settings.origin is not None else None
     imu = simulate_imu(plan, imu_t_ns, settings.gravity_mps2,
                        None if settings.noiseless else settings.imu_noise, rng_imu,
-                       tuple(true_gyro_bias), tuple(true_accel_bias))
+                       tuple(true_gyro_bias), tuple(true_accel_bias), earth)
 
     # Feature tracks.
     pixel_sigma_px = 0.0 if settings.noiseless else settings.pixel_sigma_px
@@ -613,8 +636,10 @@ def simulate(settings: SimulationSettings) -> SimulationResult:
         "tracks": tracks_sim.stats.to_dict(),
     }}
     imu_noise = settings.imu_noise
+    origin = settings.origin
     config = FlightConfig(
-        gravity_mps2=settings.gravity_mps2,
+        gravity_mps2=(settings.gravity_mps2 if origin is None else
+                      float(normal_gravity_mps2(origin.latitude_deg, origin.height_m))),
         dtm=DtmConfig(Path(DTM_FILENAME), dtm.sigma_h_m, (0.0, 0.0, 0.0)),
         camera=CameraConfig(camera, settings.pixel_sigma_px, body_T_cam),
         imu=ImuConfig(settings.imu_rate_hz, imu_noise.gyroscope_noise_density,
@@ -622,6 +647,7 @@ def simulate(settings: SimulationSettings) -> SimulationResult:
                       imu_noise.accelerometer_random_walk),
         initial_state=initial,
         extra=extra,
+        origin=origin,
     )
     imu_samples = ImuSamples(imu.t_ns, imu.gyro_radps, imu.acc_mps2)
     frames = Frames(frame_t_ns, ("",) * settings.frames)

@@ -222,10 +222,12 @@ def build_log_graph(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
     K = len(flight.frames)
     t = flight.frames.t_ns
     graph = prior_factors(flight.config.initial_state)
-    intervals = ImuIntervals(flight.config, flight.imu, settings.graph.imu_hold)
+    intervals = ImuIntervals(flight.config, flight.imu, settings.graph.imu_hold,
+                             settings.graph.earth_physics, settings.graph.imu_gap_noise)
     bias0 = initial_bias(flight.config.initial_state)
-    for k in range(K - 1):
-        graph.add(imu_factor(k, intervals.preintegrate(int(t[k]), int(t[k + 1]), bias0)))
+    for k in range(K - 1):  # (the Earth model places each interval from the initial guess)
+        start = (initial.atPose3(X(k)).matrix(), initial.atVector(V(k)))
+        graph.add(imu_factor(k, intervals.preintegrate(int(t[k]), int(t[k + 1]), bias0, start)))
     poses = [initial.atPose3(X(k)).matrix() for k in range(K)]
     rejections = Rejections()
     camera = flight.config.camera

@@ -128,7 +128,7 @@ class IncrementalSmoother:
         self.settings = settings = settings or SmootherSettings()
         graph = settings.graph
         self._noise = feature_noise(config, dtm, graph)
-        self._imu = ImuFeed(config, graph.imu_hold, imu)
+        self._imu = ImuFeed(config, graph.imu_hold, imu, graph.earth_physics, graph.imu_gap_noise)
         self.rejections = Rejections()  # features left out, by reason and frame
         self._pairing = SightingPairs(config.camera.camera, config.camera.body_T_cam, dtm,
                                       config.camera.pixel_sigma_px, graph.epipolar,
@@ -232,7 +232,9 @@ class IncrementalSmoother:
             velocity = np.asarray(init.velocity_mps, float)
         else:
             bias = self._biases[k - 1]  # the IMU feed's linearization point too
-            pim = self._imu.finish(int(t_ns))
+            pim = self._imu.finish(int(t_ns), (self._poses[k - 1], self._velocities[k - 1]))
+            if pim.spans_gap:  # predicted across an IMU gap: a guess, judge nothing by it
+                self._converging = True
             link = imu_factor(k - 1, pim)
             graph.add(link)
             predicted, velocity = navstate_predict(pim, self._poses[k - 1],
@@ -276,6 +278,9 @@ class IncrementalSmoother:
             self._refresh_newest_noise(k, predicted, len(new))
             # (a frame without factors cannot move: it says nothing of convergence)
             self._converging = self._converging and self._moved_far(k, predicted)
+        if link is not None and pim.spans_gap:  # predicted across an IMU gap: a poor
+            self._iterate(self.settings.final_iterations)  # linearization point, iterate
+            self._fetch(k)
         self._state_cov = self._backend.joint_marginal(list(frame_keys(k)))
         if self._acquiring:
             self._try_acquisition(k)

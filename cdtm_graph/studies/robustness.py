@@ -99,6 +99,8 @@ SCENARIOS: dict[str, Scenario] = {s.name: s for s in (
     # the terrain repeats every 3 km: within a 1000 m prior the fix is truly ambiguous
     Scenario("far1000_periodic", _far(1000.0, 3.0, terrain_cell_m=3000.0)),
     Scenario("imu_gap", fault=lambda log, rng: with_imu_gap(log, 19.0, 5.0)),
+    # 5 s missing across the roll into the first turn (it starts at 10 s)
+    Scenario("imu_gap_turn", fault=lambda log, rng: with_imu_gap(log, 8.0, 5.0)),
     Scenario("focal1pct", fault=lambda log, rng: with_calibration_error(log, focal_scale=1.01)),
     Scenario("mount05deg", fault=lambda log, rng: with_calibration_error(
         log, mount_rotation_deg=(0.3, 0.4, 0.0))),
