@@ -65,7 +65,12 @@ from cdtm_graph.flightlog import (
 )
 from cdtm_graph.geometry import make_pose, rotation_to_quat_wxyz, so3_exp
 from cdtm_graph.imu import NS_PER_S, ImuNoise, dead_reckoning
-from cdtm_graph.sim.faults import TerrainMismatch, apply_terrain_mismatch
+from cdtm_graph.sim.faults import (
+    FlatGround,
+    TerrainMismatch,
+    apply_flat_ground,
+    apply_terrain_mismatch,
+)
 from cdtm_graph.sim.imu import ImuData, simulate_imu
 from cdtm_graph.sim.render import write_images
 from cdtm_graph.sim.terrain import NOMINAL_CORRELATION_LENGTH_M, clone_basic_cell, fractal_terrain
@@ -217,6 +222,8 @@ class SimulationSettings:
             the body frame, deg), instead of a draw of ``sigma_attitude_deg``.
         terrain_mismatch: terrain the true ground has and the DTM lacks
             (:class:`~cdtm_graph.sim.faults.TerrainMismatch`).
+        flat_ground: flat ground (a lake) under part of the track, in the truth and the
+            DTM alike (:class:`~cdtm_graph.sim.faults.FlatGround`).
         seed: the one seed of every random draw (>= 0).
     """
 
@@ -260,6 +267,7 @@ class SimulationSettings:
     initial_error_m: tuple[float, float, float] | None = None
     initial_error_deg: tuple[float, float, float] | None = None
     terrain_mismatch: TerrainMismatch | None = None
+    flat_ground: FlatGround | None = None
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -361,7 +369,7 @@ class SimulationSettings:
                 value = value.value
             elif isinstance(value, ImuNoise):
                 value = dataclasses.asdict(value)
-            elif isinstance(value, TerrainMismatch):
+            elif isinstance(value, (TerrainMismatch, FlatGround)):
                 value = value.to_dict()
             elif isinstance(value, tuple):
                 value = list(value)
@@ -677,6 +685,12 @@ def _make_world(settings: SimulationSettings, frame_t_s: np.ndarray,
         plan = _flight_plan(settings, shift, altitude)
         info = {"kind": "file", "path": str(settings.terrain)}
     _check_clearance(terrain, region, altitude)
+    if settings.flat_ground is not None:  # truth and DTM alike: made before the DTM
+        flat = settings.flat_ground
+        t_s = np.arange(flat.at_s, flat.at_s + flat.duration_s + 0.05, 0.1)
+        track = evaluate(plan, t_s).position_m[:, :2]
+        terrain = apply_flat_ground(terrain, flat, track)
+        info["flat_ground"] = flat.to_dict()
 
     if settings.terrain is not None or settings.exact_dtm or settings.noiseless:
         dtm = Dtm(terrain.elevation, terrain.x0, terrain.y0, terrain.dx, terrain.dy,
