@@ -45,7 +45,8 @@ docs/verdict.md):
 - ``failed``: the solver did not converge (``not_converged``); or fewer than half of the
   frames have a camera/DTM fix (``no_fix``: frames flagged ``no_features`` or
   ``off_dtm``); or the solution does not fit its data (``misfit``: the run's normalized
-  residual chi-square above 1.5); or, with ground truth, most frames' errors beyond the
+  residual chi-square above 1.5; ``wrong_fix``: half of the features offered or more
+  left out as off the map); or, with ground truth, most frames' errors beyond the
   chi-square(3) 99.9% bound of their covariance (``confidently_wrong``).
 - ``degraded``: any flagged stretch of at least ``min_stretch_s`` (an IMU gap at any
   length), or a self-check outside its bounds, or with ground truth a covariance the
@@ -203,12 +204,15 @@ class RejectionRule:
         min_run_fraction: a reason for the whole run when at least this share of all
             its offered features was left out (a fault spread thin over the flight);
             ``None``: windows only.
+        failed: ``(code, share, meaning)``: the run FAILS with this code when at least
+            this share of all its offered features was left out for the rule's reasons.
     """
 
     code: str
     min_fraction: float | None
     meaning: str
     min_run_fraction: float | None = None
+    failed: tuple[str, float, str] | None = None
 
 
 #: Rejection reason value -> its rule. A reason not listed uses ``DEFAULT_REJECTION_RULE``.
@@ -218,7 +222,10 @@ REJECTION_RULES: Mapping[str, RejectionRule] = MappingProxyType({
         "comes from the IMU alone"),
     Rejection.MAP_MISMATCH.value: RejectionRule(
         "map_mismatch", 0.2, "their ground points are not where the DTM says (terrain the "
-        "map lacks, a wrong calibration or camera timing)", min_run_fraction=0.1),
+        "map lacks, a wrong calibration or camera timing)", min_run_fraction=0.1,
+        failed=("wrong_fix", 0.5, "most of the terrain seen is not where the DTM says: the "
+                "position is not where the map fits (a wrong fix, the wrong map, or a "
+                "noise model far too small)")),
     Rejection.WRONG_MATCH.value: RejectionRule(
         "heavy_rejection", 0.3, "the tracker's matches, the DTM or the IMU disagree"),
     Rejection.GRAZING.value: RejectionRule(
@@ -294,7 +301,8 @@ class VerdictSettings:
 
 
 #: Checks that make a run FAILED; every other reason makes it DEGRADED.
-FAILED_CODES = frozenset({"not_converged", "no_fix", "misfit", "confidently_wrong"})
+FAILED_CODES = frozenset({"not_converged", "no_fix", "misfit", "wrong_fix",
+                          "confidently_wrong"})
 #: The per-frame flags :func:`assess` sets itself (besides the rejection rules' codes).
 FRAME_FLAGS = ("no_features", "few_features", "flat_terrain", "narrow_fov", "imu_gap",
                "residual_misfit")
@@ -309,8 +317,8 @@ class FrameTest:
         flagged: (K,) bool.
         describe: (first, last) frame of a stretch -> what was seen there, in words.
         any_length: a reason however short the stretch (else ``min_stretch_s``).
-        run_wide: if set, one reason for the whole run with this message instead of the
-            stretches (their frames stay flagged).
+        run_wide: if set, also one reason for the whole run with this message (a fault
+            spread over the flight, beside the stretches where it is dense).
     """
 
     code: str
@@ -488,8 +496,10 @@ def _no_features(f: _Frames, off_dtm: np.ndarray) -> FrameTest:
                      lambda a, b: "no C-DTM feature: the position comes from the IMU alone")
 
 
-def _rejection_tests(f: _Frames, settings: VerdictSettings) -> list[FrameTest]:
-    """One test per rejection code, its reasons' counts summed over each window."""
+def _rejection_tests(f: _Frames, settings: VerdictSettings
+                     ) -> tuple[list[FrameTest], list[tuple[str, str]]]:
+    """One test per rejection code, its reasons' counts summed over each window; and the
+    run-wide failures (:attr:`RejectionRule.failed`)."""
     by_code: dict[str, tuple[RejectionRule, list[str]]] = {}
     for reason in f.rejected:
         rule = settings.rejection_rules.get(reason, settings.default_rejection_rule)
@@ -498,6 +508,7 @@ def _rejection_tests(f: _Frames, settings: VerdictSettings) -> list[FrameTest]:
         by_code.setdefault(rule.code, (rule, []))[1].append(reason)
     offered = window_sum(f.offered, f.half)
     tests = []
+    failures: list[tuple[str, str]] = []
     for code, (rule, reasons) in by_code.items():
         left_out = {r: window_sum(f.rejected[r], f.half) for r in reasons}
         total = sum(left_out.values(), np.zeros(f.k))
@@ -524,8 +535,13 @@ def _rejection_tests(f: _Frames, settings: VerdictSettings) -> list[FrameTest]:
             run_wide = (f"over the whole flight {_pct(n_run / n_offered)} of the features "
                         f"offered were left out (at most {_pct(rule.min_run_fraction)} "
                         f"tolerated): {rule.meaning}")
+        if rule.failed is not None and n_offered > 0 and n_run >= rule.failed[1] * n_offered:
+            failures.append((rule.failed[0], (
+                f"over the whole flight {_pct(n_run / n_offered)} of the features offered "
+                f"were left out ({', '.join(reasons)}; at most {_pct(rule.failed[1])} "
+                f"tolerated): {rule.failed[2]}")))
         tests.append(FrameTest(code, flagged, describe, run_wide=run_wide))
-    return tests
+    return tests, failures
 
 
 def _geometry_tests(f: _Frames, result: SmootherResult, settings: VerdictSettings,
@@ -569,7 +585,7 @@ def _geometry_tests(f: _Frames, result: SmootherResult, settings: VerdictSetting
     return tests
 
 
-def _imu_test(f: _Frames, frame_t_ns: np.ndarray, imu_t_ns: np.ndarray | None,
+def _imu_test(frame_t_ns: np.ndarray, imu_t_ns: np.ndarray | None,
               settings: VerdictSettings) -> FrameTest | None:
     if imu_t_ns is None or np.size(imu_t_ns) < 2:
         return None
@@ -627,8 +643,8 @@ def _residual_checks(f: _Frames, result: SmootherResult, settings: VerdictSettin
             f"(chi-square(2): {chi2.median(2):.2f}; {a:g}-{b:g} tolerated): the prior "
             "covariances or the noise model do not fit the data")))
     judged = (window_within >= settings.min_window_features) & f.later
-    misfit = judged & (np.abs(per_window - 1.0) > window_allowed)
-    test = FrameTest("residual_misfit", misfit, lambda a, b: (
+    off_band = judged & (np.abs(per_window - 1.0) > window_allowed)
+    test = FrameTest("residual_misfit", off_band, lambda a, b: (
         f"the residuals are {np.nanmin(per_window[a:b + 1]):.2f}-"
         f"{np.nanmax(per_window[a:b + 1]):.2f} times their expected chi-square here (1 +- "
         f"{np.nanmax(window_allowed[a:b + 1]):.2f} tolerated)")) if f.has_chi2 else None
@@ -684,12 +700,12 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
     """
     settings = settings or VerdictSettings()
     f = _Frames(result, settings)
-    tests: list[FrameTest] = _rejection_tests(f, settings)
+    tests, rejection_failures = _rejection_tests(f, settings)
     off_dtm = next((t.flagged for t in tests if t.code == "off_dtm"), np.zeros(f.k, bool))
     tests.insert(0, _no_features(f, off_dtm))
     unfixed = tests[0].flagged | off_dtm
     tests += _geometry_tests(f, result, settings, unfixed)
-    imu = _imu_test(f, result.estimate.t_ns, imu_t_ns, settings)
+    imu = _imu_test(result.estimate.t_ns, imu_t_ns, settings)
     if imu is not None:
         tests.append(imu)
     checks, residual_test, failures = _residual_checks(f, result, settings)
@@ -727,7 +743,8 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
             f"only {fixed} of {n_later} frames have a camera/DTM fix (at least "
             f"{_pct(settings.min_fix_fraction)} needed): the trajectory is mostly IMU dead "
             "reckoning"), int(where[0]), int(where[-1])))
-    run_wide += [reason(code, message, 0, last) for code, message in failures]
+    run_wide += [reason(code, message, 0, last)
+                 for code, message in rejection_failures + failures]
     run_wide += [reason(code, message, a, b)
                  for code, message, a, b in _groundtruth_checks(errors, f, settings)]
 
@@ -738,7 +755,6 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
     for test in tests + extra:
         if test.run_wide is not None:
             run_wide.append(reason(test.code, test.run_wide, 0, last))
-            continue
         for a, b in _stretches(test.flagged):
             long_enough = f.t_s[b] - f.t_s[a] + _frame_interval_s(f) >= settings.min_stretch_s
             if test.any_length or long_enough:
