@@ -2,12 +2,13 @@
 
 The statistics a feature is judged by, in one place: the gate of the incremental smoother
 (``innovation_mahalanobis`` against the prior covariance of its two poses) and the outlier
-count at a solution (``count_outliers``).
+count and residual chi-square at a solution (``residual_test``).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import gtsam
 import numpy as np
@@ -38,32 +39,63 @@ def innovation_mahalanobis(e: np.ndarray, H_a: np.ndarray, H_b: np.ndarray, P: n
     return np.einsum("ni,ni->n", e, np.linalg.solve(S, e[..., None])[..., 0])
 
 
+#: Probability of the outlier test at a solution (:func:`residual_test`).
+OUTLIER_TEST_PROBABILITY = 0.999
 #: Inlier gate without a robust kernel: chi-square with 2 dof, 99.9%.
-CHI2_2DOF_999 = chi2_2dof_quantile(0.999)
+CHI2_2DOF_999 = chi2_2dof_quantile(OUTLIER_TEST_PROBABILITY)
 CHI2_2DOF_MEDIAN = chi2_2dof_quantile(0.5)  # 2 ln 2
 
 
-def count_outliers(factors: Sequence[CdtmPairFactor],
-                   world_T_body: Sequence[np.ndarray] | np.ndarray,
-                   n_frames: int) -> tuple[int, np.ndarray]:
-    """Features whose residual fails the chi-square(2) 99.9% test at given poses.
+@dataclass(frozen=True)
+class ResidualTest:
+    """The C-DTM features judged at a solution, by the frame their pair ends at.
+
+    Attributes:
+        outliers_per_frame: (K,) features beyond the chi-square(2) 99.9% test.
+        chi2_within_per_frame: (K,) sum of the squared Mahalanobis distances of the
+            features within the test (``CdtmPairFactor.normalized_residuals``): the
+            residual chi-square a self-check compares with its expectation.
+    """
+
+    outliers_per_frame: np.ndarray
+    chi2_within_per_frame: np.ndarray
+
+    @property
+    def n_outliers(self) -> int:
+        return int(self.outliers_per_frame.sum())
+
+
+def residual_test(factors: Sequence[CdtmPairFactor],
+                  world_T_body: Sequence[np.ndarray] | np.ndarray,
+                  n_frames: int) -> ResidualTest:
+    """Each feature's residual at given poses against the chi-square(2) 99.9% test.
 
     The residual is judged as measured (both observations' pixel noise and the DTM's:
     ``CdtmPairFactor.normalized_residuals``), so a clean log has ~0.1% beyond the test;
     with the factor's own whitening, which leaves the first observation's pixel noise to
     the previous pair, 2.5% of clean features failed it. The same test whatever the
     robust kernel (the kernel decides the weighting).
-
-    Returns:
-        The total and the count per frame (by the pair's later frame), (K,).
     """
-    per_frame = np.zeros(n_frames, dtype=int)
+    outliers = np.zeros(n_frames, dtype=int)
+    chi2_within = np.zeros(n_frames)
     for f in factors:
         a = int(gtsam.Symbol(f.key_a).index())
         b = int(gtsam.Symbol(f.key_b).index())
         d = f.normalized_residuals(world_T_body[a], world_T_body[b])
-        per_frame[b] += int(np.count_nonzero(d > CHI2_2DOF_999))
-    return int(per_frame.sum()), per_frame
+        beyond = d > CHI2_2DOF_999
+        outliers[b] += int(np.count_nonzero(beyond))
+        chi2_within[b] += float(d[~beyond].sum())
+    return ResidualTest(outliers, chi2_within)
+
+
+def count_outliers(factors: Sequence[CdtmPairFactor],
+                   world_T_body: Sequence[np.ndarray] | np.ndarray,
+                   n_frames: int) -> tuple[int, np.ndarray]:
+    """Features whose residual fails the chi-square(2) 99.9% test at given poses
+    (:func:`residual_test`): the total and the count per frame (by the pair's later
+    frame), (K,)."""
+    test = residual_test(factors, world_T_body, n_frames)
+    return test.n_outliers, test.outliers_per_frame
 
 
 class InnovationGate:

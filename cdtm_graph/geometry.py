@@ -119,3 +119,34 @@ def invert_pose(T: np.ndarray) -> np.ndarray:
     """Inverse of a 4x4 rigid transform."""
     R, t = T[:3, :3], T[:3, 3]
     return make_pose(R.T, -R.T @ t)
+
+
+def rigid_motion_transfer(at_m: np.ndarray, about_m: np.ndarray) -> np.ndarray:
+    """A small rigid motion of the world written about one point, as seen at another.
+
+    The motion ``x -> x + omega x (x - about) + t`` is, about ``at``, ``[omega, t + omega x
+    (at - about)]``. The returned matrix maps ``[omega, t]`` (world axes, about
+    ``about_m``) to that; information on the motion about ``at`` becomes information
+    about ``about`` as ``A^T I A``.
+
+    Args:
+        at_m, about_m: (..., 3) points (m), broadcast together.
+
+    Returns:
+        (..., 6, 6) ``[[I, 0], [-skew(at - about), I]]``, order [rotation, translation].
+    """
+    lever = np.asarray(at_m, dtype=float) - np.asarray(about_m, dtype=float)
+    A = np.zeros(lever.shape[:-1] + (6, 6))
+    A[..., :3, :3] = np.eye(3)
+    A[..., 3:, 3:] = np.eye(3)
+    A[..., 3:, :3] = -skew(lever)
+    return A
+
+
+def rigid_motion_to_tangent(world_T_body: np.ndarray, about_m: np.ndarray) -> np.ndarray:
+    """(6, 6) map from a small rigid motion of the world ``[omega, t]`` (world axes, about
+    ``about_m``; :func:`rigid_motion_transfer`) to the pose's GTSAM tangent [rot, trans]
+    (right perturbation, body frame): ``R -> Exp(omega) R``, ``p -> p + omega x (p - about)
+    + t``, i.e. ``[R^T omega, R^T (omega x (p - about) + t)]``."""
+    R_t = np.asarray(world_T_body, dtype=float)[:3, :3].T
+    return np.kron(np.eye(2), R_t) @ rigid_motion_transfer(world_T_body[:3, 3], about_m)

@@ -18,6 +18,7 @@ from cdtm_graph.clutter import ClutterSettings
 from cdtm_graph.dtm import Dtm, grazing_hits
 from cdtm_graph.epipolar import EpipolarSettings
 from cdtm_graph.flightlog import FlightConfig, InitialState
+from cdtm_graph.geometry import rigid_motion_to_tangent
 from cdtm_graph.imu import GapNoise, SampleHold, initial_bias
 from cdtm_graph.mismatch import MismatchSettings, TrackHeights, track_heights
 from cdtm_graph.results import Rejection, Rejections
@@ -267,13 +268,28 @@ def without_tracks(factors: Sequence[CdtmPairFactor], track_ids: Sequence[np.nda
 
 def cdtm_information(factors: Sequence[CdtmPairFactor], world_T_body: Callable[[int], np.ndarray],
                      n_frames: int) -> np.ndarray:
-    """(K, 6, 6) information the C-DTM factors give each pose on its own at the given poses
-    (``SmootherResult.cdtm_information``): each factor's ``H_a^T H_a`` and ``H_b^T H_b``."""
+    """(K, 6, 6) what the C-DTM features ending at each frame say about where the aircraft
+    is (``SmootherResult.cdtm_information``), at the given poses.
+
+    Each factor ``(a, b)`` adds, to frame b, the information its whitened, robustly
+    weighted rows give a rigid motion of both poses: ``M^T M``, ``M = H_a A_a + H_b A_b``
+    with ``A`` from :func:`~cdtm_graph.geometry.rigid_motion_to_tangent` about the body
+    position of frame b. Order [rotation, translation], world axes, about that frame's
+    body position (:func:`~cdtm_graph.geometry.rigid_motion_transfer` moves it). This is
+    the fix the camera and the DTM give, with the relative motion (which the IMU knows
+    too) held: over flat ground its horizontal translation and yaw get nothing. The
+    per-pose blocks ``H_b^T H_b`` cannot show that: they hold the other pose, so they carry
+    the ego-motion the optical flow gives over any terrain (a 25-frame flight over flat
+    ground had horizontal eigenvalues 1.3-2.7 against 1.6-2.9 over 300 m of relief).
+    """
     info = np.zeros((n_frames, 6, 6))
     for f in factors:
         a = int(gtsam.Symbol(f.key_a).index())
         b = int(gtsam.Symbol(f.key_b).index())
-        _, H_a, H_b = f.evaluate(world_T_body(a), world_T_body(b))
-        info[a] += np.einsum("nki,nkj->ij", H_a, H_a)
-        info[b] += np.einsum("nki,nkj->ij", H_b, H_b)
+        pose_a, pose_b = world_T_body(a), world_T_body(b)
+        _, H_a, H_b = f.evaluate(pose_a, pose_b)
+        centre = pose_b[:3, 3]
+        M = H_a @ rigid_motion_to_tangent(pose_a, centre) + H_b @ rigid_motion_to_tangent(
+            pose_b, centre)
+        info[b] += np.einsum("nki,nkj->ij", M, M)
     return info

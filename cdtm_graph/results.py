@@ -141,6 +141,10 @@ class GraphCounts:
         outliers_per_frame: (K,) the same, by the frame the feature pair ends at.
         rejected_per_frame: :class:`Rejection` value -> (K,) features left out for that
             reason, by the frame the pair ends at.
+        residual_chi2_per_frame: (K,) sum of the squared Mahalanobis distances (full
+            measurement noise) of the features within the chi-square test, by the frame
+            the pair ends at (``features_per_frame - outliers_per_frame`` of them): the
+            residual self-check of :mod:`cdtm_graph.verdict`. Empty if not computed.
     """
 
     n_frames: int
@@ -154,6 +158,7 @@ class GraphCounts:
     n_outliers: int = 0
     outliers_per_frame: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
     rejected_per_frame: dict[str, np.ndarray] = field(default_factory=dict)
+    residual_chi2_per_frame: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def n_rejected(self, reason: Rejection | None = None) -> int:
         """Features left out for ``reason`` (any reason if None)."""
@@ -197,11 +202,14 @@ class SmootherResult:
         counts: graph contents.
         settings: the settings used, as a plain dict (for report.json).
         flags: per-frame warnings, e.g. ``{12: ["no_features"]}``.
-        cdtm_information: (K, 6, 6) information the C-DTM features give each pose at the
-            solution, on its own (``sum H^T H`` of the whitened, robustly weighted rows that
-            involve it; GTSAM tangent [rot, trans], body frame): what the camera and the
-            DTM say about a pose, without the IMU. Its eigen-structure over a few frames
-            names a weak geometry (flat terrain, few features, a narrow footprint).
+        cdtm_information: (K, 6, 6) what the C-DTM features ending at each frame say
+            about where the aircraft is, at the solution: the information their whitened,
+            robustly weighted rows give a rigid motion of the poses they tie (the relative
+            motion held, which the IMU knows too), order [rotation, translation], world
+            axes, about the frame's body position (:func:`cdtm_graph.graph.
+            cdtm_information`). Its eigen-structure over a window of frames names a weak
+            geometry (flat terrain, few features, a narrow footprint:
+            :mod:`cdtm_graph.verdict`).
         terrain: the ground against the DTM (clutter), when the smoother looked.
     """
 

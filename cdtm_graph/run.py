@@ -1,13 +1,14 @@
-"""One smoothing run of a flight log: smooth, evaluate against ground truth, report.
+"""One smoothing run of a flight log: smooth, judge, evaluate against ground truth, report.
 
-No file I/O: :func:`smooth_and_evaluate` returns everything the CLI writes.
+No file I/O: :func:`smooth_and_evaluate` returns everything the CLI writes, the verdict
+(:mod:`cdtm_graph.verdict`) included.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.evaluation import ErrorReport, free_vs_compensated, trajectory_errors
@@ -16,6 +17,7 @@ from cdtm_graph.imu import dead_reckoning
 from cdtm_graph.imu_faults import check_imu
 from cdtm_graph.results import SmootherResult, TrajectoryEstimate
 from cdtm_graph.smoother import Progress, SmootherSettings, smooth
+from cdtm_graph.verdict import Verdict, VerdictSettings, assess
 
 logger = logging.getLogger(__name__)
 
@@ -25,11 +27,13 @@ class RunOutput:
     """A smoothing run and, with ground truth, its errors beside IMU-only navigation.
 
     Attributes:
-        result: the smoother's result.
+        result: the smoother's result, its ``flags`` those of the verdict.
         errors: the smoothed trajectory's errors ("Compensated"), or None.
         free: the IMU-only dead-reckoning trajectory from the same initial state.
         free_errors: its errors ("Free"), or None.
-        report: report.json content beyond what ``write_run`` adds.
+        report: report.json content beyond what ``write_run`` adds (``verdict``,
+            ``reasons``, ``self_checks``, ``evaluation``, timings).
+        verdict: trusted, degraded or failed, and why.
     """
 
     result: SmootherResult
@@ -37,11 +41,15 @@ class RunOutput:
     free: TrajectoryEstimate | None
     free_errors: ErrorReport | None
     report: dict
+    verdict: Verdict
 
 
 def smooth_and_evaluate(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
-                        progress: Progress | None = None) -> RunOutput:
-    """Smooth ``flight`` and, if it has ground truth, evaluate it as the paper's Table 1."""
+                        progress: Progress | None = None,
+                        verdict_settings: VerdictSettings | None = None) -> RunOutput:
+    """Smooth ``flight``, judge the run (:func:`cdtm_graph.verdict.assess`: the result's
+    flags become the verdict's) and, if it has ground truth, evaluate it as the paper's
+    Table 1."""
     start = time.perf_counter()
     result = smooth(flight, dtm, settings, progress)
     report: dict = {"input": str(flight.root), "timings_s": {"smooth": time.perf_counter() - start}}
@@ -62,5 +70,10 @@ def smooth_and_evaluate(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
             "free": free_errors.to_dict(),
             "table1": free_vs_compensated(errors, free_errors),
         }
+    verdict = assess(result, errors, flight.imu.t_ns, verdict_settings)
+    result = replace(result, flags=verdict.flags)
+    report["verdict"] = verdict.status.value
+    report["reasons"] = [r.to_dict() for r in verdict.reasons]
+    report["self_checks"] = verdict.self_checks.to_dict()
     report["timings_s"]["total"] = time.perf_counter() - start
-    return RunOutput(result, errors, free, free_errors, report)
+    return RunOutput(result, errors, free, free_errors, report, verdict)

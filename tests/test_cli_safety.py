@@ -28,6 +28,9 @@ from cdtm_graph.sim.simulate import SimulationSettings, write_simulated_log
 from tests.conftest import TEST_SEED
 
 ROOT = Path(__file__).resolve().parents[1]
+#: Exit statuses of a smoothing run that wrote its outputs: 0 trusted, 3 degraded or failed
+#: (the verdict, cdtm_graph.verdict: this 6-frame log's is not what these tests are about).
+WROTE_OUTPUTS = (0, 3)
 #: Waiting for a child process to reach its stall point (s): imports and numba's cache
 #: load take a few seconds on a slow machine; this only bounds a hung test.
 CHILD_READY_TIMEOUT_S = 120.0
@@ -152,7 +155,7 @@ def test_carriage_return_line_ends_are_read_as_lines(log, tmp_path, capsys, name
     assert after.frames == before.frames and after.groundtruth == before.groundtruth
     if name == "tracks.csv":
         code, _ = _smooth(capsys, log, tmp_path / "out")
-        assert code == 0
+        assert code in WROTE_OUTPUTS
         report = json.loads((tmp_path / "out" / "report.json").read_text())
         assert report["counts"]["n_observations"] == len(before.tracks)
 
@@ -168,7 +171,7 @@ def test_observations_just_outside_the_image_are_kept(log, tmp_path, capsys):
                                (30, 3, "479.7")]:
         _edit_csv(tracks, row, column, value)
     code, err = _smooth(capsys, log, tmp_path / "out")
-    assert code == 0, err
+    assert code in WROTE_OUTPUTS, err
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert report["counts"]["n_observations"] == n
     t_ns, _ = read_tum(tmp_path / "out" / "trajectory.tum")
@@ -263,7 +266,7 @@ def test_force_writes_beside_the_users_files_never_over_them(log, tmp_path, caps
     mine = tmp_path / "mine"
     mine.mkdir()
     (mine / "notes.txt").write_text("my notes")
-    assert _smooth(capsys, log, mine, "--force")[0] == 0
+    assert _smooth(capsys, log, mine, "--force")[0] in WROTE_OUTPUTS
     assert (mine / "notes.txt").read_text() == "my notes"
     assert set(read_manifest(mine)) == set(RUN_FILES)
     (tmp_path / "clash").mkdir()
@@ -289,10 +292,10 @@ def test_out_dot(log, tmp_path, capsys, monkeypatch):
     work = tmp_path / "work"
     work.mkdir()
     monkeypatch.chdir(work)
-    assert _smooth(capsys, log, ".")[0] == 0  # empty: fine
-    assert _smooth(capsys, log, ".")[0] == 0  # an earlier run: fine
+    assert _smooth(capsys, log, ".")[0] in WROTE_OUTPUTS  # empty: fine
+    assert _smooth(capsys, log, ".")[0] in WROTE_OUTPUTS  # an earlier run: fine
     (work / "todo.txt").write_text("mine")
-    assert _smooth(capsys, log, ".")[0] == 0  # an earlier run with a note added: kept
+    assert _smooth(capsys, log, ".")[0] in WROTE_OUTPUTS  # an earlier run with a note added: kept
     assert (work / "todo.txt").read_text() == "mine"
     other = tmp_path / "other"
     other.mkdir()
@@ -306,10 +309,10 @@ def test_out_dot(log, tmp_path, capsys, monkeypatch):
 
 def test_rerun_replaces_the_run_and_keeps_notes_added_to_it(log, tmp_path, capsys):
     out = tmp_path / "out"
-    assert _smooth(capsys, log, out, "--plots")[0] == 0
+    assert _smooth(capsys, log, out, "--plots")[0] in WROTE_OUTPUTS
     assert {"trajectory.png", "errors.png"} <= set(read_manifest(out))
     (out / "notes.md").write_text("what I saw")
-    assert _smooth(capsys, log, out)[0] == 0
+    assert _smooth(capsys, log, out)[0] in WROTE_OUTPUTS
     names = sorted(p.name for p in out.iterdir())
     assert names == sorted([*RUN_FILES, MANIFEST_NAME, "notes.md"])  # stale plots gone
     assert (out / "notes.md").read_text() == "what I saw"
@@ -437,7 +440,7 @@ def _start_stalled(stage: str, log: Path, out: Path, tmp_path: Path) -> subproce
 
 def _previous_run_with_notes(log: Path, tmp_path: Path, capsys) -> Path:
     out = tmp_path / "out"
-    assert _smooth(capsys, log, out)[0] == 0
+    assert _smooth(capsys, log, out)[0] in WROTE_OUTPUTS
     (out / "notes.md").write_text("keep me")
     return out
 
@@ -465,7 +468,7 @@ def test_a_killed_runs_leftovers_go_with_the_next_run(log, tmp_path, capsys):
     child.communicate(timeout=60)
     assert _tree(out) != before  # the staging directory (and its files) stayed
     assert {k for k in _tree(out) if STAGING_TAG not in k} == set(before)
-    assert _smooth(capsys, log, out)[0] == 0
+    assert _smooth(capsys, log, out)[0] in WROTE_OUTPUTS
     assert _no_staging(out, tmp_path)
     assert (out / "notes.md").read_text() == "keep me"
 
@@ -477,7 +480,7 @@ def test_a_live_runs_staging_is_not_touched_by_a_concurrent_run(log, tmp_path, c
         live = [p for p in out.iterdir() if STAGING_TAG in p.name]
         assert len(live) == 1
         files = sorted(p.name for p in live[0].iterdir())
-        assert _smooth(capsys, log, out)[0] == 0  # a second run into the same place
+        assert _smooth(capsys, log, out)[0] in WROTE_OUTPUTS  # a second run into the same place
         assert sorted(p.name for p in live[0].iterdir()) == files
     finally:
         child.send_signal(signal.SIGTERM)

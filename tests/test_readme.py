@@ -32,6 +32,8 @@ def test_readme_library_example_runs_as_written(monkeypatch):
     xi = gtsam.Pose3(namespace["poses"][-1]).localCoordinates(gtsam.Pose3(update.world_T_body))
     sigma = np.sqrt(np.diag(update.pose_covariance))
     assert np.all(np.abs(xi) < 3 * sigma), (xi, sigma)
+    # the sample flight is clean: its verdict is trusted
+    assert namespace["verdict"].status.value == "trusted", namespace["verdict"].lines()
     # and the tracker's: the sample images tracked into the rows of a tracks.csv
     tracks = namespace["tracked"].tracks
     assert len(tracks) > 0 and set(np.unique(tracks.frame)) == {0, 1, 2, 3}

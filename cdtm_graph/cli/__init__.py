@@ -3,7 +3,9 @@
 Each subcommand module defines ``register(subparsers)``, which adds its parser and sets
 ``func`` to a ``run(args) -> int``. User mistakes (:class:`CdtmError`, missing files)
 and the system's refusals (disk full, I/O errors) become one line on stderr and exit code
-1; anything else is a bug and keeps its traceback. SIGTERM is handled as SIGINT: a
+1; anything else is a bug and keeps its traceback. A smoothing run that wrote its
+outputs exits 0 when its verdict is trusted and 3 when degraded or failed
+(:mod:`cdtm_graph.verdict`), each reason one line on stderr. SIGTERM is handled as SIGINT: a
 ``KeyboardInterrupt`` unwinds (staging directories are removed, outputs stay as they
 were) and the exit code is 130.
 """
@@ -30,6 +32,10 @@ SUBCOMMANDS = ("demo", "smooth", "import_", "track", "simulate", "analyze", "stu
 #: The worked example ``cdtm --help`` ends with (README and docs/flightlog.md tell it whole;
 #: tests/test_worked_example.py runs it).
 GEODETIC_EXAMPLE = """\
+exit status: 0 success (cdtm smooth, cdtm demo: the run's verdict is trusted); 3 outputs
+written but the verdict is degraded or failed (each reason one line on stderr); 1 bad
+input or nothing written (one line on stderr); 130 interrupted.
+
 worked example: a flight in latitude/longitude over an EPSG:4326 DEM with EGM96 heights
 (as SRTM and Copernicus GLO-30 tiles come), end to end:
   cdtm simulate my_flight --origin 36.5 127.25 120

@@ -17,7 +17,7 @@ from tqdm import tqdm
 
 from cdtm_graph.atomic import read_manifest
 from cdtm_graph.cli.outdir import add_force_option
-from cdtm_graph.cli.smooth import smooth_log_to_dir, summary
+from cdtm_graph.cli.smooth import VERDICT_HELP, print_verdict, smooth_log_to_dir, summary
 from cdtm_graph.outputs import RUN_WRITER
 
 SAMPLE_LOG = Path(__file__).resolve().parents[2] / "data" / "sample_flight"
@@ -31,7 +31,9 @@ RAYCAST_TRACKS = "tracks_raycast.csv"
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="smooth the bundled sample log into ./cdtm-demo-out "
-                                    "(--images: render, track and smooth a flight)")
+                                    "(--images: render, track and smooth a flight)",
+                       epilog=VERDICT_HELP,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=None, metavar="DIR",
                    help="output directory (default cdtm-demo-out, or cdtm-demo-images-out "
                         "with --images, holding the rendered log and the run)")
@@ -51,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
     print(summary(out, out_dir))
     written = sorted(n for n, w in (read_manifest(out_dir) or {}).items() if w == RUN_WRITER)
     print(f"wrote {', '.join(written)}")
-    return 0
+    return print_verdict(out, "cdtm demo")
 
 
 def run_images(out_dir: Path, args: argparse.Namespace) -> int:
@@ -94,4 +96,4 @@ def run_images(out_dir: Path, args: argparse.Namespace) -> int:
         print(f"from the ideal ray-cast tracks ({RAYCAST_TRACKS}): RMSE x y z {fmt} m, "
               f"position ANEES {ideal.anees_position:.2f}; images/ideal RMSE ratio "
               f"{e.rmse_position_3d_m / ideal.rmse_position_3d_m:.2f}")
-    return 0
+    return print_verdict(out, "cdtm demo")

@@ -74,11 +74,24 @@ def _gate_probability(text: str) -> float | None:
         raise argparse.ArgumentTypeError(f"{text!r}: expected a probability or 'none'") from None
 
 
+#: What ``cdtm smooth --help`` (and ``cdtm demo --help``) say about the verdict.
+VERDICT_HELP = """\
+verdict: every run is judged trusted, degraded or failed (report.json: verdict, reasons,
+flags per frame, self_checks). Each reason is printed as one line on stderr: what, which
+frames (indices of frames.csv) and why, e.g.
+  cdtm smooth: degraded: flat_terrain, frames 31-56 (31.0-56.0 s): flat terrain: ...
+exit status: 0 trusted; 3 outputs written but degraded or failed; 1 bad input or nothing
+written (one line on stderr); 130 interrupted.
+"""
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("smooth", help="smooth a flight log (IMU + C-DTM factors)",
                        description="Smooth a cdtm-flightlog/1 directory and write "
                                    "trajectory.tum, trajectory_cov.txt, states.csv, "
-                                   "covariances.npz and report.json into --out.")
+                                   "covariances.npz and report.json into --out.",
+                       epilog=VERDICT_HELP,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("log", help="flight log directory")
     add_out_option(p, "output directory")
     add_smoothing_options(p)
@@ -167,13 +180,32 @@ def summary(out: RunOutput, out_dir: Path) -> str:
                   f"{'RMSE compensated':24}{fmt(e.rmse_position_m)}",
                   f"{'max error compensated':24}{fmt(e.max_abs_position_error_m)}",
                   f"{'max error free (IMU)':24}{fmt(f.max_abs_position_error_m)}"]
-        if e.anees_position is not None and e.anees_position_band is not None:
-            lo, hi = e.anees_position_band
-            lines.append(f"position ANEES {e.anees_position:.2f} (3 dof; 95% band "
-                         f"{lo:.2f}-{hi:.2f}), pose ANEES {e.anees_pose:.2f} (6 dof)")
-    if r.flags:
-        lines.append(f"frame flags: {r.flags}")
+        consistency = e.position_consistency
+        if consistency is not None:
+            lines.append(f"position covariance {consistency.summary()}")
+            lines.append("  (smoothed errors are correlated over many frames: one flight's "
+                         "share inside the bound is a hint, many flights' a test)")
+    checks = out.verdict.self_checks
+    if checks.residual_chi2 == checks.residual_chi2:  # not NaN
+        nis = ("" if checks.innovation_nis_median != checks.innovation_nis_median else
+               f"; innovations median {checks.innovation_nis_median:.2f}, mean "
+               f"{checks.innovation_nis_mean:.2f} (chi-square(2): 1.39, 2)")
+        lines.append(f"self-checks {'passed' if checks.passed else 'FAILED'}: residual "
+                     f"chi-square {checks.residual_chi2:.2f} x expected, "
+                     f"{100 * checks.outlier_fraction:.2f}% beyond the 99.9% test{nis}")
+    flagged = len(out.verdict.flags)
+    lines.append(f"verdict: {out.verdict.status.value}"
+                 + (f" ({len(out.verdict.reasons)} reason(s) on stderr)"
+                    if out.verdict.reasons else "")
+                 + (f"; {flagged} frame(s) flagged in report.json" if flagged else ""))
     return "\n".join(lines)
+
+
+def print_verdict(out: RunOutput, command: str = "cdtm smooth") -> int:
+    """Each reason as one line on stderr; the exit status (0 trusted, 3 otherwise)."""
+    for line in out.verdict.lines():
+        print(f"{command}: {line}", file=sys.stderr)
+    return out.verdict.status.exit_code
 
 
 def smooth_log_to_dir(log_dir: str, out_dir: Path, args: argparse.Namespace) -> RunOutput:
@@ -200,5 +232,5 @@ def run(args: argparse.Namespace) -> int:
     out = smooth_log_to_dir(args.log, out_dir, args)
     if not args.quiet:
         print(summary(out, out_dir))
-    return 0
+    return print_verdict(out)
 

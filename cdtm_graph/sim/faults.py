@@ -1,13 +1,15 @@
 """What real flights do to the data, for tests and studies: faults injected into simulations.
 
-Two kinds:
+Three kinds:
 
 * **Terrain the map lacks** (:class:`TerrainMismatch`): a change to the *true* terrain
   only, made before features are cast on it, so the log's DTM (made from the unchanged
   truth) does not know it: a pit or quarry, buildings, a forest.
-* **Faults in a finished log** (functions on a :class:`~cdtm_graph.flightlog.FlightLog`):
-  wrong matches, IMU gaps, calibration errors. They return a new log and leave the input
-  alone.
+* **Terrain that gives the DTM nothing to hold** (:class:`FlatGround`): a lake under
+  the track, in the truth and the DTM alike; the map is right, the geometry is weak.
+* **Faults in a finished log** (functions on a :class:`~cdtm_graph.flightlog.FlightLog`
+  or its DTM): wrong matches, IMU gaps, calibration errors, a DTM that ends under the
+  flight. They return a new log or DTM and leave the input alone.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.flightlog import FlightLog, Frames, ImuSamples
@@ -109,6 +112,96 @@ def apply_terrain_mismatch(truth: Dtm, mismatch: TerrainMismatch,
             heights[block] = tops[i]
         elevation += heights
     return Dtm(elevation, truth.x0, truth.y0, truth.dx, truth.dy, sigma_h_m=truth.sigma_h_m)
+
+
+@dataclass(frozen=True)
+class FlatGround:
+    """Flat ground (a lake) under part of the flight, in the true terrain and the DTM.
+
+    Attributes:
+        at_s: the track reaches the flat ground at this time (s)...
+        duration_s: ...and leaves it this much later: the ground under the track
+            between those times, out to ``half_width_m`` on either side, is flat (the
+            frames whose whole footprint lies on it see nothing else; a footprint
+            reaching ~5 s ahead and behind, as the issue's flight's, sees flat ground only
+            from ``at_s + 5`` to ``at_s + duration_s - 5``).
+        half_width_m: how far the flat ground reaches either side of the track (m):
+            wider than half the camera footprint across the track, or frames see its
+            shore.
+        shore_m: width of the edge over which the ground blends back into the terrain.
+    """
+
+    at_s: float = 30.0
+    duration_s: float = 30.0
+    half_width_m: float = 1500.0
+    shore_m: float = 100.0
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def apply_flat_ground(terrain: Dtm, flat: FlatGround, track_xy_m: np.ndarray) -> Dtm:
+    """The terrain with the ground along the track flattened to its mean height there (a
+    new grid; ``terrain`` is unchanged): within ``half_width_m`` of the track and not past
+    its ends, blended over ``shore_m``.
+
+    Args:
+        terrain: the terrain.
+        flat: where and how wide.
+        track_xy_m: (n >= 2, 2) the flight's positions over the flat stretch, densely
+            sampled (every few tens of metres), in time order.
+    """
+    track = np.asarray(track_xy_m, dtype=float)
+    rows, cols = terrain.shape
+    x = terrain.x0 + np.arange(cols) * terrain.dx
+    y = terrain.y0 + np.arange(rows) * terrain.dy
+    xx, yy = np.meshgrid(x, y)
+    points = np.column_stack([xx.ravel(), yy.ravel()])
+    distance, nearest = cKDTree(track).query(points)
+    # past either end of the track: how far along it, and how far across
+    past = np.zeros(points.shape[0])
+    for end, inward in ((0, track[1] - track[0]), (-1, track[-2] - track[-1])):
+        course = -inward / np.linalg.norm(inward)  # pointing out of the stretch
+        at_end = nearest == (end % track.shape[0])
+        offset = points[at_end] - track[end]
+        along = offset @ course
+        past[at_end] = along
+        distance[at_end] = np.where(along > 0, np.abs(offset @ [-course[1], course[0]]),
+                                    distance[at_end])
+
+    def smoothstep(u: np.ndarray) -> np.ndarray:
+        u = np.clip(u, 0.0, 1.0)
+        return u * u * (3.0 - 2.0 * u)
+
+    weight = (smoothstep((flat.half_width_m + flat.shore_m - distance) / flat.shore_m)
+              * smoothstep((flat.shore_m - past) / flat.shore_m)).reshape(rows, cols)
+    inside = weight >= 1.0
+    level = float(np.nanmean(terrain.elevation[inside])) if inside.any() else 0.0
+    elevation = (1.0 - weight) * terrain.elevation + weight * level
+    return Dtm(elevation, terrain.x0, terrain.y0, terrain.dx, terrain.dy,
+               sigma_h_m=terrain.sigma_h_m)
+
+
+def with_dtm_ending(log: FlightLog, dtm: Dtm, at_s: float) -> Dtm:
+    """The log's DTM without data (NaN) past the point the flight reaches at ``at_s``
+    (seconds after the first frame): the half-plane ahead of the true track there, across
+    its course, as where a flight leaves the map it was given.
+
+    Raises:
+        ValueError: the log has no ground truth to find the track.
+    """
+    if log.groundtruth is None:
+        raise ValueError("the log has no ground truth to place the DTM's end on")
+    t0 = int(log.frames.t_ns[0])
+    at = np.array([t0 + int(at_s * NS_PER_S), t0 + int((at_s + 1.0) * NS_PER_S)])
+    p = log.groundtruth.interpolate(at).world_T_body[:, :2, 3]
+    course = (p[1] - p[0]) / np.linalg.norm(p[1] - p[0])
+    rows, cols = dtm.shape
+    x = dtm.x0 + np.arange(cols) * dtm.dx
+    y = dtm.y0 + np.arange(rows) * dtm.dy
+    ahead = ((x[None, :] - p[0, 0]) * course[0] + (y[:, None] - p[0, 1]) * course[1]) > 0.0
+    elevation = np.where(ahead, np.nan, dtm.elevation)
+    return Dtm(elevation, dtm.x0, dtm.y0, dtm.dx, dtm.dy, sigma_h_m=dtm.sigma_h_m)
 
 
 def with_wrong_matches(log: FlightLog, fraction: float, rng: np.random.Generator

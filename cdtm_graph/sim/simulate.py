@@ -67,7 +67,12 @@ from cdtm_graph.flightlog import (
 from cdtm_graph.geodesy import GeodeticOrigin, local_frame, normal_gravity_mps2
 from cdtm_graph.geometry import make_pose, rotation_to_quat_wxyz, so3_exp
 from cdtm_graph.imu import NS_PER_S, ImuNoise, dead_reckoning
-from cdtm_graph.sim.faults import TerrainMismatch, apply_terrain_mismatch
+from cdtm_graph.sim.faults import (
+    FlatGround,
+    TerrainMismatch,
+    apply_flat_ground,
+    apply_terrain_mismatch,
+)
 from cdtm_graph.sim.imu import ImuData, simulate_imu
 from cdtm_graph.sim.render import write_images
 from cdtm_graph.sim.terrain import NOMINAL_CORRELATION_LENGTH_M, clone_basic_cell, fractal_terrain
@@ -224,6 +229,8 @@ class SimulationSettings:
             the body frame, deg), instead of a draw of ``sigma_attitude_deg``.
         terrain_mismatch: terrain the true ground has and the DTM lacks
             (:class:`~cdtm_graph.sim.faults.TerrainMismatch`).
+        flat_ground: flat ground (a lake) under part of the track, in the truth and the
+            DTM alike (:class:`~cdtm_graph.sim.faults.FlatGround`).
         origin: where the world is on the Earth (WGS84): the world is the ENU tangent
             plane there, fixed to the rotating Earth, and the IMU senses the Earth's
             rotation and WGS84 normal gravity along the local vertical
@@ -275,6 +282,7 @@ class SimulationSettings:
     initial_error_m: tuple[float, float, float] | None = None
     initial_error_deg: tuple[float, float, float] | None = None
     terrain_mismatch: TerrainMismatch | None = None
+    flat_ground: FlatGround | None = None
     origin: GeodeticOrigin | None = None
     seed: int = 0
 
@@ -388,7 +396,7 @@ class SimulationSettings:
                 value = value.value
             elif isinstance(value, ImuNoise):
                 value = dataclasses.asdict(value)
-            elif isinstance(value, TerrainMismatch):
+            elif isinstance(value, (TerrainMismatch, FlatGround)):
                 value = value.to_dict()
             elif isinstance(value, GeodeticOrigin):
                 value = dataclasses.asdict(value)
@@ -721,6 +729,12 @@ def _make_world(settings: SimulationSettings, frame_t_s: np.ndarray,
         plan = _flight_plan(settings, shift, altitude)
         info = {"kind": "file", "path": str(settings.terrain)}
     _check_clearance(terrain, region, altitude)
+    if settings.flat_ground is not None:  # truth and DTM alike: made before the DTM
+        flat = settings.flat_ground
+        t_s = np.arange(flat.at_s, flat.at_s + flat.duration_s + 0.05, 0.1)
+        track = evaluate(plan, t_s).position_m[:, :2]
+        terrain = apply_flat_ground(terrain, flat, track)
+        info["flat_ground"] = flat.to_dict()
 
     if settings.terrain is not None or settings.exact_dtm or settings.noiseless:
         dtm = Dtm(terrain.elevation, terrain.x0, terrain.y0, terrain.dx, terrain.dy,

@@ -27,7 +27,7 @@ from cdtm_graph.clutter import (
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import FlightLog
-from cdtm_graph.gating import count_outliers
+from cdtm_graph.gating import residual_test
 from cdtm_graph.graph import (
     cdtm_factors,
     cdtm_information,
@@ -336,14 +336,16 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     settings_dict = settings.to_dict()
     settings_dict["initial_values"] = guess.source
     settings_dict["acquisitions"] = guess.acquisitions
-    n_out, out_per_frame = count_outliers(built.cdtm, estimate.world_T_body, K)
+    residuals = residual_test(built.cdtm, estimate.world_T_body, K)
     per_frame = np.zeros(K, dtype=int)
     for f in built.cdtm:
         per_frame[int(gtsam.Symbol(f.key_b).index())] += f.features.n
     counts = replace(built.counts, n_cdtm_features=int(per_frame.sum()),
                      n_cdtm_factors=len(built.cdtm), features_per_frame=per_frame,
-                     n_outliers=n_out, outliers_per_frame=out_per_frame,
-                     rejected_per_frame=built.rejections.per_frame(K))
+                     n_outliers=residuals.n_outliers,
+                     outliers_per_frame=residuals.outliers_per_frame,
+                     rejected_per_frame=built.rejections.per_frame(K),
+                     residual_chi2_per_frame=residuals.chi2_within_per_frame)
     return SmootherResult(estimate, covariances, stats, counts, settings_dict,
                           frame_flags(counts, flags), cdtm_information(
                               built.cdtm, estimate.world_T_body.__getitem__, K), terrain)

@@ -36,7 +36,7 @@ from cdtm_graph.clutter import (
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import FlightConfig, FlightLog
-from cdtm_graph.gating import InnovationGate, count_outliers
+from cdtm_graph.gating import InnovationGate, residual_test
 from cdtm_graph.geometry import so3_log
 from cdtm_graph.graph import (
     cdtm_factors,
@@ -831,14 +831,15 @@ class IncrementalSmoother:
         t0 = time.perf_counter()
         covariances = self.covariances()
         estimate = self.estimate()
-        n_out, out_per_frame = count_outliers([f for f in self._cdtm if f is not None],
-                                              estimate.world_T_body, K)
+        residuals = residual_test([f for f in self._cdtm if f is not None],
+                                  estimate.world_T_body, K)
         counts = GraphCounts(
             K, self._pairing.table.n_tracks, self._pairing.n_observations,
             self._pairing.n_pairs, self.n_features,
             self.n_cdtm_factors, K - 1,
             np.array([self._features_per_frame.get(k, 0) for k in range(K)]),
-            n_out, out_per_frame, self.rejections.per_frame(K))
+            residuals.n_outliers, residuals.outliers_per_frame, self.rejections.per_frame(K),
+            residuals.chi2_within_per_frame)
         nis = self.innovation_nis
         stats = SolverStats(
             Solver.ISAM2 if self.settings.lag_s is None else Solver.FIXED_LAG, K,

@@ -1,9 +1,11 @@
 """How the smoother fares on the data real flights produce: a scenario x mode matrix.
 
 Each scenario is a simulated flight with one fault (wrong matches, terrain the DTM lacks,
-a far initial fix, an IMU gap, a calibration error) or none; each is smoothed in every
-mode with the given settings and evaluated against its ground truth. ``scripts/
-robustness_matrix.py`` prints the table; the tests run small versions of each scenario.
+a far initial fix, an IMU gap, a calibration error, flat ground, few features, a DTM
+that ends under the flight) or none; each is smoothed in every mode with the given
+settings, judged (:mod:`cdtm_graph.verdict`) and evaluated against its ground truth.
+``scripts/robustness_matrix.py`` prints the table; the tests run small versions of the
+scenarios.
 """
 
 from __future__ import annotations
@@ -22,14 +24,17 @@ from cdtm_graph.flightlog import FlightLog
 from cdtm_graph.results import Rejection
 from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.sim.faults import (
+    FlatGround,
     MismatchKind,
     TerrainMismatch,
     with_calibration_error,
+    with_dtm_ending,
     with_imu_gap,
     with_wrong_matches,
 )
 from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
 from cdtm_graph.smoother import SmootherMode, SmootherSettings
+from cdtm_graph.verdict import Verdict
 
 #: The issue's flight: 1 fps, 150 m/s at 1800 m, ~150 features, 640x480, FOV 60 deg.
 BASE = SimulationSettings(frames=90, fps=1.0, speed_mps=150.0, altitude_m=1800.0,
@@ -55,16 +60,20 @@ class Scenario:
     Attributes:
         name: short name. simulation: changes to the base simulation settings.
         fault: what is done to the finished log (``log, rng -> log``), or None.
+        dtm_fault: what is done to the log's DTM (``log, dtm -> dtm``), or None.
     """
 
     name: str
     simulation: dict = field(default_factory=dict)
     fault: Callable[[FlightLog, np.random.Generator], FlightLog] | None = None
+    dtm_fault: Callable[[FlightLog, Dtm], Dtm] | None = None
 
     def flight(self, base: SimulationSettings = BASE) -> tuple[FlightLog, Dtm]:
         log, dtm = simulate_flight(dataclasses.replace(base, **self.simulation))
         if self.fault is not None:
             log = self.fault(log, np.random.default_rng(base.seed + 1000))
+        if self.dtm_fault is not None:
+            dtm = self.dtm_fault(log, dtm)
         return log, dtm
 
 
@@ -105,12 +114,22 @@ SCENARIOS: dict[str, Scenario] = {s.name: s for s in (
     Scenario("mount05deg", fault=lambda log, rng: with_calibration_error(
         log, mount_rotation_deg=(0.3, 0.4, 0.0))),
     Scenario("late20ms", fault=lambda log, rng: with_calibration_error(log, time_offset_s=0.02)),
+    Scenario("lake30", dict(flat_ground=FlatGround(at_s=30.0, duration_s=30.0))),
+    Scenario("few8", dict(n_features=8)),
+    Scenario("dtm_end60", dtm_fault=lambda log, dtm: with_dtm_ending(log, dtm, 60.0)),
+    Scenario("dtm_elsewhere", dtm_fault=lambda log, dtm: Dtm(
+        dtm.elevation, dtm.x0 + 100_000.0, dtm.y0, dtm.dx, dtm.dy, dtm.sigma_h_m)),
 )}
 
 
 @dataclass(frozen=True)
 class Outcome:
-    """One scenario smoothed in one mode (NaN where it failed; ``error`` says why)."""
+    """One scenario smoothed in one mode (NaN where it failed; ``error`` says why).
+
+    Attributes (beyond the errors): verdict: trusted, degraded or failed ("error" when
+    the log was refused); reasons: the verdict's reasons, ``code first-last`` each;
+    inside: share of frames whose position NEES is inside the chi-square(3) 95% bound.
+    """
 
     scenario: str
     mode: Mode
@@ -122,19 +141,27 @@ class Outcome:
     verdict: str
     time_s: float
     error: str = ""
+    reasons: str = ""
+    inside: float = float("nan")
+
+    @property
+    def exit_code(self) -> int:
+        """What ``cdtm smooth`` exits with: 1 refused, 0 trusted, 3 degraded or failed."""
+        return 1 if self.error else 0 if self.verdict == "trusted" else 3
 
     def row(self) -> str:
         if self.error:
-            return f"{self.scenario:11} {self.mode.value:9} failed: {self.error}"
+            return f"{self.scenario:11} {self.mode.value:9} refused (exit 1): {self.error}"
         x, y, z = self.rmse_m
         return (f"{self.scenario:11} {self.mode.value:9} {x:8.2f} {y:8.2f} {z:8.2f} "
-                f"{self.max_error_m:9.2f} {self.anees_position:9.2f} {self.n_outliers:7d} "
-                f"{self.n_rejected:8d} {self.verdict:9} {self.time_s:6.1f}")
+                f"{self.max_error_m:9.2f} {self.anees_position:9.2f} {self.inside:6.2f} "
+                f"{self.n_outliers:7d} {self.n_rejected:8d} {self.time_s:6.1f} "
+                f"{self.verdict:9} {self.exit_code:4d} {self.reasons}")
 
 
 HEADER = (f"{'scenario':11} {'mode':9} {'rmse_x':>8} {'rmse_y':>8} {'rmse_z':>8} "
-          f"{'max_3d':>9} {'anees_pos':>9} {'outlier':>7} {'rejected':>8} {'verdict':9} "
-          f"{'time_s':>6}")
+          f"{'max_3d':>9} {'anees_pos':>9} {'inside':>6} {'outlier':>7} {'rejected':>8} "
+          f"{'time_s':>6} {'verdict':9} {'exit':>4} reasons")
 
 
 def run(flight: FlightLog, dtm: Dtm, scenario: str, mode: Mode,
@@ -150,8 +177,34 @@ def run(flight: FlightLog, dtm: Dtm, scenario: str, mode: Mode,
     assert e is not None  # simulated flights have ground truth
     counts = out.result.counts
     rejected = counts.n_rejected() - counts.n_rejected(Rejection.MISSED_DTM)
-    verdict = str(out.report.get("verdict", "-"))
+    reasons = " ".join(f"{r.code} {r.first_frame}-{r.last_frame}" for r in out.verdict.reasons)
+    consistency = e.position_consistency
     return Outcome(scenario, mode, e.rmse_position_m,
                    float(np.max(np.linalg.norm(e.position_error_world_m, axis=1))),
                    float(e.anees_position if e.anees_position is not None else np.nan),
-                   counts.n_outliers, int(rejected), verdict, time.perf_counter() - start)
+                   counts.n_outliers, int(rejected), out.verdict.status.value,
+                   time.perf_counter() - start, reasons=reasons,
+                   inside=consistency.inside_fraction if consistency else float("nan"))
+
+
+@dataclass(frozen=True)
+class VerdictTask:
+    """One scenario flight to smooth and judge (picklable: for ``parallel.map_tasks``).
+
+    Attributes:
+        scenario: a name of :data:`SCENARIOS`. seed: the simulation's seed.
+        frames: the flight's length (the base flight is the issue's, :data:`BASE`).
+        mode: the solver.
+    """
+
+    scenario: str
+    seed: int
+    frames: int = BASE.frames
+    mode: Mode = Mode.BATCH
+
+
+def judge(task: VerdictTask) -> Verdict:
+    """The verdict on one scenario flight."""
+    base = dataclasses.replace(BASE, frames=task.frames, seed=task.seed)
+    flight, dtm = SCENARIOS[task.scenario].flight(base)
+    return smooth_and_evaluate(flight, dtm, task.mode.settings(SmootherSettings())).verdict

@@ -1,0 +1,783 @@
+"""The verdict on a smoothing run: trusted, degraded or failed, and why.
+
+Pure, no I/O: :func:`assess` takes a :class:`~cdtm_graph.results.SmootherResult` (and,
+when the log has ground truth, its :class:`~cdtm_graph.evaluation.ErrorReport`; when the
+log is at hand, its IMU sample times) and returns a :class:`Verdict`: the flags of each
+frame, the reasons (stretches of flagged frames and run-wide self-checks) and the status.
+
+**Per-frame flags** (why a frame is weak; ``Verdict.flags``):
+
+- ``no_features``: no C-DTM feature ends at the frame (tracks lost): the IMU alone.
+- ``off_dtm``: most of the frame's features were left out because their rays missed the
+  DTM (the flight left the map): the IMU alone.
+- ``few_features``, ``flat_terrain``, ``narrow_fov``: the weak geometries of the paper's
+  section V.B, named from the information the C-DTM features give a rigid move of the
+  poses over a window of frames (``SmootherResult.cdtm_information``, the fix the camera
+  and the DTM give, the relative motion held; each frame scaled to unit height
+  information, so that each counts alike): few features per frame; flat terrain, where
+  horizontal position gets little information beside height; a narrow footprint, where
+  the horizontal position can barely be told from a tilt (its information nearly all
+  goes once the attitude is free).
+- one flag per kind of rejection (``map_mismatch``, ``heavy_rejection``...): the share of
+  the window's offered features left out for that reason (``counts.rejected_per_frame``,
+  rules in :data:`REJECTION_RULES`; a reason the smoother adds later falls under
+  ``heavy_rejection`` until it gets a rule of its own).
+- ``imu_gap``: IMU samples missing inside the frame's interval (the preintegration holds
+  the last sample across the gap and trusts it as a measurement).
+- ``residual_misfit``: the window's normalized residual chi-square (self-check below)
+  outside its band.
+- any flag the smoother itself set (``SmootherResult.flags``) is kept.
+
+**Self-checks without ground truth**: the C-DTM features' residuals at the solution,
+with the full measurement noise (``counts.residual_chi2_per_frame``, within the
+chi-square(2) 99.9% test), divided by their expectation (chi-square(2) truncated at that
+test: 1.986 per feature), overall and per window: ~1 when the noise model holds; the
+share of features beyond the test (~0.1% expected); in incremental runs the innovations'
+squared Mahalanobis distances (chi-square(2): median 1.39; the median is judged, the
+mean, which the gated outliers dominate, only reported).
+
+**With ground truth**: the per-frame NEES (:class:`~cdtm_graph.evaluation.
+NeesConsistency`).
+
+**Rules** (:class:`VerdictSettings`; the measurements behind the defaults are in
+docs/verdict.md):
+
+- ``failed``: the solver did not converge (``not_converged``); or fewer than half of the
+  frames have a camera/DTM fix (``no_fix``: frames flagged ``no_features`` or
+  ``off_dtm``); or the solution does not fit its data (``misfit``: the run's normalized
+  residual chi-square above 1.5; ``wrong_fix``: half of the features offered or more
+  left out as off the map); or, with ground truth, most frames' errors beyond the
+  chi-square(3) 99.9% bound of their covariance (``confidently_wrong``).
+- ``degraded``: any flagged stretch of at least ``min_stretch_s`` (an IMU gap at any
+  length), or a self-check outside its bounds, or with ground truth a covariance the
+  errors call optimistic (``overconfident``: :class:`~cdtm_graph.evaluation.
+  ConsistencyBounds`).
+- ``trusted``: none of these. A trusted run may still carry per-frame flags on
+  stretches too short to matter.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+from scipy.stats import chi2
+
+from cdtm_graph.evaluation import CovarianceVerdict, ErrorReport
+from cdtm_graph.gating import OUTLIER_TEST_PROBABILITY, chi2_2dof_quantile
+from cdtm_graph.geometry import rigid_motion_transfer
+from cdtm_graph.results import Rejection, SmootherResult
+
+NS_PER_S = 1_000_000_000
+
+
+def truncated_chi2_2dof_mean(probability: float) -> float:
+    """Mean of chi-square(2) truncated at its ``probability`` quantile ``c``:
+    ``2 - c (1 - p) / p`` (1.986 at 0.999), the expected residual of a feature within the
+    test of :func:`cdtm_graph.gating.residual_test`."""
+    c = chi2_2dof_quantile(probability)
+    return 2.0 - c * (1.0 - probability) / probability
+
+
+class Status(enum.Enum):
+    """How far a run's outputs can be trusted."""
+
+    TRUSTED = "trusted"    # no weak stretch, every self-check inside its bounds
+    DEGRADED = "degraded"  # outputs usable where not flagged; read the reasons
+    FAILED = "failed"      # outputs written but not a navigation result
+
+    @property
+    def exit_code(self) -> int:
+        """The CLI's: 0 trusted, 3 outputs written but degraded or failed."""
+        return 0 if self is Status.TRUSTED else 3
+
+
+@dataclass(frozen=True)
+class Reason:
+    """One reason a run is not trusted.
+
+    Attributes:
+        code: machine-readable (a frame flag, or a run-wide check such as
+            ``residual_chi2``).
+        message: what was seen and what it means, in words.
+        first_frame, last_frame: frame indices of frames.csv the reason covers (the whole
+            run for run-wide checks).
+        status: what it makes the run (DEGRADED or FAILED).
+        t_first_s, t_last_s: the same frames' times since the first frame (s).
+    """
+
+    code: str
+    message: str
+    first_frame: int
+    last_frame: int
+    status: Status
+    t_first_s: float = 0.0
+    t_last_s: float = 0.0
+
+    def line(self) -> str:
+        """One line for a terminal: ``degraded: flat_terrain, frames 31-56 (31.0-56.0
+        s): ...``."""
+        frames = (f"frame {self.first_frame}" if self.first_frame == self.last_frame else
+                  f"frames {self.first_frame}-{self.last_frame}")
+        return (f"{self.status.value}: {self.code}, {frames} ({self.t_first_s:.1f}-"
+                f"{self.t_last_s:.1f} s): {self.message}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"code": self.code, "message": self.message, "first_frame": self.first_frame,
+                "last_frame": self.last_frame, "status": self.status.value,
+                "t_first_s": self.t_first_s, "t_last_s": self.t_last_s}
+
+
+@dataclass(frozen=True)
+class SelfChecks:
+    """Checks of the solution against its own noise model (no ground truth needed).
+
+    Attributes:
+        residual_chi2: residual chi-square of the features within the test over its
+            expectation, whole run (~1 expected); NaN without features.
+        residual_chi2_per_window: (K,) the same over each frame's window.
+        outlier_fraction: share of features beyond the chi-square(2) 99.9% test.
+        innovation_nis_median, innovation_nis_mean: of the innovations the incremental
+            gate tested (NaN in batch runs).
+        passed: every check inside its bounds.
+    """
+
+    residual_chi2: float
+    residual_chi2_per_window: np.ndarray
+    outlier_fraction: float
+    innovation_nis_median: float
+    innovation_nis_mean: float
+    passed: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"residual_chi2": _finite(self.residual_chi2),
+                "residual_chi2_per_window": [_finite(v) for v in self.residual_chi2_per_window],
+                "outlier_fraction": _finite(self.outlier_fraction),
+                "innovation_nis_median": _finite(self.innovation_nis_median),
+                "innovation_nis_mean": _finite(self.innovation_nis_mean),
+                "passed": self.passed}
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The verdict on a run.
+
+    Attributes:
+        status: TRUSTED, DEGRADED or FAILED (the worst of the reasons').
+        reasons: why it is not trusted, in frame order, run-wide checks first.
+        flags: frame index -> the flags of that frame (every flagged frame, also on
+            stretches too short to be a reason).
+        self_checks: the checks without ground truth.
+    """
+
+    status: Status
+    reasons: tuple[Reason, ...]
+    flags: dict[int, list[str]]
+    self_checks: SelfChecks
+
+    def lines(self) -> list[str]:
+        """One line per reason (what the CLI prints on stderr)."""
+        return [r.line() for r in self.reasons]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"verdict": self.status.value,
+                "reasons": [r.to_dict() for r in self.reasons],
+                "flags": {int(k): list(v) for k, v in self.flags.items()},
+                "self_checks": self.self_checks.to_dict()}
+
+
+@dataclass(frozen=True)
+class RejectionRule:
+    """When a reason for leaving features out flags a frame.
+
+    Attributes:
+        code: the flag (reasons sharing a code are summed).
+        min_fraction: flag when at least this share of the window's offered features
+            (kept + left out) was left out for the code's reasons; ``None``: never (a
+            reason that is part of normal operation).
+        meaning: what the flag tells the user, for the reason's message.
+        min_run_fraction: a reason for the whole run when at least this share of all
+            its offered features was left out (a fault spread thin over the flight);
+            ``None``: windows only.
+        failed: ``(code, share, meaning)``: the run FAILS with this code when at least
+            this share of all its offered features was left out for the rule's reasons.
+    """
+
+    code: str
+    min_fraction: float | None
+    meaning: str
+    min_run_fraction: float | None = None
+    failed: tuple[str, float, str] | None = None
+
+
+#: Rejection reason value -> its rule. A reason not listed uses ``DEFAULT_REJECTION_RULE``.
+REJECTION_RULES: Mapping[str, RejectionRule] = MappingProxyType({
+    Rejection.MISSED_DTM.value: RejectionRule(
+        "off_dtm", 0.5, "their rays miss the DTM (the flight is off the map): the position "
+        "comes from the IMU alone"),
+    Rejection.MAP_MISMATCH.value: RejectionRule(
+        "map_mismatch", 0.2, "their ground points are not where the DTM says (terrain the "
+        "map lacks, a wrong calibration or camera timing)", min_run_fraction=0.1,
+        failed=("wrong_fix", 0.5, "most of the terrain seen is not where the DTM says: the "
+                "position is not where the map fits (a wrong fix, the wrong map, or a "
+                "noise model far too small)")),
+    Rejection.WRONG_MATCH.value: RejectionRule(
+        "heavy_rejection", 0.3, "the tracker's matches, the DTM or the IMU disagree"),
+    Rejection.GRAZING.value: RejectionRule(
+        "heavy_rejection", 0.3, "the tracker's matches, the DTM or the IMU disagree"),
+    Rejection.GATED.value: RejectionRule(
+        "heavy_rejection", 0.3, "the tracker's matches, the DTM or the IMU disagree"),
+    # the fixed lag's window moved on: normal operation, not a fault of the data
+    Rejection.TOO_OLD.value: RejectionRule("too_old", None, ""),
+})
+DEFAULT_REJECTION_RULE = RejectionRule(
+    "heavy_rejection", 0.3, "the tracker's matches, the DTM or the IMU disagree")
+
+
+@dataclass(frozen=True)
+class VerdictSettings:
+    """The rules of :func:`assess` (measurements behind the defaults: docs/verdict.md).
+
+    Attributes:
+        window_s: frames within half of this of a frame form its window (geometry,
+            rejection shares, residual chi-square).
+        min_stretch_s: a stretch of flagged frames shorter than this (in frame time) is
+            only a per-frame flag, not a reason: the IMU bridges it. IMU gaps count at
+            any length.
+        min_features_per_frame: ``few_features`` below this mean per frame over the
+            window. The paper's two-frame solve needs 6
+            (:class:`~cdtm_graph.analysis.closed_form.DegeneracySettings`); the smoother's
+            accuracy needs more.
+        flat_slope: ``flat_terrain`` when the window's horizontal position information
+            (weakest horizontal direction, attitude held) is below ``flat_slope**2`` times
+            its height information: over terrain of RMS slope s the ratio is about s^2.
+        min_attitude_free_fraction: ``narrow_fov`` when the weakest horizontal direction
+            keeps less than this share of its information once the attitude is free.
+        rejection_rules: rejection reason -> rule (reasons not listed:
+            ``default_rejection_rule``).
+        max_imu_gap_s: ``imu_gap`` on the frames whose interval holds more than this
+            without an IMU sample (or more than 3 median sample intervals, whichever is
+            longer).
+        residual_chi2_tolerance: the normalized residual chi-square of n features may
+            differ from 1 by this plus three of its standard deviations (``3 /
+            sqrt(n)``) before it flags a window (``residual_misfit``) or, over the whole
+            run, is a reason (``residual_chi2``).
+        misfit_residual_chi2: FAILED (``misfit``) when the whole run's normalized
+            residual chi-square exceeds this: the solution does not fit its data.
+        min_window_features: windows with fewer features within the test are not judged
+            by the residual chi-square (too few to tell).
+        max_outlier_fraction: share of features beyond the chi-square(2) 99.9% test
+            (0.1% expected) above which the run is degraded (``outliers``).
+        innovation_nis_median_band: bounds of the median squared Mahalanobis distance of
+            the innovations the incremental gate tested (chi-square(2): 1.39). Their mean
+            is reported, not judged: the gated outliers' distances (thousands) dominate it.
+        min_fix_fraction: FAILED (``no_fix``) when fewer frames than this share have a
+            camera/DTM fix.
+        max_beyond_999_fraction: with ground truth, FAILED (``confidently_wrong``) when
+            more frames than this share have their position NEES beyond the chi-square(3)
+            99.9% bound.
+    """
+
+    window_s: float = 10.0
+    min_stretch_s: float = 3.0
+    min_features_per_frame: float = 20.0
+    flat_slope: float = 0.1
+    min_attitude_free_fraction: float = 0.06
+    rejection_rules: Mapping[str, RejectionRule] = field(default_factory=lambda: REJECTION_RULES)
+    default_rejection_rule: RejectionRule = DEFAULT_REJECTION_RULE
+    max_imu_gap_s: float = 0.1
+    residual_chi2_tolerance: float = 0.25
+    misfit_residual_chi2: float = 1.5
+    min_window_features: int = 50
+    max_outlier_fraction: float = 0.01
+    innovation_nis_median_band: tuple[float, float] = (1.0, 2.0)
+    min_fix_fraction: float = 0.5
+    max_beyond_999_fraction: float = 0.5
+
+
+#: Checks that make a run FAILED; every other reason makes it DEGRADED.
+FAILED_CODES = frozenset({"not_converged", "no_fix", "misfit", "wrong_fix",
+                          "confidently_wrong"})
+#: The per-frame flags :func:`assess` sets itself (besides the rejection rules' codes).
+FRAME_FLAGS = ("no_features", "few_features", "flat_terrain", "narrow_fov", "imu_gap",
+               "residual_misfit")
+
+
+@dataclass(frozen=True)
+class FrameTest:
+    """One per-frame flag: which frames, the value tested, how a stretch reads.
+
+    Attributes:
+        code: the flag.
+        flagged: (K,) bool.
+        describe: (first, last) frame of a stretch -> what was seen there, in words.
+        any_length: a reason however short the stretch (else ``min_stretch_s``).
+        run_wide: if set, also one reason for the whole run with this message (a fault
+            spread over the flight, beside the stretches where it is dense).
+    """
+
+    code: str
+    flagged: np.ndarray
+    describe: Callable[[int, int], str]
+    any_length: bool = False
+    run_wide: str | None = None
+
+
+def window_half_width(t_ns: np.ndarray, window_s: float) -> int:
+    """Frames on each side of a frame in its window: ``window_s / 2`` over the median
+    frame interval, at least 1."""
+    if t_ns.size < 2:
+        return 1
+    dt_s = float(np.median(np.diff(t_ns))) / NS_PER_S
+    return max(1, int(round(0.5 * window_s / dt_s))) if dt_s > 0 else 1
+
+
+def window_sum(values: np.ndarray, half: int) -> np.ndarray:
+    """(K, ...) -> (K, ...) sums over frames ``k - half .. k + half`` (clipped to the run)."""
+    values = np.asarray(values, dtype=float)
+    k = values.shape[0]
+    cumulative = np.concatenate([np.zeros((1,) + values.shape[1:]), np.cumsum(values, axis=0)])
+    lo = np.clip(np.arange(k) - half, 0, k)
+    hi = np.clip(np.arange(k) + half + 1, 0, k)
+    return cumulative[hi] - cumulative[lo]
+
+
+def window_information(information: np.ndarray, position_m: np.ndarray, half: int
+                       ) -> np.ndarray:
+    """(K, 6, 6) C-DTM fix information of each frame's window, about that frame.
+
+    Each frame's information (``SmootherResult.cdtm_information``: [rotation,
+    translation], world axes, about its own position) is moved to the window's frame
+    (:func:`~cdtm_graph.geometry.rigid_motion_transfer`) and summed.
+    """
+    k = information.shape[0]
+    out = np.zeros_like(information)
+    for offset in range(-half, half + 1):
+        frames = np.arange(k)
+        other = frames + offset
+        inside = (other >= 0) & (other < k)
+        A = rigid_motion_transfer(position_m[other[inside]], position_m[frames[inside]])
+        out[inside] += np.swapaxes(A, 1, 2) @ information[other[inside]] @ A
+    return out
+
+
+def unit_height_information(information: np.ndarray) -> np.ndarray:
+    """(K, 6, 6) each frame's information scaled to unit height information (zero where
+    it has none), so that every frame of a window counts alike: a window half over a
+    lake then reads as half flat, not as flat as the lake's many features make the sum."""
+    height = information[:, 5, 5]
+    scale = np.where(height > 0, 1.0 / np.where(height > 0, height, 1.0), 0.0)
+    return information * scale[:, None, None]
+
+
+@dataclass(frozen=True)
+class FixGeometry:
+    """What each frame's window of C-DTM information says about the fix (world axes).
+
+    Attributes:
+        horizontal: (K,) information of the weakest horizontal direction, attitude held
+            (1/m^2).
+        vertical: (K,) information of height, attitude held (1/m^2).
+        attitude_free_fraction: (K,) share of ``horizontal`` left once the attitude is
+            free (Schur complement), NaN where ``horizontal`` is zero.
+    """
+
+    horizontal: np.ndarray
+    vertical: np.ndarray
+    attitude_free_fraction: np.ndarray
+
+    @property
+    def flatness(self) -> np.ndarray:
+        """(K,) horizontal over vertical information: about the squared RMS slope."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(self.vertical > 0, self.horizontal / self.vertical, np.nan)
+
+
+def fix_geometry(window_info: np.ndarray) -> FixGeometry:
+    """The eigen-structure of (K, 6, 6) window information [rotation, translation]."""
+    translation = window_info[:, 3:, 3:]
+    horizontal = np.linalg.eigvalsh(translation[:, :2, :2])[:, 0]
+    vertical = translation[:, 2, 2]
+    rotation = window_info[:, :3, :3]
+    cross = window_info[:, 3:, :3]
+    k = window_info.shape[0]
+    free = np.full(k, np.nan)
+    # the rotation block is singular only without any feature in the window
+    ok = np.linalg.matrix_rank(rotation, hermitian=True) == 3
+    if ok.any():
+        schur = translation[ok] - cross[ok] @ np.linalg.solve(
+            rotation[ok], np.swapaxes(cross[ok], 1, 2))
+        weakest = np.linalg.eigvalsh(schur[:, :2, :2])[:, 0]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            free[ok] = np.where(horizontal[ok] > 0, weakest / horizontal[ok], np.nan)
+    return FixGeometry(np.clip(horizontal, 0.0, None), vertical, free)
+
+
+def imu_gaps(frame_t_ns: np.ndarray, imu_t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The stretches without an IMU sample in each frame's interval (from the previous
+    frame; none for the first frame).
+
+    Returns:
+        ``(inside_s, whole_s)``, (K,) each: the longest such stretch within the interval,
+        and the whole length of that stretch (also where it spans several frames).
+    """
+    frame_t_ns = np.asarray(frame_t_ns, dtype=np.int64)
+    imu_t_ns = np.asarray(imu_t_ns, dtype=np.int64)
+    k = frame_t_ns.size
+    inside, whole = np.zeros(k), np.zeros(k)
+    if k < 2 or imu_t_ns.size == 0:
+        return inside, whole
+    # the stretches between samples, and before the first and after the last one
+    edges = np.concatenate([[min(int(imu_t_ns[0]), int(frame_t_ns[0]))], imu_t_ns,
+                            [max(int(imu_t_ns[-1]), int(frame_t_ns[-1]))]])
+    starts, ends = edges[:-1], edges[1:]
+    for j in range(1, k):
+        t0, t1 = int(frame_t_ns[j - 1]), int(frame_t_ns[j])
+        lo = int(np.searchsorted(ends, t0, side="right"))
+        hi = int(np.searchsorted(starts, t1, side="left"))
+        if hi > lo:
+            span = np.minimum(ends[lo:hi], t1) - np.maximum(starts[lo:hi], t0)
+            i = int(np.argmax(span))
+            inside[j] = span[i] / NS_PER_S
+            whole[j] = (ends[lo + i] - starts[lo + i]) / NS_PER_S
+    return inside, whole
+
+
+def _stretches(flagged: np.ndarray) -> list[tuple[int, int]]:
+    """(first, last) frames of each run of True."""
+    padded = np.concatenate([[False], np.asarray(flagged, dtype=bool), [False]])
+    change = np.flatnonzero(np.diff(padded.astype(np.int8)))
+    return [(int(a), int(b) - 1) for a, b in zip(change[::2], change[1::2])]
+
+
+def _finite(value: float) -> float | None:
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def _pct(x: float) -> str:
+    return f"{100 * x:.0f}%" if x >= 0.01 or x == 0 else f"{100 * x:.2f}%"
+
+
+class _Frames:
+    """A run's per-frame quantities the tests share."""
+
+    def __init__(self, result: SmootherResult, settings: VerdictSettings):
+        counts = result.counts
+        self.k = len(result.estimate)
+        self.t_s = (result.estimate.t_ns - result.estimate.t_ns[0]) / NS_PER_S
+        self.half = window_half_width(result.estimate.t_ns, settings.window_s)
+        self.features = _per_frame(counts.features_per_frame, self.k)
+        self.outliers = _per_frame(counts.outliers_per_frame, self.k)
+        self.rejected = {r: _per_frame(v, self.k) for r, v in counts.rejected_per_frame.items()}
+        # features the graph was offered: kept, or left out for a reason that is a fault
+        faults = [v for r, v in self.rejected.items()
+                  if settings.rejection_rules.get(r, settings.default_rejection_rule)
+                  .min_fraction is not None]
+        self.offered = self.features + sum(faults, np.zeros(self.k))
+        self.chi2 = _per_frame(counts.residual_chi2_per_frame, self.k)
+        self.has_chi2 = np.asarray(counts.residual_chi2_per_frame).size == self.k
+        self.later = np.arange(self.k) >= 1  # frame 0 ends no feature pair
+
+
+def _per_frame(values: Any, k: int) -> np.ndarray:
+    arr = np.asarray(values, dtype=float)
+    return arr if arr.shape == (k,) else np.zeros(k)
+
+
+def _no_features(f: _Frames, off_dtm: np.ndarray) -> FrameTest:
+    flagged = f.later & (f.features == 0) & ~off_dtm
+    return FrameTest("no_features", flagged,
+                     lambda a, b: "no C-DTM feature: the position comes from the IMU alone")
+
+
+def _rejection_tests(f: _Frames, settings: VerdictSettings
+                     ) -> tuple[list[FrameTest], list[tuple[str, str]]]:
+    """One test per rejection code, its reasons' counts summed over each window; and the
+    run-wide failures (:attr:`RejectionRule.failed`)."""
+    by_code: dict[str, tuple[RejectionRule, list[str]]] = {}
+    for reason in f.rejected:
+        rule = settings.rejection_rules.get(reason, settings.default_rejection_rule)
+        if rule.min_fraction is None:
+            continue
+        by_code.setdefault(rule.code, (rule, []))[1].append(reason)
+    offered = window_sum(f.offered, f.half)
+    tests = []
+    failures: list[tuple[str, str]] = []
+    for code, (rule, reasons) in by_code.items():
+        left_out = {r: window_sum(f.rejected[r], f.half) for r in reasons}
+        total = sum(left_out.values(), np.zeros(f.k))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            share = np.where(offered > 0, total / np.maximum(offered, 1), 0.0)
+        flagged = f.later & (share >= rule.min_fraction) & (total > 0)
+        if code == "off_dtm":  # a frame all of whose rays missed is off the map
+            missed = sum((f.rejected[r] for r in reasons), np.zeros(f.k))
+            flagged |= f.later & (f.features == 0) & (missed > 0)
+
+        def describe(a: int, b: int, rule=rule, reasons=reasons) -> str:
+            n_offered = f.offered[a:b + 1].sum()
+            parts = [f"{int(f.rejected[r][a:b + 1].sum())} {r.replace('_', ' ')}"
+                     for r in reasons if f.rejected[r][a:b + 1].sum()]
+            n = sum(f.rejected[r][a:b + 1].sum() for r in reasons)
+            return (f"{_pct(n / max(n_offered, 1))} of the features offered were left out "
+                    f"({', '.join(parts)}): {rule.meaning}")
+
+        run_wide = None
+        n_run = sum(f.rejected[r].sum() for r in reasons)
+        n_offered = f.offered.sum()
+        if (rule.min_run_fraction is not None and n_offered > 0
+                and n_run >= rule.min_run_fraction * n_offered):
+            run_wide = (f"over the whole flight {_pct(n_run / n_offered)} of the features "
+                        f"offered were left out (at most {_pct(rule.min_run_fraction)} "
+                        f"tolerated): {rule.meaning}")
+        if rule.failed is not None and n_offered > 0 and n_run >= rule.failed[1] * n_offered:
+            failures.append((rule.failed[0], (
+                f"over the whole flight {_pct(n_run / n_offered)} of the features offered "
+                f"were left out ({', '.join(reasons)}; at most {_pct(rule.failed[1])} "
+                f"tolerated): {rule.failed[2]}")))
+        tests.append(FrameTest(code, flagged, describe, run_wide=run_wide))
+    return tests, failures
+
+
+def _geometry_tests(f: _Frames, result: SmootherResult, settings: VerdictSettings,
+                    unfixed: np.ndarray) -> list[FrameTest]:
+    """few_features, flat_terrain, narrow_fov from each frame's window."""
+    judged = f.later & ~unfixed
+    # the mean over the window's frames that have a fix (off-map neighbours are not "few")
+    mean_features = (window_sum(np.where(judged, f.features, 0.0), f.half)
+                     / np.maximum(window_sum(judged.astype(float), f.half), 1.0))
+    few = judged & (mean_features < settings.min_features_per_frame)
+    tests = [FrameTest("few_features", few, lambda a, b: (
+        f"{mean_features[a:b + 1].mean():.0f} C-DTM features per frame, fewer than "
+        f"{settings.min_features_per_frame:g}: a weak fix"))]
+    if result.cdtm_information is None or np.shape(result.cdtm_information)[0] != f.k:
+        return tests
+    info = window_information(unit_height_information(np.asarray(result.cdtm_information)),
+                              result.estimate.position_m, f.half)
+    geometry = fix_geometry(info)
+    flatness = geometry.flatness
+    flat = judged & (geometry.vertical > 0) & (flatness < settings.flat_slope**2)
+    narrow = judged & ~flat & (geometry.attitude_free_fraction
+                               < settings.min_attitude_free_fraction)
+    free = geometry.attitude_free_fraction
+
+    def flat_text(a: int, b: int) -> str:
+        ratio = float(np.nanmedian(flatness[a:b + 1]))
+        return (f"flat terrain: the DTM gives horizontal position {ratio:.1e} of the "
+                f"information it gives height (median; an RMS slope of ~"
+                f"{math.sqrt(max(ratio, 0.0)):.2f}, under {settings.flat_slope:g}): the "
+                "horizontal position comes mostly from the IMU")
+
+    def narrow_text(a: int, b: int) -> str:
+        share = float(np.nanmedian(free[a:b + 1]))
+        return (f"narrow footprint: once the attitude is free the horizontal position keeps "
+                f"{_pct(share)} of its information (median; under "
+                f"{_pct(settings.min_attitude_free_fraction)}): position and tilt can barely "
+                "be told apart")
+
+    tests.append(FrameTest("flat_terrain", flat, flat_text))
+    tests.append(FrameTest("narrow_fov", narrow, narrow_text))
+    return tests
+
+
+def _imu_test(frame_t_ns: np.ndarray, imu_t_ns: np.ndarray | None,
+              settings: VerdictSettings) -> FrameTest | None:
+    if imu_t_ns is None or np.size(imu_t_ns) < 2:
+        return None
+    imu_t_ns = np.asarray(imu_t_ns, dtype=np.int64)
+    median_s = float(np.median(np.diff(imu_t_ns))) / NS_PER_S
+    limit_s = max(settings.max_imu_gap_s, 3.0 * median_s)
+    inside, whole = imu_gaps(frame_t_ns, imu_t_ns)
+    return FrameTest("imu_gap", inside > limit_s, lambda a, b: (
+        f"no IMU sample for {whole[a:b + 1].max():.2f} s (more than {limit_s:.2f} s): the "
+        "IMU factor holds a sample across the gap as if measured"), any_length=True)
+
+
+def _residual_checks(f: _Frames, result: SmootherResult, settings: VerdictSettings
+                     ) -> tuple[SelfChecks, FrameTest | None, list[tuple[str, str]]]:
+    """The self-checks, the per-window residual test and the run-wide failures."""
+    expected = truncated_chi2_2dof_mean(OUTLIER_TEST_PROBABILITY)
+    within = f.features - f.outliers
+    tolerance = settings.residual_chi2_tolerance
+    failures: list[tuple[str, str]] = []
+    window_within = window_sum(within, f.half)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        per_window = np.where(window_within > 0,
+                              window_sum(f.chi2, f.half) / (window_within * expected), np.nan)
+        window_allowed = tolerance + 3.0 / np.sqrt(window_within)
+    n_within = float(within.sum())
+    overall = (float(f.chi2.sum() / (n_within * expected))
+               if f.has_chi2 and n_within > 0 else math.nan)
+    if not f.has_chi2:
+        per_window = np.full(f.k, np.nan)
+    if math.isfinite(overall):
+        allowed = tolerance + 3.0 / math.sqrt(n_within)
+        if overall > settings.misfit_residual_chi2:
+            failures.append(("misfit", (
+                f"the features' residuals at the solution are {overall:.2f} times their "
+                f"expected chi-square (more than {settings.misfit_residual_chi2:g}): the "
+                "solution does not fit its data (a wrong fix, an IMU or calibration fault, "
+                "or a noise model far too small)")))
+        elif abs(overall - 1.0) > allowed:
+            failures.append(("residual_chi2", (
+                f"the features' residuals at the solution are {overall:.2f} times their "
+                f"expected chi-square (1 +- {allowed:.2f} tolerated): the noise model "
+                "(pixel_sigma_px, the DTM's sigma_h) or the data do not fit")))
+    n_features = f.features.sum()
+    outlier_fraction = float(f.outliers.sum() / n_features) if n_features else math.nan
+    if math.isfinite(outlier_fraction) and outlier_fraction > settings.max_outlier_fraction:
+        failures.append(("outliers", (
+            f"{_pct(outlier_fraction)} of the features fail the chi-square(2) 99.9% test at "
+            f"the solution (0.1% expected, at most {_pct(settings.max_outlier_fraction)} "
+            "tolerated): wrong matches or terrain the DTM lacks")))
+    median, mean = result.stats.innovation_nis_median, result.stats.innovation_nis_mean
+    a, b = settings.innovation_nis_median_band
+    if math.isfinite(median) and not a <= median <= b:
+        failures.append(("innovation_nis", (
+            f"the innovations' squared Mahalanobis distances have median {median:.2f} "
+            f"(chi-square(2): {chi2.median(2):.2f}; {a:g}-{b:g} tolerated): the prior "
+            "covariances or the noise model do not fit the data")))
+    judged = (window_within >= settings.min_window_features) & f.later
+    off_band = judged & (np.abs(per_window - 1.0) > window_allowed)
+    test = FrameTest("residual_misfit", off_band, lambda a, b: (
+        f"the residuals are {np.nanmin(per_window[a:b + 1]):.2f}-"
+        f"{np.nanmax(per_window[a:b + 1]):.2f} times their expected chi-square here (1 +- "
+        f"{np.nanmax(window_allowed[a:b + 1]):.2f} tolerated)")) if f.has_chi2 else None
+    checks = SelfChecks(overall, per_window, outlier_fraction, median, mean, not failures)
+    return checks, test, failures
+
+
+def _groundtruth_checks(errors: ErrorReport | None, f: _Frames, settings: VerdictSettings
+                        ) -> list[tuple[str, str, int, int]]:
+    """``overconfident`` / ``confidently_wrong`` from the per-frame position NEES."""
+    if errors is None or errors.position_nees is None:
+        return []
+    consistency = errors.position_consistency
+    if consistency is None:
+        return []
+    nees = np.asarray(errors.position_nees, dtype=float)
+    frames = np.flatnonzero(errors.evaluated)
+    finite = np.isfinite(nees)
+    bound_999 = float(chi2.ppf(0.999, consistency.dof))
+    beyond_999 = finite & (nees > bound_999)
+    beyond_95 = finite & (nees > consistency.bound)
+    share_999 = float(beyond_999.sum() / finite.sum())
+    out = []
+    if share_999 > settings.max_beyond_999_fraction:
+        where = frames[beyond_999]
+        out.append(("confidently_wrong", (
+            f"against ground truth, {_pct(share_999)} of the frames' position errors lie beyond "
+            f"the chi-square(3) 99.9% bound of their covariance (NEES median "
+            f"{consistency.percentiles[50.0]:.3g}): the estimate is wrong and says it is not"),
+            int(where[0]), int(where[-1])))
+    elif consistency.verdict is CovarianceVerdict.OPTIMISTIC:
+        where = frames[beyond_95]
+        out.append(("overconfident", (
+            f"against ground truth, only {_pct(consistency.inside_fraction)} of the frames "
+            f"lie inside the chi-square(3) 95% bound of their covariance (~95% expected): "
+            "the covariances are too small"), int(where[0]), int(where[-1])))
+    return out
+
+
+def assess(result: SmootherResult, errors: ErrorReport | None = None,
+           imu_t_ns: np.ndarray | None = None,
+           settings: VerdictSettings | None = None) -> Verdict:
+    """The verdict on a run (module docstring).
+
+    Args:
+        result: the smoother's result.
+        errors: its errors against ground truth, if the log has it.
+        imu_t_ns: (M,) the log's IMU sample times, to find IMU gaps; None: not checked.
+        settings: the rules.
+
+    Returns:
+        Status, reasons, per-frame flags and the self-checks.
+    """
+    settings = settings or VerdictSettings()
+    f = _Frames(result, settings)
+    tests, rejection_failures = _rejection_tests(f, settings)
+    off_dtm = next((t.flagged for t in tests if t.code == "off_dtm"), np.zeros(f.k, bool))
+    tests.insert(0, _no_features(f, off_dtm))
+    unfixed = tests[0].flagged | off_dtm
+    tests += _geometry_tests(f, result, settings, unfixed)
+    imu = _imu_test(result.estimate.t_ns, imu_t_ns, settings)
+    if imu is not None:
+        tests.append(imu)
+    checks, residual_test, failures = _residual_checks(f, result, settings)
+    if residual_test is not None:
+        tests.append(residual_test)
+
+    own = set(FRAME_FLAGS) | {r.code for r in settings.rejection_rules.values()} | {
+        settings.default_rejection_rule.code}
+    flags: dict[int, list[str]] = {}
+    for k, names in (result.flags or {}).items():  # the smoother's own kept; ours redone
+        for name in names:
+            if name not in own and name not in flags.get(int(k), []):
+                flags.setdefault(int(k), []).append(name)
+    for test in tests:
+        for k in np.flatnonzero(test.flagged):
+            if test.code not in flags.get(int(k), []):
+                flags.setdefault(int(k), []).append(test.code)
+    flags = dict(sorted(flags.items()))
+
+    def reason(code: str, message: str, a: int, b: int) -> Reason:
+        status = Status.FAILED if code in FAILED_CODES else Status.DEGRADED
+        return Reason(code, message, a, b, status, float(f.t_s[a]), float(f.t_s[b]))
+
+    last = f.k - 1
+    run_wide: list[Reason] = []
+    if not result.stats.converged:
+        run_wide.append(reason("not_converged", (
+            f"the {result.stats.solver.value} solver did not converge (final error "
+            f"{result.stats.final_error:.4g}): the estimate is not the optimum"), 0, last))
+    n_later = int(f.later.sum())
+    fixed = n_later - int((unfixed & f.later).sum())
+    if n_later and fixed < settings.min_fix_fraction * n_later:
+        where = np.flatnonzero(unfixed)
+        run_wide.append(reason("no_fix", (
+            f"only {fixed} of {n_later} frames have a camera/DTM fix (at least "
+            f"{_pct(settings.min_fix_fraction)} needed): the trajectory is mostly IMU dead "
+            "reckoning"), int(where[0]), int(where[-1])))
+    run_wide += [reason(code, message, 0, last)
+                 for code, message in rejection_failures + failures]
+    run_wide += [reason(code, message, a, b)
+                 for code, message, a, b in _groundtruth_checks(errors, f, settings)]
+
+    stretches: list[Reason] = []
+    known = {t.code for t in tests}
+    extra = [_smoother_flag(name, flags, f.k)
+             for name in sorted({n for names in flags.values() for n in names} - known)]
+    for test in tests + extra:
+        if test.run_wide is not None:
+            run_wide.append(reason(test.code, test.run_wide, 0, last))
+        for a, b in _stretches(test.flagged):
+            long_enough = f.t_s[b] - f.t_s[a] + _frame_interval_s(f) >= settings.min_stretch_s
+            if test.any_length or long_enough:
+                stretches.append(reason(test.code, test.describe(a, b), a, b))
+    stretches.sort(key=lambda r: (r.first_frame, r.last_frame, r.code))
+    reasons = tuple(run_wide + stretches)
+    if any(r.status is Status.FAILED for r in reasons):
+        status = Status.FAILED
+    elif reasons:
+        status = Status.DEGRADED
+    else:
+        status = Status.TRUSTED
+    return Verdict(status, reasons, flags, checks)
+
+
+def _smoother_flag(name: str, flags: Mapping[int, list[str]], k: int) -> FrameTest:
+    """A flag the smoother set that no rule here knows (a new one): kept as it is."""
+    def describe(a: int, b: int) -> str:
+        return f"flagged '{name}' by the smoother"
+
+    return FrameTest(name, np.array([name in flags.get(j, []) for j in range(k)]), describe)
+
+
+def _frame_interval_s(f: _Frames) -> float:
+    """A stretch of n frames spans n frame intervals (its first frame's own included)."""
+    return float(np.median(np.diff(f.t_s))) if f.k > 1 else 0.0
