@@ -51,10 +51,6 @@ class ClutterSettings:
         min_tracks: fewer tracks say nothing about a population.
         max_sigma_m: tracks known worse than this carry nothing of the fit (their
             posterior is their neighbourhood's share).
-        max_pose_sigma_m: tracks seen from cameras known worse than this (position
-            1-sigma) carry nothing of the fit either: the cameras' errors are common to
-            every track a frame sees, so early in a flight, before the poses settle, the
-            heights cluster by frame, a mixture to the fit that is not clutter.
         likelihood_ratio: ``2 log`` of the mixture's likelihood over the ground's alone
             the mixture must reach to be believed (clean flights: ~2; the robustness
             study's blocks and forest: hundreds; a mixture's ratio is not chi-square, so
@@ -70,7 +66,6 @@ class ClutterSettings:
 
     min_tracks: int = 50
     max_sigma_m: float = 40.0
-    max_pose_sigma_m: float = 2.0
     likelihood_ratio: float = 25.0
     min_height_m: float = 5.0
     radius_m: float = 600.0
@@ -89,10 +84,6 @@ class Clutter:
         share: p, the clutter's share of the tracks. height_m: H, its height over the
             ground. spread_m: tau. ground_offset_m: b, where the ground tracks lie
             against the DTM at the estimate (its vertical bias, seen from below).
-        max_pose_sigma_m: tracks seen from cameras known worse than this (position
-            1-sigma) carry nothing of the fit either: the cameras' errors are common to
-            every track a frame sees, so early in a flight, before the poses settle, the
-            heights cluster by frame, a mixture to the fit that is not clutter.
         likelihood_ratio: ``2 log`` of the mixture's likelihood over the ground's alone.
         significant: the fit is believed (ratio, height and number of tracks).
     """
@@ -137,8 +128,7 @@ def fit_clutter(heights: TrackHeights, settings: ClutterSettings | None = None) 
     ids = heights.track_id
     none = Clutter(ids, np.zeros(ids.size), 0.0, 0.0, 0.0, 0.0, 0.0, False)
     used = (np.isfinite(heights.dh_m) & np.isfinite(heights.sigma_m)
-            & (heights.sigma_m <= s.max_sigma_m)
-            & (heights.pose_sigma_m <= s.max_pose_sigma_m))
+            & (heights.sigma_m <= s.max_sigma_m))
     if used.sum() < s.min_tracks:
         return none
     dh, var = heights.dh_m[used], heights.sigma_m[used] ** 2

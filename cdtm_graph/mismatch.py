@@ -83,8 +83,6 @@ class TrackHeights:
         sigma_m: (T,) 1-sigma of ``dh`` (triangulation and DTM error).
         fit_chi2: (T,) how far the rays miss the point, chi-square with ``2 n - 3``
             degrees of freedom for a consistent track.
-        pose_sigma_m: (T,) the part of ``sigma_m`` that is the cameras' position error:
-            common to every track a frame sees, not independent from track to track.
     """
 
     track_id: np.ndarray
@@ -93,18 +91,17 @@ class TrackHeights:
     dh_m: np.ndarray
     sigma_m: np.ndarray
     fit_chi2: np.ndarray
-    pose_sigma_m: np.ndarray
 
     @classmethod
     def empty(cls) -> TrackHeights:
         return cls(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64),
-                   np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0))
+                   np.zeros(0), np.zeros(0), np.zeros(0))
 
     def subset(self, keep: np.ndarray) -> TrackHeights:
         """The tracks where ``keep`` (T,) is True."""
         return TrackHeights(self.track_id[keep], self.point_m[keep],
                             self.n_observations[keep], self.dh_m[keep], self.sigma_m[keep],
-                            self.fit_chi2[keep], self.pose_sigma_m[keep])
+                            self.fit_chi2[keep])
 
 
 def triangulate(track_index: np.ndarray, n_tracks: int, centre_m: np.ndarray,
@@ -153,8 +150,7 @@ def triangulate(track_index: np.ndarray, n_tracks: int, centre_m: np.ndarray,
 
 def track_heights(track_id: np.ndarray, centre_m: np.ndarray, ray_world: np.ndarray,
                   sigma_rad: float, dtm: Dtm, sigma_h_m: float,
-                  pose_sigma_m: float | np.ndarray = 0.0,
-                  attitude_sigma_rad: float | np.ndarray = 0.0) -> TrackHeights:
+                  pose_sigma_m: float | np.ndarray = 0.0) -> TrackHeights:
     """Triangulate every track of a set of observations and compare it with the DTM.
 
     Args:
@@ -164,17 +160,10 @@ def track_heights(track_id: np.ndarray, centre_m: np.ndarray, ray_world: np.ndar
         pose_sigma_m: 1-sigma of the camera positions, scalar or (M,) per observation (a
             shift of a track's cameras moves its point by as much): each track's largest
             is added to its ``sigma``.
-        attitude_sigma_rad: 1-sigma of the cameras' attitudes, scalar or (M,): turns each
-            ray as pixel noise does, so it is added to ``sigma_rad`` (as if independent
-            from frame to frame, which overstates it: consecutive attitudes err alike).
-            Early in a flight it is the larger of the two, and over a short baseline it
-            moves a point by tens of metres.
     """
     ids, index, counts = np.unique(track_id, return_inverse=True, return_counts=True)
     index = index.reshape(-1)
-    ray_sigma = np.sqrt(sigma_rad**2 + np.asarray(attitude_sigma_rad, float) ** 2)
-    points, cov, chi2_fit = triangulate(index, ids.size, centre_m, ray_world,
-                                        np.broadcast_to(ray_sigma, index.shape))
+    points, cov, chi2_fit = triangulate(index, ids.size, centre_m, ray_world, sigma_rad)
     pose_var = np.zeros(ids.size)
     np.maximum.at(pose_var, index, np.broadcast_to(np.asarray(pose_sigma_m, float) ** 2,
                                                    index.shape))
@@ -182,7 +171,7 @@ def track_heights(track_id: np.ndarray, centre_m: np.ndarray, ray_world: np.ndar
     dh = points[:, 2] - ground
     # d(dh) = n . dX with n = (-dh/dx, -dh/dy, 1), the DTM's upward normal
     var = np.einsum("ti,tij,tj->t", normal, cov, normal) + sigma_h_m**2 + pose_var
-    return TrackHeights(ids, points, counts, dh, np.sqrt(var), chi2_fit, np.sqrt(pose_var))
+    return TrackHeights(ids, points, counts, dh, np.sqrt(var), chi2_fit)
 
 
 def mismatched(heights: TrackHeights, sigma_h_m: float,

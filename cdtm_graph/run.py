@@ -74,6 +74,7 @@ def smooth_and_evaluate(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
     result = replace(result, flags=verdict.flags)
     report["verdict"] = verdict.status.value
     report["reasons"] = [r.to_dict() for r in verdict.reasons]
+    report["notes"] = list(verdict.notes)
     report["self_checks"] = verdict.self_checks.to_dict()
     report["timings_s"]["total"] = time.perf_counter() - start
     return RunOutput(result, errors, free, free_errors, report, verdict)

@@ -173,20 +173,24 @@ class Verdict:
         flags: frame index -> the flags of that frame (every flagged frame, also on
             stretches too short to be a reason).
         self_checks: the checks without ground truth.
+        notes: what the user should hear that is no reason to distrust the run (a noise
+            model larger than the data's scatter).
     """
 
     status: Status
     reasons: tuple[Reason, ...]
     flags: dict[int, list[str]]
     self_checks: SelfChecks
+    notes: tuple[str, ...] = ()
 
     def lines(self) -> list[str]:
-        """One line per reason (what the CLI prints on stderr)."""
-        return [r.line() for r in self.reasons]
+        """One line per reason, then per note (what the CLI prints on stderr)."""
+        return [r.line() for r in self.reasons] + [f"note: {n}" for n in self.notes]
 
     def to_dict(self) -> dict[str, Any]:
         return {"verdict": self.status.value,
                 "reasons": [r.to_dict() for r in self.reasons],
+                "notes": list(self.notes),
                 "flags": {int(k): list(v) for k, v in self.flags.items()},
                 "self_checks": self.self_checks.to_dict()}
 
@@ -599,12 +603,20 @@ def _imu_test(frame_t_ns: np.ndarray, imu_t_ns: np.ndarray | None,
 
 
 def _residual_checks(f: _Frames, result: SmootherResult, settings: VerdictSettings
-                     ) -> tuple[SelfChecks, FrameTest | None, list[tuple[str, str]]]:
-    """The self-checks, the per-window residual test and the run-wide failures."""
+                     ) -> tuple[SelfChecks, FrameTest | None, list[tuple[str, str]],
+                                list[str]]:
+    """The self-checks, the per-window residual test, the run-wide failures and notes.
+
+    Residuals or innovations well *below* their expectation are a note, not a failure: the
+    noise model is larger than the data's scatter (a pixel noise or DTM error overstated),
+    which makes the covariance cautious, never optimistic. The user should hear of it, but
+    it is no reason to distrust the run (the promise is never *confidently* wrong).
+    """
     expected = truncated_chi2_2dof_mean(OUTLIER_TEST_PROBABILITY)
     within = f.features - f.outliers
     tolerance = settings.residual_chi2_tolerance
     failures: list[tuple[str, str]] = []
+    notes: list[str] = []
     window_within = window_sum(within, f.half)
     with np.errstate(invalid="ignore", divide="ignore"):
         per_window = np.where(window_within > 0,
@@ -623,11 +635,17 @@ def _residual_checks(f: _Frames, result: SmootherResult, settings: VerdictSettin
                 f"expected chi-square (more than {settings.misfit_residual_chi2:g}): the "
                 "solution does not fit its data (a wrong fix, an IMU or calibration fault, "
                 "or a noise model far too small)")))
-        elif abs(overall - 1.0) > allowed:
+        elif overall - 1.0 > allowed:
             failures.append(("residual_chi2", (
                 f"the features' residuals at the solution are {overall:.2f} times their "
                 f"expected chi-square (1 +- {allowed:.2f} tolerated): the noise model "
                 "(pixel_sigma_px, the DTM's sigma_h) or the data do not fit")))
+        elif 1.0 - overall > allowed:
+            notes.append(
+                f"residual_chi2: the features' residuals at the solution are {overall:.2f} "
+                f"times their expected chi-square (1 +- {allowed:.2f}): the noise model "
+                "is larger than the data's scatter (pixel_sigma_px or the DTM's sigma_h "
+                "overstated?); the covariances are cautious")
     n_features = f.features.sum()
     outlier_fraction = float(f.outliers.sum() / n_features) if n_features else math.nan
     if math.isfinite(outlier_fraction) and outlier_fraction > settings.max_outlier_fraction:
@@ -637,19 +655,24 @@ def _residual_checks(f: _Frames, result: SmootherResult, settings: VerdictSettin
             "tolerated): wrong matches or terrain the DTM lacks")))
     median, mean = result.stats.innovation_nis_median, result.stats.innovation_nis_mean
     a, b = settings.innovation_nis_median_band
-    if math.isfinite(median) and not a <= median <= b:
+    if math.isfinite(median) and median < a:
+        notes.append(
+            f"innovation_nis: the innovations' squared Mahalanobis distances have median "
+            f"{median:.2f} (chi-square(2): {chi2.median(2):.2f}; {a:g}-{b:g}): the prior "
+            "covariances or the noise model are larger than the data's scatter")
+    elif math.isfinite(median) and median > b:
         failures.append(("innovation_nis", (
             f"the innovations' squared Mahalanobis distances have median {median:.2f} "
             f"(chi-square(2): {chi2.median(2):.2f}; {a:g}-{b:g} tolerated): the prior "
             "covariances or the noise model do not fit the data")))
     judged = (window_within >= settings.min_window_features) & f.later
-    off_band = judged & (np.abs(per_window - 1.0) > window_allowed)
+    off_band = judged & (per_window - 1.0 > window_allowed)  # (too small: a note above)
     test = FrameTest("residual_misfit", off_band, lambda a, b: (
         f"the residuals are {np.nanmin(per_window[a:b + 1]):.2f}-"
         f"{np.nanmax(per_window[a:b + 1]):.2f} times their expected chi-square here (1 +- "
         f"{np.nanmax(window_allowed[a:b + 1]):.2f} tolerated)")) if f.has_chi2 else None
     checks = SelfChecks(overall, per_window, outlier_fraction, median, mean, not failures)
-    return checks, test, failures
+    return checks, test, failures, notes
 
 
 def _groundtruth_checks(errors: ErrorReport | None, f: _Frames, settings: VerdictSettings
@@ -708,7 +731,7 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
     imu = _imu_test(result.estimate.t_ns, imu_t_ns, settings)
     if imu is not None:
         tests.append(imu)
-    checks, residual_test, failures = _residual_checks(f, result, settings)
+    checks, residual_test, failures, notes = _residual_checks(f, result, settings)
     if residual_test is not None:
         tests.append(residual_test)
 
@@ -767,7 +790,7 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
         status = Status.DEGRADED
     else:
         status = Status.TRUSTED
-    return Verdict(status, reasons, flags, checks)
+    return Verdict(status, reasons, flags, checks, tuple(notes))
 
 
 def _smoother_flag(name: str, flags: Mapping[int, list[str]], k: int) -> FrameTest:

@@ -116,7 +116,7 @@ def _heights(dh: np.ndarray, sigma: np.ndarray, xy: np.ndarray,
              n_obs: int | np.ndarray = 6) -> TrackHeights:
     n = dh.size
     return TrackHeights(np.arange(n), np.c_[xy, dh], np.broadcast_to(n_obs, (n,)).copy(),
-                        dh, sigma, np.zeros(n), np.zeros(n))
+                        dh, sigma, np.zeros(n))
 
 
 def test_a_track_far_off_the_dtm_fails_alone_and_a_pit_fails_as_a_neighbourhood():
@@ -177,7 +177,7 @@ def test_a_track_whose_rays_do_not_meet_holds_a_wrong_match():
     points, cov, fit = triangulate(index, 2, centres, rays, SIGMA_Q)
     assert np.linalg.norm(points[0] - point) < 3 * np.sqrt(np.trace(cov[0]))
     heights = TrackHeights(np.array([0, 1]), points, np.array([6, 6]), points[:, 2] - 30.0,
-                           np.array([3.0, 3.0]), fit, np.zeros(2))
+                           np.array([3.0, 3.0]), fit)
     assert inconsistent(heights).tolist() == [False, True]
     assert not mismatched(heights, 2.4).any()  # a wrong match is not off the map
 

@@ -279,7 +279,7 @@ def test_assess_is_idempotent_on_its_own_flags():
 
 @pytest.mark.parametrize("scale, code, status", [
     (1.0, None, Status.TRUSTED), (0.8, None, Status.TRUSTED),
-    (1.4, "residual_chi2", Status.DEGRADED), (0.5, "residual_chi2", Status.DEGRADED),
+    (1.4, "residual_chi2", Status.DEGRADED), (0.5, None, Status.TRUSTED),
     (2.0, "misfit", Status.FAILED)])
 def test_residual_chi2_self_check(scale, code, status):
     verdict = assess(_result(chi2_scale=scale))
@@ -288,13 +288,16 @@ def test_residual_chi2_self_check(scale, code, status):
     run_wide = [c for c in _codes(verdict) if c != "residual_misfit"]
     assert run_wide == ([code] if code else [])
     assert ("residual_misfit" in _codes(verdict)) is (code is not None)
+    # residuals well below their expectation: a cautious noise model, said as a note
+    assert any(n.startswith("residual_chi2") for n in verdict.notes) is (scale == 0.5)
 
 
-@pytest.mark.parametrize("median, passes", [(1.39, True), (2.5, False), (0.5, False),
-                                            (float("nan"), True)])
-def test_innovation_self_check(median, passes):
+@pytest.mark.parametrize("median, passes, note", [
+    (1.39, True, False), (2.5, False, False), (0.5, True, True), (float("nan"), True, False)])
+def test_innovation_self_check(median, passes, note):
     verdict = assess(_result(nis_median=median))
     assert ("innovation_nis" in _codes(verdict)) is not passes
+    assert any(n.startswith("innovation_nis") for n in verdict.notes) is note
 
 
 def test_window_is_set_in_seconds():
@@ -367,30 +370,42 @@ def test_an_imu_gap_names_its_frame():
     assert out.verdict.status is Status.DEGRADED
 
 
-def test_a_long_imu_gap_in_a_turn_fails_even_without_ground_truth():
-    """2 s without IMU samples in the turn put this run ~400 m off (measured), its
-    covariance none the wiser; the residuals give it away."""
+def test_a_long_imu_gap_in_a_turn_is_named_and_stays_honest():
+    """2 s without IMU samples in the turn: before the gap's maneuver-model noise
+    (imu_faults.py) this run went ~400 m off with its covariance none the wiser; now the
+    interval across the gap is uncertain as it should be, the error stays metres and
+    within its covariance, and the gap is still a reason (degraded), with or without
+    ground truth."""
     flight, dtm = simulate_flight(SHORT)
     flight = with_imu_gap(flight, 10.0, 2.0)
     out = _smooth(flight, dtm)
-    assert out.errors is not None and out.errors.rmse_position_3d_m > 100.0
-    assert "confidently_wrong" in _codes(out.verdict)
+    assert out.errors is not None and out.errors.rmse_position_3d_m < 10.0
+    assert out.errors.anees_position <= 6.0
+    assert "confidently_wrong" not in _codes(out.verdict)
     blind = assess(out.result, None, flight.imu.t_ns)
-    assert blind.status is Status.FAILED and "misfit" in _codes(blind)
+    assert blind.status is Status.DEGRADED
     assert (_only(blind, "imu_gap").first_frame, _only(blind, "imu_gap").last_frame) == (11, 12)
 
 
-def test_a_misstated_pixel_noise_fails_the_self_checks():
+@pytest.mark.parametrize("pixel_sigma_px, status", [(1.5, Status.TRUSTED),
+                                                     (0.17, Status.FAILED)])
+def test_a_misstated_pixel_noise_is_named(pixel_sigma_px, status):
     """flight.yaml says 1.5 px where the tracker gives 0.5 px: residuals 0.11 of their
-    expectation (measured), the innovations likewise."""
+    expectation (measured), the innovations likewise: a cautious noise model, named in
+    notes; says 0.17 px: residuals several times their expectation, a misfit (failed)."""
     flight, dtm = simulate_flight(SHORT)
-    camera = dataclasses.replace(flight.config.camera, pixel_sigma_px=1.5)
+    camera = dataclasses.replace(flight.config.camera, pixel_sigma_px=pixel_sigma_px)
     flight = dataclasses.replace(flight, config=dataclasses.replace(flight.config,
                                                                     camera=camera))
     out = _smooth(flight, dtm, SmootherMode.INCREMENTAL)
-    assert out.verdict.status is Status.DEGRADED
-    assert {"residual_chi2", "innovation_nis"} <= set(_codes(out.verdict))
-    assert out.verdict.self_checks.residual_chi2 < 0.5
+    assert out.verdict.status is status
+    if status is Status.TRUSTED:
+        assert {n.split(":")[0] for n in out.verdict.notes} == {"residual_chi2",
+                                                                "innovation_nis"}
+        assert out.verdict.self_checks.residual_chi2 < 0.5
+        assert out.errors is not None and out.errors.anees_position < 3.0  # cautious
+    else:
+        assert "misfit" in _codes(out.verdict)
 
 
 def test_an_incremental_clean_run_passes_its_self_checks():
@@ -423,8 +438,10 @@ def test_a_flat_lake_is_degraded_with_its_frames_on_stderr(lake_log, tmp_path, c
     report = json.loads((out / "report.json").read_text())
     assert report["verdict"] == "degraded" and len(report["reasons"]) == len(err)
     (reason,) = [r for r in report["reasons"] if r["code"] == "flat_terrain"]
-    # inside the frames that see the lake at all, covering those that see only the lake
-    assert 5 <= reason["first_frame"] <= 12 and 18 <= reason["last_frame"] <= 25
+    # inside the frames that see the lake at all, covering most of those that see only
+    # the lake (10-20 s; measured: from 13, the windows of 10-12 reach the shore's
+    # features, which the robust defaults now keep more of)
+    assert 5 <= reason["first_frame"] <= 13 and 18 <= reason["last_frame"] <= 25
     assert all("flat_terrain" in report["flags"][str(k)]
                for k in range(reason["first_frame"], reason["last_frame"] + 1))
 

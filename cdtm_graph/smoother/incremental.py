@@ -456,16 +456,15 @@ class IncrementalSmoother:
 
     def _position_sigma_m(self) -> float:
         """The newest estimated frame's largest position 1-sigma (m)."""
-        return _largest_sigmas(self._state_cov)[0]
+        return _largest_position_sigma_m(self._state_cov)
 
-    def _frame_sigmas(self, j: int) -> tuple[float, float]:
-        """Frame j's largest position (m) and attitude (rad) 1-sigmas now (as it left the
-        window, if it has)."""
+    def _frame_position_sigma_m(self, j: int) -> float:
+        """Frame j's largest position 1-sigma (m) now (as it left the window, if it has)."""
         if j < self._settled:
             cov = self._exit_cov[j][0] if j in self._exit_cov else None
         else:
             cov = self._backend.marginal(X(j))
-        return _largest_sigmas(self._state_cov if cov is None else cov)
+        return _largest_position_sigma_m(self._state_cov if cov is None else cov)
 
     def _settled_enough(self) -> bool:
         """Whether the poses are known well enough to judge a track's height against the
@@ -498,7 +497,7 @@ class IncrementalSmoother:
         tid, frame, q = tid[judged], frame[judged], q[judged]
         if tid.size == 0:
             return factors, track_ids, none, none
-        judgement = judge(self._track_heights(tid, frame, q, *_largest_sigmas(self._state_cov)),
+        judgement = judge(self._track_heights(tid, frame, q, self._position_sigma_m()),
                           self._noise.sigma_h_m, settings)
         off, wrong = judgement.off_map, judgement.inconsistent
         self._found_off = np.union1d(self._found_off, off)
@@ -516,23 +515,17 @@ class IncrementalSmoother:
         return kept, kept_ids, off, wrong
 
     def _track_heights(self, tid: np.ndarray, frame: np.ndarray, q: np.ndarray,
-                       position_sigma_m: float | np.ndarray,
-                       attitude_sigma_rad: float | np.ndarray) -> TrackHeights:
+                       position_sigma_m: float | np.ndarray) -> TrackHeights:
         """These observations' tracks triangulated at the current estimate (the frames'
-        pose 1-sigmas scalar or per frame of ``np.unique(frame)``)."""
+        position 1-sigma scalar or per frame of ``np.unique(frame)``)."""
         frames = np.unique(frame)
         world_T_cam = np.stack([self._pose_guess(int(j)) @ self._body_T_cam for j in frames])
         at = np.searchsorted(frames, frame)
-
-        def per_observation(sigma: float | np.ndarray) -> np.ndarray:
-            sigma = np.asarray(sigma, dtype=float)
-            return sigma[at] if sigma.ndim else sigma
-
+        sigma = np.asarray(position_sigma_m, dtype=float)
         return track_heights(tid, world_T_cam[at, :3, 3],
                              np.einsum("mij,mj->mi", world_T_cam[at, :3, :3], q),
                              float(np.mean(self._noise.sigma_q_xy)), self.dtm,
-                             self._noise.sigma_h_m, per_observation(position_sigma_m),
-                             per_observation(attitude_sigma_rad))
+                             self._noise.sigma_h_m, sigma[at] if sigma.ndim else sigma)
 
     #: Every this many frames, the tracks of the last ``MISMATCH_WINDOW_FRAMES`` frames are
     #: judged against the DTM together at the current estimate (a pit the first frames'
@@ -558,9 +551,9 @@ class IncrementalSmoother:
             return 0
         # each frame's own position uncertainty: where features went, the poses are weak
         frames = np.unique(frame)
-        sigma = np.array([self._frame_sigmas(int(j)) for j in frames])
+        sigma = np.array([self._frame_position_sigma_m(int(j)) for j in frames])
         clutter_settings = self.settings.graph.clutter
-        judgement, self.clutter = assess(self._track_heights(tid, frame, q, *sigma.T),
+        judgement, self.clutter = assess(self._track_heights(tid, frame, q, sigma),
                                          self._noise.sigma_h_m, settings, clutter_settings)
         self._found_off = np.union1d(self._found_off, judgement.off_map)
         off = np.setdiff1d(np.union1d(untrusted(all_tid, all_frame, self._found_off,
@@ -864,8 +857,6 @@ class IncrementalSmoother:
                               frame_flags(counts, flags), information, terrain)
 
 
-def _largest_sigmas(pose_cov: np.ndarray) -> tuple[float, float]:
-    """The largest position (m) and attitude (rad) 1-sigmas of a pose covariance (rotation
-    first, GTSAM's order)."""
-    return (float(np.sqrt(np.linalg.eigvalsh(pose_cov[3:6, 3:6]).max())),
-            float(np.sqrt(np.linalg.eigvalsh(pose_cov[:3, :3]).max())))
+def _largest_position_sigma_m(pose_cov: np.ndarray) -> float:
+    """The largest position 1-sigma (m) of a pose covariance (GTSAM's [rot, trans])."""
+    return float(np.sqrt(np.linalg.eigvalsh(pose_cov[3:6, 3:6]).max()))
