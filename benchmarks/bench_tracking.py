@@ -137,7 +137,7 @@ def main(argv: list[str] | None = None) -> dict:
     # A harder flight: 600 m over the same 300 m relief (more parallax and occlusion,
     # ~185 px of flow per frame), 4 DN of sensor noise, jitter and blur.
     low = simulate(SimulationSettings(frames=args.frames, resolution_px=(640, 480),
-                                      seed=args.seed, alt_m=600.0))
+                                      seed=args.seed, altitude_m=600.0))
     hard = render_flight(low, RenderSettings(seed=args.seed, noise_sigma_dn=4.0,
                                              exposure_jitter=0.1, motion_blur_px=1.0))
     outputs_h, _ = run_tracker(camera, hard.images, camera_rotations_from_imu(low.log), settings)
