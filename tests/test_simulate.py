@@ -402,6 +402,10 @@ def test_sample_log_reads_and_matches_its_script(tmp_path):
                 np.testing.assert_allclose(x, y, rtol=SAMPLE_REGEN_TOL, atol=SAMPLE_REGEN_TOL)
             else:
                 assert np.array_equal(x, y) if isinstance(x, np.ndarray) else x == y
+    # The recorded settings and generator use today's names (no stale alt_m/features).
+    recorded, current = (log.config.extra["simulation"] for log in (sample, regenerated))
+    assert recorded["generator"] == current["generator"]
+    assert recorded["settings"] == current["settings"]
     np.testing.assert_allclose(load_dtm(sample.config.dtm.path).elevation,
                                load_dtm(regenerated.config.dtm.path).elevation,
                                rtol=SAMPLE_REGEN_TOL, atol=SAMPLE_REGEN_TOL)
