@@ -128,12 +128,12 @@ def main(argv: list[str] | None = None) -> dict:
           f"features live); ratio {tracker_median / bare_median:.2f}")
 
     accuracy = {"clean": match_errors(result.terrain, camera, result.world_T_cam,
-                                      outputs).as_dict()}
+                                      outputs).to_dict()}
     jittered = render_flight(result, RenderSettings(seed=args.seed, exposure_jitter=0.1,
                                                     motion_blur_px=1.0))
     outputs_j, _ = run_tracker(camera, jittered.images, rotations, settings)
     accuracy["jitter_10pct_blur_1px"] = match_errors(result.terrain, camera, result.world_T_cam,
-                                                     outputs_j).as_dict()
+                                                     outputs_j).to_dict()
     # A harder flight: 600 m over the same 300 m relief (more parallax and occlusion,
     # ~185 px of flow per frame), 4 DN of sensor noise, jitter and blur.
     low = simulate(SimulationSettings(frames=args.frames, resolution_px=(640, 480),
@@ -142,7 +142,7 @@ def main(argv: list[str] | None = None) -> dict:
                                              exposure_jitter=0.1, motion_blur_px=1.0))
     outputs_h, _ = run_tracker(camera, hard.images, camera_rotations_from_imu(low.log), settings)
     accuracy["alt_600m_noise_4dn_jitter_blur"] = match_errors(
-        low.terrain, camera, low.world_T_cam, outputs_h).as_dict()
+        low.terrain, camera, low.world_T_cam, outputs_h).to_dict()
     print("accuracy against the renderer's truth:")
     print(json.dumps(accuracy, indent=2))
     summary = {"render_s_per_frame": clean.seconds_per_frame, "tracker_ms": tracker_median,

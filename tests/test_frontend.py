@@ -65,7 +65,7 @@ def _camera(result):
 def test_tracked_pixels_match_the_renderers_truth(flight, tracked):
     result, _ = flight
     errors = match_errors(result.terrain, _camera(result), result.world_T_cam, tracked.frames)
-    figures = errors.as_dict()
+    figures = errors.to_dict()
     assert figures["pair_error_median_px"] < MEDIAN_PX, figures
     assert figures["pair_error_p95_px"] < P95_PX, figures
     assert figures["wrong_fraction_after_verification"] < 0.01, figures
@@ -86,7 +86,7 @@ def test_tracking_through_a_distorted_lens(flight):
     rotations = camera_rotations_from_imu(result.log)
     tracker = FeatureTracker(lens)
     outputs = [tracker.track(images[k], rotations[k]) for k in range(frames)]
-    figures = match_errors(result.terrain, lens, result.world_T_cam[:frames], outputs).as_dict()
+    figures = match_errors(result.terrain, lens, result.world_T_cam[:frames], outputs).to_dict()
     assert figures["pair_error_median_px"] < MEDIAN_PX, figures
     assert figures["wrong_fraction_after_verification"] < 0.01, figures
     assert all(o.fit is not None and o.fit.method is FitMethod.ROTATION_PRIOR
@@ -149,7 +149,7 @@ def test_exposure_changes_do_not_hurt_tracking(flight):
     for images in (jittered, harsh):
         out = track_log(result.log, images=images)
         figures = match_errors(result.terrain, _camera(result), result.world_T_cam,
-                               out.frames).as_dict()
+                               out.frames).to_dict()
         assert figures["pair_error_median_px"] < MEDIAN_PX, figures
         assert out.report.pairs_per_frame.min() > 100
 

@@ -50,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
     write_tracks(result.tracks, target)
     if args.report is not None:
         with atomic_output_file(args.report) as tmp:
-            tmp.write_text(json.dumps(result.report.as_dict(), indent=2) + "\n")
+            tmp.write_text(json.dumps(result.report.to_dict(), indent=2) + "\n")
     if not args.quiet:
         print(f"wrote {target}")
         print(result.report.summary())

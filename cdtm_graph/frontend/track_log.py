@@ -116,7 +116,7 @@ class TrackingReport:
     imu_rotations: int
     seconds_per_frame: float
 
-    def as_dict(self) -> dict:
+    def to_dict(self) -> dict:
         """Plain JSON-able summary."""
         lengths = self.track_lengths
         pairs = self.pairs_per_frame
@@ -136,7 +136,7 @@ class TrackingReport:
 
     def summary(self) -> str:
         """A few lines for a terminal."""
-        d = self.as_dict()
+        d = self.to_dict()
         pairs, lengths = d["pairs_per_frame"], d["track_length_frames"]
         rejected = ", ".join(f"{v} {k.replace('_', '-')}" for k, v in self.rejected.items())
         fits = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in self.fits.items() if v)

@@ -50,7 +50,7 @@ class MatchErrors:
     def _wrong(errors: np.ndarray) -> float:
         return float(np.mean(~(errors <= WRONG_MATCH_PX))) if errors.size else 0.0
 
-    def as_dict(self) -> dict:
+    def to_dict(self) -> dict:
         """The figures of the note: quantiles of kept matches, wrong-match fractions."""
         finite = self.accepted_px[np.isfinite(self.accepted_px)]
         drift = self.drift_px[np.isfinite(self.drift_px)]
