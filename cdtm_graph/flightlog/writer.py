@@ -66,7 +66,7 @@ def write_tracks(tracks: Tracks, path: str | os.PathLike) -> None:
     The file appears complete or not at all; an existing one is replaced.
 
     Args:
-        tracks: the tracks (rows sorted by frame, as FLIGHTLOG.md requires).
+        tracks: the tracks (rows sorted by frame, as docs/flightlog.md "tracks.csv" requires).
         path: the file to write (normally ``<log>/tracks.csv``).
     """
     text = _tracks_text(tracks)  # rendered before the disk is touched

@@ -20,7 +20,8 @@ is known, so a tracker's output can be compared with the truth
   motion blur along the image motion, Gaussian read noise, 8-bit quantization. Rays that
   miss the terrain see black.
 
-Pixels follow OpenCV: ``(0, 0)`` is the centre of the top-left pixel (FLIGHTLOG.md).
+Pixels follow OpenCV: ``(0, 0)`` is the centre of the top-left pixel (docs/flightlog.md,
+"Frames, units and conventions").
 """
 
 from __future__ import annotations
