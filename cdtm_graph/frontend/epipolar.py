@@ -31,6 +31,8 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
+from cdtm_graph.geometry import so3_exp
+
 __all__ = [
     "EpipolarFit",
     "FitMethod",
@@ -350,7 +352,7 @@ def refine_relative_pose(rays_a: np.ndarray, rays_b: np.ndarray, a_R_b: np.ndarr
 
     def poses(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(P, n_params) parameters -> (P, 3, 3) rotations, (P, 3) directions."""
-        R = R0 @ _so3_exp(x[:, :3])
+        R = R0 @ so3_exp(x[:, :3])
         if fix_translation:
             return R, np.broadcast_to(t0, (x.shape[0], 3))
         return R, _unit(t0 + x[:, 3:4] * e1 + x[:, 4:5] * e2)
@@ -377,20 +379,6 @@ def refine_relative_pose(rays_a: np.ndarray, rays_b: np.ndarray, a_R_b: np.ndarr
                              jac=jacobian, method="lm")
     R, t = poses(solution.x[None])
     return R[0], t[0], float(solution.cost)
-
-
-def _so3_exp(w: np.ndarray) -> np.ndarray:
-    """(P, 3) rotation vectors -> (P, 3, 3) rotations (Rodrigues)."""
-    theta = np.linalg.norm(w, axis=1)
-    small = theta < 1e-12
-    k = w / np.where(small, 1.0, theta)[:, None]
-    K = np.zeros((w.shape[0], 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
-    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
-    s, c = np.sin(theta)[:, None, None], np.cos(theta)[:, None, None]
-    R = np.eye(3) + s * K + (1.0 - c) * (K @ K)
-    R[small] = np.eye(3)
-    return R
 
 
 def _nothing_fitted(n_matches: int, a_R_b: np.ndarray) -> EpipolarFit:
