@@ -113,7 +113,7 @@ class DemSource:
     offset: float = 0.0
     is_geographic: bool = False
 
-    def pixel_size_m(self, frame: LocalFrame, latitude_deg: float) -> float:
+    def pixel_size_m(self, latitude_deg: float) -> float:
         """The finer of the two pixel sizes in metres near ``latitude_deg``."""
         a, _, e, _ = self.transform
         if not self.is_geographic:
@@ -415,7 +415,7 @@ def read_dem_window(paths: Sequence[str | os.PathLike], frame: LocalFrame,
     lat, _, _ = frame.world_to_geodetic(np.array([(region_m[0] + region_m[1]) / 2,
                                                   (region_m[2] + region_m[3]) / 2, 0.0]))
     first = next(s for s in sources if s.path == surface.paths[0])
-    return DemWindow(surface.grid, first.crs_wkt, first.pixel_size_m(frame, float(lat[0])),
+    return DemWindow(surface.grid, first.crs_wkt, first.pixel_size_m(float(lat[0])),
                      surface.paths)
 
 
@@ -508,7 +508,7 @@ def import_dem(paths: Sequence[str | os.PathLike], frame: LocalFrame,
     lat_c, _, _ = frame.world_to_geodetic(np.array([(xmin + xmax) / 2, (ymin + ymax) / 2,
                                                     0.0]))
     used = {p for sf in surfaces for p in sf.paths}
-    pixel_m = min(s.pixel_size_m(frame, float(lat_c[0])) for s in sources if s.path in used)
+    pixel_m = min(s.pixel_size_m(float(lat_c[0])) for s in sources if s.path in used)
     if spacing_m is None:
         spacing_m = SPACING_PER_PIXEL * pixel_m
     if not (math.isfinite(spacing_m) and spacing_m > 0):

@@ -16,7 +16,6 @@ camera's mounting is ``inv(T_BS_imu) T_BS_cam``. A Kalibr camchain (``T_cam_imu`
 
 from __future__ import annotations
 
-import logging
 import os
 import shutil
 from collections.abc import Callable
@@ -46,8 +45,6 @@ from cdtm_graph.flightlog.model import FlightLog, ImuConfig
 from cdtm_graph.flightlog.problems import _fail, _show
 from cdtm_graph.flightlog.tables import _read_frames, _read_imu
 from cdtm_graph.geometry import invert_pose
-
-logger = logging.getLogger(__name__)
 
 #: The IMU's T_BS may differ from the identity by this much (EuRoC prints 1.0 and 0.0).
 IDENTITY_TOL = 1e-9

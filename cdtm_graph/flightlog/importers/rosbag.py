@@ -20,7 +20,6 @@ IMU file the noise model; their ``rostopic`` keys name the topics when not given
 from __future__ import annotations
 
 import enum
-import logging
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -41,8 +40,6 @@ from cdtm_graph.flightlog.importers.recording import (
     write_imported_log,
 )
 from cdtm_graph.flightlog.model import FlightLog, ImuSamples, States
-
-logger = logging.getLogger(__name__)
 
 IMU_TYPES = ("sensor_msgs/msg/Imu",)
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
