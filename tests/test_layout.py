@@ -4,12 +4,14 @@ The estimator core (everything in ``cdtm_graph`` outside ``sim``, ``studies``, `
 ``plots``, plus ``factors``) must not import the simulation and study harness, the CLI
 or the plots; ``factors`` must not import ``cdtm_graph`` at all. Checked twice: on the
 source (every import statement, including those inside functions) and by importing the
-core in a fresh interpreter and listing what it loaded.
+core in a fresh interpreter and listing what it loaded. README's layout section, the map a
+newcomer reads, is checked to name every module and subpackage once.
 """
 
 from __future__ import annotations
 
 import ast
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -84,3 +86,16 @@ def test_importing_the_core_loads_no_harness():
                             check=True, cwd=ROOT).stdout.split()
     assert "cdtm_graph.smoother" in loaded  # the listing works
     assert not [m for m in loaded if _reaches(m, HARNESS)]
+
+
+def test_readme_layout_lists_every_module_once():
+    """README's layout section names each module and subpackage of cdtm_graph exactly once."""
+    readme = (ROOT / "README.md").read_text()
+    section = readme.split("\n## Layout\n", 1)[1].split("\n## ", 1)[0]
+    block = section.split("```\n", 2)[1]
+    entries = sorted(f"{p.stem}.py" for p in PACKAGE.glob("*.py")
+                     if p.stem not in ("__init__", "__main__"))
+    entries += sorted(f"{p.name}/" for p in PACKAGE.iterdir() if (p / "__init__.py").exists())
+    assert len(entries) > 30  # the listing works
+    counts = {e: len(re.findall(rf"(?<![\w/.]){re.escape(e)}(?!\w)", block)) for e in entries}
+    assert {e: n for e, n in counts.items() if n != 1} == {}
