@@ -3,9 +3,11 @@
 :class:`IncrementalSmoother` is a small front over a solver backend (full-history iSAM2
 or a fixed lag, :mod:`cdtm_graph.smoother.backends`) with three collaborators: the IMU
 feed (:class:`~cdtm_graph.imu.ImuFeed`: samples preintegrated as they arrive), the
-pairing of track sightings (:class:`~cdtm_graph.tracks.TrackTable`) and, if asked for,
-the innovation gate (:class:`~cdtm_graph.gating.InnovationGate`). Its pass over a log is
-also the batch smoother's initializer when the log has no ``nav.csv``.
+pairing of track sightings (:class:`~cdtm_graph.tracks.TrackTable`), the innovation gate
+(:class:`~cdtm_graph.gating.InnovationGate`) and the judge of tracks against the DTM
+(:class:`~cdtm_graph.smoother.track_judge.TrackJudge`: terrain the map lacks, clutter,
+wrong matches). Its pass over a log is also the batch smoother's initializer when the
+log has no ``nav.csv``.
 """
 
 from __future__ import annotations
@@ -18,21 +20,8 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import V, X
 
-from cdtm_graph.acquisition import (
-    AcquisitionFrame,
-    Correction,
-    SearchPrior,
-    acquire,
-    needs_acquisition,
-)
-from cdtm_graph.clutter import (
-    Clutter,
-    assess,
-    clutter_flags,
-    considered_offsets,
-    findings,
-    with_vertical_bias,
-)
+from cdtm_graph.acquisition import Correction, SearchPrior
+from cdtm_graph.clutter import clutter_flags, findings, with_vertical_bias
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import FlightConfig, FlightLog
@@ -53,13 +42,6 @@ from cdtm_graph.imu import (
     navstate_predict,
     propagate_covariance,
 )
-from cdtm_graph.mismatch import (
-    TrackHeights,
-    TrackObservations,
-    judge,
-    track_heights,
-    untrusted,
-)
 from cdtm_graph.replay import replay
 from cdtm_graph.results import (
     GraphCounts,
@@ -73,7 +55,9 @@ from cdtm_graph.results import (
     frame_flags,
 )
 from cdtm_graph.smoother.backends import Backend, FixedLag, FullHistory, frame_keys
+from cdtm_graph.smoother.fix_search import FixSearch
 from cdtm_graph.smoother.settings import Progress, SmootherSettings
+from cdtm_graph.smoother.track_judge import TrackJudge
 from cdtm_graph.tracks import SightingPairs, check_unique
 from factors import CdtmPairFactor
 
@@ -135,20 +119,14 @@ class IncrementalSmoother:
                                       self.rejections)
         self._gate = InnovationGate(settings.innovation_gate, max(abs(dtm.dx), abs(dtm.dy)),
                                     self.rejections)
-        # terrain the DTM lacks: tracks found off the map, and what they were seen as
-        self.mismatched_tracks = np.zeros(0, np.int64)  # sorted
-        self._found_off = np.zeros(0, np.int64)  # ... of them, those the tests found
-        self._observations = TrackObservations()
-        self._judge_from: int | None = None  # tracks seen from this frame on may be judged
-        self.clutter = Clutter.none()  # the latest fit of the tracks' heights
-        self._considered_m: dict[int, float] = {}  # frame -> vertical offset it may carry
+        # terrain the DTM lacks, clutter, wrong matches: tracks judged and left out
+        self._judge = (None if graph.mismatch is None else TrackJudge(
+            graph.mismatch, graph.clutter, dtm, self._noise, config.camera.body_T_cam,
+            self.rejections))
         # fix acquisition: while the pose is too uncertain for the C-DTM linearization,
         # sightings are held back until a search over the newest frames finds the fix
-        self._acquiring = False
-        self._held: list[tuple[int, np.ndarray, np.ndarray]] = []  # (frame, ids, pixels)
-        self._tries_at: int | None = None  # frame of the last search
-        self._failed_searches = 0  # since the last fix: each doubles the wait
-        self.acquisitions: list[dict] = []  # each search: frame, verdict, reason
+        self._search = (None if settings.acquisition is None else
+                        FixSearch(settings.acquisition, config, dtm, self.rejections))
         self._frame_flags: dict[int, list[str]] = {}
         self._backend: Backend = (
             FullHistory() if settings.lag_s is None
@@ -244,11 +222,8 @@ class IncrementalSmoother:
         self._poses[k], self._velocities[k], self._biases[k] = predicted, velocity, bias
         if k:
             self._leave_window(k)
-        if self._should_acquire(k):
-            self._acquiring = True
-        if self._acquiring:
-            if seen is not None:
-                self._held.append((k, *seen))
+        if self._search is not None and (self._search.active or self._should_acquire(k)):
+            self._search.hold(k, seen)
             seen = None  # held back: no C-DTM factor until the fix is found
             self._frame_flags.setdefault(k, []).append("no_fix")
         new, new_ids = self._new_cdtm(k, *seen) if seen is not None else ([], [])
@@ -259,9 +234,10 @@ class IncrementalSmoother:
             new, new_ids = self._gate.apply(
                 k, new, new_ids, self._pose_guess, self._pair_prior(k, link, values),
                 test=not self._converging)
-        if new and self.settings.graph.mismatch is not None and not self._converging \
-                and self._settled_enough():
-            new, new_ids, off_map, wrong = self._off_map(k, new, new_ids)
+        if new and self._judge is not None and not self._converging \
+                and self._judge.settle(k, self._position_sigma_m()):
+            new, new_ids, off_map, wrong = self._judge.judge_new(
+                k, new, new_ids, self._pose_guess, self._position_sigma_m())
             if off_map.size:
                 self._forget_tracks(k, off_map, Rejection.MAP_MISMATCH)
             if wrong.size:
@@ -271,9 +247,8 @@ class IncrementalSmoother:
             graph.add(f.factor)
         slots = self._update(graph, values, k)
         self._commit(k, new, new_ids, slots[len(slots) - len(new):] if slots else [])
-        if (self.settings.graph.mismatch is not None and self._judge_from is not None
-                and k % self.MISMATCH_EVERY_FRAMES == 0):
-            self._mismatch_round(k, max(self._judge_from, k - self.MISMATCH_WINDOW_FRAMES))
+        if self._judge is not None and self._judge.due(k):
+            self._mismatch_round(k, self._judge.window_start(k))
         if new:
             self._refresh_newest_noise(k, predicted, len(new))
             # (a frame without factors cannot move: it says nothing of convergence)
@@ -282,7 +257,7 @@ class IncrementalSmoother:
             self._iterate(self.settings.final_iterations)  # linearization point, iterate
             self._fetch(k)
         self._state_cov = self._backend.joint_marginal(list(frame_keys(k)))
-        if self._acquiring:
+        if self._search is not None and self._search.active:
             self._try_acquisition(k)
         self._imu.start(int(t_ns), self._biases[k])
         elapsed = time.perf_counter() - start
@@ -319,60 +294,38 @@ class IncrementalSmoother:
         """Whether frame k starts a search for the fix: the prior (frame 0) or, after a
         long stretch without camera constraints, the newest covariance reaches farther than
         the smoothers pull in."""
-        settings = self.settings.acquisition
-        if settings is None or self._acquiring:
-            return False
+        assert self._search is not None
         if k == 0:
-            init = self.config.initial_state
-            return needs_acquisition(np.eye(3) * init.sigma_position_m**2,
-                                     init.sigma_attitude_rad, settings)
-        R = self._poses[k - 1][:3, :3]
-        position = R @ self._state_cov[3:6, 3:6] @ R.T
-        heading = float(np.sqrt(max((R @ self._state_cov[:3, :3] @ R.T)[2, 2], 0.0)))
-        return needs_acquisition(position, heading, settings)
+            return self._search.needed_at_start()
+        return self._search.needed(self._poses[k - 1], self._state_cov)
 
     def _try_acquisition(self, k: int) -> None:
-        """Search the newest held frames for the fix; on success, move the estimate there
-        and let the held sightings in. Frames older than the window lose their sightings
-        (counted as ``no_fix``)."""
-        settings = self.settings.acquisition
-        assert settings is not None
-        window = settings.window_frames
-        while len(self._held) > window:
-            j, ids, _ = self._held.pop(0)
-            self.rejections.add(Rejection.NO_FIX, j, len(ids))
-        wait = settings.retry_every_frames * 2 ** max(self._failed_searches - 1, 0)
-        if len(self._held) < window or (self._tries_at is not None
-                                        and k - self._tries_at < wait):
+        """Search the held frames for the fix if a search is due (:class:`FixSearch`); on
+        success, move the estimate there and let the held sightings in."""
+        assert self._search is not None
+        correction = self._search.search(k, self._t_ns.__getitem__, self._pose_guess,
+                                         self._search_prior)
+        if correction is None:
             return
-        self._tries_at = k
-        frames = [AcquisitionFrame(self._t_ns[j], self._pose_guess(j), ids, uv)
-                  for j, ids, uv in self._held]
-        j0 = self._held[0][0]
-        velocity_cov = self._backend.marginal(V(j0))
-        prior = SearchPrior.from_pose_covariance(
-            self._poses[j0], self._backend.marginal(X(j0)), self._backend.velocity(j0),
-            float(np.sqrt(np.linalg.eigvalsh(velocity_cov).max())), self.config.gravity_mps2)
-        result = acquire(frames, self.config.camera, self.dtm, prior, settings)
-        self.acquisitions.append({"frame": k, "window": [j0, k],
-                                  "verdict": result.verdict.value, "reason": result.reason})
-        if result.correction is None:
-            self._failed_searches += 1
-            return
-        self._apply_fix(result.correction, j0, k)
-        self._acquiring = False
-        self._failed_searches = 0
-        for j, _, _ in self._held:  # their sightings are in now
+        self._apply_fix(correction, self._search.held, k)
+        for j, _, _ in self._search.found():  # their sightings are in now
             self._frame_flags[j].remove("no_fix")
             if not self._frame_flags[j]:
                 del self._frame_flags[j]
-        self._held = []
+
+    def _search_prior(self, j: int) -> SearchPrior:
+        """Where frame j may be, for a search: its marginals now."""
+        velocity_cov = self._backend.marginal(V(j))
+        return SearchPrior.from_pose_covariance(
+            self._poses[j], self._backend.marginal(X(j)), self._backend.velocity(j),
+            float(np.sqrt(np.linalg.eigvalsh(velocity_cov).max())), self.config.gravity_mps2)
 
     #: While the estimate moves to an acquired fix, the first window frame is held there by
     #: a temporary prior this tight (rad, m, m/s).
     ANCHOR_SIGMAS = (np.radians(0.2), 2.0, 0.2)
 
-    def _apply_fix(self, correction: Correction, j0: int, k: int) -> None:
+    def _apply_fix(self, correction: Correction,
+                   held: list[tuple[int, np.ndarray, np.ndarray]], k: int) -> None:
         """Move the estimate to the acquired fix, then add the held sightings.
 
         iSAM2 cannot be told new linearization points: a temporary prior holds the first
@@ -380,6 +333,7 @@ class IncrementalSmoother:
         there; then the held frames' C-DTM factors (built at the corrected poses) go in and
         the temporary prior comes out.
         """
+        j0 = held[0][0]
         pose, velocity = correction.apply_to_state(self._poses[j0], self._velocities[j0])
         rot, pos, vel = self.ANCHOR_SIGMAS
         anchor = gtsam.NonlinearFactorGraph()
@@ -394,7 +348,7 @@ class IncrementalSmoother:
             self._fetch(j)
         graph = gtsam.NonlinearFactorGraph()
         committed = []
-        for j, ids, uv in self._held:
+        for j, ids, uv in held:
             factors, track_ids = self._new_cdtm(j, ids, uv)
             for f in factors:
                 graph.add(f.factor)
@@ -434,15 +388,10 @@ class IncrementalSmoother:
         table = self._pairing.table
         if self.settings.lag_s is not None and len(table) > 4 * len(track_id):
             table.forget_before(self._settled)
-            self._observations.forget_before(self._settled)
-        if self.mismatched_tracks.size:  # tracks found off the map stay out
-            kept = []
-            for pair in pairs:
-                off = np.isin(pair.track_id, self.mismatched_tracks)
-                self.rejections.add(Rejection.MAP_MISMATCH, k, int(off.sum()))
-                if not off.all():
-                    kept.append(pair.subset(~off) if off.any() else pair)
-            pairs = kept
+            if self._judge is not None:
+                self._judge.observations.forget_before(self._settled)
+        if self._judge is not None:  # tracks found off the map stay out
+            pairs = self._judge.keep_out(k, pairs)
         build = cdtm_factors(pairs, self._poses, self._body_T_cam, self.dtm, self._noise,
                              self.settings.graph, self.rejections)
         return build.factors, build.track_ids
@@ -466,120 +415,31 @@ class IncrementalSmoother:
             cov = self._backend.marginal(X(j))
         return _largest_position_sigma_m(self._state_cov if cov is None else cov)
 
-    def _settled_enough(self) -> bool:
-        """Whether the poses are known well enough to judge a track's height against the
-        DTM: the newest within twice the DTM's height error (after the first frames under
-        a loose prior; from then on, ``_judge_from`` is the first frame so known)."""
-        if self._judge_from is None and self._position_sigma_m() <= 2 * self._noise.sigma_h_m:
-            self._judge_from = len(self._t_ns) - 1
-        return self._judge_from is not None
-
-    def _off_map(self, k: int, factors: list[CdtmPairFactor], track_ids: list[np.ndarray]
-                 ) -> tuple[list[CdtmPairFactor], list[np.ndarray], np.ndarray, np.ndarray]:
-        """Frame k's factors without the tracks that, triangulated from everything seen of
-        them so far and this frame, lie off the DTM or hold a wrong match
-        (:mod:`cdtm_graph.mismatch`); and the ids of both."""
-        settings = self.settings.graph.mismatch
-        assert settings is not None
-        none = np.zeros(0, np.int64)
-        tid, frame, q = self._observations.of(np.concatenate(track_ids))
-        # this frame's observations (and the earlier ones of tracks seen for the first time)
-        tid = np.r_[tid, *track_ids, *track_ids]
-        frame = np.r_[frame, *(np.full(i.size, k) for i in track_ids),
-                      *(np.full(i.size, int(gtsam.Symbol(f.key_a).index()))
-                        for f, i in zip(factors, track_ids))]
-        q = np.r_[q, *(f.features.q_b for f in factors), *(f.features.q_a for f in factors)]
-        _, first = np.unique(np.c_[tid, frame], axis=0, return_index=True)
-        tid, frame, q = tid[first], frame[first], q[first]
-        # tracks seen before the poses settled are not judged (their early poses were off)
-        assert self._judge_from is not None
-        judged = ~np.isin(tid, tid[frame < self._judge_from])
-        tid, frame, q = tid[judged], frame[judged], q[judged]
-        if tid.size == 0:
-            return factors, track_ids, none, none
-        judgement = judge(self._track_heights(tid, frame, q, self._position_sigma_m()),
-                          self._noise.sigma_h_m, settings)
-        off, wrong = judgement.off_map, judgement.inconsistent
-        self._found_off = np.union1d(self._found_off, off)
-        if off.size == 0 and wrong.size == 0:
-            return factors, track_ids, off, wrong
-        kept, kept_ids = [], []
-        for f, ids in zip(factors, track_ids):
-            hit_off, hit_wrong = np.isin(ids, off), np.isin(ids, wrong)
-            self.rejections.add(Rejection.MAP_MISMATCH, k, int(hit_off.sum()))
-            self.rejections.add(Rejection.WRONG_MATCH, k, int((hit_wrong & ~hit_off).sum()))
-            hit = hit_off | hit_wrong
-            if not hit.all():
-                kept.append(f.with_features(~hit) if hit.any() else f)
-                kept_ids.append(ids[~hit])
-        return kept, kept_ids, off, wrong
-
-    def _track_heights(self, tid: np.ndarray, frame: np.ndarray, q: np.ndarray,
-                       position_sigma_m: float | np.ndarray) -> TrackHeights:
-        """These observations' tracks triangulated at the current estimate (the frames'
-        position 1-sigma scalar or per frame of ``np.unique(frame)``)."""
-        frames = np.unique(frame)
-        world_T_cam = np.stack([self._pose_guess(int(j)) @ self._body_T_cam for j in frames])
-        at = np.searchsorted(frames, frame)
-        sigma = np.asarray(position_sigma_m, dtype=float)
-        return track_heights(tid, world_T_cam[at, :3, 3],
-                             np.einsum("mij,mj->mi", world_T_cam[at, :3, :3], q),
-                             float(np.mean(self._noise.sigma_q_xy)), self.dtm,
-                             self._noise.sigma_h_m, sigma[at] if sigma.ndim else sigma)
-
-    #: Every this many frames, the tracks of the last ``MISMATCH_WINDOW_FRAMES`` frames are
-    #: judged against the DTM together at the current estimate (a pit the first frames'
-    #: features pulled the estimate into shows once some of them are gone).
-    MISMATCH_EVERY_FRAMES = 5
-    MISMATCH_WINDOW_FRAMES = 20
     #: finalize(): rounds of "judge every track, take out the ones off the map, relinearize".
     MISMATCH_ROUNDS = 8
 
     def _mismatch_round(self, k: int, since_frame: int) -> int:
-        """Judge the tracks seen since ``since_frame`` (and after the poses settled) at the
-        current estimate; take the ones off the DTM out. Returns how many."""
-        settings = self.settings.graph.mismatch
-        if settings is None or self._judge_from is None:
+        """Judge the tracks seen since ``since_frame`` at the current estimate
+        (:meth:`TrackJudge.round`); take the ones it leaves out of the solver. Returns how
+        many."""
+        if self._judge is None:
             return 0
-        since_frame = max(since_frame, self._judge_from)
-        seen = self._observations.since(since_frame)
-        # every observation of them, the tracks left out too (crowding, clutter)
-        all_tid, all_frame, all_q = self._observations.of(seen)
-        judged = ~np.isin(all_tid, all_tid[all_frame < self._judge_from])
-        tid, frame, q = all_tid[judged], all_frame[judged], all_q[judged]
-        if tid.size == 0:
-            return 0
-        # each frame's own position uncertainty: where features went, the poses are weak
-        frames = np.unique(frame)
-        sigma = np.array([self._frame_position_sigma_m(int(j)) for j in frames])
-        clutter_settings = self.settings.graph.clutter
-        judgement, self.clutter = assess(self._track_heights(tid, frame, q, sigma),
-                                         self._noise.sigma_h_m, settings, clutter_settings)
-        self._found_off = np.union1d(self._found_off, judgement.off_map)
-        off = np.setdiff1d(np.union1d(untrusted(all_tid, all_frame, self._found_off,
-                                                settings.frame_fraction),
-                                      self.clutter.likely(clutter_settings)),
-                           self.mismatched_tracks)
-        wrong = np.setdiff1d(judgement.inconsistent, np.r_[self.mismatched_tracks, off])
+        off, wrong = self._judge.round(since_frame, self._pose_guess,
+                                       self._frame_position_sigma_m)
         if off.size:
             self._forget_tracks(k, off, Rejection.MAP_MISMATCH)
         if wrong.size:
             self._forget_tracks(k, wrong, Rejection.WRONG_MATCH)
         if off.size or wrong.size:
             self._fetch(k)
-        # the clutter the window's features may still hold, frame by frame
-        live = [(f, ids) for f, ids in zip(self._cdtm, self._cdtm_ids)
-                if f is not None and int(gtsam.Symbol(f.key_b).index()) >= since_frame]
-        offsets = considered_offsets(self.clutter, [f.key_a for f, _ in live],
-                                     [f.key_b for f, _ in live], [i for _, i in live], k + 1)
-        for j in range(since_frame, k + 1):
-            self._considered_m[j] = float(offsets[j])
+        self._judge.consider(since_frame, k, self._cdtm, self._cdtm_ids)
         return int(off.size + wrong.size)
 
     def _forget_tracks(self, k: int, track_ids: np.ndarray, reason: Rejection) -> None:
         """Keep these tracks out from now on, and take their features that entered
         earlier out of the solver (those still in it), counted for ``reason``."""
-        self.mismatched_tracks = np.union1d(self.mismatched_tracks, track_ids)
+        assert self._judge is not None
+        self._judge.left_out = np.union1d(self._judge.left_out, track_ids)
         graph = gtsam.NonlinearFactorGraph()
         slots, changed = [], []
         for i, ids in enumerate(self._cdtm_ids):
@@ -613,11 +473,8 @@ class IncrementalSmoother:
         self._cdtm.extend(factors)
         self._cdtm_ids.extend(track_ids)
         self._cdtm_slots.extend(slots)
-        for f, ids in zip(factors, track_ids):
-            a = int(gtsam.Symbol(f.key_a).index())
-            self._observations.add(np.r_[ids, ids], np.r_[np.full(ids.size, a),
-                                                          np.full(ids.size, k)],
-                                   np.r_[f.features.q_a, f.features.q_b])
+        if self._judge is not None:
+            self._judge.record(k, factors, track_ids)
         self.n_features += n_features
         self.n_cdtm_factors += len(factors)
         self._features_per_frame[k] = n_features
@@ -709,7 +566,7 @@ class IncrementalSmoother:
         """
         steps = self.settings.final_iterations if iterations is None else iterations
         previous, done, best = self._iterate(steps, relative_tol)
-        if self._t_ns and self.settings.graph.mismatch is not None:
+        if self._t_ns and self._judge is not None:
             # the tracks in the solver, judged at the converged estimate, until none is off
             k = len(self._t_ns) - 1
             for _ in range(self.MISMATCH_ROUNDS):
@@ -757,6 +614,16 @@ class IncrementalSmoother:
         """Squared Mahalanobis distance of every innovation the gate tested, (n,):
         chi-square(2) (median 1.39, mean 2) when the noise model and the prior are honest."""
         return self._gate.all_nis
+
+    @property
+    def acquisitions(self) -> list[dict]:
+        """Each search for the fix: frame, window, verdict, reason."""
+        return [] if self._search is None else self._search.searches
+
+    @property
+    def mismatched_tracks(self) -> np.ndarray:
+        """Tracks left out as off the map or holding a wrong match (sorted)."""
+        return np.zeros(0, np.int64) if self._judge is None else self._judge.left_out
 
     @property
     def unfixed_frames(self) -> np.ndarray:
@@ -817,9 +684,8 @@ class IncrementalSmoother:
             if progress is not None:
                 progress(frame.k + 1, K)
         self.finalize()
-        for j, ids, _ in self._held:  # the log ended before a fix was found
-            self.rejections.add(Rejection.NO_FIX, j, len(ids))
-        self._held = []
+        if self._search is not None:  # the log ended before a fix was found
+            self._search.give_up()
         elapsed = time.perf_counter() - start
         t0 = time.perf_counter()
         covariances = self.covariances()
@@ -847,10 +713,10 @@ class IncrementalSmoother:
         flags = {k: list(v) for k, v in self._frame_flags.items()}
         terrain = None
         clutter_settings = self.settings.graph.clutter
-        if self.settings.graph.mismatch is not None and clutter_settings is not None:
-            offsets = np.array([self._considered_m.get(k, 0.0) for k in range(K)])
+        if self._judge is not None and clutter_settings is not None:
+            offsets = self._judge.considered(K)
             covariances = with_vertical_bias(covariances, estimate.world_T_body, offsets)
-            terrain = findings(self.clutter, offsets)
+            terrain = findings(self._judge.clutter, offsets)
             for k, v in clutter_flags(offsets, clutter_settings).items():
                 flags.setdefault(k, []).extend(v)
         return SmootherResult(estimate, covariances, stats, counts, settings,

@@ -1,0 +1,203 @@
+"""The incremental smoother's judge of tracks: terrain the DTM lacks, clutter, wrong matches.
+
+:class:`TrackJudge` keeps the observations that entered the solver and, at the solver's
+current poses, judges tracks with the views of :mod:`cdtm_graph.mismatch` (alone, with
+their neighbourhood, their rays' fit) and :mod:`cdtm_graph.clutter` (the population of
+heights). It decides; the smoother takes the features out of its solver.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import gtsam
+import numpy as np
+
+from cdtm_graph.clutter import Clutter, ClutterSettings, assess, considered_offsets
+from cdtm_graph.dtm import Dtm
+from cdtm_graph.mismatch import (
+    MismatchSettings,
+    TrackHeights,
+    TrackObservations,
+    judge,
+    track_heights,
+    untrusted,
+)
+from cdtm_graph.results import Rejection, Rejections
+from cdtm_graph.tracks import FramePairObservations
+from factors import CdtmPairFactor, FeatureNoise
+
+#: Frame index -> the solver's pose of that frame now (4x4 world_T_body).
+PoseOf = Callable[[int], np.ndarray]
+
+
+def _frame(key: int) -> int:
+    return int(gtsam.Symbol(key).index())
+
+
+class TrackJudge:
+    """Which tracks to leave out, judged as the flight goes.
+
+    Args:
+        mismatch: the track tests. clutter: the population view (``None``: none).
+        dtm, noise, body_T_cam: the map, the features' noise, the camera mount.
+        rejections: where the features left out of new factors are counted.
+    """
+
+    #: Every this many frames, the tracks of the last ``WINDOW_FRAMES`` frames are judged
+    #: together at the current estimate (a pit the first frames' features pulled the
+    #: estimate into shows once some of them are gone).
+    EVERY_FRAMES = 5
+    WINDOW_FRAMES = 20
+
+    def __init__(self, mismatch: MismatchSettings, clutter: ClutterSettings | None, dtm: Dtm,
+                 noise: FeatureNoise, body_T_cam: np.ndarray, rejections: Rejections):
+        self.mismatch = mismatch
+        self.clutter_settings = clutter
+        self.dtm = dtm
+        self.noise = noise
+        self.body_T_cam = body_T_cam
+        self.rejections = rejections
+        self.left_out = np.zeros(0, np.int64)  # sorted: tracks kept out from now on
+        self.observations = TrackObservations()  # what entered the solver
+        self.clutter = Clutter.none()  # the latest fit of the tracks' heights
+        self.considered_m: dict[int, float] = {}  # frame -> vertical offset it may carry
+        self._found_off = np.zeros(0, np.int64)  # tracks the tests themselves found off
+        self._judge_from: int | None = None  # tracks seen from this frame on are judged
+
+    @property
+    def judging(self) -> bool:
+        return self._judge_from is not None
+
+    def settle(self, k: int, position_sigma_m: float) -> bool:
+        """Whether the poses are known well enough to judge a track's height against the
+        DTM: frame k's within twice the DTM's height error (after the first frames under
+        a loose prior; tracks seen before the first such frame are never judged)."""
+        if self._judge_from is None and position_sigma_m <= 2 * self.noise.sigma_h_m:
+            self._judge_from = k
+        return self.judging
+
+    def due(self, k: int) -> bool:
+        """Whether frame k holds a round over the window's tracks."""
+        return self.judging and k % self.EVERY_FRAMES == 0
+
+    def window_start(self, k: int) -> int:
+        assert self._judge_from is not None
+        return max(self._judge_from, k - self.WINDOW_FRAMES)
+
+    def record(self, k: int, factors: Sequence[CdtmPairFactor],
+               track_ids: Sequence[np.ndarray]) -> None:
+        """The observations of factors that entered the solver, frame k their later one."""
+        for f, ids in zip(factors, track_ids):
+            self.observations.add(np.r_[ids, ids],
+                                  np.r_[np.full(ids.size, _frame(f.key_a)),
+                                        np.full(ids.size, k)],
+                                  np.r_[f.features.q_a, f.features.q_b])
+
+    def keep_out(self, k: int, pairs: list[FramePairObservations]
+                 ) -> list[FramePairObservations]:
+        """Frame k's new pairs without the tracks already left out (counted)."""
+        if not self.left_out.size:
+            return pairs
+        kept = []
+        for pair in pairs:
+            off = np.isin(pair.track_id, self.left_out)
+            self.rejections.add(Rejection.MAP_MISMATCH, k, int(off.sum()))
+            if not off.all():
+                kept.append(pair.subset(~off) if off.any() else pair)
+        return kept
+
+    def judge_new(self, k: int, factors: list[CdtmPairFactor], track_ids: list[np.ndarray],
+                  pose_of: PoseOf, position_sigma_m: float
+                  ) -> tuple[list[CdtmPairFactor], list[np.ndarray], np.ndarray, np.ndarray]:
+        """Frame k's factors without the tracks that, triangulated from everything seen of
+        them so far and this frame, lie off the DTM or hold a wrong match (counted); and
+        the ids of both (for the smoother to take their earlier features out)."""
+        none = np.zeros(0, np.int64)
+        tid, frame, q = self.observations.of(np.concatenate(track_ids))
+        # this frame's observations (and the earlier ones of tracks seen for the first time)
+        tid = np.r_[tid, *track_ids, *track_ids]
+        frame = np.r_[frame, *(np.full(i.size, k) for i in track_ids),
+                      *(np.full(i.size, _frame(f.key_a)) for f, i in zip(factors, track_ids))]
+        q = np.r_[q, *(f.features.q_b for f in factors), *(f.features.q_a for f in factors)]
+        _, first = np.unique(np.c_[tid, frame], axis=0, return_index=True)
+        tid, frame, q = tid[first], frame[first], q[first]
+        # tracks seen before the poses settled are not judged (their early poses were off)
+        assert self._judge_from is not None
+        judged = ~np.isin(tid, tid[frame < self._judge_from])
+        tid, frame, q = tid[judged], frame[judged], q[judged]
+        if tid.size == 0:
+            return factors, track_ids, none, none
+        judgement = judge(self._heights(tid, frame, q, pose_of, position_sigma_m),
+                          self.noise.sigma_h_m, self.mismatch)
+        off, wrong = judgement.off_map, judgement.inconsistent
+        self._found_off = np.union1d(self._found_off, off)
+        if off.size == 0 and wrong.size == 0:
+            return factors, track_ids, off, wrong
+        kept, kept_ids = [], []
+        for f, ids in zip(factors, track_ids):
+            hit_off, hit_wrong = np.isin(ids, off), np.isin(ids, wrong)
+            self.rejections.add(Rejection.MAP_MISMATCH, k, int(hit_off.sum()))
+            self.rejections.add(Rejection.WRONG_MATCH, k, int((hit_wrong & ~hit_off).sum()))
+            hit = hit_off | hit_wrong
+            if not hit.all():
+                kept.append(f.with_features(~hit) if hit.any() else f)
+                kept_ids.append(ids[~hit])
+        return kept, kept_ids, off, wrong
+
+    def round(self, since_frame: int, pose_of: PoseOf,
+              position_sigma_of: Callable[[int], float]) -> tuple[np.ndarray, np.ndarray]:
+        """Judge every track seen since ``since_frame`` (after the poses settled) at the
+        current poses, each frame with its own position 1-sigma: the ids to leave out as
+        off the map (with the crowded frames' and the likely clutter) and as wrong matches.
+        """
+        none = np.zeros(0, np.int64)
+        if self._judge_from is None:
+            return none, none
+        seen = self.observations.since(max(since_frame, self._judge_from))
+        # every observation of them, the tracks left out too (crowding, clutter)
+        all_tid, all_frame, all_q = self.observations.of(seen)
+        judged = ~np.isin(all_tid, all_tid[all_frame < self._judge_from])
+        tid, frame, q = all_tid[judged], all_frame[judged], all_q[judged]
+        if tid.size == 0:
+            return none, none
+        # each frame's own position uncertainty: where features went, the poses are weak
+        sigma = np.array([position_sigma_of(int(j)) for j in np.unique(frame)])
+        judgement, self.clutter = assess(self._heights(tid, frame, q, pose_of, sigma),
+                                         self.noise.sigma_h_m, self.mismatch,
+                                         self.clutter_settings)
+        self._found_off = np.union1d(self._found_off, judgement.off_map)
+        off = np.setdiff1d(np.union1d(untrusted(all_tid, all_frame, self._found_off,
+                                                self.mismatch.frame_fraction),
+                                      self.clutter.likely(self.clutter_settings)),
+                           self.left_out)
+        wrong = np.setdiff1d(judgement.inconsistent, np.r_[self.left_out, off])
+        return off, wrong
+
+    def consider(self, since_frame: int, k: int, factors: Sequence[CdtmPairFactor | None],
+                 track_ids: Sequence[np.ndarray]) -> None:
+        """The clutter the live factors ending since ``since_frame`` may still hold, frame
+        by frame (:func:`~cdtm_graph.clutter.considered_offsets`)."""
+        live = [(f, ids) for f, ids in zip(factors, track_ids)
+                if f is not None and _frame(f.key_b) >= since_frame]
+        offsets = considered_offsets(self.clutter, [f.key_a for f, _ in live],
+                                     [f.key_b for f, _ in live], [i for _, i in live], k + 1)
+        for j in range(since_frame, k + 1):
+            self.considered_m[j] = float(offsets[j])
+
+    def considered(self, n_frames: int) -> np.ndarray:
+        """(K,) each frame's considered vertical offset (m)."""
+        return np.array([self.considered_m.get(k, 0.0) for k in range(n_frames)])
+
+    def _heights(self, tid: np.ndarray, frame: np.ndarray, q: np.ndarray, pose_of: PoseOf,
+                 position_sigma_m: float | np.ndarray) -> TrackHeights:
+        """These observations' tracks triangulated at the given poses (the frames' position
+        1-sigma scalar or per frame of ``np.unique(frame)``)."""
+        frames = np.unique(frame)
+        world_T_cam = np.stack([pose_of(int(j)) @ self.body_T_cam for j in frames])
+        at = np.searchsorted(frames, frame)
+        sigma = np.asarray(position_sigma_m, dtype=float)
+        return track_heights(tid, world_T_cam[at, :3, 3],
+                             np.einsum("mij,mj->mi", world_T_cam[at, :3, :3], q),
+                             float(np.mean(self.noise.sigma_q_xy)), self.dtm,
+                             self.noise.sigma_h_m, sigma[at] if sigma.ndim else sigma)
