@@ -675,7 +675,7 @@ def _residual_checks(f: _Frames, result: SmootherResult, settings: VerdictSettin
     return checks, test, failures, notes
 
 
-def _groundtruth_checks(errors: ErrorReport | None, f: _Frames, settings: VerdictSettings
+def _groundtruth_checks(errors: ErrorReport | None, settings: VerdictSettings
                         ) -> list[tuple[str, str, int, int]]:
     """``overconfident`` / ``confidently_wrong`` from the per-frame position NEES."""
     if errors is None or errors.position_nees is None:
@@ -769,7 +769,7 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
     run_wide += [reason(code, message, 0, last)
                  for code, message in rejection_failures + failures]
     run_wide += [reason(code, message, a, b)
-                 for code, message, a, b in _groundtruth_checks(errors, f, settings)]
+                 for code, message, a, b in _groundtruth_checks(errors, settings)]
 
     stretches: list[Reason] = []
     known = {t.code for t in tests}

@@ -17,7 +17,7 @@ from cdtm_graph.frontend import (
     track_log,
 )
 from cdtm_graph.frontend import tracker as tracker_module
-from cdtm_graph.frontend.epipolar import (
+from cdtm_graph.frontend.two_view import (
     FitMethod,
     epipolar_residual_rad,
     fit_essential,

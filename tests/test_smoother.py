@@ -21,8 +21,9 @@ from cdtm_graph.smoother import (
 #: Acceptance bounds of the smoothing issue.
 MAX_RMSE_M = 10.0
 MIN_FREE_OVER_COMPENSATED = 5.0
-#: Loose bound for short or fixed-lag runs whose few frames make the band meaningless.
-POSITION_ANEES_RANGE = (1.5, 6.0)
+#: A 20-frame, 5 s fixed lag (ANEES 2.3-3.0 over seeds 1-3, measured): its 20 correlated
+#: frames make the chi-square band meaningless, so the issue's bound (6) holds instead.
+FIXED_LAG_MAX_ANEES = 6.0
 INCREMENTAL_VS_BATCH_SIGMA = 0.3
 NOISELESS_TOL_M = 0.02  # "centimetres"
 NOISELESS_TOL_DEG = 1e-3
@@ -89,8 +90,8 @@ def test_short_logs_incremental_and_fixed_lag_reach_the_batch_solution():
     assert inc.result.stats.converged
     assert np.all(lag.errors.rmse_position_m < 3 * np.sqrt(np.mean(
         batch.errors.position_sigma_world_m**2, axis=0)))
-    lo, hi = POSITION_ANEES_RANGE
-    assert lag.errors.anees_position is not None and lag.errors.anees_position <= 2 * hi
+    assert lag.errors.anees_position is not None
+    assert lag.errors.anees_position <= FIXED_LAG_MAX_ANEES
 
 
 def test_noiseless_log_recovers_truth_to_centimetres():

@@ -25,7 +25,7 @@ from cdtm_graph.analysis.closed_form import (
     theta_jacobian_wrt_body_tangents,
 )
 from cdtm_graph.errors import DegenerateGeometryError, FlightLogError, SolverError
-from cdtm_graph.frontend.epipolar import FitMethod, estimate_relative_pose, triangulate_depths
+from cdtm_graph.frontend.two_view import FitMethod, estimate_relative_pose, triangulate_depths
 from cdtm_graph.geometry import make_pose
 from cdtm_graph.graph import dtm_ray_caster
 from cdtm_graph.optimizer import levenberg_marquardt
@@ -212,7 +212,7 @@ def epipolar_initial_pose_b(q_a: np.ndarray, q_b: np.ndarray, raycast: RayCaster
     """An initial pose b from the matches alone, given a rough pose a (the paper's conclusion).
 
     The essential matrix (five-point RANSAC, refined:
-    :func:`~cdtm_graph.frontend.epipolar.estimate_relative_pose`) gives the ego-motion's
+    :func:`~cdtm_graph.frontend.two_view.estimate_relative_pose`) gives the ego-motion's
     rotation ``R12`` and the direction of ``p12``; its length comes
     from the DTM: each inlier's ray from camera a is cast into the DTM, and the ratio of
     that depth to the depth triangulated with a unit baseline is the scale (median over

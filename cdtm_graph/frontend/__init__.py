@@ -2,7 +2,7 @@
 
 - :mod:`~cdtm_graph.frontend.tracker`: :class:`FeatureTracker`, one image at a time
   (KLT with prediction, forward-backward check, epipolar RANSAC, bucketed replenishment).
-- :mod:`~cdtm_graph.frontend.epipolar`: two-view geometry on rays (verification, relative
+- :mod:`~cdtm_graph.frontend.two_view`: two-view geometry on rays (verification, relative
   pose for the two-frame solve's initialization).
 - :mod:`~cdtm_graph.frontend.track_log`: a whole log's images to tracks, with a report.
 

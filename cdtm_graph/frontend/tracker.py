@@ -19,7 +19,7 @@ tracks seen in it (``track_id``, pixel). Per image:
 4. **Geometric verification** of the frame pair: matches are turned into rays by the
    camera model (so the lens model, whatever it is, is undone there) and fitted by
    RANSAC: the translation direction given the IMU rotation
-   (:func:`~cdtm_graph.frontend.epipolar.fit_translation_given_rotation`), or the
+   (:func:`~cdtm_graph.frontend.two_view.fit_translation_given_rotation`), or the
    five-point essential matrix without one or when the IMU's rotation explains too few
    matches. Matches off their epipolar plane by more than ``epipolar_threshold_px`` end.
 5. **Replenishment** with spatial bucketing: the image is divided into a grid of cells,
@@ -47,7 +47,7 @@ import cv2
 import numpy as np
 
 from cdtm_graph.errors import CdtmError, ImageError
-from cdtm_graph.frontend.epipolar import (
+from cdtm_graph.frontend.two_view import (
     MIN_MATCHES,
     EpipolarFit,
     FitMethod,

@@ -239,9 +239,9 @@ class IncrementalSmoother:
             new, new_ids, off_map, wrong = self._judge.judge_new(
                 k, new, new_ids, self._pose_guess, self._position_sigma_m())
             if off_map.size:
-                self._forget_tracks(k, off_map, Rejection.MAP_MISMATCH)
+                self._forget_tracks(off_map, Rejection.MAP_MISMATCH)
             if wrong.size:
-                self._forget_tracks(k, wrong, Rejection.WRONG_MATCH)
+                self._forget_tracks(wrong, Rejection.WRONG_MATCH)
         n_new = sum(f.features.n for f in new)
         for f in new:
             graph.add(f.factor)
@@ -427,15 +427,15 @@ class IncrementalSmoother:
         off, wrong = self._judge.round(since_frame, self._pose_guess,
                                        self._frame_position_sigma_m)
         if off.size:
-            self._forget_tracks(k, off, Rejection.MAP_MISMATCH)
+            self._forget_tracks(off, Rejection.MAP_MISMATCH)
         if wrong.size:
-            self._forget_tracks(k, wrong, Rejection.WRONG_MATCH)
+            self._forget_tracks(wrong, Rejection.WRONG_MATCH)
         if off.size or wrong.size:
             self._fetch(k)
         self._judge.consider(since_frame, k, self._cdtm, self._cdtm_ids)
         return int(off.size + wrong.size)
 
-    def _forget_tracks(self, k: int, track_ids: np.ndarray, reason: Rejection) -> None:
+    def _forget_tracks(self, track_ids: np.ndarray, reason: Rejection) -> None:
         """Keep these tracks out from now on, and take their features that entered
         earlier out of the solver (those still in it), counted for ``reason``."""
         assert self._judge is not None

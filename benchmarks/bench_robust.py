@@ -1,0 +1,85 @@
+"""What the robust defaults cost on a clean log: batch time and accuracy, side by side.
+
+Run: ``python benchmarks/bench_robust.py [--frames 300] [--repeats 3]``. One clean
+simulated flight (a nav.csv INS solution as the batch's initial guess, as in
+bench_smoother.py), smoothed in turn, ``--repeats`` times interleaved so the machine's
+drift hits every variant alike, with:
+
+- ``defaults``: every defence on (Cauchy kernel, epipolar check, grazing rays, track tests
+  against the DTM, clutter, fix acquisition);
+- ``robust none``: the same without the kernel (``--robust none``);
+- ``bare``: no defence at all (the estimator before the robustness work).
+
+Prints each variant's median batch time, its ratio to ``robust none`` and to ``bare``,
+and its 3-D RMSE and position ANEES. Ends with one line ``defaults_over_robust_none=...
+defaults_over_bare=...``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from cdtm_graph.evaluation import trajectory_errors  # noqa: E402
+from cdtm_graph.graph import GraphSettings  # noqa: E402
+from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight  # noqa: E402
+from cdtm_graph.smoother import SmootherSettings, smooth  # noqa: E402
+from factors import RobustKernel  # noqa: E402
+
+
+def variants() -> dict[str, SmootherSettings]:
+    defaults = SmootherSettings()
+    bare_graph = dataclasses.replace(defaults.graph, robust=RobustKernel.NONE, epipolar=None,
+                                     grazing_turn_cells=None, mismatch=None, clutter=None)
+    return {
+        "defaults": defaults,
+        "robust none": dataclasses.replace(
+            defaults, graph=dataclasses.replace(defaults.graph, robust=RobustKernel.NONE)),
+        "bare": dataclasses.replace(defaults, graph=bare_graph, acquisition=None),
+    }
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=300)
+    parser.add_argument("--fps", type=float, default=2.0)
+    parser.add_argument("--features", type=int, default=170)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--seed", type=int, default=1)
+    args = parser.parse_args(argv)
+    flight, dtm = simulate_flight(SimulationSettings(
+        frames=args.frames, fps=args.fps, n_features=args.features, seed=args.seed,
+        nav="noisy_truth"))
+    runs = variants()
+    times: dict[str, list[float]] = {name: [] for name in runs}
+    errors = {}
+    for _ in range(args.repeats):
+        for name, settings in runs.items():
+            start = time.perf_counter()
+            result = smooth(flight, dtm, settings)
+            times[name].append(time.perf_counter() - start)
+            errors[name] = trajectory_errors(result.estimate, result.covariances,
+                                             flight.groundtruth)
+    base_none = float(np.median(times["robust none"]))
+    base_bare = float(np.median(times["bare"]))
+    print(f"{args.frames} frames, {args.features} features, {args.repeats} interleaved runs")
+    print(f"{'variant':12} {'median_s':>9} {'/none':>6} {'/bare':>6} {'rmse_3d_m':>10} "
+          f"{'anees':>6}")
+    for name in runs:
+        t = float(np.median(times[name]))
+        e = errors[name]
+        print(f"{name:12} {t:9.2f} {t / base_none:6.2f} {t / base_bare:6.2f} "
+              f"{e.rmse_position_3d_m:10.2f} {e.anees_position:6.2f}")
+    t = float(np.median(times["defaults"]))
+    print(f"defaults_over_robust_none={t / base_none:.2f} defaults_over_bare={t / base_bare:.2f}")
+
+
+if __name__ == "__main__":
+    main()
