@@ -32,7 +32,7 @@ from factors.calibration import (
 )
 
 #: The calibration variable's key.
-CALIBRATION_KEY = gtsam.symbol("C", 0)
+CALIBRATION_KEY = gtsam.symbol("c", 0)
 
 #: A parameter whose posterior sigma is above this share of its prior sigma was barely
 #: told by the flight: ``calibration_unobservable``.
