@@ -329,7 +329,11 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     if calibration is not None:
         initial = gtsam.Values(initial)
         initial.insert(CALIBRATION_KEY, np.zeros(CALIBRATION_DIM))
-    built = build_log_graph(flight, dtm, settings, initial, guess.off_map,
+    # The pass judged the tracks against the DTM with the nominal calibration, whose error
+    # makes good tracks look off the map (a 20 ms offset: a third of the features); with
+    # the calibration estimated, the mismatch rounds below judge them as calibrated.
+    off_map = guess.off_map if calibration is None else None
+    built = build_log_graph(flight, dtm, settings, initial, off_map,
                             guess.unfixed_frames, calibration)
     solver = LinearSolver()
     values, first = levenberg_marquardt(built.graph, initial, settings.max_iterations,
