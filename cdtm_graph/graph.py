@@ -17,13 +17,14 @@ from gtsam.symbol_shorthand import B, V, X
 from cdtm_graph.clutter import ClutterSettings
 from cdtm_graph.dtm import Dtm, grazing_hits
 from cdtm_graph.epipolar import EpipolarSettings
-from cdtm_graph.flightlog import FlightConfig, InitialState
+from cdtm_graph.flightlog import CalibrationSigmas, FlightConfig, InitialState
 from cdtm_graph.geometry import rigid_motion_to_tangent
 from cdtm_graph.imu import GapNoise, SampleHold, initial_bias
 from cdtm_graph.mismatch import MismatchSettings, TrackHeights, track_heights
 from cdtm_graph.results import Rejection, Rejections
 from cdtm_graph.tracks import FramePairObservations
 from factors import CdtmPairFactor, FeatureNoise, PairFeatures, PlaneMode, RobustKernel
+from factors.calibration import CalibrationLink
 
 
 @dataclass(frozen=True)
@@ -68,6 +69,10 @@ class GraphSettings:
             ground and clutter (forest, towns: :mod:`cdtm_graph.clutter`); the likely
             clutter goes, and what may remain is a considered bias of the frames'
             vertical covariance. ``None``: no such view.
+        calibration: batch mode: estimate the camera-IMU time offset, the mount rotation
+            and a focal scale online (:mod:`cdtm_graph.calibration`) with these prior
+            sigmas when flight.yaml gives none (``camera.calibration`` wins); ``None``:
+            only as flight.yaml asks.
     """
 
     plane_mode: PlaneMode = PlaneMode.REINTERSECT
@@ -82,6 +87,7 @@ class GraphSettings:
     grazing_turn_cells: float | None = 1.0
     mismatch: MismatchSettings | None = field(default_factory=MismatchSettings)
     clutter: ClutterSettings | None = field(default_factory=ClutterSettings)
+    calibration: CalibrationSigmas | None = None
 
 
 def dtm_ray_caster(dtm: Dtm):
@@ -149,6 +155,7 @@ def cdtm_factors(
     noise: FeatureNoise,
     settings: GraphSettings,
     rejections: Rejections | None = None,
+    calibration: tuple[int, np.ndarray] | None = None,
 ) -> CdtmBuild:
     """One batched C-DTM factor per frame pair, planes cast from the current pose guesses.
 
@@ -167,6 +174,9 @@ def cdtm_factors(
             for a single pair, under 2 however long) instead of m. The rule needs only
             the rank, known when the pair arrives, so batch and incremental weigh alike.
         rejections: where to count what is left out (a new record if None).
+        calibration: the calibration variable's key and every frame's body twist (K, 6)
+            (:func:`cdtm_graph.calibration.body_twists`): each factor then holds the
+            calibration as its third variable. None: the nominal calibration.
 
     Returns:
         The factors and the counts.
@@ -200,9 +210,11 @@ def cdtm_factors(
             j = rank.astype(float)
             scale = j * (j + 1) / 2
         features = PairFeatures.build(wTc_a, wTc_b, q_a, q_b, G_E, N, noise, scale)
+        link = None if calibration is None else CalibrationLink(
+            calibration[0], calibration[1][pair.frame_a], calibration[1][k])
         build.factors.append(CdtmPairFactor(
             X(pair.frame_a), X(k), features, body_T_cam, settings.plane_mode,
-            raycast, settings.robust, settings.robust_threshold))
+            raycast, settings.robust, settings.robust_threshold, link))
         build.track_ids.append(ids)
         build.n_features += n_valid
         build.features_per_frame[k] = build.features_per_frame.get(k, 0) + n_valid

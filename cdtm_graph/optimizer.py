@@ -16,6 +16,7 @@ import numpy as np
 
 from cdtm_graph.errors import SolverError
 from cdtm_graph.results import Solver, SolverStats
+from factors.calibration import CALIBRATION_DIM
 
 log = logging.getLogger(__name__)
 
@@ -141,7 +142,7 @@ def levenberg_marquardt(
 
 
 #: Tangent dimension of each key type (DESIGN.md keys).
-_DIMENSIONS = {"x": 6, "v": 3, "b": 6}
+_DIMENSIONS = {"x": 6, "v": 3, "b": 6, "c": CALIBRATION_DIM}
 
 
 def _dim_of(key: int) -> int:

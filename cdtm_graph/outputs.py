@@ -205,6 +205,7 @@ def run_report(result: SmootherResult, report: Mapping[str, Any]) -> dict[str, A
         "settings": result.settings,
         "flags": result.flags,
         "terrain": result.terrain,
+        "calibration": result.calibration,
         "conventions": {
             "world": "local ENU, metres",
             "pose": "world_T_body (body = IMU)",

@@ -9,8 +9,12 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from cdtm_graph.calibration import CalibrationEstimate
 
 
 @dataclass(frozen=True)
@@ -211,6 +215,8 @@ class SmootherResult:
             geometry (flat terrain, few features, a narrow footprint:
             :mod:`cdtm_graph.verdict`).
         terrain: the ground against the DTM (clutter), when the smoother looked.
+        calibration: the camera calibration estimated online
+            (:class:`cdtm_graph.calibration.CalibrationEstimate`), when it was.
     """
 
     estimate: TrajectoryEstimate
@@ -221,6 +227,7 @@ class SmootherResult:
     flags: dict = field(default_factory=dict)
     cdtm_information: np.ndarray | None = None
     terrain: TerrainFindings | None = None
+    calibration: CalibrationEstimate | None = None
 
 
 def frame_flags(counts: GraphCounts, extra: dict[int, list[str]] | None = None

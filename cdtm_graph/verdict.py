@@ -790,7 +790,24 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
         status = Status.DEGRADED
     else:
         status = Status.TRUSTED
-    return Verdict(status, reasons, flags, checks, tuple(notes))
+    return Verdict(status, reasons, flags, checks, tuple(notes + _calibration_notes(result)))
+
+
+def _calibration_notes(result: SmootherResult) -> list[str]:
+    """``calibration_unobservable``: a calibration parameter estimated online that the
+    flight barely told (posterior sigma near the prior's, :mod:`cdtm_graph.calibration`).
+    A note, not a reason: its prior uncertainty is in the covariances, so the run is not
+    overconfident for it; but the estimate is flight.yaml's value, not a measurement."""
+    c = result.calibration
+    if c is None or not c.unobservable:
+        return []
+    parts = {"time_offset": (c.sigmas[0], c.prior_sigmas[0], "s"),
+             "mount": (float(np.max(c.sigmas[1:4])), c.prior_sigmas[1], "deg"),
+             "focal_scale": (c.sigmas[4], c.prior_sigmas[4], "")}
+    told = ", ".join(f"{name} (sigma {parts[name][0]:.3g}{parts[name][2]} against the prior's "
+                     f"{parts[name][1]:.3g}{parts[name][2]})" for name in c.unobservable)
+    return [f"calibration_unobservable: this flight does not tell {told}; the estimate stays "
+            "near flight.yaml's value, with the prior's uncertainty in the covariances"]
 
 
 def _smoother_flag(name: str, flags: Mapping[int, list[str]], k: int) -> FrameTest:

@@ -34,6 +34,18 @@ import gtsam
 import numpy as np
 
 from factors import cdtm_math
+from factors.calibration import (
+    CALIBRATION_DIM,
+    FOCAL_SCALE,
+    MOUNT,
+    TIME_OFFSET,
+    CalibrationLink,
+    corrected_mount,
+    corrected_rays,
+    mount_jacobian,
+    shift,
+    shift_adjoint,
+)
 from factors.kernel import (
     COMPRESSED_ROWS,
     KERNEL_CAUCHY,
@@ -242,6 +254,14 @@ def _pose_matrix(values: gtsam.Values, key: int) -> np.ndarray:
     return values.atPose3(key).matrix()
 
 
+#: Rows of a compressed pair factor that also holds the calibration: 12 pose columns,
+#: 5 calibration columns and the residual column.
+CALIBRATED_ROWS = 12 + CALIBRATION_DIM + 1
+
+#: Step of the central differences of the residual w.r.t. the focal scale.
+FOCAL_SCALE_STEP = 1e-5
+
+
 class CdtmPairFactor:
     """Every C-DTM feature of a frame pair in one vectorized GTSAM factor.
 
@@ -253,13 +273,17 @@ class CdtmPairFactor:
         raycast: DTM ray caster, required for REINTERSECT. Where it misses, the
             construction plane is kept.
         robust: per-feature M-estimator; ``robust_threshold`` defaults to the kernel's.
+        calibration: the camera calibration the residuals are evaluated with
+            (:mod:`factors.calibration`); with a key, the factor's third variable (a
+            5-vector) and Jacobians w.r.t. it. None: the nominal calibration, as before.
 
     Attributes:
         factor: the ``gtsam.CustomFactor`` to add to a graph, unit noise (whitening
-            happens inside). Its dimension is 2n for up to six features, otherwise 13:
-            a linearization returns the QR triangle of the whitened ``[Ha Hb | e]``
-            (same Hessian, gradient and error), and an error evaluation returns 13 rows
-            of which only the norm means anything (the last entry; the rest are zero).
+            happens inside). Its dimension is 2n for up to six features (nine with a
+            calibration key), otherwise 13 (18): a linearization returns the QR triangle
+            of the whitened ``[Ha Hb (Hc) | e]`` (same Hessian, gradient and error), and an
+            error evaluation returns 13 (18) rows of which only the norm means anything
+            (the last entry; the rest are zero).
     """
 
     def __init__(
@@ -272,10 +296,12 @@ class CdtmPairFactor:
         raycast: RayCaster | None = None,
         robust: RobustKernel = RobustKernel.NONE,
         robust_threshold: float | None = None,
+        calibration: CalibrationLink | None = None,
     ):
         if plane_mode is PlaneMode.REINTERSECT and raycast is None:
             raise ValueError("PlaneMode.REINTERSECT needs a raycast function")
         self.key_a, self.key_b = key_a, key_b
+        self.calibration = calibration
         self.features = features
         self.body_T_cam = np.asarray(body_T_cam, dtype=float)
         self.plane_mode = plane_mode
@@ -294,27 +320,34 @@ class CdtmPairFactor:
         self._planes_cache: tuple[bytes, np.ndarray, np.ndarray] | None = None
         # Tall pairs reach GTSAM as a 13-row triangle: QR elimination of the raw 2n rows
         # was most of a fixed-lag update, and the batch's memory.
-        self._compressed = 2 * n > COMPRESSED_ROWS
+        keys = [key_a, key_b]
+        compressed_rows = COMPRESSED_ROWS
+        if calibration is not None and calibration.key is not None:
+            keys.append(calibration.key)
+            compressed_rows = CALIBRATED_ROWS
+        self._compressed = 2 * n > compressed_rows
         rows = 2 * n
         if self._compressed:
-            rows = COMPRESSED_ROWS
+            rows = compressed_rows
             self._Ja = np.empty((COMPRESSED_ROWS, 6))
             self._Jb = np.empty((COMPRESSED_ROWS, 6))
             self._z = np.empty(COMPRESSED_ROWS)
-        self.factor = gtsam.CustomFactor(
-            gtsam.noiseModel.Unit.Create(rows), [key_a, key_b], self._error)
+        self.factor = gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(rows), keys, self._error)
 
-    def planes(self, world_T_cam_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The tangent planes ``(G_E, N)`` used at this camera-a pose."""
+    def planes(self, world_T_cam_a: np.ndarray,
+               focal_scale_minus_1: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """The tangent planes ``(G_E, N)`` used at this camera-a pose (and focal scale,
+        :mod:`factors.calibration`)."""
         f = self.features
         if self.plane_mode is PlaneMode.FIXED:
             return f.G_E, f.N
         # An optimizer evaluates the error at a candidate and then linearizes at the
         # same values: cast once per distinct camera-a pose.
-        key = world_T_cam_a.tobytes()
+        key = world_T_cam_a.tobytes() + np.float64(focal_scale_minus_1).tobytes()
         if self._planes_cache is not None and self._planes_cache[0] == key:
             return self._planes_cache[1], self._planes_cache[2]
-        ray = f.q_a @ world_T_cam_a[:3, :3].T
+        q_a = f.q_a if focal_scale_minus_1 == 0.0 else corrected_rays(f.q_a, focal_scale_minus_1)
+        ray = q_a @ world_T_cam_a[:3, :3].T
         assert self.raycast is not None  # checked at construction for REINTERSECT
         points, normals, valid = self.raycast(world_T_cam_a[:3, 3], ray)
         if not valid.all():
@@ -328,8 +361,13 @@ class CdtmPairFactor:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Whitened, reweighted residuals (n, 2) and Jacobians (n, 2, 6) w.r.t. X(a), X(b).
 
-        The arrays are the factor's own buffers: copy them to keep them.
+        The arrays are the factor's own buffers: copy them to keep them. With a
+        calibration link, at its ``value`` (the variable's value: :meth:`evaluate_calibrated`).
         """
+        if self.calibration is not None:
+            e, Ha, Hb, _ = self.evaluate_calibrated(world_T_body_a, world_T_body_b,
+                                                    self.calibration.value, want_jacobians)
+            return e, Ha, Hb
         wTc_a = world_T_body_a @ self.body_T_cam
         wTc_b = world_T_body_b @ self.body_T_cam
         G_E, N = self.planes(wTc_a)
@@ -339,6 +377,91 @@ class CdtmPairFactor:
             f.q_a, G_E, N, f.basis_b, f.sqrt_info, self.robust.kernel_id,
             self._kernel_k, want_jacobians, self._e, self._Ha, self._Hb)
         return self._e, self._Ha, self._Hb
+
+    def _calibrated_kernel(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray,
+                           calibration: np.ndarray, kernel: int, want_jacobians: bool,
+                           e: np.ndarray, Ha: np.ndarray, Hb: np.ndarray) -> np.ndarray:
+        """The kernel at a calibration (5,); Jacobians w.r.t. the right perturbations of
+        the bodies at exposure, ``X Exp(dt xi)``. Returns ``Ad(cam_T_body)`` of the
+        corrected mount."""
+        link = self.calibration
+        assert link is not None
+        dt, s = float(calibration[TIME_OFFSET]), float(calibration[FOCAL_SCALE])
+        body_T_cam = corrected_mount(self.body_T_cam, calibration[MOUNT])
+        wTc_a = world_T_body_a @ shift(link.twist_a, dt) @ body_T_cam
+        wTc_b = world_T_body_b @ shift(link.twist_b, dt) @ body_T_cam
+        f = self.features
+        q_a = corrected_rays(f.q_a, s)
+        basis_b = cdtm_math.orthonormal_complement(corrected_rays(f.q_b, s))
+        G_E, N = self.planes(wTc_a, s)
+        Ad = cdtm_math.body_to_cam_adjoint(body_T_cam)
+        # The whitening was made for the nominal focal length: the pixel noise is (1 + s)
+        # times smaller in the corrected normalized coordinates. Without this the cost
+        # itself would fall as the focal length grows (every residual shrinks), pulling
+        # the scale (and with it the height) off: +0.46% and 8 m on a clean flight.
+        sqrt_info = f.sqrt_info * (1.0 + s)
+        self.n_inactive = cdtm_linearize(
+            wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3], Ad, q_a, G_E, N,
+            basis_b, sqrt_info, kernel, self._kernel_k, want_jacobians, e, Ha, Hb)
+        return Ad
+
+    def evaluate_calibrated(
+        self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray,
+        calibration: np.ndarray, want_jacobians: bool = True,
+        robust: bool = True,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Whitened, reweighted residuals (n, 2) and Jacobians w.r.t. X(a), X(b) (n, 2, 6)
+        and the calibration (n, 2, 5), at the calibration ``calibration`` (5,).
+
+        The time offset and the mount are chained from the pose Jacobians (exact); the
+        focal scale by central differences of the residual, reweighted as its row. Fresh
+        arrays. ``robust=False``: no reweighting.
+        """
+        link = self.calibration
+        if link is None:
+            raise ValueError("a factor without a calibration link has no calibration")
+        c = np.asarray(calibration, dtype=float)
+        n = self.features.n
+        kernel = self.robust.kernel_id if robust else KERNEL_NONE
+        e, Ha, Hb = np.empty((n, 2)), np.empty((n, 2, 6)), np.empty((n, 2, 6))
+        Ad = self._calibrated_kernel(world_T_body_a, world_T_body_b, c, kernel,
+                                     want_jacobians, e, Ha, Hb)
+        Hc = np.zeros((n, 2, CALIBRATION_DIM))
+        if not want_jacobians:
+            return e, Ha, Hb, Hc
+        dt = float(c[TIME_OFFSET])
+        Hc[:, :, TIME_OFFSET] = Ha @ link.twist_a + Hb @ link.twist_b
+        Ad_inv = np.linalg.inv(Ad)  # back to camera tangents: the mount turns both cameras
+        Hc[:, :, MOUNT] = ((Ha @ Ad_inv)[..., :3] + (Hb @ Ad_inv)[..., :3]) @ \
+            mount_jacobian(c[MOUNT])
+        Hc[:, :, FOCAL_SCALE] = self._focal_scale_column(world_T_body_a, world_T_body_b, c,
+                                                         e, kernel)
+        Ha = Ha @ shift_adjoint(link.twist_a, dt)
+        Hb = Hb @ shift_adjoint(link.twist_b, dt)
+        return e, Ha, Hb, Hc
+
+    def _focal_scale_column(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray,
+                            c: np.ndarray, e: np.ndarray, kernel: int) -> np.ndarray:
+        """d e / d(focal scale), (n, 2): central differences of the unweighted residual,
+        times each feature's robust weight as the kernel applied it to ``e``."""
+        n = self.features.n
+        side = []
+        for step in (FOCAL_SCALE_STEP, -FOCAL_SCALE_STEP):
+            moved = c.copy()
+            moved[FOCAL_SCALE] += step
+            out = np.empty((n, 2))
+            self._calibrated_kernel(world_T_body_a, world_T_body_b, moved, KERNEL_NONE,
+                                    False, out, self._Ha, self._Hb)
+            side.append(out)
+        column = (side[0] - side[1]) / (2.0 * FOCAL_SCALE_STEP)
+        if kernel != KERNEL_NONE:
+            plain = np.empty((n, 2))
+            self._calibrated_kernel(world_T_body_a, world_T_body_b, c, KERNEL_NONE, False,
+                                    plain, self._Ha, self._Hb)
+            norm = np.linalg.norm(plain, axis=1)
+            weight = np.divide(np.linalg.norm(e, axis=1), norm, out=np.ones(n), where=norm > 0)
+            column *= weight[:, None]
+        return column
 
     def refreshed(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray) -> CdtmPairFactor:
         """The same factor with planes and noise (eqs. 19-26) linearized at these poses.
@@ -356,7 +479,13 @@ class CdtmPairFactor:
         features = PairFeatures.build(wTc_a, wTc_b, f.q_a, f.q_b, G_E, N, f.noise,
                                       f.dtm_variance_scale)
         return CdtmPairFactor(self.key_a, self.key_b, features, self.body_T_cam, self.plane_mode,
-                              self.raycast, self.robust, self.robust_threshold)
+                              self.raycast, self.robust, self.robust_threshold, self.calibration)
+
+    def with_calibration(self, calibration: CalibrationLink | None) -> CdtmPairFactor:
+        """The same factor with another calibration link (e.g. held at an estimate)."""
+        return CdtmPairFactor(self.key_a, self.key_b, self.features, self.body_T_cam,
+                              self.plane_mode, self.raycast, self.robust, self.robust_threshold,
+                              calibration)
 
     def whitened_residuals(self, world_T_body_a: np.ndarray,
                            world_T_body_b: np.ndarray) -> np.ndarray:
@@ -374,6 +503,11 @@ class CdtmPairFactor:
 
     def _unweighted(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray,
                     want_jacobians: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if self.calibration is not None:
+            e, Ha, Hb, _ = self.evaluate_calibrated(world_T_body_a, world_T_body_b,
+                                                    self.calibration.value, want_jacobians,
+                                                    robust=False)
+            return e, Ha, Hb
         wTc_a = world_T_body_a @ self.body_T_cam
         wTc_b = world_T_body_b @ self.body_T_cam
         G_E, N = self.planes(wTc_a)
@@ -421,15 +555,19 @@ class CdtmPairFactor:
         scale = None if robust_scale is None else np.asarray(robust_scale, dtype=float)
         features = dataclasses.replace(self.features, robust_scale=scale)
         return CdtmPairFactor(self.key_a, self.key_b, features, self.body_T_cam,
-                              self.plane_mode, self.raycast, self.robust, self.robust_threshold)
+                              self.plane_mode, self.raycast, self.robust, self.robust_threshold,
+                              self.calibration)
 
     def with_features(self, keep: np.ndarray) -> CdtmPairFactor:
         """The same factor over the features selected by ``keep`` (mask or indices)."""
         return CdtmPairFactor(self.key_a, self.key_b, self.features.subset(keep),
                               self.body_T_cam, self.plane_mode, self.raycast, self.robust,
-                              self.robust_threshold)
+                              self.robust_threshold, self.calibration)
 
     def _error(self, this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
+        link = self.calibration
+        if link is not None and link.key is not None:
+            return self._calibrated_error(values, link.key, jacobians)
         e, Ha, Hb = self.evaluate(_pose_matrix(values, self.key_a),
                                   _pose_matrix(values, self.key_b), jacobians is not None)
         if not self._compressed:
@@ -445,6 +583,31 @@ class CdtmPairFactor:
         jacobians[0] = self._Ja
         jacobians[1] = self._Jb
         return self._z
+
+    def _calibrated_error(self, values: gtsam.Values, key: int, jacobians) -> np.ndarray:
+        """The factor's error with the calibration as its third variable."""
+        e, Ha, Hb, Hc = self.evaluate_calibrated(
+            _pose_matrix(values, self.key_a), _pose_matrix(values, self.key_b),
+            values.atVector(key), jacobians is not None)
+        if not self._compressed:
+            if jacobians is not None:
+                jacobians[0] = Ha.reshape(-1, 6)
+                jacobians[1] = Hb.reshape(-1, 6)
+                jacobians[2] = Hc.reshape(-1, CALIBRATION_DIM)
+            return e.reshape(-1)
+        if jacobians is None:
+            out = np.zeros(CALIBRATED_ROWS)
+            out[-1] = np.sqrt(np.einsum("ij,ij->", e, e))
+            return out
+        # the square-root information form of [Ha Hb Hc | e] (as triangularize, in numpy:
+        # one call per pair and linearization)
+        stacked = np.concatenate([Ha.reshape(-1, 6), Hb.reshape(-1, 6),
+                                  Hc.reshape(-1, CALIBRATION_DIM), e.reshape(-1, 1)], axis=1)
+        R: np.ndarray = np.linalg.qr(stacked, mode="r")  # type: ignore[assignment]
+        jacobians[0] = np.ascontiguousarray(R[:, :6])
+        jacobians[1] = np.ascontiguousarray(R[:, 6:12])
+        jacobians[2] = np.ascontiguousarray(R[:, 12:12 + CALIBRATION_DIM])
+        return np.ascontiguousarray(R[:, -1])
 
 
 def make_feature_factors(

@@ -23,6 +23,7 @@ from cdtm_graph.flightlog.model import (
     LOG_FILES,
     NAV_CSV,
     TRACKS_CSV,
+    CalibrationSigmas,
     CameraConfig,
     DtmConfig,
     FlightConfig,
@@ -39,7 +40,8 @@ from cdtm_graph.flightlog.writer import write_flightlog, write_flightlog_files, 
 
 __all__ = [
     "FLIGHT_YAML", "FORMAT", "FRAMES_CSV", "GROUNDTRUTH_CSV", "IMU_CSV", "LOG_FILES", "NAV_CSV",
-    "TRACKS_CSV", "CameraConfig", "DtmConfig", "FlightConfig", "FlightLog", "Frames",
+    "TRACKS_CSV", "CalibrationSigmas", "CameraConfig", "DtmConfig", "FlightConfig",
+    "FlightLog", "Frames",
     "ImuConfig", "ImuSamples", "InitialState", "States", "Tracks", "load_log_and_dtm",
     "read_flightlog", "write_flightlog", "write_flightlog_files",
     "write_tracks",

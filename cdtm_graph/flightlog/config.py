@@ -26,6 +26,7 @@ from cdtm_graph.flightlog.model import (
     GEODETIC_DTM_SUFFIXES,
     QUATERNION_EXACT_TOL,
     QUATERNION_UNIT_TOL,
+    CalibrationSigmas,
     CameraConfig,
     DtmConfig,
     FlightConfig,
@@ -66,6 +67,11 @@ RANGES: dict[str, Range] = {
     # Camera-IMU clock offsets are milliseconds to a few hundred (USB cameras); seconds
     # mean clocks on different bases, to be fixed in the stamps, not here.
     "camera.time_offset_s": Range(-10.0, 10.0, "s"),
+    # Online calibration priors (camera.calibration): a clock known to within a second at
+    # worst, a mount to within 20 degrees, a focal length to within half its value.
+    "camera.calibration.time_offset_sigma_s": Range(1e-6, 1.0, "s"),
+    "camera.calibration.mount_sigma_deg": Range(1e-4, 20.0, "deg"),
+    "camera.calibration.focal_scale_sigma": Range(1e-6, 0.5),
     "imu.rate_hz": Range(1.0, 1e5, "Hz"),
     "imu.gyroscope_noise_density": Range(1e-9, 1e-1, "rad/s/sqrt(Hz)"),
     "imu.accelerometer_noise_density": Range(1e-7, 1.0, "m/s^2/sqrt(Hz)"),
@@ -376,7 +382,7 @@ def _parse_camera(y: _Yaml, node: yaml.Node, line: int) -> CameraConfig:
     pairs = y.pairs(node, "camera", line)
     m = y.keys(pairs, "camera", line,
                ("resolution", "intrinsics", "pixel_sigma_px", "body_T_cam"),
-               ("distortion_model", "distortion_coeffs", "time_offset_s"))
+               ("distortion_model", "distortion_coeffs", "time_offset_s", "calibration"))
     res_node = m["resolution"]
     if not isinstance(res_node, yaml.SequenceNode) or len(res_node.value) != 2:
         y.fail(res_node, "camera.resolution is not two values", "[width, height] in pixels")
@@ -404,8 +410,17 @@ def _parse_camera(y: _Yaml, node: yaml.Node, line: int) -> CameraConfig:
     quat = y.quaternion(mount["quaternion_wxyz"], "camera.body_T_cam.quaternion_wxyz")
     offset_s = (y.bounded(m["time_offset_s"], "camera.time_offset_s")
                 if "time_offset_s" in m else 0.0)
+    calibration = (_calibration_sigmas(y, m["calibration"], y.line(pairs["calibration"][0]))
+                   if "calibration" in m else None)
     return CameraConfig(camera, sigma, make_pose(quat_wxyz_to_rotation(quat), translation),
-                        offset_s)
+                        offset_s, calibration)
+
+
+def _calibration_sigmas(y: _Yaml, node: yaml.Node, line: int) -> CalibrationSigmas:
+    """``camera.calibration``: the prior sigmas of the calibration estimated online."""
+    names = ("time_offset_sigma_s", "mount_sigma_deg", "focal_scale_sigma")
+    m = y.keys(y.pairs(node, "camera.calibration", line), "camera.calibration", line, names)
+    return CalibrationSigmas(*(y.bounded(m[k], f"camera.calibration.{k}") for k in names))
 
 
 #: What ``camera.distortion_coeffs`` holds for each model (docs/flightlog.md, camera).

@@ -144,6 +144,29 @@ class DtmConfig:
         return (self.path, *self.more_paths)
 
 
+@dataclass(frozen=True)
+class CalibrationSigmas:
+    """Prior 1-sigmas of the camera calibration a run may estimate online
+    (``camera.calibration`` in flight.yaml; :mod:`cdtm_graph.calibration`).
+
+    Attributes:
+        time_offset_sigma_s: of the camera-IMU clock offset about ``time_offset_s``.
+        mount_sigma_deg: of the mount's rotation about ``body_T_cam`` (each axis).
+        focal_scale_sigma: of the focal lengths' common scale about 1 (0.01: 1%).
+    """
+
+    time_offset_sigma_s: float
+    mount_sigma_deg: float
+    focal_scale_sigma: float
+
+    def __post_init__(self) -> None:
+        for name in ("time_offset_sigma_s", "mount_sigma_deg", "focal_scale_sigma"):
+            value = float(getattr(self, name))
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"{name} must be positive and finite, got {value!r}")
+            object.__setattr__(self, name, value)
+
+
 @dataclass(frozen=True, eq=False)
 class CameraConfig(_ArrayEq):
     """The camera and its mounting (``camera:`` in flight.yaml).
@@ -157,12 +180,15 @@ class CameraConfig(_ArrayEq):
             adds the offset (:attr:`time_offset_ns`), so :attr:`FlightLog.frames` is on the
             IMU clock, and the writer takes it off again. An online estimate of the
             offset starts from this value as its prior.
+        calibration: prior sigmas of the calibration estimated online (the values above
+            are the priors' means); None: the run's settings decide.
     """
 
     camera: PinholeCamera
     pixel_sigma_px: float
     body_T_cam: np.ndarray
     time_offset_s: float = 0.0
+    calibration: CalibrationSigmas | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "pixel_sigma_px", float(self.pixel_sigma_px))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import shutil
 import uuid
@@ -129,6 +130,8 @@ def _yaml_document(log: FlightLog, target: Path, geodetic: bool = False) -> str:
     camera["pixel_sigma_px"] = float(cfg.camera.pixel_sigma_px)
     if cfg.camera.time_offset_s != 0.0:
         camera["time_offset_s"] = float(cfg.camera.time_offset_s)
+    if cfg.camera.calibration is not None:
+        camera["calibration"] = dataclasses.asdict(cfg.camera.calibration)
     camera["body_T_cam"] = {
         "translation_m": body_T_cam[:3, 3].tolist(),
         "quaternion_wxyz": rotation_to_quat_wxyz(body_T_cam[:3, :3]).tolist(),

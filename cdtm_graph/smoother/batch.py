@@ -9,12 +9,16 @@ values, which makes an iteration quadratic in the flight length.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 
+from cdtm_graph.calibration import CALIBRATION_KEY, body_twists, calibrated_cameras
+from cdtm_graph.calibration import estimate as calibration_estimate
+from cdtm_graph.calibration import prior_factor as calibration_prior
 from cdtm_graph.clutter import (
     Clutter,
     ClutterSettings,
@@ -26,7 +30,7 @@ from cdtm_graph.clutter import (
 )
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import FlightLogError
-from cdtm_graph.flightlog import FlightLog
+from cdtm_graph.flightlog import CalibrationSigmas, FlightLog
 from cdtm_graph.gating import residual_test
 from cdtm_graph.graph import (
     cdtm_factors,
@@ -58,6 +62,7 @@ from cdtm_graph.smoother.incremental import IncrementalSmoother
 from cdtm_graph.smoother.settings import Progress, SmootherMode, SmootherSettings
 from cdtm_graph.tracks import SightingPairs
 from factors import CdtmPairFactor, FeatureNoise
+from factors.calibration import CALIBRATION_DIM
 
 #: Rounds of "drop the tracks off the DTM, solve again" (each finds what the last one's
 #: estimate, no longer pulled by the worst, reveals).
@@ -83,6 +88,14 @@ def marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     which happens on these wide-range systems (information from ~1e-4 for the pose prior
     to ~1e10 for the bias random walk), QR, which does not square the condition number.
     """
+    keys = [X(k) for k in range(K)] + [V(k) for k in range(K)] + [B(k) for k in range(K)]
+    cov = key_marginals(graph, values, keys, qr_only)
+    return StateCovariances(np.stack(cov[:K]), np.stack(cov[K:2 * K]), np.stack(cov[2 * K:]))
+
+
+def key_marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+                  keys: list[int], qr_only: bool = False) -> list[np.ndarray]:
+    """The marginal covariance of each key (as :func:`marginals`)."""
     linear = graph.linearize(values)
     for qr in (True,) if qr_only else (False, True):
         try:
@@ -95,10 +108,7 @@ def marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                 # information() includes the conditional's noise model (QR leaves sigmas)
                 return np.linalg.inv(marginal.information())
 
-            pose = np.stack([cov(X(k)) for k in range(K)])
-            vel = np.stack([cov(V(k)) for k in range(K)])
-            bias = np.stack([cov(B(k)) for k in range(K)])
-            return StateCovariances(pose, vel, bias)
+            return [cov(key) for key in keys]
         except RuntimeError as exc:
             error = exc
     raise explain_indeterminant(error) from None
@@ -120,6 +130,8 @@ class LogGraph:
         np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)))
     found_off: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     clutter: Clutter = field(default_factory=Clutter.none)  # the latest fit
+    # the online calibration's body twists (K, 6), when the calibration is estimated
+    twists: np.ndarray | None = None
 
     @property
     def graph(self) -> gtsam.NonlinearFactorGraph:
@@ -134,10 +146,28 @@ class LogGraph:
                clutter: ClutterSettings | None) -> TrackJudgement:
         """Judge every track that entered at ``values`` (the ones dropped since too: a
         population's clutter is seen with its tallest members); keeps the clutter fit."""
+        track_id, frame, ray = self.observed
+
+        def at_stamp(k: int) -> np.ndarray:
+            return values.atPose3(X(k)).matrix()
+
+        pose: Callable[[int], np.ndarray] = at_stamp
+        if self.twists is not None:  # the cameras as calibrated
+            pose, body_T_cam, ray = calibrated_cameras(
+                pose, body_T_cam, ray, self.twists, values.atVector(CALIBRATION_KEY))
         judged, self.clutter = assess(
-            heights_at(*self.observed, lambda k: values.atPose3(X(k)).matrix(), body_T_cam,
-                       dtm, noise), noise.sigma_h_m, mismatch, clutter)
+            heights_at(track_id, frame, ray, pose, body_T_cam, dtm, noise), noise.sigma_h_m,
+            mismatch, clutter)
         return judged
+
+    def at_calibration(self, values: gtsam.Values) -> list[CdtmPairFactor]:
+        """The C-DTM factors held at the calibration in ``values`` (for the checks after
+        a solve, which see the poses alone); the factors themselves without one."""
+        if self.twists is None:
+            return self.cdtm
+        c = values.atVector(CALIBRATION_KEY)
+        return [f.with_calibration(f.calibration.fixed_at(c)) if f.calibration else f
+                for f in self.cdtm]
 
     def drop_mismatched(self, values: gtsam.Values, dtm: Dtm, noise: FeatureNoise,
                         body_T_cam: np.ndarray, mismatch: MismatchSettings,
@@ -209,7 +239,8 @@ def _initial_values(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
 
 def build_log_graph(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
                     initial: gtsam.Values, off_map: np.ndarray | None = None,
-                    unfixed_frames: np.ndarray | None = None) -> LogGraph:
+                    unfixed_frames: np.ndarray | None = None,
+                    calibration: CalibrationSigmas | None = None) -> LogGraph:
     """Priors, IMU factors and C-DTM factors of the whole log, planes cast from ``initial``.
 
     Sightings are paired frame by frame as the incremental smoother pairs them
@@ -217,7 +248,8 @@ def build_log_graph(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
     initial guess's relative poses). Tracks in ``off_map`` (found off the DTM by the
     incremental pass) are left out, counted as ``Rejection.MAP_MISMATCH``, and so are
     the sightings of ``unfixed_frames`` (``Rejection.NO_FIX``: the pass never found the fix
-    their linearization needs).
+    their linearization needs). With ``calibration`` (prior sigmas), the camera calibration
+    is estimated too (``C(0)``, :mod:`cdtm_graph.calibration`; ``initial`` must hold it).
     """
     K = len(flight.frames)
     t = flight.frames.t_ns
@@ -246,9 +278,14 @@ def build_log_graph(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
                 rejections.add(Rejection.MAP_MISMATCH, frame.k, int(off.sum()))
                 if not off.all():
                     pairs.append(pair.subset(~off) if off.any() else pair)
+    twists = None
+    if calibration is not None:
+        graph.add(calibration_prior(calibration))
+        twists = body_twists(t, flight.imu, initial_bias(flight.config.initial_state).gyroscope(),
+                             np.stack(poses), np.stack([initial.atVector(V(k)) for k in range(K)]))
     build = cdtm_factors(pairs, poses, camera.body_T_cam, dtm,
                          feature_noise(flight.config, dtm, settings.graph), settings.graph,
-                         rejections)
+                         rejections, None if twists is None else (CALIBRATION_KEY, twists))
     per_frame = np.zeros(K, dtype=int)
     for k, n in build.features_per_frame.items():
         per_frame[k] = n
@@ -258,7 +295,7 @@ def build_log_graph(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
         rejected_per_frame=rejections.per_frame(K))
     observed = track_observations(build.factors, build.track_ids)
     return LogGraph(graph, initial, counts, build.factors, build.track_ids, rejections,
-                    observed)
+                    observed, twists=twists)
 
 
 def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None,
@@ -288,8 +325,16 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
         return smoother.run(flight, progress)
     guess = _initial_values(flight, dtm, settings, progress)
     initial = guess.values
-    built = build_log_graph(flight, dtm, settings, initial, guess.off_map,
-                            guess.unfixed_frames)
+    calibration = flight.config.camera.calibration or settings.graph.calibration
+    if calibration is not None:
+        initial = gtsam.Values(initial)
+        initial.insert(CALIBRATION_KEY, np.zeros(CALIBRATION_DIM))
+    # The pass judged the tracks against the DTM with the nominal calibration, whose error
+    # makes good tracks look off the map (a 20 ms offset: a third of the features); with
+    # the calibration estimated, the mismatch rounds below judge them as calibrated.
+    off_map = guess.off_map if calibration is None else None
+    built = build_log_graph(flight, dtm, settings, initial, off_map,
+                            guess.unfixed_frames, calibration)
     solver = LinearSolver()
     values, first = levenberg_marquardt(built.graph, initial, settings.max_iterations,
                                         settings.relative_error_tol, solver=solver)
@@ -319,6 +364,13 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     covariances = (marginals(graph, values, K) if settings.marginals else
                    StateCovariances(np.full((K, 6, 6), np.nan), np.full((K, 3, 3), np.nan),
                                     np.full((K, 6, 6), np.nan)))
+    calibrated = None
+    if calibration is not None:
+        c_cov = (key_marginals(graph, values, [CALIBRATION_KEY])[0] if settings.marginals
+                 else np.full((CALIBRATION_DIM, CALIBRATION_DIM), np.nan))
+        calibrated = calibration_estimate(values.atVector(CALIBRATION_KEY), c_cov,
+                                          calibration, flight.config)
+    checked = built.at_calibration(values)  # the factors as the poses alone see them
     estimate = _estimate_from_values(values, flight.frames.t_ns)
     # what clutter may remain in the features: a considered vertical bias per frame
     terrain, flags = None, dict(guess.frame_flags)
@@ -336,7 +388,7 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     settings_dict = settings.to_dict()
     settings_dict["initial_values"] = guess.source
     settings_dict["acquisitions"] = guess.acquisitions
-    residuals = residual_test(built.cdtm, estimate.world_T_body, K)
+    residuals = residual_test(checked, estimate.world_T_body, K)
     per_frame = np.zeros(K, dtype=int)
     for f in built.cdtm:
         per_frame[int(gtsam.Symbol(f.key_b).index())] += f.features.n
@@ -348,4 +400,5 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
                      residual_chi2_per_frame=residuals.chi2_within_per_frame)
     return SmootherResult(estimate, covariances, stats, counts, settings_dict,
                           frame_flags(counts, flags), cdtm_information(
-                              built.cdtm, estimate.world_T_body.__getitem__, K), terrain)
+                              checked, estimate.world_T_body.__getitem__, K), terrain,
+                          calibrated)
