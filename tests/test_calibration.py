@@ -15,7 +15,7 @@ from cdtm_graph.graph import GraphSettings
 from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.sim.faults import with_calibration_error
 from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
-from cdtm_graph.smoother import SmootherSettings
+from cdtm_graph.smoother import SmootherMode, SmootherSettings
 from cdtm_graph.studies.robustness import BASE, SCENARIOS
 from factors import CdtmPairFactor, PlaneMode, RobustKernel
 from factors.calibration import CALIBRATION_DIM, CalibrationLink
@@ -258,3 +258,15 @@ def test_a_mount_yaw_on_a_straight_flight_is_unobservable_and_noted():
     assert "mount" in c.unobservable and "focal_scale" not in c.unobservable
     assert any(n.startswith("calibration_unobservable: ") and "mount" in n
                for n in out.verdict.notes)
+
+
+def test_calibration_asked_of_an_incremental_run_is_said_not_estimated():
+    """Only the batch estimates the calibration: an incremental run asked for it says so
+    (a note), never silently takes flight.yaml's as exact."""
+    flight, dtm = simulate_flight(SimulationSettings(frames=6, seed=1))
+    settings = dataclasses.replace(ONLINE, mode=SmootherMode.INCREMENTAL)
+    out = smooth_and_evaluate(flight, dtm, settings)
+    assert out.result.calibration is None
+    assert any(n.startswith("calibration_not_estimated: ") for n in out.verdict.notes)
+    batch = smooth_and_evaluate(flight, dtm, ONLINE)
+    assert not any(n.startswith("calibration_not_estimated") for n in batch.verdict.notes)
