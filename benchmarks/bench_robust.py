@@ -28,7 +28,6 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from cdtm_graph.evaluation import trajectory_errors  # noqa: E402
-from cdtm_graph.graph import GraphSettings  # noqa: E402
 from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight  # noqa: E402
 from cdtm_graph.smoother import SmootherSettings, smooth  # noqa: E402
 from factors import RobustKernel  # noqa: E402
