@@ -62,14 +62,22 @@ class EpipolarCheck:
     angle_to_prior_rad: float
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross`` over the last axis (broadcast), without its per-call overhead (the
+    check runs a few of them per pair: np.cross was half its time)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
 def _sampson_sq(q_a: np.ndarray, q_b: np.ndarray, R_ba: np.ndarray,
                 t_b: np.ndarray) -> np.ndarray:
     """Squared Sampson distances of ``q_b^T E q_a = 0``, E = [t]x R, normalized units:
     (n,) for one direction ``t_b`` (3,), (h, n) for h directions (h, 3) at once."""
     t = np.atleast_2d(t_b)[:, None, :]   # (h, 1, 3)
     Rq = q_a @ R_ba.T
-    Eq_a = np.cross(t, Rq)              # E q_a, (h, n, 3)
-    Et_q_b = np.cross(q_b, t) @ R_ba    # E^T q_b = R^T [t]x^T q_b = R^T (q_b x t)
+    Eq_a = _cross(t, Rq)                # E q_a, (h, n, 3)
+    Et_q_b = _cross(q_b, t) @ R_ba    # E^T q_b = R^T [t]x^T q_b = R^T (q_b x t)
     num = np.einsum("ni,hni->hn", q_b, Eq_a) ** 2
     den = Eq_a[..., 0] ** 2 + Eq_a[..., 1] ** 2 + Et_q_b[..., 0] ** 2 + Et_q_b[..., 1] ** 2
     d2 = num / np.maximum(den, 1e-300)
@@ -102,10 +110,10 @@ def check_pair(q_a: np.ndarray, q_b: np.ndarray, R_ba: np.ndarray, t_b: np.ndarr
         return EpipolarCheck(np.ones(n, dtype=bool), prior, False, 0.0)
     limit = settings.gate * sigma * sigma
     # each feature's epipolar plane normal; t must be perpendicular to every inlier's
-    normals = np.cross(q_b, q_a @ R_ba.T)
+    normals = _cross(q_b, q_a @ R_ba.T)
     rng = np.random.default_rng(settings.seed)
     picks = rng.integers(0, n, (settings.hypotheses, 2))
-    candidates = np.cross(normals[picks[:, 0]], normals[picks[:, 1]])
+    candidates = _cross(normals[picks[:, 0]], normals[picks[:, 1]])
     norm = np.linalg.norm(candidates, axis=1)
     candidates = candidates[norm > 1e-12] / norm[norm > 1e-12, None]
     # the sign of t: the one closer to the IMU's (a direction and its opposite fit alike)
