@@ -207,9 +207,11 @@ def _em(dh: np.ndarray, var: np.ndarray, H: float, iterations: int
         # tau^2: the clutter's spread beyond the tracks' own (a moment step, floored)
         tau2 = max(float(np.sum(w * ((dh - b - H) ** 2 - var)) / max(float(w.sum()), 1e-9)),
                    1.0)
-        # converged: the share to 1e-5, the heights to a millimetre, the spread to 1e-3 m^2
-        if (abs(p - before[0]) < 1e-5 and abs(H - before[1]) < 1e-3
-                and abs(tau2 - before[2]) < 1e-3 and abs(b - before[3]) < 1e-3):
+        # converged: the clutter's expected count to a tenth of a track, the heights to a
+        # centimetre, the spread to 0.01 m^2 (the likelihood ratio, judged against 25, is
+        # then settled to well below one)
+        if (abs(p - before[0]) * dh.size < 0.1 and abs(H - before[1]) < 1e-2
+                and abs(tau2 - before[2]) < 1e-2 and abs(b - before[3]) < 1e-2):
             break
     ll = float(np.sum(np.logaddexp(np.log1p(-p) + _log_normal(dh - b, var),
                                    np.log(p) + _log_normal(dh - b - H, var + tau2))))

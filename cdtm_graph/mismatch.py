@@ -31,6 +31,7 @@ honestly.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -134,7 +135,9 @@ def triangulate(track_index: np.ndarray, n_tracks: int, centre_m: np.ndarray,
         b = np.zeros((n_tracks, 3))
         np.add.at(A, track_index, weight[:, None, None] * P)
         np.add.at(b, track_index, weight[:, None] * np.einsum("mij,mj->mi", P, centre_m))
-        ok = np.linalg.cond(A) < 1e12
+        # (symmetric: the eigenvalues' ratio is the condition number, without an SVD)
+        eig = np.linalg.eigvalsh(A)
+        ok = eig[:, 0] > 1e-12 * np.maximum(eig[:, 2], 1e-300)
         points = np.full((n_tracks, 3), np.nan)
         points[ok] = np.linalg.solve(A[ok], b[ok][..., None])[..., 0]
         cov = np.full((n_tracks, 3, 3), np.nan)
@@ -221,8 +224,16 @@ def inconsistent(heights: TrackHeights, settings: MismatchSettings | None = None
     match (the epipolar check of single pairs let it by)."""
     s = settings or MismatchSettings()
     dof = 2 * heights.n_observations - 3
-    limit = chi2.ppf(s.fit_probability, np.maximum(dof, 1))
+    limit = _chi2_quantiles(s.fit_probability, int(max(dof.max(initial=1), 1)))[
+        np.clip(dof, 1, None) - 1] if dof.size else np.zeros(0)
     return (dof >= 1) & np.isfinite(heights.fit_chi2) & (heights.fit_chi2 > limit)
+
+
+@functools.lru_cache(maxsize=16)
+def _chi2_quantiles(probability: float, max_dof: int) -> np.ndarray:
+    """(max_dof,) chi-square quantiles for 1..max_dof degrees of freedom (scipy's ppf
+    costs more than the rest of a judgement of a frame's tracks)."""
+    return chi2.ppf(probability, np.arange(1, max_dof + 1))
 
 
 @dataclass(frozen=True)
