@@ -210,6 +210,21 @@ class TrackTable:
         self._n = ids.size
 
 
+def pairs_without(pairs: list[FramePairObservations], track_ids: np.ndarray, k: int,
+                  reason: Rejection, rejections: Rejections) -> list[FramePairObservations]:
+    """Frame k's pairs without the sightings of ``track_ids`` (counted for ``reason``);
+    pairs left empty are dropped."""
+    if track_ids.size == 0:
+        return pairs
+    kept = []
+    for pair in pairs:
+        off = np.isin(pair.track_id, track_ids)
+        rejections.add(reason, k, int(off.sum()))
+        if not off.all():
+            kept.append(pair.subset(~off) if off.any() else pair)
+    return kept
+
+
 def check_unique(k: int, track_id: np.ndarray) -> None:
     """Raise ``FlightLogError`` if a track id appears twice in frame k."""
     ids = np.sort(np.asarray(track_id))

@@ -8,7 +8,13 @@ import pytest
 from cdtm_graph.camera import PinholeCamera
 from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import Tracks
-from cdtm_graph.tracks import TrackTable, frame_pair_observations
+from cdtm_graph.results import Rejection, Rejections
+from cdtm_graph.tracks import (
+    FramePairObservations,
+    TrackTable,
+    frame_pair_observations,
+    pairs_without,
+)
 
 CAMERA = PinholeCamera(width=640, height=480, fx=400.0, fy=400.0, cx=320.0, cy=240.0)
 
@@ -102,3 +108,22 @@ def test_a_returning_track_id_counts_once():
     table.forget_before(1)
     table.add_frame(1, np.array([4, 5]), q)
     assert table.n_tracks == 3
+
+
+def test_pairs_without_leaves_out_and_counts_the_sightings_of_given_tracks():
+    rng = np.random.default_rng(3)
+
+    def pair(a, ids):
+        q = np.c_[rng.normal(size=(len(ids), 2)), np.ones(len(ids))]
+        return FramePairObservations(a, 5, q, q + 0.01, np.array(ids))
+
+    pairs = [pair(3, [1, 2, 3]), pair(4, [2, 7]), pair(2, [8])]
+    rejections = Rejections()
+    kept = pairs_without(pairs, np.array([2, 7]), 5, Rejection.MAP_MISMATCH, rejections)
+    assert [p.frame_a for p in kept] == [3, 2]  # frame 4's pair held only those tracks
+    np.testing.assert_array_equal(kept[0].track_id, [1, 3])
+    np.testing.assert_array_equal(kept[0].q_a, pairs[0].q_a[[0, 2]])
+    assert kept[1] is pairs[2]
+    assert rejections.total(Rejection.MAP_MISMATCH) == 3
+    assert pairs_without(pairs, np.zeros(0, np.int64), 5, Rejection.MAP_MISMATCH,
+                         rejections) is pairs

@@ -60,7 +60,7 @@ from cdtm_graph.results import (
 )
 from cdtm_graph.smoother.incremental import IncrementalSmoother
 from cdtm_graph.smoother.settings import Progress, SmootherMode, SmootherSettings
-from cdtm_graph.tracks import SightingPairs
+from cdtm_graph.tracks import SightingPairs, pairs_without
 from factors import CdtmPairFactor, FeatureNoise
 from factors.calibration import CALIBRATION_DIM
 
@@ -281,13 +281,10 @@ def build_log_graph(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
         if frame.k in unfixed:
             rejections.add(Rejection.NO_FIX, frame.k, len(frame.track_id))
         elif len(frame.track_id):
-            for pair in pairing.add_frame(frame.k, frame.track_id, frame.uv_px,
-                                          checked.__getitem__):
-                off = (np.isin(pair.track_id, off_map) if off_map is not None
-                       else np.zeros(pair.track_id.size, dtype=bool))
-                rejections.add(Rejection.MAP_MISMATCH, frame.k, int(off.sum()))
-                if not off.all():
-                    pairs.append(pair.subset(~off) if off.any() else pair)
+            pairs += pairs_without(
+                pairing.add_frame(frame.k, frame.track_id, frame.uv_px, checked.__getitem__),
+                np.zeros(0, np.int64) if off_map is None else off_map, frame.k,
+                Rejection.MAP_MISMATCH, rejections)
     twists = None
     if calibration is not None:
         graph.add(calibration_prior(calibration))

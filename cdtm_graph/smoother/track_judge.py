@@ -24,7 +24,7 @@ from cdtm_graph.mismatch import (
     untrusted,
 )
 from cdtm_graph.results import Rejection, Rejections
-from cdtm_graph.tracks import FramePairObservations
+from cdtm_graph.tracks import FramePairObservations, pairs_without
 from factors import CdtmPairFactor, FeatureNoise
 
 #: Frame index -> the solver's pose of that frame now (4x4 world_T_body).
@@ -97,15 +97,7 @@ class TrackJudge:
     def keep_out(self, k: int, pairs: list[FramePairObservations]
                  ) -> list[FramePairObservations]:
         """Frame k's new pairs without the tracks already left out (counted)."""
-        if not self.left_out.size:
-            return pairs
-        kept = []
-        for pair in pairs:
-            off = np.isin(pair.track_id, self.left_out)
-            self.rejections.add(Rejection.MAP_MISMATCH, k, int(off.sum()))
-            if not off.all():
-                kept.append(pair.subset(~off) if off.any() else pair)
-        return kept
+        return pairs_without(pairs, self.left_out, k, Rejection.MAP_MISMATCH, self.rejections)
 
     def judge_new(self, k: int, factors: list[CdtmPairFactor], track_ids: list[np.ndarray],
                   pose_of: PoseOf, position_sigma_m: float
