@@ -16,9 +16,11 @@ of freedom.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 #: Inlier test: chi-square(1) at 99.9% on the Sampson distance in sigmas.
 CHI2_1DOF_999 = 10.827566170662733
@@ -62,26 +64,125 @@ class EpipolarCheck:
     angle_to_prior_rad: float
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``np.cross`` over the last axis (broadcast), without its per-call overhead (the
-    check runs a few of them per pair: np.cross was half its time)."""
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+@njit(cache=True)
+def _sampson_terms(q_a: np.ndarray, q_b: np.ndarray, R_ba: np.ndarray) -> np.ndarray:
+    """(n, 12) per feature, what the Sampson distance of ``q_b^T [t]x R q_a = 0`` needs of
+    it for any direction t: ``R q_a``, ``R q_a x q_b`` and ``R_col0 x q_b``, ``R_col1 x
+    q_b`` (so that ``q_b . (t x R q_a) = t . (R q_a x q_b)`` and the first two entries of
+    ``E^T q_b = R^T (q_b x t)`` are ``t . (R_col x q_b)``)."""
+    n = q_a.shape[0]
+    out = np.empty((n, 12))
+    for i in range(n):
+        b0, b1, b2 = q_b[i, 0], q_b[i, 1], q_b[i, 2]
+        r0 = R_ba[0, 0] * q_a[i, 0] + R_ba[0, 1] * q_a[i, 1] + R_ba[0, 2] * q_a[i, 2]
+        r1 = R_ba[1, 0] * q_a[i, 0] + R_ba[1, 1] * q_a[i, 1] + R_ba[1, 2] * q_a[i, 2]
+        r2 = R_ba[2, 0] * q_a[i, 0] + R_ba[2, 1] * q_a[i, 1] + R_ba[2, 2] * q_a[i, 2]
+        out[i, 0], out[i, 1], out[i, 2] = r0, r1, r2
+        out[i, 3], out[i, 4], out[i, 5] = r1 * b2 - r2 * b1, r2 * b0 - r0 * b2, r0 * b1 - r1 * b0
+        for col in range(2):
+            c0, c1, c2 = R_ba[0, col], R_ba[1, col], R_ba[2, col]
+            out[i, 6 + 3 * col] = c1 * b2 - c2 * b1
+            out[i, 7 + 3 * col] = c2 * b0 - c0 * b2
+            out[i, 8 + 3 * col] = c0 * b1 - c1 * b0
+    return out
 
 
-def _sampson_sq(q_a: np.ndarray, q_b: np.ndarray, R_ba: np.ndarray,
-                t_b: np.ndarray) -> np.ndarray:
-    """Squared Sampson distances of ``q_b^T E q_a = 0``, E = [t]x R, normalized units:
-    (n,) for one direction ``t_b`` (3,), (h, n) for h directions (h, 3) at once."""
-    t = np.atleast_2d(t_b)[:, None, :]   # (h, 1, 3)
-    Rq = q_a @ R_ba.T
-    Eq_a = _cross(t, Rq)                # E q_a, (h, n, 3)
-    Et_q_b = _cross(q_b, t) @ R_ba    # E^T q_b = R^T [t]x^T q_b = R^T (q_b x t)
-    num = np.einsum("ni,hni->hn", q_b, Eq_a) ** 2
-    den = Eq_a[..., 0] ** 2 + Eq_a[..., 1] ** 2 + Et_q_b[..., 0] ** 2 + Et_q_b[..., 1] ** 2
-    d2 = num / np.maximum(den, 1e-300)
-    return d2 if np.ndim(t_b) == 2 else d2[0]
+@njit(cache=True)
+def _sampson_kernel(terms: np.ndarray, t: np.ndarray, limit: float, d2: np.ndarray,
+                    counts: np.ndarray, costs: np.ndarray) -> None:
+    """Squared Sampson distances of ``q_b^T E q_a = 0``, E = [t]x R, normalized units, of
+    every feature (its :func:`_sampson_terms`) for every direction t (h, 3): into ``d2``
+    (h, n) if it has h rows, and each direction's inlier count and MSAC cost (``d2``
+    capped at ``limit``)."""
+    n, h = terms.shape[0], t.shape[0]
+    keep = d2.shape[0] == h
+    for j in range(h):
+        t0, t1, t2 = t[j, 0], t[j, 1], t[j, 2]
+        count, cost = 0, 0.0
+        for i in range(n):
+            x = terms[i]
+            e0 = t1 * x[2] - t2 * x[1]  # E q_a = t x (R q_a), first two entries
+            e1 = t2 * x[0] - t0 * x[2]
+            f0 = t0 * x[6] + t1 * x[7] + t2 * x[8]  # E^T q_b, first two entries
+            f1 = t0 * x[9] + t1 * x[10] + t2 * x[11]
+            num = t0 * x[3] + t1 * x[4] + t2 * x[5]
+            value = num * num / max(e0 * e0 + e1 * e1 + f0 * f0 + f1 * f1, 1e-300)
+            if keep:
+                d2[j, i] = value
+            if value < limit:
+                count += 1
+                cost += value
+            else:
+                cost += limit
+        counts[j] = count
+        costs[j] = cost
+
+
+@functools.lru_cache(maxsize=256)
+def _picks(seed: int, n: int, hypotheses: int) -> np.ndarray:
+    """(hypotheses, 2) the RANSAC draws for a pair of n features (repeatable runs; a
+    generator made per pair cost as much as the scoring)."""
+    picks = np.random.default_rng(seed).integers(0, n, (hypotheses, 2))
+    picks.flags.writeable = False
+    return picks
+
+
+@njit(cache=True)
+def _ransac(q_a: np.ndarray, q_b: np.ndarray, R_ba: np.ndarray, prior: np.ndarray,
+            picks: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:
+    """The translation direction most features agree with (two-point hypotheses from
+    ``picks``, the IMU's ``prior`` first), refined on its inliers; and the inliers."""
+    n = q_a.shape[0]
+    terms = _sampson_terms(q_a, q_b, R_ba)
+    # each feature's epipolar plane normal q_b x R q_a; t must be perpendicular to every
+    # inlier's
+    normals = -terms[:, 3:6]
+    candidates = np.empty((picks.shape[0] + 1, 3))
+    candidates[0] = prior
+    h = 1
+    for j in range(picks.shape[0]):
+        a, b = picks[j, 0], picks[j, 1]
+        c0 = normals[a, 1] * normals[b, 2] - normals[a, 2] * normals[b, 1]
+        c1 = normals[a, 2] * normals[b, 0] - normals[a, 0] * normals[b, 2]
+        c2 = normals[a, 0] * normals[b, 1] - normals[a, 1] * normals[b, 0]
+        norm = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+        if norm > 1e-12:
+            # the sign of t: the one closer to the IMU's (a direction and its opposite
+            # fit alike)
+            if c0 * prior[0] + c1 * prior[1] + c2 * prior[2] < 0:
+                norm = -norm
+            candidates[h, 0], candidates[h, 1], candidates[h, 2] = c0 / norm, c1 / norm, c2 / norm
+            h += 1
+    candidates = candidates[:h]
+    # every hypothesis scored: inliers and MSAC cost (ties go to the tighter fit)
+    counts, costs = np.empty(h, np.int64), np.empty(h)
+    _sampson_kernel(terms, candidates, limit, np.empty((0, 0)), counts, costs)
+    # the most inliers, then the lowest cost, then the earliest (the IMU's own first)
+    top = 0
+    for j in range(1, h):
+        if counts[j] > counts[top] or (counts[j] == counts[top] and costs[j] < costs[top]):
+            top = j
+    best = candidates[top].copy()
+    d2 = np.empty((1, n))
+    _sampson_kernel(terms, candidates[top:top + 1], limit, d2, counts, costs)
+    inlier = d2[0] < limit
+    # refine the direction on the inliers (smallest singular vector of their normals)
+    # (the smallest eigenvector of their scatter: the smallest right singular vector)
+    scatter = np.zeros((3, 3))
+    m = 0
+    for i in range(n):
+        if inlier[i]:
+            w = 1.0 / (normals[i, 0] ** 2 + normals[i, 1] ** 2 + normals[i, 2] ** 2)
+            for r in range(3):
+                for c in range(3):
+                    scatter[r, c] += w * normals[i, r] * normals[i, c]
+            m += 1
+    if m >= 3:
+        v = np.linalg.eigh(scatter)[1][:, 0].copy()
+        best = v if v @ prior >= 0 else -v
+        _sampson_kernel(terms, best.reshape(1, 3), limit, d2, counts, costs)
+        inlier = d2[0] < limit
+    return best, inlier
 
 
 def check_pair(q_a: np.ndarray, q_b: np.ndarray, R_ba: np.ndarray, t_b: np.ndarray,
@@ -109,28 +210,8 @@ def check_pair(q_a: np.ndarray, q_b: np.ndarray, R_ba: np.ndarray, t_b: np.ndarr
     if n < 3 or baseline / max(range_m, 1e-9) < settings.min_parallax_sigmas * sigma:
         return EpipolarCheck(np.ones(n, dtype=bool), prior, False, 0.0)
     limit = settings.gate * sigma * sigma
-    # each feature's epipolar plane normal; t must be perpendicular to every inlier's
-    normals = _cross(q_b, q_a @ R_ba.T)
-    rng = np.random.default_rng(settings.seed)
-    picks = rng.integers(0, n, (settings.hypotheses, 2))
-    candidates = _cross(normals[picks[:, 0]], normals[picks[:, 1]])
-    norm = np.linalg.norm(candidates, axis=1)
-    candidates = candidates[norm > 1e-12] / norm[norm > 1e-12, None]
-    # the sign of t: the one closer to the IMU's (a direction and its opposite fit alike)
-    candidates *= np.where(candidates @ prior < 0, -1.0, 1.0)[:, None]
-    candidates = np.vstack([prior, candidates])
-    d2 = _sampson_sq(q_a, q_b, R_ba, candidates)  # (h, n): every hypothesis at once
-    counts = (d2 < limit).sum(axis=1)
-    costs = np.minimum(d2, limit).sum(axis=1)  # MSAC: ties go to the tighter fit
-    # the most inliers, then the lowest cost, then the earliest (the IMU's own first)
-    best = candidates[np.lexsort((np.arange(len(counts)), costs, -counts))[0]]
-    inlier = _sampson_sq(q_a, q_b, R_ba, best) < limit
-    # refine the direction on the inliers (smallest singular vector of their normals)
-    if inlier.sum() >= 3:
-        _, _, vt = np.linalg.svd(normals[inlier] / np.linalg.norm(
-            normals[inlier], axis=1, keepdims=True), full_matrices=False)
-        refined = vt[-1] * (1.0 if vt[-1] @ prior >= 0 else -1.0)
-        inlier = _sampson_sq(q_a, q_b, R_ba, refined) < limit
-        best = refined
+    c = np.ascontiguousarray
+    best, inlier = _ransac(c(q_a, float), c(q_b, float), c(R_ba, float), c(prior, float),
+                           _picks(settings.seed, n, settings.hypotheses), limit)
     angle = float(np.arccos(np.clip(best @ prior, -1.0, 1.0)))
     return EpipolarCheck(inlier, best, True, angle)

@@ -22,7 +22,7 @@ from cdtm_graph.geometry import rigid_motion_to_tangent
 from cdtm_graph.imu import GapNoise, SampleHold, initial_bias
 from cdtm_graph.mismatch import MismatchSettings, TrackHeights, track_heights
 from cdtm_graph.results import Rejection, Rejections
-from cdtm_graph.tracks import FramePairObservations
+from cdtm_graph.tracks import FramePairObservations, first_sightings
 from factors import CdtmPairFactor, FeatureNoise, PairFeatures, PlaneMode, RobustKernel
 from factors.calibration import CalibrationLink
 
@@ -235,7 +235,7 @@ def track_observations(factors: Sequence[CdtmPairFactor], track_ids: Sequence[np
     if not ids:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3))
     track_id, frame, ray = np.concatenate(ids), np.concatenate(frames), np.concatenate(rays)
-    _, first = np.unique(np.c_[track_id, frame], axis=0, return_index=True)
+    first = first_sightings(track_id, frame)
     return track_id[first], frame[first], ray[first]
 
 

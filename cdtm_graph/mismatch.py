@@ -35,10 +35,12 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.spatial import cKDTree
 from scipy.stats import chi2
 
 from cdtm_graph.dtm import Dtm
+from cdtm_graph.tracks import first_sightings
 
 #: chi-square(1) at 99.9%.
 CHI2_1DOF_999 = 10.827566170662733
@@ -125,30 +127,107 @@ def triangulate(track_index: np.ndarray, n_tracks: int, centre_m: np.ndarray,
         misses in sigmas, ``2 n - 3`` degrees of freedom for n rays); NaN where the rays do
         not fix a point.
     """
-    d = ray_world / np.linalg.norm(ray_world, axis=1, keepdims=True)
-    P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]  # projector off each ray
-    weight = np.ones(d.shape[0])
-    points = np.full((n_tracks, 3), np.nan)
-    cov = np.full((n_tracks, 3, 3), np.nan)
+    m = np.asarray(track_index).shape[0]
+    points = np.empty((n_tracks, 3))
+    cov = np.empty((n_tracks, 3, 3))
+    chi2_fit = np.empty(n_tracks)
+    # (one compiled pass: the grouped sums and 3x3 solves were most of a frame's judgement)
+    _triangulate_kernel(np.ascontiguousarray(track_index, np.int64),
+                        np.ascontiguousarray(centre_m, float),
+                        np.ascontiguousarray(ray_world, float),
+                        np.ascontiguousarray(np.broadcast_to(sigma_rad, (m,)), float),
+                        points, cov, chi2_fit)
+    return points, cov, chi2_fit
+
+
+@njit(cache=True)
+def _well_conditioned(A: np.ndarray) -> bool:
+    """Whether a symmetric positive semi-definite 3x3's smallest eigenvalue exceeds 1e-12
+    of its largest (the eigenvalues in closed form: LAPACK per track cost more than the
+    rest of the triangulation)."""
+    off = A[0, 1] ** 2 + A[0, 2] ** 2 + A[1, 2] ** 2
+    q = (A[0, 0] + A[1, 1] + A[2, 2]) / 3.0
+    p2 = (A[0, 0] - q) ** 2 + (A[1, 1] - q) ** 2 + (A[2, 2] - q) ** 2 + 2.0 * off
+    if p2 <= 0.0:  # a multiple of the identity
+        return q > 0.0
+    p = np.sqrt(p2 / 6.0)
+    b00, b11, b22 = (A[0, 0] - q) / p, (A[1, 1] - q) / p, (A[2, 2] - q) / p
+    b01, b02, b12 = A[0, 1] / p, A[0, 2] / p, A[1, 2] / p
+    half_det = 0.5 * (b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02)
+                      + b02 * (b01 * b12 - b11 * b02))
+    phi = np.arccos(min(max(half_det, -1.0), 1.0)) / 3.0
+    largest = q + 2.0 * p * np.cos(phi)
+    smallest = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    return smallest > 1e-12 * max(largest, 1e-300)
+
+
+@njit(cache=True)
+def _inverse_sym3(A: np.ndarray, out: np.ndarray) -> None:
+    """The inverse of a regular symmetric 3x3 (its adjugate over its determinant)."""
+    c00 = A[1, 1] * A[2, 2] - A[1, 2] * A[1, 2]
+    c01 = A[0, 2] * A[1, 2] - A[0, 1] * A[2, 2]
+    c02 = A[0, 1] * A[1, 2] - A[0, 2] * A[1, 1]
+    c11 = A[0, 0] * A[2, 2] - A[0, 2] * A[0, 2]
+    c12 = A[0, 1] * A[0, 2] - A[0, 0] * A[1, 2]
+    c22 = A[0, 0] * A[1, 1] - A[0, 1] * A[0, 1]
+    det = A[0, 0] * c00 + A[0, 1] * c01 + A[0, 2] * c02
+    out[0, 0], out[0, 1], out[0, 2] = c00 / det, c01 / det, c02 / det
+    out[1, 0], out[1, 1], out[1, 2] = c01 / det, c11 / det, c12 / det
+    out[2, 0], out[2, 1], out[2, 2] = c02 / det, c12 / det, c22 / det
+
+
+@njit(cache=True)
+def _triangulate_kernel(track_index: np.ndarray, centre: np.ndarray, ray: np.ndarray,
+                        sigma: np.ndarray, points: np.ndarray, cov: np.ndarray,
+                        chi2_fit: np.ndarray) -> None:
+    """:func:`triangulate` into ``points``, ``cov``, ``chi2_fit`` (T rows each)."""
+    m, n_tracks = track_index.shape[0], points.shape[0]
+    d = np.empty((m, 3))
+    for i in range(m):
+        norm = np.sqrt(ray[i, 0] ** 2 + ray[i, 1] ** 2 + ray[i, 2] ** 2)
+        for r in range(3):
+            d[i, r] = ray[i, r] / norm
+    weight = np.ones(m)
+    A = np.empty((n_tracks, 3, 3))
+    b = np.empty((n_tracks, 3))
     for _ in range(2):
-        A = np.zeros((n_tracks, 3, 3))
-        b = np.zeros((n_tracks, 3))
-        np.add.at(A, track_index, weight[:, None, None] * P)
-        np.add.at(b, track_index, weight[:, None] * np.einsum("mij,mj->mi", P, centre_m))
-        # (symmetric: the eigenvalues' ratio is the condition number, without an SVD)
-        eig = np.linalg.eigvalsh(A)
-        ok = eig[:, 0] > 1e-12 * np.maximum(eig[:, 2], 1e-300)
-        points = np.full((n_tracks, 3), np.nan)
-        points[ok] = np.linalg.solve(A[ok], b[ok][..., None])[..., 0]
-        cov = np.full((n_tracks, 3, 3), np.nan)
-        cov[ok] = np.linalg.inv(A[ok])  # with weights 1/(sigma r)^2: the covariance
-        r = np.linalg.norm(points[track_index] - centre_m, axis=1)
-        weight = 1.0 / np.maximum(np.asarray(sigma_rad) * np.where(np.isfinite(r), r, 1.0),
-                                  1e-12) ** 2
-    miss = np.einsum("mij,mj->mi", P, points[track_index] - centre_m)
-    chi2_fit = np.bincount(track_index, weights=weight * np.einsum("mi,mi->m", miss, miss),
-                           minlength=n_tracks)
-    return points, cov, np.where(np.isfinite(points[:, 0]), chi2_fit, np.nan)
+        A[:] = 0.0
+        b[:] = 0.0
+        for i in range(m):
+            t, w = track_index[i], weight[i]
+            dc = d[i, 0] * centre[i, 0] + d[i, 1] * centre[i, 1] + d[i, 2] * centre[i, 2]
+            for r in range(3):
+                b[t, r] += w * (centre[i, r] - d[i, r] * dc)  # w P c, P = I - d d^T
+                for c in range(3):
+                    A[t, r, c] += w * ((1.0 if r == c else 0.0) - d[i, r] * d[i, c])
+        for t in range(n_tracks):
+            if _well_conditioned(A[t]):
+                _inverse_sym3(A[t], cov[t])  # with weights 1/(sigma r)^2: the covariance
+                for r in range(3):
+                    points[t, r] = (cov[t, r, 0] * b[t, 0] + cov[t, r, 1] * b[t, 1]
+                                    + cov[t, r, 2] * b[t, 2])
+            else:
+                cov[t] = np.nan
+                points[t] = np.nan
+        for i in range(m):
+            t = track_index[i]
+            range_m = np.sqrt((points[t, 0] - centre[i, 0]) ** 2
+                              + (points[t, 1] - centre[i, 1]) ** 2
+                              + (points[t, 2] - centre[i, 2]) ** 2)
+            if not np.isfinite(range_m):
+                range_m = 1.0
+            weight[i] = 1.0 / max(sigma[i] * range_m, 1e-12) ** 2
+    chi2_fit[:] = 0.0
+    for i in range(m):
+        t = track_index[i]
+        x0, x1, x2 = (points[t, 0] - centre[i, 0], points[t, 1] - centre[i, 1],
+                      points[t, 2] - centre[i, 2])
+        along = d[i, 0] * x0 + d[i, 1] * x1 + d[i, 2] * x2
+        chi2_fit[t] += weight[i] * ((x0 - along * d[i, 0]) ** 2 + (x1 - along * d[i, 1]) ** 2
+                                    + (x2 - along * d[i, 2]) ** 2)
+    for t in range(n_tracks):
+        if not np.isfinite(points[t, 0]):
+            chi2_fit[t] = np.nan
 
 
 def track_heights(track_id: np.ndarray, centre_m: np.ndarray, ray_world: np.ndarray,
@@ -167,9 +246,12 @@ def track_heights(track_id: np.ndarray, centre_m: np.ndarray, ray_world: np.ndar
     ids, index, counts = np.unique(track_id, return_inverse=True, return_counts=True)
     index = index.reshape(-1)
     points, cov, chi2_fit = triangulate(index, ids.size, centre_m, ray_world, sigma_rad)
-    pose_var = np.zeros(ids.size)
-    np.maximum.at(pose_var, index, np.broadcast_to(np.asarray(pose_sigma_m, float) ** 2,
-                                                   index.shape))
+    pose_var = np.asarray(pose_sigma_m, float) ** 2
+    if pose_var.ndim:  # each track's largest (grouped by a sort: no ufunc.at)
+        pose_var = np.maximum.reduceat(pose_var[np.argsort(index, kind="stable")],
+                                       np.cumsum(counts) - counts) if ids.size else pose_var[:0]
+    else:
+        pose_var = np.full(ids.size, float(pose_var))
     ground, normal = dtm.height_and_normal(points[:, 0], points[:, 1])
     dh = points[:, 2] - ground
     # d(dh) = n . dX with n = (-dh/dx, -dh/dy, 1), the DTM's upward normal
@@ -282,8 +364,7 @@ class TrackObservations:
         rows = np.flatnonzero(np.isin(self._id, track_ids))
         if rows.size == 0:
             return self._id[:0], self._frame[:0], self._q[:0]
-        _, first = np.unique(np.c_[self._id[rows], self._frame[rows]], axis=0,
-                             return_index=True)
+        first = first_sightings(self._id[rows], self._frame[rows])
         rows = rows[first]
         return self._id[rows], self._frame[rows], self._q[rows]
 

@@ -225,6 +225,17 @@ def pairs_without(pairs: list[FramePairObservations], track_ids: np.ndarray, k: 
     return kept
 
 
+def first_sightings(track_id: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """Indices of the first of each (track, frame) among these observations, ordered by
+    track then frame (as ``np.unique(np.c_[track_id, frame], axis=0, return_index=True)``
+    gives them, at a fraction of its cost: no structured sort)."""
+    order = np.lexsort((frame, track_id))  # stable: the first of equals stays first
+    tid, fr = track_id[order], frame[order]
+    new = np.ones(order.size, dtype=bool)
+    new[1:] = (tid[1:] != tid[:-1]) | (fr[1:] != fr[:-1])
+    return order[new]
+
+
 def check_unique(k: int, track_id: np.ndarray) -> None:
     """Raise ``FlightLogError`` if a track id appears twice in frame k."""
     ids = np.sort(np.asarray(track_id))

@@ -12,14 +12,16 @@ import numpy as np
 import pytest
 
 from cdtm_graph.clutter import (
+    MAX_SHARE,
     Clutter,
     ClutterSettings,
+    _em,
     considered_offsets,
     fit_clutter,
     with_vertical_bias,
 )
 from cdtm_graph.dtm import Dtm, grazing_hits
-from cdtm_graph.epipolar import EpipolarSettings, check_pair
+from cdtm_graph.epipolar import EpipolarSettings, _sampson_kernel, _sampson_terms, check_pair
 from cdtm_graph.geometry import make_pose, so3_exp
 from cdtm_graph.mismatch import (
     MismatchSettings,
@@ -30,6 +32,7 @@ from cdtm_graph.mismatch import (
     untrusted,
 )
 from cdtm_graph.results import StateCovariances
+from cdtm_graph.tracks import first_sightings
 
 SIGMA_PX = 0.5
 FOCAL_PX = 550.0
@@ -79,6 +82,57 @@ def test_the_epipolar_check_judges_nothing_without_parallax():
     q_a, q_b, R_ba, t_b, _ = _pair(rng, 50, 0.3)
     check = check_pair(q_a, q_b, R_ba, t_b * 1e-3, SIGMA_Q, 1800.0, EpipolarSettings())
     assert not check.checked and check.inlier.all()
+
+
+def test_the_sampson_scoring_matches_the_essential_matrix_written_out():
+    """The compiled scoring against ``(q_b^T E q_a)^2 / (|(E q_a)_xy|^2 + |(E^T q_b)_xy|^2)``
+    with ``E = [t]x R`` built as a matrix, for many directions at once; and its inlier
+    counts and MSAC costs against those distances."""
+    rng = np.random.default_rng(11)
+    q_a, q_b, R_ba, t_b, _ = _pair(rng, 80, 0.3)
+    directions = rng.normal(size=(7, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    limit = 3e-6
+    d2 = np.empty((7, 80))
+    counts, costs = np.empty(7, np.int64), np.empty(7)
+    _sampson_kernel(_sampson_terms(q_a, q_b, R_ba), directions, limit, d2, counts, costs)
+    for t, row, count, cost in zip(directions, d2, counts, costs):
+        E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ R_ba
+        Eq_a, Et_q_b = q_a @ E.T, q_b @ E
+        expected = np.einsum("ni,ni->n", q_b, Eq_a) ** 2 / (
+            Eq_a[:, 0] ** 2 + Eq_a[:, 1] ** 2 + Et_q_b[:, 0] ** 2 + Et_q_b[:, 1] ** 2)
+        np.testing.assert_allclose(row, expected, rtol=1e-10)
+        assert count == int((expected < limit).sum())
+        assert cost == pytest.approx(np.minimum(expected, limit).sum(), rel=1e-10)
+
+
+def test_the_epipolar_check_finds_the_true_direction_on_exact_data():
+    """Noiseless rays and an IMU direction 3 deg off: the direction found is the true one
+    (to round-off). With 30% wrong matches every exact feature stays, every wrong one far
+    from its epipolar line goes, and the draws are repeatable."""
+    rng = np.random.default_rng(12)
+    ground = np.c_[rng.uniform(-900, 900, (150, 2)), rng.uniform(-50, 50, 150)]
+    R_a = so3_exp(np.array([np.pi, 0.0, 0.0]))
+    R_b = R_a @ so3_exp(np.radians([0.3, -0.2, 0.5]))
+    centre_a, centre_b = np.array([0.0, 0.0, 1800.0]), np.array([150.0, 10.0, 1801.0])
+    q_a, q_b = (ground - centre_a) @ R_a, (ground - centre_b) @ R_b
+    q_a, q_b = q_a / q_a[:, 2:3], q_b / q_b[:, 2:3]
+    R_ba, t_b = R_b.T @ R_a, R_b.T @ (centre_a - centre_b)
+    truth = t_b / np.linalg.norm(t_b)
+    prior = so3_exp(np.radians([0.0, 3.0, 0.0])) @ t_b
+    check = check_pair(q_a, q_b, R_ba, prior, SIGMA_Q, 1800.0)
+    assert np.degrees(np.arccos(min(1.0, check.t_dir_b @ truth))) < 1e-6
+    assert check.inlier.all()
+    wrong = rng.random(150) < 0.3
+    q_b[wrong, :2] = rng.uniform(-0.55, 0.55, (int(wrong.sum()), 2))
+    check = check_pair(q_a, q_b, R_ba, prior, SIGMA_Q, 1800.0)
+    d2 = np.empty((1, 150))
+    _sampson_kernel(_sampson_terms(q_a, q_b, R_ba), truth[None], np.inf, d2,
+                    np.empty(1, np.int64), np.empty(1))
+    far = d2[0] > 4 * EpipolarSettings().gate * 2 * SIGMA_Q**2  # twice the gate's distance
+    assert check.inlier[~wrong].all() and not check.inlier[far].any() and far.sum() > 30
+    again = check_pair(q_a, q_b, R_ba, prior, SIGMA_Q, 1800.0)
+    assert np.array_equal(again.inlier, check.inlier)
 
 
 # ------------------------------------------------------------------ grazing rays
@@ -182,6 +236,44 @@ def test_a_track_whose_rays_do_not_meet_holds_a_wrong_match():
     assert not mismatched(heights, 2.4).any()  # a wrong match is not off the map
 
 
+def test_triangulation_is_exact_on_noiseless_rays_and_refuses_degenerate_tracks():
+    """Tracks of 2-6 exact rays meet at their points (misses zero); the covariance is the
+    inverse of the range-weighted normal matrix written out per track; a single ray and
+    rays along one line fix no point (NaN)."""
+    rng = np.random.default_rng(13)
+    n_tracks = 40
+    truth = np.c_[rng.uniform(-800, 800, (n_tracks, 2)), rng.uniform(-30, 30, n_tracks)]
+    sizes = rng.integers(2, 7, n_tracks)
+    index = np.repeat(np.arange(n_tracks), sizes)
+    centres = np.c_[rng.uniform(-300, 300, (index.size, 2)), 1800 + rng.normal(0, 5, index.size)]
+    rays = (truth[index] - centres) * rng.uniform(0.5, 2.0, (index.size, 1))  # any length
+    # a track seen once, and one whose two rays lie on one line
+    index = np.r_[index, n_tracks, n_tracks + 1, n_tracks + 1]
+    centres = np.r_[centres, [[0.0, 0.0, 1800.0], [0.0, 0.0, 1800.0], [0.0, 0.0, 1700.0]]]
+    rays = np.r_[rays, [[0.1, 0.2, -1.0], [0.0, 0.0, -1.0], [0.0, 0.0, -2.0]]]
+    order = rng.permutation(index.size)  # observations in any order
+    points, cov, fit = triangulate(index[order], n_tracks + 2, centres[order], rays[order],
+                                   SIGMA_Q)
+    np.testing.assert_allclose(points[:n_tracks], truth, atol=1e-6)
+    np.testing.assert_allclose(fit[:n_tracks], 0.0, atol=1e-6)
+    assert np.isnan(points[n_tracks:]).all() and np.isnan(fit[n_tracks:]).all()
+    for t in range(n_tracks):
+        A = np.zeros((3, 3))
+        for c, r in zip(centres[index == t], rays[index == t]):
+            d = r / np.linalg.norm(r)
+            A += (np.eye(3) - np.outer(d, d)) / (SIGMA_Q * np.linalg.norm(truth[t] - c)) ** 2
+        np.testing.assert_allclose(cov[t], np.linalg.inv(A), rtol=1e-6, atol=1e-12)
+
+
+def test_first_sightings_are_the_first_of_each_track_and_frame():
+    rng = np.random.default_rng(14)
+    for _ in range(20):
+        track_id = rng.integers(0, 25, 300) * 1_000_003  # large ids: no packing into one int
+        frame = rng.integers(0, 12, 300)
+        _, expected = np.unique(np.c_[track_id, frame], axis=0, return_index=True)
+        assert np.array_equal(first_sightings(track_id, frame), expected)
+
+
 def test_a_frame_mostly_off_the_map_is_not_trusted_at_all():
     track_id = np.r_[np.arange(10), np.arange(10, 20)]
     frame = np.r_[np.zeros(10, int), np.ones(10, int)]
@@ -210,6 +302,31 @@ def test_a_clean_population_shows_no_clutter():
     assert not fit.significant
     assert fit.likelihood_ratio < ClutterSettings().likelihood_ratio
     assert not fit.posterior.any()
+
+
+def test_the_mixture_fit_is_a_fixed_point_of_its_own_em_step():
+    """At the fit the compiled EM returns, one more EM step written out in numpy moves it
+    by less than its convergence tolerance, and its log-likelihood is the mixture's."""
+    rng = np.random.default_rng(21)
+    heights, _ = _population(rng, 3000, 0.2, 20.0)
+    dh, var = heights.dh_m, heights.sigma_m ** 2
+    ll, p, H, tau2, b = _em(dh, var, 15.0, 500)
+
+    def log_normal(x, v):
+        return -0.5 * (x * x / v + np.log(2 * np.pi * v))
+
+    l0 = np.log1p(-p) + log_normal(dh - b, var)
+    l1 = np.log(p) + log_normal(dh - b - H, var + tau2)
+    assert ll == pytest.approx(np.logaddexp(l0, l1).sum(), rel=1e-12)
+    w = 1.0 / (1.0 + np.exp(l0 - l1))
+    v1 = var + tau2
+    p_next = min(w.mean(), MAX_SHARE)
+    b_next = (np.sum((1 - w) * dh / var + w * (dh - H) / v1)
+              / np.sum((1 - w) / var + w / v1))
+    H_next = np.sum(w * (dh - b_next) / v1) / np.sum(w / v1)
+    assert abs(p_next - p) * dh.size < 1.0
+    assert abs(b_next - b) < 0.05 and abs(H_next - H) < 0.05
+    assert 0.17 < p < 0.23 and H == pytest.approx(20.0, abs=1.0)  # the population's
 
 
 def test_a_forest_is_seen_as_a_population_and_its_likely_trees_named():

@@ -346,6 +346,17 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     solver = LinearSolver()
     values, first = levenberg_marquardt(built.graph, initial, settings.max_iterations,
                                         settings.relative_error_tol, solver=solver)
+    # Terrain the DTM lacks: drop the tracks off the map and solve again, until none is.
+    # The first round judges the first solution, so that its drops and the refreshed
+    # noise share one solve (a clean log then needs two solves, not three).
+    mismatch = settings.graph.mismatch
+    noise = feature_noise(flight.config, dtm, settings.graph)
+    body_T_cam = flight.config.camera.body_T_cam
+    rounds = MISMATCH_ROUNDS if mismatch is not None else 0
+    if rounds:
+        assert mismatch is not None
+        built.drop_mismatched(values, dtm, noise, body_T_cam, mismatch, settings.graph.clutter)
+        rounds -= 1
     # The C-DTM noise (eqs. 19-26) was linearized at the initial guess; evaluate it at the
     # estimate and finish there, so the solution does not depend on the initial guess.
     built.refresh_noise(values)
@@ -353,12 +364,8 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     values, stats = levenberg_marquardt(graph, values, settings.max_iterations,
                                         settings.relative_error_tol, solver=solver)
     iterations = first.iterations + stats.iterations
-    # Terrain the DTM lacks: drop the tracks off the map and solve again, until none is.
-    mismatch = settings.graph.mismatch
-    noise = feature_noise(flight.config, dtm, settings.graph)
-    body_T_cam = flight.config.camera.body_T_cam
     assessed = False  # the latest clutter fit is of the final values
-    for _ in range(MISMATCH_ROUNDS if mismatch is not None else 0):
+    for _ in range(rounds):
         assert mismatch is not None
         if not built.drop_mismatched(values, dtm, noise, body_T_cam, mismatch,
                                      settings.graph.clutter):

@@ -24,7 +24,7 @@ from cdtm_graph.mismatch import (
     untrusted,
 )
 from cdtm_graph.results import Rejection, Rejections
-from cdtm_graph.tracks import FramePairObservations, pairs_without
+from cdtm_graph.tracks import FramePairObservations, first_sightings, pairs_without
 from factors import CdtmPairFactor, FeatureNoise
 
 #: Frame index -> the solver's pose of that frame now (4x4 world_T_body).
@@ -112,7 +112,7 @@ class TrackJudge:
         frame = np.r_[frame, *(np.full(i.size, k) for i in track_ids),
                       *(np.full(i.size, _frame(f.key_a)) for f, i in zip(factors, track_ids))]
         q = np.r_[q, *(f.features.q_b for f in factors), *(f.features.q_a for f in factors)]
-        _, first = np.unique(np.c_[tid, frame], axis=0, return_index=True)
+        first = first_sightings(tid, frame)
         tid, frame, q = tid[first], frame[first], q[first]
         # tracks seen before the poses settled are not judged (their early poses were off)
         assert self._judge_from is not None
