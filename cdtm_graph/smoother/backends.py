@@ -93,15 +93,28 @@ class Backend(Protocol):
 
 
 class _Isam2Estimates:
-    """Estimates and marginals read from a solver with iSAM2's calculate* methods."""
+    """Estimates and marginals read from a solver with iSAM2's calculate* methods.
+
+    Poses are kept until the solver changes (``_changed``, called by every update): a
+    frame's update asks for the same window poses a dozen times (pairing, gate, track
+    tests), each a back-substitution.
+    """
 
     _solver: Any  # gtsam.ISAM2 or gtsam.IncrementalFixedLagSmoother: the same calculate*
+    _poses: dict[int, np.ndarray]
 
     def _isam2(self) -> gtsam.ISAM2:
         raise NotImplementedError
 
+    def _changed(self) -> None:
+        self._poses = {}
+
     def pose(self, k: int) -> np.ndarray:
-        return self._solver.calculateEstimatePose3(X(k)).matrix()
+        pose = self._poses.get(k)
+        if pose is None:
+            pose = self._poses[k] = self._solver.calculateEstimatePose3(X(k)).matrix()
+            pose.flags.writeable = False  # shared: callers must not change it in place
+        return pose
 
     def velocity(self, k: int) -> np.ndarray:
         return np.asarray(self._solver.calculateEstimateVector(V(k)))
@@ -134,12 +147,14 @@ class FullHistory(_Isam2Estimates):
         params.relinearizeSkip *= updates_per_frame
         self.relinearize_skip = params.relinearizeSkip
         self._isam = self._solver = gtsam.ISAM2(params)
+        self._poses = {}
 
     def _isam2(self) -> gtsam.ISAM2:
         return self._isam
 
     def update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                stamps: dict[int, float], relinearize: bool = False) -> list[int]:
+        self._changed()
         with _solvable():
             result = self._isam.update(graph, values, [], None, None, None, relinearize)
         return list(result.getNewFactorsIndices())
@@ -148,6 +163,7 @@ class FullHistory(_Isam2Estimates):
         self.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), {}, relinearize=True)
 
     def replace(self, graph: gtsam.NonlinearFactorGraph, slots: list[int]) -> list[int]:
+        self._changed()
         with _solvable():
             result = self._isam.update(graph, gtsam.Values(), slots)
         return list(result.getNewFactorsIndices())
@@ -180,6 +196,7 @@ class FixedLag(_Isam2Estimates):
         self.relinearize_skip = params.relinearizeSkip
         self.lag_s = lag_s
         self._fls = self._solver = gtsam.IncrementalFixedLagSmoother(lag_s, params)
+        self._poses = {}
 
     def _isam2(self) -> gtsam.ISAM2:
         return self._fls.getISAM2()  # by reference
@@ -193,11 +210,13 @@ class FixedLag(_Isam2Estimates):
         # iSAM2 appends new factors (it does not reuse empty slots by default), and the
         # smoother marginalizes after adding them: their slots follow the current size.
         first = self._isam2().getFactorsUnsafe().size()
+        self._changed()
         with _solvable():
             self._fls.update(graph, values, timestamps, remove or [])
         return list(range(first, first + graph.size()))
 
     def step(self) -> None:
+        self._changed()
         with _solvable():
             for _ in range(self.relinearize_skip):  # its update cannot force relinearization
                 self._fls.update()
