@@ -45,6 +45,7 @@ from cdtm_graph.graph import (
 )
 from cdtm_graph.imu import ImuIntervals, initial_bias
 from cdtm_graph.mismatch import MismatchSettings, TrackJudgement, untrusted
+from cdtm_graph.noise_bias import debiased
 from cdtm_graph.optimizer import LinearSolver, explain_indeterminant, levenberg_marquardt
 from cdtm_graph.preflight import check_constraints
 from cdtm_graph.replay import replay
@@ -369,6 +370,8 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
                                            settings.relative_error_tol, solver=solver)
         iterations += more.iterations
         stats = replace(more, time_s=stats.time_s + more.time_s)
+    if calibration is not None:  # the focal scale takes the noise's bias whole
+        values = debiased(graph, values, built.cdtm)
     K = len(flight.frames)
     start = time.perf_counter()
     covariances = (marginals(graph, values, K) if settings.marginals else
