@@ -770,6 +770,8 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
                  for code, message in rejection_failures + failures]
     run_wide += [reason(code, message, a, b)
                  for code, message, a, b in _groundtruth_checks(errors, settings)]
+    calibration_reasons, calibration_notes = _calibration_check(result)
+    run_wide += [reason(code, message, 0, last) for code, message in calibration_reasons]
 
     stretches: list[Reason] = []
     known = {t.code for t in tests}
@@ -790,7 +792,26 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
         status = Status.DEGRADED
     else:
         status = Status.TRUSTED
-    return Verdict(status, reasons, flags, checks, tuple(notes + _calibration_notes(result)))
+    return Verdict(status, reasons, flags, checks,
+                   tuple(notes + _calibration_notes(result) + calibration_notes))
+
+
+def _calibration_check(result: SmootherResult) -> tuple[list[tuple[str, str]], list[str]]:
+    """``calibration_suspect`` (a reason): the incremental modes hold flight.yaml's
+    calibration, and a batch side solve that estimates it finds it wrong by more than the
+    run's covariance allows (:mod:`cdtm_graph.smoother.calibration_check`); otherwise a
+    note ``calibration_held`` with what the side solve found."""
+    check = result.calibration_check
+    if check is None:
+        return [], []
+    if check.suspect:
+        return [("calibration_suspect", (
+            f"this mode holds flight.yaml's camera calibration, which the flight contradicts: "
+            f"{check.describe()}; rerun in batch mode (which estimates it) or correct "
+            "flight.yaml"))], []
+    within = " (significant, but within the run's covariance)" if check.significant else ""
+    return [], [f"calibration_held: this mode holds flight.yaml's camera calibration as "
+                f"exact; {check.describe()}{within}"]
 
 
 def _calibration_notes(result: SmootherResult) -> list[str]:

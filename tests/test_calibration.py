@@ -245,12 +245,48 @@ def test_calibration_errors_are_absorbed_online(clean_rmse_m, fault):
                                  4 * np.maximum(sigma[part], 0.05 * (part == "mount")))
 
 
-def test_a_focal_error_without_online_calibration_is_flagged():
+def test_a_focal_error_with_the_calibration_held_is_caught_only_by_ground_truth():
+    """``--calibration held``: a 1% focal error goes into the height, which no self-check
+    sees; only ground truth shows it (why the batch estimates the calibration by default)."""
     flight, dtm = SCENARIOS["focal1pct"].flight(FLIGHT)
-    out = smooth_and_evaluate(flight, dtm, SmootherSettings())
+    held = SmootherSettings(graph=GraphSettings(calibration=None))
+    out = smooth_and_evaluate(flight, dtm, held)
     assert out.result.calibration is None
     assert out.verdict.status.value == "failed"
-    assert "confidently_wrong" in [r.code for r in out.verdict.reasons]
+    assert [r.code for r in out.verdict.reasons] == ["confidently_wrong"]
+
+
+#: Clean short flights of the issue's camera, many seeds: the online calibration's
+#: verdicts and its focal scale's bias (before the noise's bias was taken out, the mean
+#: z-score of the focal scale was -2.0 over such seeds; now within 1 of 0).
+CLEAN_SEEDS = range(1, 21)
+CLEAN_FLIGHT = dataclasses.replace(BASE, frames=30)
+#: Done-when of issue 10: clean flights stay trusted on at least 95% of the seeds.
+MIN_TRUSTED_SHARE = 0.95
+#: The mean of 20 z-scores of an unbiased estimate: sigma 0.22 (0.25 with the measured
+#: spread 1.1); 4 of those.
+MAX_MEAN_Z = 1.0
+
+
+@pytest.fixture(scope="module")
+def clean_seeds():
+    runs = []
+    for seed in CLEAN_SEEDS:
+        flight, dtm = SCENARIOS["clean"].flight(dataclasses.replace(CLEAN_FLIGHT, seed=seed))
+        runs.append(smooth_and_evaluate(flight, dtm, SmootherSettings()))
+    return runs
+
+
+def test_clean_flights_stay_trusted_with_the_default_online_calibration(clean_seeds):
+    assert all(out.result.calibration is not None for out in clean_seeds)  # the default
+    trusted = [out.verdict.status.value == "trusted" for out in clean_seeds]
+    assert np.mean(trusted) >= MIN_TRUSTED_SHARE
+
+
+def test_the_focal_scale_of_clean_flights_is_unbiased(clean_seeds):
+    z = np.array([(out.result.calibration.focal_scale - 1.0) / out.result.calibration.sigmas[4]
+                  for out in clean_seeds])
+    assert abs(z.mean()) < MAX_MEAN_Z
 
 
 def test_a_mount_yaw_on_a_straight_flight_is_unobservable_and_noted():
@@ -265,13 +301,32 @@ def test_a_mount_yaw_on_a_straight_flight_is_unobservable_and_noted():
                for n in out.verdict.notes)
 
 
-def test_calibration_asked_of_an_incremental_run_is_said_not_estimated():
-    """Only the batch estimates the calibration: an incremental run asked for it says so
-    (a note), never silently takes flight.yaml's as exact."""
-    flight, dtm = simulate_flight(SimulationSettings(frames=6, seed=1))
-    settings = dataclasses.replace(ONLINE, mode=SmootherMode.INCREMENTAL)
+@pytest.mark.parametrize("lag_s", [None, 10.0])
+def test_an_incremental_run_with_a_focal_error_is_flagged_suspect(lag_s):
+    """iSAM2 and the fixed lag hold flight.yaml's calibration: a batch side solve finds
+    the 1% focal error and the positions beyond their covariance: ``calibration_suspect``,
+    never trusted."""
+    flight, dtm = SCENARIOS["focal1pct"].flight(FLIGHT)
+    settings = SmootherSettings(mode=SmootherMode.INCREMENTAL, lag_s=lag_s)
     out = smooth_and_evaluate(flight, dtm, settings)
     assert out.result.calibration is None
-    assert any(n.startswith("calibration_not_estimated: ") for n in out.verdict.notes)
-    batch = smooth_and_evaluate(flight, dtm, ONLINE)
-    assert not any(n.startswith("calibration_not_estimated") for n in batch.verdict.notes)
+    check = out.result.calibration_check
+    assert check.suspect and abs(check.estimate.focal_scale - 1 / 1.01) < 4 * check.estimate.sigmas[4]
+    assert out.verdict.status.value != "trusted"
+    assert "calibration_suspect" in [r.code for r in out.verdict.reasons]
+    assert out.report["calibration_check"]["suspect"]
+
+
+def test_an_incremental_run_on_a_clean_flight_holds_the_calibration_and_says_so():
+    flight, dtm = SCENARIOS["clean"].flight(CLEAN_FLIGHT)
+    out = smooth_and_evaluate(flight, dtm, SmootherSettings(mode=SmootherMode.INCREMENTAL))
+    check = out.result.calibration_check
+    assert not check.suspect and np.abs(check.z).max() < 5.0
+    assert out.verdict.status.value == "trusted"
+    assert any(n.startswith("calibration_held: ") for n in out.verdict.notes)
+    # held as flight.yaml writes it: no side solve, nothing said
+    held = dataclasses.replace(SmootherSettings(mode=SmootherMode.INCREMENTAL),
+                               graph=GraphSettings(calibration=None))
+    quiet = smooth_and_evaluate(flight, dtm, held)
+    assert quiet.result.calibration_check is None
+    assert not any(n.startswith("calibration_") for n in quiet.verdict.notes)

@@ -330,7 +330,16 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     if settings.mode is SmootherMode.INCREMENTAL:
         dt_s = float(np.max(np.diff(flight.frames.t_ns))) * 1e-9
         smoother = IncrementalSmoother(flight.config, dtm, settings, frame_interval_s=dt_s)
-        return smoother.run(flight, progress)
+        result = smoother.run(flight, progress)
+        sigmas = flight.config.camera.calibration or settings.graph.calibration
+        if sigmas is None:
+            return result
+        # it holds flight.yaml's calibration: a batch side solve checks it (imported here:
+        # the check builds on this module)
+        from cdtm_graph.smoother.calibration_check import check_calibration
+        return replace(result, calibration_check=check_calibration(
+            flight, dtm, settings, result, sigmas, smoother.mismatched_tracks,
+            smoother.unfixed_frames))
     guess = _initial_values(flight, dtm, settings, progress)
     initial = guess.values
     calibration = flight.config.camera.calibration or settings.graph.calibration
