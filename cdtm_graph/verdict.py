@@ -796,24 +796,6 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
                    tuple(notes + _calibration_notes(result) + calibration_notes))
 
 
-def _calibration_check(result: SmootherResult) -> tuple[list[tuple[str, str]], list[str]]:
-    """``calibration_suspect`` (a reason): the incremental modes hold flight.yaml's
-    calibration, and a batch side solve that estimates it finds it wrong by more than the
-    run's covariance allows (:mod:`cdtm_graph.smoother.calibration_check`); otherwise a
-    note ``calibration_held`` with what the side solve found."""
-    check = result.calibration_check
-    if check is None:
-        return [], []
-    if check.suspect:
-        return [("calibration_suspect", (
-            f"this mode holds flight.yaml's camera calibration, which the flight contradicts: "
-            f"{check.describe()}; rerun in batch mode (which estimates it) or correct "
-            "flight.yaml"))], []
-    within = " (significant, but within the run's covariance)" if check.significant else ""
-    return [], [f"calibration_held: this mode holds flight.yaml's camera calibration as "
-                f"exact; {check.describe()}{within}"]
-
-
 def _calibration_notes(result: SmootherResult) -> list[str]:
     """``calibration_unobservable``: a calibration parameter estimated online that the
     flight barely told (posterior sigma near the prior's, :mod:`cdtm_graph.calibration`).
@@ -829,6 +811,29 @@ def _calibration_notes(result: SmootherResult) -> list[str]:
                      f"{parts[name][1]:.3g}{parts[name][2]})" for name in c.unobservable)
     return [f"calibration_unobservable: this flight does not tell {told}; the estimate stays "
             "near flight.yaml's value, with the prior's uncertainty in the covariances"]
+
+
+def _calibration_check(result: SmootherResult) -> tuple[list[tuple[str, str]], list[str]]:
+    """``calibration_suspect`` (a reason): the run held flight.yaml's calibration, and a
+    batch side solve that estimates it finds it wrong beyond the run's covariance
+    (:mod:`cdtm_graph.smoother.calibration_check`). Notes: ``calibration_held`` (a
+    significant correction the positions do not feel), ``calibration_unresolved`` (a side
+    solve that tells the calibration poorly: the flight cannot check it)."""
+    check = result.calibration_check
+    if check is None or not check.significant:
+        return [], []
+    if check.suspect:
+        return [("calibration_suspect", (
+            f"the run held flight.yaml's camera calibration, which the flight contradicts: "
+            f"{check.describe()}; smooth in batch mode with the calibration estimated "
+            "(--calibration online) or correct flight.yaml"))], []
+    if check.unresolved:
+        return [], [f"calibration_unresolved: {check.describe()}; but the side solve tells "
+                    "the calibration poorly (before the first turn the focal scale trades with "
+                    "the height): this flight cannot check its calibration; held as "
+                    "flight.yaml writes it"]
+    return [], [f"calibration_held: {check.describe()}: significant, but within the run's "
+                "covariance; held as flight.yaml writes it"]
 
 
 def _smoother_flag(name: str, flags: Mapping[int, list[str]], k: int) -> FrameTest:

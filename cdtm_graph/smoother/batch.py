@@ -331,18 +331,11 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
         dt_s = float(np.max(np.diff(flight.frames.t_ns))) * 1e-9
         smoother = IncrementalSmoother(flight.config, dtm, settings, frame_interval_s=dt_s)
         result = smoother.run(flight, progress)
-        sigmas = flight.config.camera.calibration or settings.graph.calibration
-        if sigmas is None:
-            return result
-        # it holds flight.yaml's calibration: a batch side solve checks it (imported here:
-        # the check builds on this module)
-        from cdtm_graph.smoother.calibration_check import check_calibration
-        return replace(result, calibration_check=check_calibration(
-            flight, dtm, settings, result, sigmas, smoother.mismatched_tracks,
-            smoother.unfixed_frames))
+        return _checked(flight, dtm, settings, result, smoother.mismatched_tracks,
+                        smoother.unfixed_frames)
     guess = _initial_values(flight, dtm, settings, progress)
     initial = guess.values
-    calibration = flight.config.camera.calibration or settings.graph.calibration
+    calibration = _online_calibration(flight, settings)
     if calibration is not None:
         initial = gtsam.Values(initial)
         initial.insert(CALIBRATION_KEY, np.zeros(CALIBRATION_DIM))
@@ -421,7 +414,34 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
                      outliers_per_frame=residuals.outliers_per_frame,
                      rejected_per_frame=built.rejections.per_frame(K),
                      residual_chi2_per_frame=residuals.chi2_within_per_frame)
-    return SmootherResult(estimate, covariances, stats, counts, settings_dict,
-                          frame_flags(counts, flags), cdtm_information(
-                              checked, estimate.world_T_body.__getitem__, K), terrain,
-                          calibrated)
+    result = SmootherResult(estimate, covariances, stats, counts, settings_dict,
+                            frame_flags(counts, flags), cdtm_information(
+                                checked, estimate.world_T_body.__getitem__, K), terrain,
+                            calibrated)
+    if calibrated is not None:
+        return result
+    return _checked(flight, dtm, settings, result, np.union1d(guess.off_map, built.found_off),
+                    guess.unfixed_frames)
+
+
+def _online_calibration(flight: FlightLog, settings: SmootherSettings
+                        ) -> CalibrationSigmas | None:
+    """The calibration's prior when the batch estimates it (flight.yaml asks, or the
+    settings), else None."""
+    asked = flight.config.camera.calibration
+    if asked is not None:
+        return asked
+    return settings.graph.calibration if settings.graph.calibration_online else None
+
+
+def _checked(flight: FlightLog, dtm: Dtm, settings: SmootherSettings, result: SmootherResult,
+             left_out: np.ndarray, unfixed_frames: np.ndarray) -> SmootherResult:
+    """``result`` (which held flight.yaml's calibration) with the side solve's check of it
+    (:mod:`cdtm_graph.smoother.calibration_check`), unless the settings hold it unchecked."""
+    sigmas = flight.config.camera.calibration or settings.graph.calibration
+    if sigmas is None:
+        return result
+    # (imported here: the check builds on this module)
+    from cdtm_graph.smoother.calibration_check import check_calibration
+    return replace(result, calibration_check=check_calibration(
+        flight, dtm, settings, result, sigmas, left_out, unfixed_frames))
