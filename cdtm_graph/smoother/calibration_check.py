@@ -106,9 +106,8 @@ class CalibrationCheck:
                 f"turned by {np.array2string(np.round(c.mount_correction_deg, 2))} deg "
                 f"({np.array2string(np.round(self.z[1:4], 1))} sigma), the focal scale "
                 f"{c.focal_scale:.4f} ({self.z[4]:+.1f} sigma), lowering the error by "
-                f"{self.cost_drop:.1f} (chi-square(5) at 99.9%: {2 * SUSPECT_COST_DROP:.1f} / 2); "
-                f"the run's positions lie at a mean NEES of {self.position_nees:.1f} from that "
-                "solution's")
+                f"{self.cost_drop:.1f} ({SUSPECT_COST_DROP} is chance at 99.9%); the run's "
+                f"positions lie at a mean NEES of {self.position_nees:.1f} from that solution's")
 
     def to_dict(self) -> dict:
         c = self.estimate
