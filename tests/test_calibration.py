@@ -245,15 +245,17 @@ def test_calibration_errors_are_absorbed_online(clean_rmse_m, fault):
                                  4 * np.maximum(sigma[part], 0.05 * (part == "mount")))
 
 
-@pytest.mark.parametrize("mode", ["batch", "isam2", "fixed_lag"])
+@pytest.mark.parametrize("mode", ["batch", "isam2", "fixed_lag", "batch_no_marginals"])
 def test_a_focal_error_held_by_default_is_flagged_suspect_without_ground_truth(mode):
     """By default every mode holds flight.yaml's calibration and checks it in a batch
     side solve: the 1% focal error is found (the side solve's scale within 4 sigmas of
-    the truth) and the run is ``calibration_suspect``, never trusted."""
+    the truth) and the run is ``calibration_suspect``, never trusted (also a run without
+    covariances, which claims none: any significant correction matters)."""
     flight, dtm = SCENARIOS["focal1pct"].flight(FLIGHT)
     settings = {"batch": SmootherSettings(),
                 "isam2": SmootherSettings(mode=SmootherMode.INCREMENTAL),
-                "fixed_lag": SmootherSettings(mode=SmootherMode.INCREMENTAL, lag_s=10.0)}[mode]
+                "fixed_lag": SmootherSettings(mode=SmootherMode.INCREMENTAL, lag_s=10.0),
+                "batch_no_marginals": SmootherSettings(marginals=False)}[mode]
     out = smooth_and_evaluate(flight, dtm, settings)
     assert out.result.calibration is None
     check = out.result.calibration_check

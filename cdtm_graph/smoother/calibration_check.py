@@ -102,7 +102,7 @@ class CalibrationCheck:
         """Significant and far from the run, but not conclusive: the flight does not tell
         its calibration from its position (before the first turn the focal scale trades
         with the height)."""
-        return self.significant and self.position_nees > SUSPECT_NEES and not self.conclusive
+        return self.significant and _matters(self.position_nees) and not self.conclusive
 
     def describe(self) -> str:
         """The estimate in words (for a reason or a note)."""
@@ -175,9 +175,15 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
     nees = _position_nees(result, np.stack([values.atPose3(X(k)).translation()
                                             for k in range(K)]))
     conclusive = bool(np.max(posterior / prior_sigmas(sigmas)) < CONCLUSIVE_SIGMA_RATIO)
-    suspect = bool(cost_drop > SUSPECT_COST_DROP and nees > SUSPECT_NEES and conclusive)
+    suspect = bool(cost_drop > SUSPECT_COST_DROP and _matters(nees) and conclusive)
     return CalibrationCheck(estimate, z, nees, float(cost_drop), conclusive, suspect,
                             time.perf_counter() - start)
+
+
+def _matters(position_nees: float) -> bool:
+    """The run's positions are beyond their covariance from the calibrated solution's (a
+    run without covariances claims none: any significant correction matters)."""
+    return not np.isfinite(position_nees) or position_nees > SUSPECT_NEES
 
 
 def _position_nees(result: SmootherResult, position_m: np.ndarray) -> float:
