@@ -19,8 +19,8 @@ solve from its estimate estimates the calibration too (``C(0)``,
 
 A correction that is significant but does not move the positions beyond their covariance
 (a 0.5 deg mount error, which the attitude takes) is a note, ``calibration_held``. Cost:
-two batch solves (the calibration pinned, then free) without mismatch rounds, ~1 s on
-the issue's 90-frame flight.
+two batch solves (the calibration pinned, then free) without mismatch rounds: 0.8-0.9 s
+on the issue's 90-frame flight (``benchmarks/bench_calibration.py``).
 """
 
 from __future__ import annotations
@@ -161,11 +161,9 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
     held_error = built.graph.error(values)
     values, _ = levenberg_marquardt(built.graph, values, batch.max_iterations,
                                     batch.relative_error_tol, solver=solver)
-    cost_drop = held_error - built.graph.error(values)
-    built.refresh_noise(values)
     graph = built.graph
-    values, _ = levenberg_marquardt(graph, values, batch.max_iterations,
-                                    batch.relative_error_tol, solver=solver)
+    cost_drop = held_error - graph.error(values)
+    # (the noise stays linearized at the run's solution, as the likelihood ratio has it)
     values = debiased(graph, values, built.cdtm)
     c = values.atVector(CALIBRATION_KEY)
     estimate = calibration_estimate(c, key_marginals(graph, values, [CALIBRATION_KEY])[0],
