@@ -218,9 +218,10 @@ class SmootherResult:
         terrain: the ground against the DTM (clutter), when the smoother looked.
         calibration: the camera calibration estimated online
             (:class:`cdtm_graph.calibration.CalibrationEstimate`), when it was.
-        calibration_check: the incremental modes, which hold flight.yaml's calibration:
-            what a batch side solve estimating it found
-            (:class:`cdtm_graph.smoother.calibration_check.CalibrationCheck`), when asked.
+        calibration_check: a run that held flight.yaml's calibration (the default, and
+            the incremental modes always): what a batch side solve estimating it found
+            (:class:`cdtm_graph.smoother.calibration_check.CalibrationCheck`), unless the
+            settings hold it unchecked.
     """
 
     estimate: TrajectoryEstimate

@@ -71,13 +71,12 @@ def smooth_and_evaluate(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
             "table1": free_vs_compensated(errors, free_errors),
         }
     verdict = assess(result, errors, flight.imu.t_ns, verdict_settings)
-    if result.calibration is None and result.calibration_check is None and (
-            flight.config.camera.calibration is not None
-            or settings.graph.calibration is not None):
-        # asked for, not estimated: never silent
-        message = ("calibration_not_estimated: flight.yaml asks for the camera calibration "
-                   "online, which only the batch mode estimates; this run used flight.yaml's "
-                   "calibration as exact")
+    if result.calibration is None and (flight.config.camera.calibration is not None
+                                       or settings.graph.calibration_online):
+        # asked for, not estimated (the incremental modes): never silent
+        message = ("calibration_not_estimated: the calibration was asked for online, which "
+                   "only the batch mode estimates; this run held flight.yaml's and checked it "
+                   "in a batch side solve (report.json: calibration_check)")
         logger.warning("%s", message)
         verdict = replace(verdict, notes=verdict.notes + (message,))
     result = replace(result, flags=verdict.flags)

@@ -341,9 +341,12 @@ def test_an_incremental_run_on_a_clean_flight_is_checked_and_trusted():
     assert not check.suspect and not check.significant
     assert out.verdict.status.value == "trusted"
     assert not any(n.startswith("calibration_") for n in out.verdict.notes)
-    # estimating it is batch only: asked of an incremental run, it is checked instead
+    # estimating it is batch only: asked of an incremental run, it is checked instead,
+    # and said so
     online = dataclasses.replace(ONLINE, mode=SmootherMode.INCREMENTAL)
-    assert smooth_and_evaluate(flight, dtm, online).result.calibration_check is not None
+    asked = smooth_and_evaluate(flight, dtm, online)
+    assert asked.result.calibration is None and asked.result.calibration_check is not None
+    assert any(n.startswith("calibration_not_estimated: ") for n in asked.verdict.notes)
     # held as flight.yaml writes it: no side solve
     held = dataclasses.replace(SmootherSettings(mode=SmootherMode.INCREMENTAL),
                                graph=GraphSettings(calibration=None))
