@@ -26,6 +26,14 @@ from cdtm_graph.tracks import FramePairObservations, first_sightings
 from factors import CdtmPairFactor, FeatureNoise, PairFeatures, PlaneMode, RobustKernel
 from factors.calibration import CalibrationLink
 
+#: The calibration's prior when flight.yaml gives none: 30 ms of camera-IMU offset, 1 deg
+#: of mount rotation per axis, 2% of focal length (a 20 ms offset, a 0.5 deg mount, a 1%
+#: focal error sit well within them). Used by the side solve that checks flight.yaml's
+#: calibration, and by the online estimate when asked (docs/design.md, "Calibration
+#: online": why it is not estimated by default).
+DEFAULT_CALIBRATION_SIGMAS = CalibrationSigmas(time_offset_sigma_s=0.03, mount_sigma_deg=1.0,
+                                               focal_scale_sigma=0.02)
+
 
 @dataclass(frozen=True)
 class GraphSettings:
@@ -69,10 +77,15 @@ class GraphSettings:
             ground and clutter (forest, towns: :mod:`cdtm_graph.clutter`); the likely
             clutter goes, and what may remain is a considered bias of the frames'
             vertical covariance. ``None``: no such view.
-        calibration: batch mode: estimate the camera-IMU time offset, the mount rotation
-            and a focal scale online (:mod:`cdtm_graph.calibration`) with these prior
-            sigmas when flight.yaml gives none (``camera.calibration`` wins); ``None``:
-            only as flight.yaml asks.
+        calibration: prior sigmas of the camera calibration (camera-IMU time offset,
+            mount rotation, focal scale: :mod:`cdtm_graph.calibration`) when flight.yaml
+            gives none (its ``camera.calibration`` wins). With ``calibration_online`` (or
+            flight.yaml's block) the batch estimates it; otherwise every mode holds
+            flight.yaml's and checks it in a batch side solve
+            (:mod:`cdtm_graph.smoother.calibration_check`: ``calibration_suspect``).
+            ``None``: held as flight.yaml writes it, unchecked (unless flight.yaml asks).
+        calibration_online: the batch estimates the calibration (off by default: on
+            short flights the focal scale trades with the height, docs/design.md).
     """
 
     plane_mode: PlaneMode = PlaneMode.REINTERSECT
@@ -87,7 +100,9 @@ class GraphSettings:
     grazing_turn_cells: float | None = 1.0
     mismatch: MismatchSettings | None = field(default_factory=MismatchSettings)
     clutter: ClutterSettings | None = field(default_factory=ClutterSettings)
-    calibration: CalibrationSigmas | None = None
+    calibration: CalibrationSigmas | None = field(
+        default_factory=lambda: DEFAULT_CALIBRATION_SIGMAS)
+    calibration_online: bool = False
 
 
 def dtm_ray_caster(dtm: Dtm):

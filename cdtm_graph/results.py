@@ -15,6 +15,7 @@ import numpy as np
 
 if TYPE_CHECKING:
     from cdtm_graph.calibration import CalibrationEstimate
+    from cdtm_graph.smoother.calibration_check import CalibrationCheck
 
 
 @dataclass(frozen=True)
@@ -217,6 +218,10 @@ class SmootherResult:
         terrain: the ground against the DTM (clutter), when the smoother looked.
         calibration: the camera calibration estimated online
             (:class:`cdtm_graph.calibration.CalibrationEstimate`), when it was.
+        calibration_check: a run that held flight.yaml's calibration (the default, and
+            the incremental modes always): what a batch side solve estimating it found
+            (:class:`cdtm_graph.smoother.calibration_check.CalibrationCheck`), unless the
+            settings hold it unchecked.
     """
 
     estimate: TrajectoryEstimate
@@ -228,6 +233,7 @@ class SmootherResult:
     cdtm_information: np.ndarray | None = None
     terrain: TerrainFindings | None = None
     calibration: CalibrationEstimate | None = None
+    calibration_check: CalibrationCheck | None = None
 
 
 def frame_flags(counts: GraphCounts, extra: dict[int, list[str]] | None = None

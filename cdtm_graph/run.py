@@ -72,11 +72,11 @@ def smooth_and_evaluate(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
         }
     verdict = assess(result, errors, flight.imu.t_ns, verdict_settings)
     if result.calibration is None and (flight.config.camera.calibration is not None
-                                       or settings.graph.calibration is not None):
-        # asked for, not estimated: never silent
-        message = ("calibration_not_estimated: flight.yaml asks for the camera calibration "
-                   "online, which only the batch mode estimates; this run used flight.yaml's "
-                   "calibration as exact")
+                                       or settings.graph.calibration_online):
+        # asked for, not estimated (the incremental modes): never silent
+        message = ("calibration_not_estimated: the calibration was asked for online, which "
+                   "only the batch mode estimates; this run held flight.yaml's and checked it "
+                   "in a batch side solve (report.json: calibration_check)")
         logger.warning("%s", message)
         verdict = replace(verdict, notes=verdict.notes + (message,))
     result = replace(result, flags=verdict.flags)
@@ -84,5 +84,7 @@ def smooth_and_evaluate(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
     report["reasons"] = [r.to_dict() for r in verdict.reasons]
     report["notes"] = list(verdict.notes)
     report["self_checks"] = verdict.self_checks.to_dict()
+    if result.calibration_check is not None:
+        report["calibration_check"] = result.calibration_check.to_dict()
     report["timings_s"]["total"] = time.perf_counter() - start
     return RunOutput(result, errors, free, free_errors, report, verdict)

@@ -770,6 +770,8 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
                  for code, message in rejection_failures + failures]
     run_wide += [reason(code, message, a, b)
                  for code, message, a, b in _groundtruth_checks(errors, settings)]
+    calibration_reasons, calibration_notes = _calibration_check(result)
+    run_wide += [reason(code, message, 0, last) for code, message in calibration_reasons]
 
     stretches: list[Reason] = []
     known = {t.code for t in tests}
@@ -790,7 +792,8 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
         status = Status.DEGRADED
     else:
         status = Status.TRUSTED
-    return Verdict(status, reasons, flags, checks, tuple(notes + _calibration_notes(result)))
+    return Verdict(status, reasons, flags, checks,
+                   tuple(notes + _calibration_notes(result) + calibration_notes))
 
 
 def _calibration_notes(result: SmootherResult) -> list[str]:
@@ -808,6 +811,29 @@ def _calibration_notes(result: SmootherResult) -> list[str]:
                      f"{parts[name][1]:.3g}{parts[name][2]})" for name in c.unobservable)
     return [f"calibration_unobservable: this flight does not tell {told}; the estimate stays "
             "near flight.yaml's value, with the prior's uncertainty in the covariances"]
+
+
+def _calibration_check(result: SmootherResult) -> tuple[list[tuple[str, str]], list[str]]:
+    """``calibration_suspect`` (a reason): the run held flight.yaml's calibration, and a
+    batch side solve that estimates it finds it wrong beyond the run's covariance
+    (:mod:`cdtm_graph.smoother.calibration_check`). Notes: ``calibration_held`` (a
+    significant correction the positions do not feel), ``calibration_unresolved`` (a side
+    solve that tells the calibration poorly: the flight cannot check it)."""
+    check = result.calibration_check
+    if check is None or not check.significant:
+        return [], []
+    if check.suspect:
+        return [("calibration_suspect", (
+            f"the run held flight.yaml's camera calibration, which the flight contradicts: "
+            f"{check.describe()}; smooth in batch mode with the calibration estimated "
+            "(--calibration online) or correct flight.yaml"))], []
+    if check.unresolved:
+        return [], [f"calibration_unresolved: {check.describe()}; but the side solve tells "
+                    "the calibration poorly (before the first turn the focal scale trades with "
+                    "the height): this flight cannot check its calibration; held as "
+                    "flight.yaml writes it"]
+    return [], [f"calibration_held: {check.describe()}: significant, but within the run's "
+                "covariance; held as flight.yaml writes it"]
 
 
 def _smoother_flag(name: str, flags: Mapping[int, list[str]], k: int) -> FrameTest:

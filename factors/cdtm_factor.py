@@ -261,6 +261,9 @@ CALIBRATED_ROWS = 12 + CALIBRATION_DIM + 1
 #: Step of the central differences of the residual w.r.t. the focal scale.
 FOCAL_SCALE_STEP = 1e-5
 
+#: Step of the differences of the expected noise cost (rad, m, s, 1 alike).
+NOISE_COST_STEP = 1e-6
+
 
 class CdtmPairFactor:
     """Every C-DTM feature of a frame pair in one vectorized GTSAM factor.
@@ -462,6 +465,106 @@ class CdtmPairFactor:
             weight = np.divide(np.linalg.norm(e, axis=1), norm, out=np.ones(n), where=norm > 0)
             column *= weight[:, None]
         return column
+
+    def noise_cost_gradient(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray,
+                            calibration: np.ndarray | None = None) -> np.ndarray:
+        """Gradient of the cost the data noise alone is expected to leave, ``E[|r|^2]``
+        with ``r`` whitened and reweighted as the factor does, w.r.t. ``X(a)``, ``X(b)``
+        (right perturbations) and, with a calibration link, the calibration (5,):
+        (12,) or (17,).
+
+        Why: the factor holds its whitening fixed and ``q_a`` exact, but the residual's
+        noise (``q_a``'s pixel noise above all: it moves the ground point by its range
+        from camera a) grows and shrinks with the poses and the focal scale. Least
+        squares then leans toward the poses where the noise looks small: at the truth the
+        expected gradient of ``|r|^2 / 2`` holds half this vector (an errors-in-variables
+        bias; on the issue's flight it pulled the focal scale 2.5 sigma low).
+        :func:`cdtm_graph.noise_bias.debiased` subtracts it (a corrected score).
+
+        The noise is the factor's own residual moved by one sigma of each source, both
+        ways (``q_a`` and ``q_b`` pixels, the DTM height without its sharing discount):
+        half the difference is the residual's part linear in that noise, to third order,
+        so the expectation follows the residual exactly as the factor computes it
+        (eqs. 19-26 describe the paper's 3-vector, which differs from the factor's
+        2-vector at first order off the solution). Planes held where camera a casts them
+        now; robust weights as the kernel gives them here. Central differences over the
+        variables: 18 kernel calls over the 10 moved copies of the data, once per solve.
+        """
+        f = self.features
+        if f.noise is None:
+            raise ValueError("features built without their noise settings have no noise cost")
+        link = self.calibration
+        calibrated = link is not None and calibration is not None
+        c = np.zeros(CALIBRATION_DIM) if not calibrated else np.asarray(calibration, float)
+        if calibrated:
+            e_r = self.evaluate_calibrated(world_T_body_a, world_T_body_b, c, False)[0]
+            e_p = self.evaluate_calibrated(world_T_body_a, world_T_body_b, c, False,
+                                           robust=False)[0]
+        else:
+            e_p = self.whitened_residuals(world_T_body_a, world_T_body_b)
+            e_r = self.evaluate(world_T_body_a, world_T_body_b, False)[0].copy()
+        plain = np.einsum("ni,ni->n", e_p, e_p)
+        # the kernel's IRLS weight (its loss over the plain one: exact for a quadratic)
+        weight = np.divide(np.einsum("ni,ni->n", e_r, e_r), plain, out=np.ones(f.n),
+                           where=plain > 0)
+
+        def cameras(Ta: np.ndarray, Tb: np.ndarray, c: np.ndarray):
+            body_T_cam = corrected_mount(self.body_T_cam, c[MOUNT])
+            if link is not None and calibrated:
+                Ta = Ta @ shift(link.twist_a, float(c[TIME_OFFSET]))
+                Tb = Tb @ shift(link.twist_b, float(c[TIME_OFFSET]))
+            return Ta @ body_T_cam, Tb @ body_T_cam, body_T_cam
+
+        G_E, N = self.planes(cameras(world_T_body_a, world_T_body_b, c)[0],
+                             float(c[FOCAL_SCALE]))
+        (sx, sy), sh = f.noise.sigma_q_xy, float(f.noise.sigma_h_m)
+        # the data moved by +- one sigma of each noise source, stacked for one kernel call:
+        # rows [source, sign, feature]
+        moves = ((0, 0, sx), (0, 1, sy), (1, 0, sx), (1, 1, sy), (2, 2, sh))
+        stacked = [np.tile(a, (2 * len(moves), 1)) for a in (f.q_a, f.q_b, G_E)]
+        for m, (which, axis, sigma) in enumerate(moves):
+            for half, sign in enumerate((1.0, -1.0)):
+                rows = slice((2 * m + half) * f.n, (2 * m + half + 1) * f.n)
+                stacked[which][rows, axis] += sign * sigma
+        q_a_moved, q_b_moved, G_moved = stacked
+        N_moved = np.tile(N, (2 * len(moves), 1))
+        sqrt_moved = np.tile(f.sqrt_info, (2 * len(moves), 1, 1))
+        k_moved = np.tile(self._kernel_k, 2 * len(moves))
+        e = np.empty((q_a_moved.shape[0], 2))
+        H = np.empty((q_a_moved.shape[0], 2, 6))
+        rays: dict[float, tuple[np.ndarray, np.ndarray]] = {}
+
+        def expected(Ta: np.ndarray, Tb: np.ndarray, c: np.ndarray) -> float:
+            s = float(c[FOCAL_SCALE])
+            if s not in rays:
+                rays[s] = (corrected_rays(q_a_moved, s),
+                           cdtm_math.orthonormal_complement(corrected_rays(q_b_moved, s)))
+            q_a, basis_b = rays[s]
+            wTc_a, wTc_b, body_T_cam = cameras(Ta, Tb, c)
+            cdtm_linearize(wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3],
+                           cdtm_math.body_to_cam_adjoint(body_T_cam), q_a, G_moved, N_moved,
+                           basis_b, sqrt_moved * (1.0 + s) if calibrated else sqrt_moved,
+                           KERNEL_NONE, k_moved, False, e, H, H)
+            sides = e.reshape(len(moves), 2, f.n, 2)
+            odd = 0.5 * (sides[:, 0] - sides[:, 1])
+            return float(weight @ np.einsum("mni,mni->n", odd, odd))
+
+        # forward differences: the cost is ~1e3 and smooth on scales of metres and degrees,
+        # so a 1e-6 step leaves ~1e-7 of truncation and ~1e-8 of rounding (relative)
+        out = np.zeros(12 + CALIBRATION_DIM * calibrated)
+        here = expected(world_T_body_a, world_T_body_b, c)
+        for j in range(out.size):
+            Ta, Tb, cj = world_T_body_a, world_T_body_b, c
+            if j < 12:
+                d = np.zeros(6)
+                d[j % 6] = NOISE_COST_STEP
+                turn = gtsam.Pose3.Expmap(d).matrix()
+                Ta, Tb = (Ta @ turn, Tb) if j < 6 else (Ta, Tb @ turn)
+            else:
+                cj = c.copy()
+                cj[j - 12] += NOISE_COST_STEP
+            out[j] = (expected(Ta, Tb, cj) - here) / NOISE_COST_STEP
+        return out
 
     def refreshed(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray) -> CdtmPairFactor:
         """The same factor with planes and noise (eqs. 19-26) linearized at these poses.

@@ -167,7 +167,7 @@ def test_calibration_with_a_missing_or_unknown_key_is_refused(log):
 
 #: The prior of the tests' online calibration: 30 ms, 1 degree, 2%.
 SIGMAS = CalibrationSigmas(time_offset_sigma_s=0.03, mount_sigma_deg=1.0, focal_scale_sigma=0.02)
-ONLINE = SmootherSettings(graph=GraphSettings(calibration=SIGMAS))
+ONLINE = SmootherSettings(graph=GraphSettings(calibration=SIGMAS, calibration_online=True))
 #: The faults of issue 10 (sim.faults conventions: the yaml's focal is the true one times
 #: 1.01, its mount the true one turned by (0.3, 0.4, 0) deg, the stamps 20 ms late) and
 #: the corrections that undo them.
@@ -191,8 +191,13 @@ def _estimated(c, part: str):
 
 @pytest.fixture(scope="module")
 def noiseless_flight():
-    return simulate_flight(SimulationSettings(frames=30, altitude_m=1000.0, relief_m=300.0,
-                                              seed=1, noiseless=True))
+    """A noiseless flight that says so: its yaml's pixel noise 0.01 px. (At the nominal
+    0.5 px the batch takes out the bias that noise would leave, ``cdtm_graph.noise_bias``:
+    a step that scales with the stated variance, ~2e-3 of focal scale here.)"""
+    log, dtm = simulate_flight(SimulationSettings(frames=30, altitude_m=1000.0, relief_m=300.0,
+                                                  seed=1, noiseless=True))
+    camera = dataclasses.replace(log.config.camera, pixel_sigma_px=0.01)
+    return dataclasses.replace(log, config=dataclasses.replace(log.config, camera=camera)), dtm
 
 
 @pytest.mark.parametrize("fault", sorted(FAULTS))
@@ -240,12 +245,80 @@ def test_calibration_errors_are_absorbed_online(clean_rmse_m, fault):
                                  4 * np.maximum(sigma[part], 0.05 * (part == "mount")))
 
 
-def test_a_focal_error_without_online_calibration_is_flagged():
+@pytest.mark.parametrize("mode", ["batch", "isam2", "fixed_lag", "batch_no_marginals"])
+def test_a_focal_error_held_by_default_is_flagged_suspect_without_ground_truth(mode):
+    """By default every mode holds flight.yaml's calibration and checks it in a batch
+    side solve: the 1% focal error is found (the side solve's scale within 4 sigmas of
+    the truth) and the run is ``calibration_suspect``, never trusted (also a run without
+    covariances, which claims none: any significant correction matters)."""
     flight, dtm = SCENARIOS["focal1pct"].flight(FLIGHT)
-    out = smooth_and_evaluate(flight, dtm, SmootherSettings())
+    settings = {"batch": SmootherSettings(),
+                "isam2": SmootherSettings(mode=SmootherMode.INCREMENTAL),
+                "fixed_lag": SmootherSettings(mode=SmootherMode.INCREMENTAL, lag_s=10.0),
+                "batch_no_marginals": SmootherSettings(marginals=False)}[mode]
+    out = smooth_and_evaluate(flight, dtm, settings)
     assert out.result.calibration is None
-    assert out.verdict.status.value == "failed"
-    assert "confidently_wrong" in [r.code for r in out.verdict.reasons]
+    check = out.result.calibration_check
+    assert check.suspect
+    assert abs(check.estimate.focal_scale - 1 / 1.01) < 4 * check.estimate.sigmas[4]
+    assert out.verdict.status.value != "trusted"
+    assert "calibration_suspect" in [r.code for r in out.verdict.reasons]
+    assert out.report["calibration_check"]["suspect"]
+
+
+def test_a_focal_error_held_unchecked_is_caught_only_by_ground_truth():
+    """``--calibration held``: the 1% focal error goes into the height, which no
+    self-check sees; only ground truth shows it (why the check is on by default)."""
+    flight, dtm = SCENARIOS["focal1pct"].flight(FLIGHT)
+    out = smooth_and_evaluate(flight, dtm, SmootherSettings(graph=GraphSettings(calibration=None)))
+    assert out.result.calibration is None and out.result.calibration_check is None
+    assert [r.code for r in out.verdict.reasons] == ["confidently_wrong"]
+
+
+#: Clean short flights of the issue's camera, many seeds, default settings: the verdicts,
+#: and the side solve's focal scale (the online estimate from the run's solution): before
+#: the noise's bias was taken out its mean z-score was -2.0 over such seeds.
+CLEAN_SEEDS = range(1, 21)
+CLEAN_FLIGHT = dataclasses.replace(BASE, frames=30)
+#: Done-when of issue 10: clean flights stay trusted on at least 95% of the seeds.
+MIN_TRUSTED_SHARE = 0.95
+#: The mean of 20 z-scores of an unbiased estimate: sigma 0.22 (0.25 with the measured
+#: spread 1.1); 4 of those.
+MAX_MEAN_Z = 1.0
+
+
+@pytest.fixture(scope="module")
+def clean_seeds():
+    runs = []
+    for seed in CLEAN_SEEDS:
+        flight, dtm = SCENARIOS["clean"].flight(dataclasses.replace(CLEAN_FLIGHT, seed=seed))
+        runs.append(smooth_and_evaluate(flight, dtm, SmootherSettings()))
+    return runs
+
+
+def test_clean_flights_stay_trusted_with_the_calibration_checked(clean_seeds):
+    assert all(out.result.calibration_check is not None for out in clean_seeds)  # the default
+    assert not any(out.result.calibration_check.suspect for out in clean_seeds)
+    trusted = [out.verdict.status.value == "trusted" for out in clean_seeds]
+    assert np.mean(trusted) >= MIN_TRUSTED_SHARE
+
+
+def test_the_focal_scale_estimated_on_clean_flights_is_unbiased(clean_seeds):
+    z = np.array([out.result.calibration_check.z[4] for out in clean_seeds])
+    assert abs(z.mean()) < MAX_MEAN_Z
+
+
+def test_a_short_flight_cannot_tell_its_calibration_and_says_so():
+    """Twelve frames of a straight flight: estimating the calibration slides the focal
+    scale 5.5% along its valley with the height, the positions far from the run's. The
+    check does not believe a side solve that tells the calibration poorly: a note, no
+    reason of its own."""
+    flight, dtm = simulate_flight(SimulationSettings(frames=12, seed=2))
+    out = smooth_and_evaluate(flight, dtm, SmootherSettings())
+    check = out.result.calibration_check
+    assert check.significant and not check.conclusive and not check.suspect
+    assert "calibration_suspect" not in [r.code for r in out.verdict.reasons]
+    assert any(n.startswith("calibration_unresolved: ") for n in out.verdict.notes)
 
 
 def test_a_mount_yaw_on_a_straight_flight_is_unobservable_and_noted():
@@ -260,13 +333,21 @@ def test_a_mount_yaw_on_a_straight_flight_is_unobservable_and_noted():
                for n in out.verdict.notes)
 
 
-def test_calibration_asked_of_an_incremental_run_is_said_not_estimated():
-    """Only the batch estimates the calibration: an incremental run asked for it says so
-    (a note), never silently takes flight.yaml's as exact."""
-    flight, dtm = simulate_flight(SimulationSettings(frames=6, seed=1))
-    settings = dataclasses.replace(ONLINE, mode=SmootherMode.INCREMENTAL)
-    out = smooth_and_evaluate(flight, dtm, settings)
+def test_an_incremental_run_on_a_clean_flight_is_checked_and_trusted():
+    flight, dtm = SCENARIOS["clean"].flight(CLEAN_FLIGHT)
+    out = smooth_and_evaluate(flight, dtm, SmootherSettings(mode=SmootherMode.INCREMENTAL))
     assert out.result.calibration is None
-    assert any(n.startswith("calibration_not_estimated: ") for n in out.verdict.notes)
-    batch = smooth_and_evaluate(flight, dtm, ONLINE)
-    assert not any(n.startswith("calibration_not_estimated") for n in batch.verdict.notes)
+    check = out.result.calibration_check
+    assert not check.suspect and not check.significant
+    assert out.verdict.status.value == "trusted"
+    assert not any(n.startswith("calibration_") for n in out.verdict.notes)
+    # estimating it is batch only: asked of an incremental run, it is checked instead,
+    # and said so
+    online = dataclasses.replace(ONLINE, mode=SmootherMode.INCREMENTAL)
+    asked = smooth_and_evaluate(flight, dtm, online)
+    assert asked.result.calibration is None and asked.result.calibration_check is not None
+    assert any(n.startswith("calibration_not_estimated: ") for n in asked.verdict.notes)
+    # held as flight.yaml writes it: no side solve
+    held = dataclasses.replace(SmootherSettings(mode=SmootherMode.INCREMENTAL),
+                               graph=GraphSettings(calibration=None))
+    assert smooth_and_evaluate(flight, dtm, held).result.calibration_check is None

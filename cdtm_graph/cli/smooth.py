@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 from cdtm_graph.cli.outdir import add_out_option, output_dir
@@ -40,6 +41,12 @@ def add_smoothing_options(p: argparse.ArgumentParser) -> None:
                         "chi-square gate of probability P, as frames arrive (incremental "
                         "mode, and the batch's incremental first pass); 'none' gates "
                         "nothing (default %(default)s)")
+    p.add_argument("--calibration", choices=["checked", "online", "held"], default="checked",
+                   help="checked (default): take flight.yaml's camera calibration as exact and "
+                        "check it in a batch side solve (calibration_suspect when the flight "
+                        "contradicts it); online: estimate the time offset, mount rotation and "
+                        "focal scale (batch; priors from flight.yaml's camera.calibration, else "
+                        "30 ms, 1 deg, 2%%); held: as exact, unchecked")
     p.add_argument("--plots", action="store_true",
                    help="also write trajectory.png (over the DTM, 3-sigma ellipses), "
                         "errors.png (errors inside +-3 sigma) and, for a geodetic log, "
@@ -105,8 +112,14 @@ def settings_from_args(args: argparse.Namespace) -> SmootherSettings:
         raise CdtmError("--lag-s needs --mode incremental")
     if args.gate is not None and not 0.0 < args.gate < 1.0:
         raise CdtmError(f"--gate {args.gate}: expected a probability strictly between 0 and 1")
+    graph = GraphSettings(plane_mode=PlaneMode(args.plane), robust=RobustKernel(args.robust))
+    calibration = getattr(args, "calibration", "checked")  # (parsers without the option)
+    if calibration == "held":
+        graph = replace(graph, calibration=None)
+    elif calibration == "online":
+        graph = replace(graph, calibration_online=True)
     return SmootherSettings(
-        graph=GraphSettings(plane_mode=PlaneMode(args.plane), robust=RobustKernel(args.robust)),
+        graph=graph,
         mode=SmootherMode(args.mode), lag_s=args.lag_s, innovation_gate=args.gate)
 
 

@@ -45,6 +45,7 @@ from cdtm_graph.graph import (
 )
 from cdtm_graph.imu import ImuIntervals, initial_bias
 from cdtm_graph.mismatch import MismatchSettings, TrackJudgement, untrusted
+from cdtm_graph.noise_bias import debiased
 from cdtm_graph.optimizer import LinearSolver, explain_indeterminant, levenberg_marquardt
 from cdtm_graph.preflight import check_constraints
 from cdtm_graph.replay import replay
@@ -329,10 +330,12 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     if settings.mode is SmootherMode.INCREMENTAL:
         dt_s = float(np.max(np.diff(flight.frames.t_ns))) * 1e-9
         smoother = IncrementalSmoother(flight.config, dtm, settings, frame_interval_s=dt_s)
-        return smoother.run(flight, progress)
+        result = smoother.run(flight, progress)
+        return _checked(flight, dtm, settings, result, smoother.mismatched_tracks,
+                        smoother.unfixed_frames)
     guess = _initial_values(flight, dtm, settings, progress)
     initial = guess.values
-    calibration = flight.config.camera.calibration or settings.graph.calibration
+    calibration = _online_calibration(flight, settings)
     if calibration is not None:
         initial = gtsam.Values(initial)
         initial.insert(CALIBRATION_KEY, np.zeros(CALIBRATION_DIM))
@@ -376,6 +379,8 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
                                            settings.relative_error_tol, solver=solver)
         iterations += more.iterations
         stats = replace(more, time_s=stats.time_s + more.time_s)
+    if calibration is not None:  # the focal scale takes the noise's bias whole
+        values = debiased(graph, values, built.cdtm)
     K = len(flight.frames)
     start = time.perf_counter()
     covariances = (marginals(graph, values, K) if settings.marginals else
@@ -416,7 +421,34 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
                      outliers_per_frame=residuals.outliers_per_frame,
                      rejected_per_frame=built.rejections.per_frame(K),
                      residual_chi2_per_frame=residuals.chi2_within_per_frame)
-    return SmootherResult(estimate, covariances, stats, counts, settings_dict,
-                          frame_flags(counts, flags), cdtm_information(
-                              checked, estimate.world_T_body.__getitem__, K), terrain,
-                          calibrated)
+    result = SmootherResult(estimate, covariances, stats, counts, settings_dict,
+                            frame_flags(counts, flags), cdtm_information(
+                                checked, estimate.world_T_body.__getitem__, K), terrain,
+                            calibrated)
+    if calibrated is not None:
+        return result
+    return _checked(flight, dtm, settings, result, np.union1d(guess.off_map, built.found_off),
+                    guess.unfixed_frames)
+
+
+def _online_calibration(flight: FlightLog, settings: SmootherSettings
+                        ) -> CalibrationSigmas | None:
+    """The calibration's prior when the batch estimates it (flight.yaml asks, or the
+    settings), else None."""
+    asked = flight.config.camera.calibration
+    if asked is not None:
+        return asked
+    return settings.graph.calibration if settings.graph.calibration_online else None
+
+
+def _checked(flight: FlightLog, dtm: Dtm, settings: SmootherSettings, result: SmootherResult,
+             left_out: np.ndarray, unfixed_frames: np.ndarray) -> SmootherResult:
+    """``result`` (which held flight.yaml's calibration) with the side solve's check of it
+    (:mod:`cdtm_graph.smoother.calibration_check`), unless the settings hold it unchecked."""
+    sigmas = flight.config.camera.calibration or settings.graph.calibration
+    if sigmas is None:
+        return result
+    # (imported here: the check builds on this module)
+    from cdtm_graph.smoother.calibration_check import check_calibration
+    return replace(result, calibration_check=check_calibration(
+        flight, dtm, settings, result, sigmas, left_out, unfixed_frames))

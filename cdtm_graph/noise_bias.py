@@ -1,0 +1,64 @@
+"""The C-DTM estimate less the bias its noise leaves: one corrected-score step.
+
+A C-DTM factor holds the first observation ``q_a`` exact and its whitening fixed, while
+the residual's noise grows and shrinks with the poses (``q_a``'s pixel noise moves the
+ground point by its range from camera a) and with the focal scale. Least squares then
+leans toward where the noise looks small: at the truth the expected gradient of the cost
+is not zero but half the gradient of the noise's expected cost
+(:meth:`factors.CdtmPairFactor.noise_cost_gradient`), an errors-in-variables bias. It
+is small for the poses the IMU holds, but a focal scale estimated online takes it whole:
+2.5 sigma low on the issue's flight with pixel noise alone (docs/design.md, "Calibration
+online"), and the heights with it.
+
+The corrected score subtracts that expectation; one Newton step of it from the solution
+removes the bias to first order (it is a fraction of a sigma to a few sigmas, well inside
+the linearization).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import gtsam
+import numpy as np
+
+from factors import CdtmPairFactor
+
+
+def noise_gradient(factors: Sequence[CdtmPairFactor], values: gtsam.Values
+                   ) -> dict[int, np.ndarray]:
+    """Half the gradient of the C-DTM noise's expected cost, per variable key (the pose
+    tangents' and, when the factors hold it, the calibration's)."""
+    out: dict[int, np.ndarray] = {}
+    for f in factors:
+        Ta, Tb = values.atPose3(f.key_a).matrix(), values.atPose3(f.key_b).matrix()
+        key_c = None if f.calibration is None else f.calibration.key
+        c = values.atVector(key_c) if key_c is not None else None
+        g = 0.5 * f.noise_cost_gradient(Ta, Tb, c)
+        parts = [(f.key_a, g[:6]), (f.key_b, g[6:12])]
+        if key_c is not None:
+            parts.append((key_c, g[12:]))
+        for key, part in parts:
+            out[key] = out.get(key, 0.0) + part
+    return out
+
+
+def debiased(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+             factors: Sequence[CdtmPairFactor]) -> gtsam.Values:
+    """``values`` moved by one corrected-score step: the Gauss-Newton step of ``graph``
+    at ``values`` with the noise's expected gradient taken out of its gradient.
+
+    Args:
+        graph: the whole graph (``factors`` among its factors). values: its solution.
+        factors: the C-DTM pair factors.
+    """
+    linear = graph.linearize(values)
+    for key, g in noise_gradient(factors, values).items():
+        # a zero Hessian and the linear term: the step solves H d = -grad + g
+        linear.push_back(gtsam.HessianFactor(key, np.zeros((g.size, g.size)), g, 0.0))
+    try:
+        step = linear.optimize()
+    except RuntimeError:
+        step = linear.optimize(gtsam.EliminateQR)
+    return values.retract(step)
+
