@@ -21,8 +21,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight  # noqa: E402
 from cdtm_graph.graph import GraphSettings  # noqa: E402
+from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight  # noqa: E402
 from cdtm_graph.smoother import SmootherMode, SmootherSettings, smooth  # noqa: E402
 
 #: iSAM2 figures are taken around the end of the flight ("around frame 1000"), fixed-lag
@@ -88,9 +88,9 @@ def main(argv: list[str] | None = None) -> None:
     print(f"  IMU preintegration as samples arrive: median {np.median(imu):.2f} ms per frame "
           f"interval; update + IMU: median {np.median(v + imu):.2f} ms, "
           f"p99 {np.percentile(v + imu, 99):.1f} ms")
-    print(f"batch_s={batch_s:.2f} batch_held_s={held_s:.2f} peak_mb={peak_mb:.0f} isam2_median_ms={np.median(tail):.2f} "
-          f"isam2_p99_ms={np.percentile(tail, 99):.1f} fixedlag_median_ms={np.median(v):.2f} "
-          f"fixedlag_p99_ms={np.percentile(v, 99):.1f}")
+    print(f"batch_s={batch_s:.2f} batch_held_s={held_s:.2f} peak_mb={peak_mb:.0f} "
+          f"isam2_median_ms={np.median(tail):.2f} isam2_p99_ms={np.percentile(tail, 99):.1f} "
+          f"fixedlag_median_ms={np.median(v):.2f} fixedlag_p99_ms={np.percentile(v, 99):.1f}")
 
 
 if __name__ == "__main__":

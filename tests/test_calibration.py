@@ -10,12 +10,13 @@ import numpy as np
 import pytest
 from gtsam.symbol_shorthand import X
 
-from cdtm_graph.flightlog import CalibrationSigmas, read_flightlog, write_flightlog
+from cdtm_graph.flightlog import CalibrationSigmas, Tracks, read_flightlog, write_flightlog
 from cdtm_graph.graph import GraphSettings
 from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.sim.faults import with_calibration_error
 from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
-from cdtm_graph.smoother import SmootherMode, SmootherSettings
+from cdtm_graph.smoother import SmootherMode, SmootherSettings, calibration_check
+from cdtm_graph.smoother.calibration_check import thinned
 from cdtm_graph.studies.robustness import BASE, SCENARIOS
 from factors import CdtmPairFactor, PlaneMode, RobustKernel
 from factors.calibration import CALIBRATION_DIM, CalibrationLink
@@ -264,6 +265,36 @@ def test_a_focal_error_held_by_default_is_flagged_suspect_without_ground_truth(m
     assert out.verdict.status.value != "trusted"
     assert "calibration_suspect" in [r.code for r in out.verdict.reasons]
     assert out.report["calibration_check"]["suspect"]
+
+
+def test_the_side_solve_thins_a_long_log_to_every_nth_frame():
+    """Over ``MAX_FRAMES`` the side solve keeps every n-th frame with exactly the sightings
+    in it (renumbered), the IMU whole; a short log is left as it is."""
+    flight, _ = SCENARIOS["clean"].flight(FLIGHT)
+    assert thinned(flight, FLIGHT.frames)[0] is flight
+    sub, kept = thinned(flight, 25)  # 60 frames: every 3rd, 20 frames
+    assert kept.tolist() == list(range(0, 60, 3))
+    np.testing.assert_array_equal(sub.frames.t_ns, flight.frames.t_ns[kept])
+    assert sub.imu is flight.imu
+    rows = np.isin(flight.tracks.frame, kept)
+    np.testing.assert_array_equal(kept[sub.tracks.frame], flight.tracks.frame[rows])
+    np.testing.assert_array_equal(sub.tracks.track_id, flight.tracks.track_id[rows])
+    np.testing.assert_array_equal(sub.tracks.uv_px, flight.tracks.uv_px[rows])
+
+
+def test_a_focal_error_is_flagged_by_a_thinned_side_solve(monkeypatch):
+    """With the side solve down to every third frame (as on long logs), the 1% focal
+    error is still found and the run is ``calibration_suspect``; a clean run is not."""
+    monkeypatch.setattr(calibration_check, "MAX_FRAMES", FLIGHT.frames // 3)
+    for name, suspect in (("focal1pct", True), ("clean", False)):
+        flight, dtm = SCENARIOS[name].flight(FLIGHT)
+        out = smooth_and_evaluate(flight, dtm, SmootherSettings())
+        check = out.result.calibration_check
+        assert check.n_frames == FLIGHT.frames // 3
+        assert check.suspect is suspect
+        assert ("calibration_suspect" in [r.code for r in out.verdict.reasons]) is suspect
+        if suspect:
+            assert abs(check.estimate.focal_scale - 1 / 1.01) < 4 * check.estimate.sigmas[4]
 
 
 def test_a_focal_error_held_unchecked_is_caught_only_by_ground_truth():
