@@ -19,16 +19,17 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from interleaved import interleaved  # noqa: E402 (benchmarks/)
+
 from cdtm_graph.evaluation import trajectory_errors  # noqa: E402
 from cdtm_graph.graph import GraphSettings  # noqa: E402
-from cdtm_graph.smoother import SmootherMode, SmootherSettings, smooth  # noqa: E402
+from cdtm_graph.smoother import SmootherMode, SmootherSettings  # noqa: E402
 from cdtm_graph.studies.robustness import BASE, SCENARIOS  # noqa: E402
 
 
@@ -53,18 +54,13 @@ def main(argv: list[str] | None = None) -> None:
     flight, dtm = SCENARIOS["clean"].flight(dataclasses.replace(BASE, frames=args.frames,
                                                                 seed=args.seed))
     runs = variants()
-    times: dict[str, list[float]] = {name: [] for name in runs}
-    side: dict[str, list[float]] = {name: [] for name in runs}
-    errors = {}
-    for _ in range(args.repeats):
-        for name, settings in runs.items():
-            start = time.perf_counter()
-            result = smooth(flight, dtm, settings)
-            times[name].append(time.perf_counter() - start)
-            if result.calibration_check is not None:
-                side[name].append(result.calibration_check.time_s)
-            errors[name] = trajectory_errors(result.estimate, result.covariances,
-                                             flight.groundtruth)
+    timed = interleaved(flight, dtm, runs, args.repeats)
+    times = timed.times_s
+    # the side solve's time, of the last run of each variant that checks
+    side = {name: [r.calibration_check.time_s] if r.calibration_check is not None else []
+            for name, r in timed.last.items()}
+    errors = {name: trajectory_errors(r.estimate, r.covariances, flight.groundtruth)
+              for name, r in timed.last.items()}
     print(f"{args.frames} frames, seed {args.seed}, {args.repeats} interleaved runs")
     print(f"{'variant':18} {'median_s':>9} {'/held':>6} {'side_s':>7} {'rmse_3d_m':>10} "
           f"{'anees':>6}")

@@ -25,16 +25,17 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from interleaved import interleaved  # noqa: E402 (benchmarks/)
+
 from cdtm_graph.evaluation import trajectory_errors  # noqa: E402
 from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight  # noqa: E402
-from cdtm_graph.smoother import SmootherMode, SmootherSettings, smooth  # noqa: E402
+from cdtm_graph.smoother import SmootherMode, SmootherSettings  # noqa: E402
 from cdtm_graph.smoother.incremental import IncrementalSmoother  # noqa: E402
 from factors import RobustKernel  # noqa: E402
 
@@ -66,15 +67,10 @@ def main(argv: list[str] | None = None) -> None:
         frames=args.frames, fps=args.fps, n_features=args.features, seed=args.seed,
         nav="noisy_truth"))
     runs = variants()
-    times: dict[str, list[float]] = {name: [] for name in runs}
-    errors = {}
-    for _ in range(args.repeats):
-        for name, settings in runs.items():
-            start = time.perf_counter()
-            result = smooth(flight, dtm, settings)
-            times[name].append(time.perf_counter() - start)
-            errors[name] = trajectory_errors(result.estimate, result.covariances,
-                                             flight.groundtruth)
+    timed = interleaved(flight, dtm, runs, args.repeats)
+    times = timed.times_s
+    errors = {name: trajectory_errors(r.estimate, r.covariances, flight.groundtruth)
+              for name, r in timed.last.items()}
     base_none = float(np.median(times["robust none"]))
     base_bare = float(np.median(times["bare"]))
     print(f"{args.frames} frames, {args.features} features, {args.repeats} interleaved runs")

@@ -168,7 +168,6 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
     start = time.perf_counter()
     est = result.estimate
     sub, kept = thinned(flight, MAX_FRAMES)
-    n = int(kept[1] - kept[0]) if kept.size > 1 else 1
     values = gtsam.Values()
     for j, k in enumerate(kept):
         values.insert(X(j), gtsam.Pose3(est.world_T_body[k]))
@@ -176,8 +175,8 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
         values.insert(B(j), gtsam.imuBias.ConstantBias(est.accel_bias[k], est.gyro_bias[k]))
     values.insert(CALIBRATION_KEY, np.zeros(CALIBRATION_DIM))
     batch = replace(settings, mode=SmootherMode.BATCH, lag_s=None)
-    if unfixed_frames is not None:
-        unfixed_frames = unfixed_frames[unfixed_frames % n == 0] // n
+    if unfixed_frames is not None:  # the kept ones, as the thinned log numbers them
+        unfixed_frames = np.searchsorted(kept, unfixed_frames[np.isin(unfixed_frames, kept)])
     built = build_log_graph(sub, dtm, batch, values, left_out, unfixed_frames, sigmas)
     solver = LinearSolver()
     # The likelihood ratio: this graph's optimum with the calibration pinned at
