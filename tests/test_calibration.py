@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from gtsam.symbol_shorthand import X
 
-from cdtm_graph.flightlog import CalibrationSigmas, Tracks, read_flightlog, write_flightlog
+from cdtm_graph.flightlog import CalibrationSigmas, read_flightlog, write_flightlog
 from cdtm_graph.graph import GraphSettings
 from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.sim.faults import with_calibration_error
