@@ -32,9 +32,9 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 from numba import njit
-from scipy.spatial import cKDTree
 
 from cdtm_graph.mismatch import MismatchSettings, TrackHeights, TrackJudgement, judge
+from cdtm_graph.neighbours import ball_sums
 from cdtm_graph.results import StateCovariances, TerrainFindings
 
 #: Clutter heights the expectation-maximization starts from (pits and objects), m.
@@ -265,16 +265,10 @@ def _neighbourhood_mean(points: np.ndarray, values: np.ndarray, used: np.ndarray
     out = np.full(points.shape[0], default)
     if src.size == 0:
         return out
-    tree = cKDTree(points[src, :2])
     where = np.flatnonzero(np.isfinite(points[:, 0]))
-    neighbours = tree.query_ball_point(points[where, :2], radius_m)
-    counts = np.array([len(n) for n in neighbours])
-    flat = np.concatenate([np.asarray(n, dtype=np.int64) for n in neighbours]) \
-        if counts.sum() else np.zeros(0, np.int64)
-    owner = np.repeat(np.arange(where.size), counts)
-    sums = np.bincount(owner, weights=values[src][flat], minlength=where.size)
+    sums, counts = ball_sums(points[where], points[src], values[src, None], radius_m)
     has = counts > 0
-    out[where[has]] = sums[has] / counts[has]
+    out[where[has]] = sums[has, 0] / counts[has]
     return out
 
 

@@ -230,28 +230,16 @@ class Dtm:
 
     # -- surface queries -------------------------------------------------------------
 
-    def _patches(self, x: np.ndarray, y: np.ndarray):
-        """Locate points in their cells.
-
-        Returns the broadcast shape, flat (M,) arrays of cell row i, column j, local
-        coordinates a, b in [0, 1] and a validity mask (inside the grid). Points on the
-        last row/column use the last cell.
-        """
+    def _surface(self, x: np.ndarray, y: np.ndarray, normals: bool):
+        """The broadcast shape, flat heights and (with ``normals``) upward normals."""
         xb, yb = np.broadcast_arrays(np.asarray(x, dtype=float), np.asarray(y, dtype=float))
-        shape = xb.shape
-        rows, cols = self.shape
-        u = ((xb - self.x0) / self.dx).ravel()
-        v = ((yb - self.y0) / self.dy).ravel()
-        # A point on the grid edge computed in floating point may land a hair outside.
-        eps = _EDGE_TOL_CELLS
-        inside = (u >= -eps) & (u <= cols - 1 + eps) & (v >= -eps) & (v <= rows - 1 + eps)
-        j = np.clip(np.floor(np.where(inside, u, 0.0)).astype(np.intp), 0, cols - 2)
-        i = np.clip(np.floor(np.where(inside, v, 0.0)).astype(np.intp), 0, rows - 2)
-        return shape, i, j, np.clip(u - j, 0.0, 1.0), np.clip(v - i, 0.0, 1.0), inside
-
-    def _corners(self, i: np.ndarray, j: np.ndarray):
-        e = self.elevation
-        return e[i, j], e[i, j + 1], e[i + 1, j], e[i + 1, j + 1]
+        h = np.empty(xb.size)
+        normal = np.empty((xb.size if normals else 0, 3))
+        # compiled: callers ask for one point (a camera's ground) as often as for thousands
+        _surface_kernel(self.elevation, self.x0, self.y0, self.dx, self.dy,
+                        np.ascontiguousarray(xb).reshape(-1), np.ascontiguousarray(yb).reshape(-1),
+                        h, normal)
+        return xb.shape, h, normal
 
     def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Bilinear height of the surface.
@@ -263,10 +251,7 @@ class Dtm:
             Heights (m) with the broadcast shape; NaN outside the grid or in a cell touching
             no data.
         """
-        shape, i, j, a, b, inside = self._patches(x, y)
-        h00, h01, h10, h11 = self._corners(i, j)
-        h = h00 + (h01 - h00) * a + (h10 - h00) * b + (h00 - h01 - h10 + h11) * a * b
-        h = np.where(inside, h, np.nan)
+        shape, h, _ = self._surface(x, y, normals=False)
         return h.reshape(shape)
 
     def height_and_normal(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -282,15 +267,7 @@ class Dtm:
         Returns:
             (N,) heights (m) and (N, 3) normals; NaN where there is no height.
         """
-        _, i, j, a, b, inside = self._patches(x, y)
-        h00, h01, h10, h11 = self._corners(i, j)
-        ha, hb, k = h01 - h00, h10 - h00, h00 - h01 - h10 + h11
-        h = np.where(inside, h00 + ha * a + hb * b + k * a * b, np.nan)
-        normal = np.empty((h.size, 3))
-        normal[:, 0] = -(ha + k * b) / self.dx
-        normal[:, 1] = -(hb + k * a) / self.dy
-        normal[:, 2] = 1.0
-        normal[np.isnan(h)] = np.nan
+        _, h, normal = self._surface(x, y, normals=True)
         return h, normal
 
     # -- ray casting -----------------------------------------------------------------
@@ -479,6 +456,33 @@ def _smallest_root(A: float, B: float, C: float, s_lim: float) -> float:
     if 0.0 <= hi <= s_lim:
         return hi
     return -1.0
+
+
+@njit(cache=True)
+def _surface_kernel(elev, x0, y0, dx, dy, x, y, h, normal):
+    """Bilinear height of each point (NaN outside the grid, a hair of tolerance at its
+    edge) and, if ``normal`` has rows, the patch's upward normal ``(-dh/dx, -dh/dy, 1)``
+    (NaN with the height). Points on the last row/column use the last cell."""
+    rows, cols = elev.shape
+    eps = _EDGE_TOL_CELLS
+    for p in range(x.shape[0]):
+        u = (x[p] - x0) / dx
+        v = (y[p] - y0) / dy
+        inside = (u >= -eps) and (u <= cols - 1 + eps) and (v >= -eps) and (v <= rows - 1 + eps)
+        j = min(max(int(np.floor(u)) if inside else 0, 0), cols - 2)
+        i = min(max(int(np.floor(v)) if inside else 0, 0), rows - 2)
+        a = min(max(u - j, 0.0), 1.0)
+        b = min(max(v - i, 0.0), 1.0)
+        h00, h01, h10, h11 = elev[i, j], elev[i, j + 1], elev[i + 1, j], elev[i + 1, j + 1]
+        ha, hb, k = h01 - h00, h10 - h00, h00 - h01 - h10 + h11
+        h[p] = h00 + ha * a + hb * b + k * a * b if inside else np.nan
+        if normal.shape[0]:
+            if np.isnan(h[p]):
+                normal[p, 0] = normal[p, 1] = normal[p, 2] = np.nan
+            else:
+                normal[p, 0] = -(ha + k * b) / dx
+                normal[p, 1] = -(hb + k * a) / dy
+                normal[p, 2] = 1.0
 
 
 @njit(cache=True, parallel=False)
@@ -693,21 +697,58 @@ def grazing_hits(dtm: Dtm, origin: np.ndarray, directions: np.ndarray, points: n
     Returns:
         (n,) bool, True for grazing rays.
     """
-    d = directions / np.linalg.norm(directions, axis=1, keepdims=True)
-    # two unit vectors perpendicular to each ray
-    helper = np.where(np.abs(d[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
-    u = np.cross(d, helper)
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    v = np.cross(d, u)
-    angle = np.broadcast_to(np.asarray(angle_rad, dtype=float), d.shape[:1])
-    n_unit = normals / np.linalg.norm(normals, axis=1, keepdims=True)
-    cos_incidence = np.abs(np.einsum("ni,ni->n", d, n_unit))
-    smooth_m = np.linalg.norm(points - origin, axis=1) * angle / np.maximum(cos_incidence, 1e-3)
-    # the four turned rays of every ray, cast at once
-    turned = (d[None] + angle[None, :, None] * np.stack([u, -u, v, -v])).reshape(-1, 3)
-    hit_points, _, hit = dtm.tangent_planes(origin, turned)
-    moved = np.linalg.norm(hit_points.reshape(4, -1, 3) - points, axis=2)
-    return (~hit.reshape(4, -1) | ~(moved <= jump * smooth_m)).any(axis=0)
+    d = np.ascontiguousarray(directions, dtype=np.float64)
+    angle = np.ascontiguousarray(np.broadcast_to(np.asarray(angle_rad, dtype=np.float64),
+                                                 d.shape[:1]))
+    # one compiled pass: a frame's few hundred rays are too few for numpy's per-call cost
+    return _grazing_kernel(dtm.elevation, dtm._cell_max, dtm.x0, dtm.y0, dtm.dx, dtm.dy,
+                           dtm._z_top, np.asarray(origin, dtype=np.float64), d,
+                           np.ascontiguousarray(points, dtype=np.float64),
+                           np.ascontiguousarray(normals, dtype=np.float64), angle, float(jump))
+
+
+@njit(cache=True)
+def _grazing_kernel(elev, cell_max, x0, y0, dx, dy, z_top, origin, directions, points,
+                    normals, angle, jump):
+    """:func:`grazing_hits`: the four turned rays of every ray cast in one call."""
+    n = directions.shape[0]
+    turned = np.empty((4 * n, 3))
+    smooth_m = np.empty(n)
+    for r in range(n):
+        d = directions[r] / np.sqrt(np.sum(directions[r] ** 2))
+        # two unit vectors perpendicular to the ray
+        h = np.array([0.0, 0.0, 1.0]) if abs(d[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+        u = np.array([d[1] * h[2] - d[2] * h[1], d[2] * h[0] - d[0] * h[2],
+                      d[0] * h[1] - d[1] * h[0]])
+        u /= np.sqrt(np.sum(u**2))
+        v = np.array([d[1] * u[2] - d[2] * u[1], d[2] * u[0] - d[0] * u[2],
+                      d[0] * u[1] - d[1] * u[0]])
+        a = angle[r]
+        for c in range(3):
+            turned[r, c] = d[c] + a * u[c]
+            turned[n + r, c] = d[c] - a * u[c]
+            turned[2 * n + r, c] = d[c] + a * v[c]
+            turned[3 * n + r, c] = d[c] - a * v[c]
+        cos_incidence = abs(np.sum(d * normals[r])) / np.sqrt(np.sum(normals[r] ** 2))
+        smooth_m[r] = (np.sqrt(np.sum((points[r] - origin) ** 2)) * a
+                       / max(cos_incidence, 1e-3))
+    origins = np.empty((4 * n, 3))
+    for r in range(4 * n):
+        origins[r] = origin
+    hit_point = np.full((4 * n, 3), np.nan)
+    hit_normal = np.full((4 * n, 3), np.nan)
+    t = np.empty(4 * n)
+    status = np.full(4 * n, np.int8(RayStatus.MISS))
+    _raycast_kernel(elev, cell_max, x0, y0, dx, dy, z_top, origins, turned, hit_point, t,
+                    hit_normal, status)
+    grazing = np.zeros(n, dtype=np.bool_)
+    for w in range(4):
+        for r in range(n):
+            i = w * n + r
+            moved = np.sqrt(np.sum((hit_point[i] - points[r]) ** 2))
+            if status[i] != np.int8(RayStatus.HIT) or not moved <= jump * smooth_m[r]:
+                grazing[r] = True
+    return grazing
 
 
 #: A point counts as visible if the first terrain hit toward it lies within this of it (m).

@@ -148,5 +148,7 @@ def rigid_motion_to_tangent(world_T_body: np.ndarray, about_m: np.ndarray) -> np
     ``about_m``; :func:`rigid_motion_transfer`) to the pose's GTSAM tangent [rot, trans]
     (right perturbation, body frame): ``R -> Exp(omega) R``, ``p -> p + omega x (p - about)
     + t``, i.e. ``[R^T omega, R^T (omega x (p - about) + t)]``."""
-    R_t = np.asarray(world_T_body, dtype=float)[:3, :3].T
-    return np.kron(np.eye(2), R_t) @ rigid_motion_transfer(world_T_body[:3, 3], about_m)
+    T = np.asarray(world_T_body, dtype=float)
+    # blockdiag(R^T, R^T) @ transfer as one broadcast product (np.kron costs more per factor)
+    transfer = rigid_motion_transfer(T[:3, 3], about_m)
+    return (T[:3, :3].T @ transfer.reshape(2, 3, 6)).reshape(6, 6)

@@ -316,7 +316,7 @@ def cdtm_information(factors: Sequence[CdtmPairFactor], world_T_body: Callable[[
         pose_a, pose_b = world_T_body(a), world_T_body(b)
         _, H_a, H_b = f.evaluate(pose_a, pose_b)
         centre = pose_b[:3, 3]
-        M = H_a @ rigid_motion_to_tangent(pose_a, centre) + H_b @ rigid_motion_to_tangent(
-            pose_b, centre)
-        info[b] += np.einsum("nki,nkj->ij", M, M)
+        M = (H_a.reshape(-1, 6) @ rigid_motion_to_tangent(pose_a, centre)
+             + H_b.reshape(-1, 6) @ rigid_motion_to_tangent(pose_b, centre))
+        info[b] += M.T @ M
     return info

@@ -36,10 +36,10 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from scipy.spatial import cKDTree
 from scipy.stats import chi2
 
 from cdtm_graph.dtm import Dtm
+from cdtm_graph.neighbours import ball_sums, near_any
 from cdtm_graph.tracks import first_sightings
 
 #: chi-square(1) at 99.9%.
@@ -278,25 +278,19 @@ def mismatched(heights: TrackHeights, sigma_h_m: float,
     # evidence about its neighbours' ground, and one such would condemn them all.
     rest = np.flatnonzero(known & ~out & (z2 <= s.gate))
     if rest.size >= s.min_neighbours:
-        tree = cKDTree(heights.point_m[rest, :2])
-        pairs = tree.query_pairs(s.radius_m, output_type="ndarray")
-        i = np.r_[pairs[:, 0], pairs[:, 1], np.arange(rest.size)]  # each is its own too
-        j = np.r_[pairs[:, 1], pairs[:, 0], np.arange(rest.size)]
+        xy = heights.point_m[rest]
         w = 1.0 / heights.sigma_m[rest] ** 2
-        sum_w = np.bincount(i, weights=w[j], minlength=rest.size)
-        mean = np.bincount(i, weights=(w * heights.dh_m[rest])[j], minlength=rest.size) / sum_w
-        count = np.bincount(i, minlength=rest.size)
-        var_mean = 1.0 / sum_w + sigma_h_m**2
+        # each track's neighbourhood holds itself too
+        sums, count = ball_sums(xy, xy, np.stack([w, w * heights.dh_m[rest]], axis=1),
+                                s.radius_m)
+        mean = sums[:, 1] / sums[:, 0]
+        var_mean = 1.0 / sums[:, 0] + sigma_h_m**2
         bad = (count >= s.min_neighbours) & (mean**2 / var_mean > s.neighbourhood_gate)
-        # a failed neighbourhood goes whole, the wild tracks in it too: they share it
-        members = np.zeros(rest.size, dtype=bool)
-        members[j[bad[i]]] = True
-        out[rest[members]] = True
-        wild = np.flatnonzero(known & ~out & (z2 > s.gate))
-        if wild.size and bad.any():
-            near = cKDTree(heights.point_m[rest[bad], :2]).query(
-                heights.point_m[wild, :2], distance_upper_bound=s.radius_m)[0]
-            out[wild[np.isfinite(near)]] = True
+        if bad.any():
+            # a failed neighbourhood goes whole, the wild tracks in it too: they share it
+            out[rest[near_any(xy, xy[bad], s.radius_m)]] = True
+            wild = np.flatnonzero(known & ~out & (z2 > s.gate))
+            out[wild[near_any(heights.point_m[wild], xy[bad], s.radius_m)]] = True
     return out
 
 

@@ -62,6 +62,16 @@ class LinearSolver:
 
     def __init__(self) -> None:
         self.qr = False
+        # the last solve's linearization, when it is at the values that solve returned (a
+        # converged solve's final check): the marginals need just that
+        self._linearized: tuple[gtsam.Values, gtsam.GaussianFactorGraph] | None = None
+
+    def linearized_at(self, values: gtsam.Values) -> gtsam.GaussianFactorGraph | None:
+        """The last solve's graph linearized at ``values``, if these are (the same
+        object as) the values it returned and it ended on that linearization; else None."""
+        if self._linearized is not None and self._linearized[0] is values:
+            return self._linearized[1]
+        return None
 
     def __call__(self, damped: gtsam.GaussianFactorGraph) -> gtsam.VectorValues:
         if not self.qr:
@@ -97,6 +107,7 @@ def levenberg_marquardt(
     initial_error = error
     lam, nu = lambda_initial, 2.0
     solve = solver or LinearSolver()  # pass one along to keep its Cholesky/QR verdict
+    solve._linearized = None
     iterations = 0
     converged = False
     try:
@@ -132,6 +143,7 @@ def levenberg_marquardt(
                 nu *= 2
             if not accepted:
                 converged = True  # no descent left at any damping
+                solve._linearized = (values, linear)
                 break
             decrease = (error - new_error) / max(error, 1e-300)
             values, error = candidate, new_error

@@ -134,6 +134,29 @@ def test_reaches_the_optimum_gtsam_levenberg_marquardt_reaches(rng):
         assert _pose_error(values.atPose3(X(k)), reference.atPose3(X(k))) < SOLUTION_TOL
 
 
+def test_a_converged_solve_keeps_its_final_linearization_for_the_marginals(rng):
+    """The solve that ends on a linearization at its answer (no step left) hands it on:
+    the same linear system a fresh ``linearize`` at the answer gives, and nothing for any
+    other values or after a solve stopped by its iteration limit."""
+    graph, initial, _ = _pose_chain(rng, loop_noise=0.05)
+    solver = LinearSolver()
+    values, stats = levenberg_marquardt(graph, initial, max_iterations=100,
+                                        relative_error_tol=1e-14, solver=solver)
+    assert stats.converged
+    kept = solver.linearized_at(values)
+    assert kept is not None
+    fresh = graph.linearize(values)
+    for i in range(fresh.size()):
+        A_kept, b_kept = kept.at(i).jacobian()
+        A_fresh, b_fresh = fresh.at(i).jacobian()
+        np.testing.assert_array_equal(A_kept, A_fresh)
+        np.testing.assert_array_equal(b_kept, b_fresh)
+    assert solver.linearized_at(gtsam.Values(values)) is None  # an equal copy: not known
+    levenberg_marquardt(graph, initial, max_iterations=1, relative_error_tol=1e-14,
+                        solver=solver)
+    assert solver.linearized_at(values) is None  # a later solve forgets the earlier one
+
+
 # -- damping, iterations, convergence --------------------------------------------------
 
 

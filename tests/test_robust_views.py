@@ -31,6 +31,7 @@ from cdtm_graph.mismatch import (
     triangulate,
     untrusted,
 )
+from cdtm_graph.neighbours import ball_sums, near_any
 from cdtm_graph.results import StateCovariances
 from cdtm_graph.tracks import first_sightings
 
@@ -164,6 +165,28 @@ def test_a_ray_grazing_a_ridge_is_recognised_and_one_on_open_ground_is_not():
 
 
 # ------------------------------------------------------------------ terrain the DTM lacks
+
+
+@pytest.mark.parametrize("extent", [(20000.0, 900.0), (900.0, 20000.0), (1500.0, 1500.0)])
+def test_ball_sums_are_the_sums_over_every_point_within_the_radius(extent):
+    """Against the all-pairs distances: along either axis (the search sorts along the
+    longer one), points exactly on the radius counted, points with a NaN coordinate
+    neither searching nor found."""
+    rng = np.random.default_rng(11)
+    ref = rng.uniform(0, 1, (700, 2)) * extent
+    query = np.r_[rng.uniform(0, 1, (300, 2)) * extent, ref[:50]]
+    query[0] = ref[3] + [300.0, 0.0]  # exactly on the radius of ref[3]
+    ref[7, 1] = np.nan
+    query[1, 0] = np.nan
+    values = rng.normal(size=(700, 2))
+    sums, counts = ball_sums(query, ref, values, 300.0)
+    with np.errstate(invalid="ignore"):
+        within = np.linalg.norm(query[:, None] - ref[None], axis=2) <= 300.0
+    assert within[0, 3] and within.any(axis=1).mean() > 0.5
+    np.testing.assert_array_equal(counts, within.sum(axis=1))
+    np.testing.assert_allclose(sums, within @ np.nan_to_num(values), atol=1e-12)
+    assert counts[1] == 0 and not within[:, 7].any()
+    np.testing.assert_array_equal(near_any(query, ref, 300.0), within.any(axis=1))
 
 
 def _heights(dh: np.ndarray, sigma: np.ndarray, xy: np.ndarray,

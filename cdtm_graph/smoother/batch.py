@@ -69,6 +69,9 @@ from factors.calibration import CALIBRATION_DIM
 #: estimate, no longer pulled by the worst, reveals).
 MISMATCH_ROUNDS = 8
 
+#: The first solve's relative tolerance: it stops where a step gains less than this.
+FIRST_SOLVE_TOL = 1e-4
+
 
 def _estimate_from_values(values: gtsam.Values, t_ns: np.ndarray) -> TrajectoryEstimate:
     K = t_ns.shape[0]
@@ -82,22 +85,26 @@ def _estimate_from_values(values: gtsam.Values, t_ns: np.ndarray) -> TrajectoryE
 
 
 def marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
-              K: int, qr_only: bool = False) -> StateCovariances:
-    """Per-frame marginals from a Bayes tree of the graph linearized at ``values``.
+              K: int, qr_only: bool = False,
+              linear: gtsam.GaussianFactorGraph | None = None) -> StateCovariances:
+    """Per-frame marginals from a Bayes tree of the graph linearized at ``values``
+    (``linear``, if the caller has it already).
 
     Cholesky first (as ``gtsam.Marginals``); where it declares the system indeterminant,
     which happens on these wide-range systems (information from ~1e-4 for the pose prior
     to ~1e10 for the bias random walk), QR, which does not square the condition number.
     """
     keys = [X(k) for k in range(K)] + [V(k) for k in range(K)] + [B(k) for k in range(K)]
-    cov = key_marginals(graph, values, keys, qr_only)
+    cov = key_marginals(graph, values, keys, qr_only, linear)
     return StateCovariances(np.stack(cov[:K]), np.stack(cov[K:2 * K]), np.stack(cov[2 * K:]))
 
 
 def key_marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
-                  keys: list[int], qr_only: bool = False) -> list[np.ndarray]:
+                  keys: list[int], qr_only: bool = False,
+                  linear: gtsam.GaussianFactorGraph | None = None) -> list[np.ndarray]:
     """The marginal covariance of each key (as :func:`marginals`)."""
-    linear = graph.linearize(values)
+    if linear is None:
+        linear = graph.linearize(values)
     for qr in (True,) if qr_only else (False, True):
         try:
             tree = (linear.eliminateMultifrontal(function=gtsam.EliminateQR) if qr
@@ -224,9 +231,9 @@ def _initial_values(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
     if flight.nav is not None:
         values = gtsam.Values()
         bias = initial_bias(flight.config.initial_state)
+        world_T_body = flight.nav.world_T_body  # (a property: every pose made anew)
         for k in range(len(flight.frames)):
-            insert_state(values, k, flight.nav.world_T_body[k], flight.nav.velocity_mps[k],
-                         bias)
+            insert_state(values, k, world_T_body[k], flight.nav.velocity_mps[k], bias)
         none = np.zeros(0, np.int64)
         return InitialGuess(values, "nav.csv", none, none, [], {})
     incremental = replace(settings, mode=SmootherMode.INCREMENTAL, lag_s=None)
@@ -347,8 +354,12 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
                             guess.unfixed_frames, calibration,
                             imu_rotations=guess.source == "nav.csv")
     solver = LinearSolver()
+    # The first solve only finds the basin for the first mismatch round and the noise
+    # refresh; the last one converges to the tolerance. (Its last iteration was a
+    # linearization that confirmed a step already taken.)
     values, first = levenberg_marquardt(built.graph, initial, settings.max_iterations,
-                                        settings.relative_error_tol, solver=solver)
+                                        max(settings.relative_error_tol, FIRST_SOLVE_TOL),
+                                        solver=solver)
     # Terrain the DTM lacks: drop the tracks off the map and solve again, until none is.
     # The first round judges the first solution, so that its drops and the refreshed
     # noise share one solve (a clean log then needs two solves, not three).
@@ -383,7 +394,8 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
         values = debiased(graph, values, built.cdtm)
     K = len(flight.frames)
     start = time.perf_counter()
-    covariances = (marginals(graph, values, K) if settings.marginals else
+    covariances = (marginals(graph, values, K, linear=solver.linearized_at(values))
+                   if settings.marginals else
                    StateCovariances(np.full((K, 6, 6), np.nan), np.full((K, 3, 3), np.nan),
                                     np.full((K, 6, 6), np.nan)))
     calibrated = None
