@@ -95,6 +95,37 @@ def test_reintersect_uses_the_plane_at_the_new_hit(rng):
     np.testing.assert_allclose(fixed.evaluate(Ta, Tb)[0], reint.evaluate(Ta, Tb)[0], atol=1e-9)
 
 
+def test_a_derived_factor_keeps_the_planes_cast_at_the_same_pose(rng):
+    """``with_features``, ``with_robust_scale`` and ``refreshed`` hand on the planes the
+    factor cast last: evaluated at that pose, the derived factor casts nothing and equals
+    one that cast its own; at another pose it casts anew."""
+    terrain = WavyTerrain(amplitude_m=60.0, wavelength_m=400.0)
+    body_T_cam, Ta, Tb, feats = random_pair(rng, terrain)
+    casts = []
+
+    def raycast(origin, ray):
+        casts.append(len(ray))
+        return terrain.raycast(np.broadcast_to(origin, ray.shape), ray)
+
+    moved = Ta @ make_pose(np.eye(3), [30.0, -20.0, 5.0])
+    reint = CdtmPairFactor(X(0), X(1), feats, body_T_cam, PlaneMode.REINTERSECT, raycast)
+    reint.evaluate(moved, Tb)
+    keep = np.arange(feats.n) % 3 != 0
+    derived = reint.with_features(keep).with_robust_scale(np.full(keep.sum(), 2.0))
+    n_casts = len(casts)
+    e_derived = derived.evaluate(moved, Tb)[0].copy()
+    assert len(casts) == n_casts
+    own = CdtmPairFactor(X(0), X(1), feats.subset(keep), body_T_cam, PlaneMode.REINTERSECT,
+                         raycast).with_robust_scale(np.full(keep.sum(), 2.0))
+    np.testing.assert_array_equal(e_derived, own.evaluate(moved, Tb)[0])
+    refreshed = reint.refreshed(moved, Tb)
+    n_casts = len(casts)
+    refreshed.evaluate(moved, Tb)
+    assert len(casts) == n_casts
+    derived.evaluate(Ta, Tb)
+    assert len(casts) == n_casts + 1
+
+
 def test_data_jacobians_match_central_differences(rng):
     """Eq. 19 (q_b), eq. 20 (G_E) and the q_a Jacobian, feature by feature."""
     worst = 0.0
@@ -287,6 +318,27 @@ def test_numba_feature_covariance_equals_the_paper_formulas(rng):
                                        atol=1e-14 * np.abs(Sigma_e).max())
             np.testing.assert_allclose(built.sqrt_info, cdtm_math.sqrt_information(Sigma_e),
                                        rtol=1e-8)
+            if qa_noise is not None:  # the kernel's scale: the measured residual's spread
+                measured = built.whitened_full_covariance()
+                np.testing.assert_allclose(
+                    built.robust_scale,
+                    np.sqrt(np.maximum(0.5 * np.trace(measured, axis1=1, axis2=2), 1.0)),
+                    rtol=1e-10)
+
+
+def test_normalized_residuals_are_the_mahalanobis_distances_as_measured(rng):
+    """``e^T Sigma_full^-1 e`` of the unwhitened residual: the factor's whitening undone and
+    the measured noise's (both observations' pixels and the DTM) applied."""
+    for _ in range(10):
+        body_T_cam, Ta, Tb, feats = random_pair(rng, pixel_noise=5e-3)
+        factor = CdtmPairFactor(X(0), X(1), feats, body_T_cam)
+        d = factor.normalized_residuals(Ta, Tb)
+        raw = np.linalg.solve(feats.sqrt_info, factor.whitened_residuals(Ta, Tb)[..., None])
+        Sigma_full = np.linalg.inv(np.swapaxes(feats.sqrt_info_full, 1, 2)
+                                   @ feats.sqrt_info_full)
+        expected = (np.swapaxes(raw, 1, 2) @ np.linalg.solve(Sigma_full, raw))[:, 0, 0]
+        assert d.min() > 0
+        np.testing.assert_allclose(d, expected, rtol=1e-9)
 
 
 def test_innovation_spread_under_a_pose_prior_is_H_P_Ht(rng):

@@ -248,7 +248,7 @@ def test_cholesky_fails_where_qr_solves():
     np.testing.assert_allclose([solution.at(X(0))[0], solution.at(X(1))[0]], x_true, atol=1e-9)
 
 
-def test_linear_solver_switches_to_qr_for_good():
+def test_linear_solver_tries_cholesky_again_after_one_failure_and_not_after_two():
     solver = LinearSolver()
     well_posed = gtsam.GaussianFactorGraph()
     well_posed.add(X(0), np.eye(2), np.array([1.0, 2.0]), gtsam.noiseModel.Unit.Create(2))
@@ -256,11 +256,16 @@ def test_linear_solver_switches_to_qr_for_good():
     assert not solver.qr  # Cholesky while it works
 
     graph, x_true = _near_singular_system()
-    solution = solver(graph)
-    assert solver.qr
+    solution = solver(graph)  # QR solves what Cholesky cannot
     np.testing.assert_allclose([solution.at(X(0))[0], solution.at(X(1))[0]], x_true, atol=1e-9)
+    assert not solver.qr  # one failure: a system (a batch's first), not the problem
+    solver(well_posed)
+    solver(graph)
+    assert not solver.qr  # failures apart do not add up
+    solver(graph)
+    assert solver.qr  # two in a row: QR for good, no Cholesky attempt per iteration
     np.testing.assert_allclose(solver(well_posed).at(X(0)), [1.0, 2.0])
-    assert solver.qr  # the verdict is kept: no Cholesky attempt per iteration
+    assert solver.qr
 
 
 def test_levenberg_marquardt_solves_through_qr_when_cholesky_fails():
