@@ -18,7 +18,7 @@ from cdtm_graph.clutter import ClutterSettings
 from cdtm_graph.dtm import Dtm, grazing_hits
 from cdtm_graph.epipolar import EpipolarSettings
 from cdtm_graph.flightlog import CalibrationSigmas, FlightConfig, InitialState
-from cdtm_graph.geometry import rigid_motion_to_tangent
+from cdtm_graph.geometry import rays_in_world, rigid_motion_to_tangent
 from cdtm_graph.imu import GapNoise, SampleHold, initial_bias
 from cdtm_graph.mismatch import MismatchSettings, TrackHeights, track_heights
 from cdtm_graph.results import Rejection, Rejections
@@ -256,19 +256,21 @@ def track_observations(factors: Sequence[CdtmPairFactor], track_ids: Sequence[np
 
 def heights_at(track_id: np.ndarray, frame: np.ndarray, ray_cam: np.ndarray,
                world_T_body: Callable[[int], np.ndarray], body_T_cam: np.ndarray,
-               dtm: Dtm, noise: FeatureNoise) -> TrackHeights:
+               dtm: Dtm, noise: FeatureNoise, pose_sigma_m: float | np.ndarray = 0.0
+               ) -> TrackHeights:
     """Tracks triangulated from their observations ((M,) ids, (M,) frames, (M, 3) rays in
     the camera) at the given poses, against the DTM (:func:`cdtm_graph.mismatch.
-    track_heights`)."""
+    track_heights`); the frames' position 1-sigma ``pose_sigma_m`` is a scalar or one per
+    frame of ``np.unique(frame)``."""
     if track_id.size == 0:
         return TrackHeights.empty()
     frames = np.unique(frame)
-    world_T_cam = np.stack([world_T_body(int(k)) @ body_T_cam for k in frames])
+    world_T_cam = np.stack([world_T_body(int(k)) for k in frames]) @ body_T_cam
     at = np.searchsorted(frames, frame)
-    centre = world_T_cam[at, :3, 3]
-    ray = np.einsum("mij,mj->mi", world_T_cam[at, :3, :3], ray_cam)
+    centre, ray = rays_in_world(world_T_cam, at, ray_cam)
+    sigma = np.asarray(pose_sigma_m, dtype=float)
     return track_heights(track_id, centre, ray, float(np.mean(noise.sigma_q_xy)), dtm,
-                         noise.sigma_h_m)
+                         noise.sigma_h_m, sigma[at] if sigma.ndim else sigma)
 
 
 def without_tracks(factors: Sequence[CdtmPairFactor], track_ids: Sequence[np.ndarray],
@@ -281,12 +283,21 @@ def without_tracks(factors: Sequence[CdtmPairFactor], track_ids: Sequence[np.nda
         feature is left) and the replacements' track ids; the dropped features are
         counted for ``reason`` by the pair's later frame.
     """
-    changed, replacements, kept_ids = [], [], []
-    for i, (f, tid) in enumerate(zip(factors, track_ids)):
-        hit = np.isin(tid, drop)
-        if not hit.any():
-            continue
-        rejections.add(reason, int(gtsam.Symbol(f.key_b).index()), int(hit.sum()))
+    changed: list[int] = []
+    replacements: list[CdtmPairFactor | None] = []
+    kept_ids: list[np.ndarray] = []
+    if not track_ids or drop.size == 0:
+        return changed, replacements, kept_ids
+    # one test over every feature (a flight's factors one by one cost more than the rest)
+    sizes = np.array([tid.size for tid in track_ids])
+    hit_all = np.isin(np.concatenate(track_ids), drop)
+    n_hit = np.bincount(np.repeat(np.arange(sizes.size), sizes), weights=hit_all,
+                        minlength=sizes.size)
+    ends = np.cumsum(sizes)
+    for i in np.flatnonzero(n_hit).tolist():
+        f, tid = factors[i], track_ids[i]
+        hit = hit_all[ends[i] - sizes[i]:ends[i]]
+        rejections.add(reason, int(gtsam.Symbol(f.key_b).index()), int(n_hit[i]))
         changed.append(i)
         replacements.append(f.with_features(~hit) if not hit.all() else None)
         kept_ids.append(tid[~hit])

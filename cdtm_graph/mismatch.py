@@ -349,9 +349,9 @@ class TrackObservations:
 
     def add(self, track_id: np.ndarray, frame: np.ndarray, q: np.ndarray) -> None:
         """Record observations ((n,) ids, (n,) frames, (n, 3) rays); repeats are ignored."""
-        self._id = np.r_[self._id, track_id]
-        self._frame = np.r_[self._frame, frame]
-        self._q = np.r_[self._q, q]
+        self._id = np.concatenate((self._id, track_id))
+        self._frame = np.concatenate((self._frame, frame))
+        self._q = np.concatenate((self._q, q))
 
     def of(self, track_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The observations of these tracks, once each: (ids, frames, rays)."""

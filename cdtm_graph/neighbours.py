@@ -2,10 +2,10 @@
 views of the ground (:mod:`cdtm_graph.mismatch`'s neighbourhoods, :mod:`cdtm_graph.clutter`'s
 neighbourhood means).
 
-The reference points are sorted along the axis they spread over most; each query then
-looks at the strip within the radius along that axis only. A frame's few hundred tracks
-or a flight's few thousand, laid along a track on the ground, meet a strip of tens: the
-search is one compiled pass, not a tree built and walked from Python.
+The reference points are binned in square cells as wide as the radius and sorted by cell
+(column-major); a query then reads the three runs of cells (one per neighbouring column)
+around its own. One compiled pass, not a tree built and walked from Python: a frame's few
+hundred tracks or a flight's tens of thousands alike.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ def ball_sums(query_xy: np.ndarray, ref_xy: np.ndarray, ref_values: np.ndarray,
     Args:
         query_xy: (Q, 2+) the query points (columns beyond the first two are ignored).
         ref_xy: (R, 2+) the reference points. ref_values: (R, m) their values.
-        radius_m: the radius.
+        radius_m: the radius (> 0).
 
     Returns:
         ``sums`` (Q, m) and ``counts`` (Q,) int64. A point with a NaN coordinate has no
@@ -31,19 +31,19 @@ def ball_sums(query_xy: np.ndarray, ref_xy: np.ndarray, ref_values: np.ndarray,
     query = np.ascontiguousarray(query_xy[:, :2], dtype=np.float64)
     ref = np.ascontiguousarray(ref_xy[:, :2], dtype=np.float64)
     values = np.ascontiguousarray(ref_values, dtype=np.float64).reshape(ref.shape[0], -1)
-    finite = np.isfinite(ref).all(axis=1)
-    ref, values = ref[finite], values[finite]
-    spread = np.ptp(ref, axis=0) if ref.shape[0] else np.zeros(2)
-    axis = int(spread[1] > spread[0])  # sort along the longer extent
-    order = np.argsort(ref[:, axis], kind="stable")
-    ref, values = ref[order], values[order]
-    # the strip a hair wider than the radius (rounding of q +- r): the distance decides
-    reach = radius_m * (1.0 + 1e-9) + 1e-9
-    lo = np.searchsorted(ref[:, axis], query[:, axis] - reach, "left")
-    hi = np.searchsorted(ref[:, axis], query[:, axis] + reach, "right")
     sums = np.zeros((query.shape[0], values.shape[1]))
     counts = np.zeros(query.shape[0], np.int64)
-    _ball_sums_kernel(query, ref, values, lo, hi, radius_m * radius_m, sums, counts)
+    finite = np.isfinite(ref).all(axis=1)
+    if not finite.any():
+        return sums, counts
+    ref, values = ref[finite], values[finite]
+    origin = ref.min(axis=0)
+    # cells one radius wide, rows offset by one so that a cell's neighbours never wrap
+    n_rows = int(np.floor((ref[:, 1].max() - origin[1]) / radius_m)) + 3
+    key = _cell_keys(ref, origin, radius_m, n_rows)
+    order = np.argsort(key, kind="stable")
+    _ball_sums_kernel(query, ref[order], values[order], key[order], origin, radius_m,
+                      n_rows, sums, counts)
     return sums, counts
 
 
@@ -52,20 +52,34 @@ def near_any(query_xy: np.ndarray, ref_xy: np.ndarray, radius_m: float) -> np.nd
     return ball_sums(query_xy, ref_xy, np.zeros((ref_xy.shape[0], 0)), radius_m)[1] > 0
 
 
+def _cell_keys(xy: np.ndarray, origin: np.ndarray, size: float, n_rows: int) -> np.ndarray:
+    column = np.floor((xy[:, 0] - origin[0]) / size).astype(np.int64)
+    row = np.floor((xy[:, 1] - origin[1]) / size).astype(np.int64) + 1
+    return column * n_rows + row
+
+
 @njit(cache=True)
-def _ball_sums_kernel(query, ref, values, lo, hi, radius2, sums, counts):
+def _ball_sums_kernel(query, ref, values, key, origin, radius, n_rows, sums, counts):
+    radius2 = radius * radius
     m = values.shape[1]
-    acc = np.zeros(m)
+    n_columns = key[-1] // n_rows + 1
     for q in range(query.shape[0]):
         qx, qy = query[q, 0], query[q, 1]
-        acc[:] = 0.0
-        n = 0
-        for r in range(lo[q], hi[q]):
-            dx, dy = ref[r, 0] - qx, ref[r, 1] - qy
-            if dx * dx + dy * dy <= radius2:
-                n += 1
-                for c in range(m):
-                    acc[c] += values[r, c]
-        counts[q] = n
-        for c in range(m):
-            sums[q, c] = acc[c]
+        if not (np.isfinite(qx) and np.isfinite(qy)):
+            continue
+        column = int(np.floor((qx - origin[0]) / radius))
+        row = int(np.floor((qy - origin[1]) / radius)) + 1
+        if row < 0 or row > n_rows - 1 or column < -1 or column > n_columns:
+            continue  # farther than a cell from every reference point
+        row = min(max(row, 1), n_rows - 2)
+        for c in range(column - 1, column + 2):
+            if c < 0 or c >= n_columns:
+                continue
+            lo = np.searchsorted(key, c * n_rows + row - 1)
+            hi = np.searchsorted(key, c * n_rows + row + 1, side="right")
+            for r in range(lo, hi):
+                dx, dy = ref[r, 0] - qx, ref[r, 1] - qy
+                if dx * dx + dy * dy <= radius2:
+                    counts[q] += 1
+                    for j in range(m):
+                        sums[q, j] += values[r, j]

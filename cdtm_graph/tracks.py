@@ -151,7 +151,8 @@ class TrackTable:
         # Group by earlier frame (numpy here: a sort inside numba costs seconds to compile).
         order = np.argsort(frame_a, kind="stable")
         rows, frame_a, q_a, rank = rows[order], frame_a[order], q_a[order], rank[order]
-        bounds = np.r_[0, np.flatnonzero(frame_a[1:] != frame_a[:-1]) + 1, frame_a.size]
+        bounds = np.concatenate(([0], np.flatnonzero(frame_a[1:] != frame_a[:-1]) + 1,
+                                 [frame_a.size]))
         pairs = []
         for s, e in zip(bounds[:-1].tolist(), bounds[1:].tolist()):
             pairs.append(FramePairObservations(int(frame_a[s]), k, q_a[s:e], q[rows[s:e]],

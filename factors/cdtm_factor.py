@@ -212,8 +212,17 @@ class PairFeatures:
         coordinates ``sqrt_info`` whitens to (the identity without ``sqrt_info_full``)."""
         if self.sqrt_info_full is None:
             return np.broadcast_to(np.eye(2), (self.n, 2, 2)).copy()
-        T = self.sqrt_info @ np.linalg.inv(self.sqrt_info_full)
-        return T @ np.swapaxes(T, 1, 2)
+        # T = S F^-1, T T^T, with S, F the kernel's upper triangles [[a, b], [0, d]]
+        # (written out: numpy's stacked 2x2 inverse and products cost most of a gate)
+        S, F = self.sqrt_info, self.sqrt_info_full
+        t00 = S[:, 0, 0] / F[:, 0, 0]
+        t01 = (S[:, 0, 1] - t00 * F[:, 0, 1]) / F[:, 1, 1]
+        t11 = S[:, 1, 1] / F[:, 1, 1]
+        out = np.empty((self.n, 2, 2))
+        out[:, 0, 0] = t00 * t00 + t01 * t01
+        out[:, 0, 1] = out[:, 1, 0] = t01 * t11
+        out[:, 1, 1] = t11 * t11
+        return out
 
     def subset(self, index: np.ndarray) -> PairFeatures:
         """The features selected by ``index`` (mask or indices)."""

@@ -320,6 +320,9 @@ def test_numba_feature_covariance_equals_the_paper_formulas(rng):
                                        rtol=1e-8)
             if qa_noise is not None:  # the kernel's scale: the measured residual's spread
                 measured = built.whitened_full_covariance()
+                T = built.sqrt_info @ np.linalg.inv(built.sqrt_info_full)
+                np.testing.assert_allclose(measured, T @ np.swapaxes(T, 1, 2), rtol=1e-10,
+                                           atol=1e-14)
                 np.testing.assert_allclose(
                     built.robust_scale,
                     np.sqrt(np.maximum(0.5 * np.trace(measured, axis1=1, axis2=2), 1.0)),

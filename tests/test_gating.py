@@ -24,3 +24,18 @@ def test_innovation_distance_is_chi_square_2_for_a_linear_gaussian_model(rng):
         assert abs(passed - p) < 4 * np.sqrt(p * (1 - p) / n)
     with pytest.raises(ValueError):
         chi2_2dof_quantile(1.0)
+
+
+def test_innovation_distance_is_e_S_inverse_e_with_a_measurement_covariance(rng):
+    """Against the formula as written: S = R + H P H^T (H = [H_a H_b]), d = e^T S^-1 e."""
+    n = 50
+    L = rng.normal(size=(12, 12))
+    P = L @ L.T * 0.01
+    H_a, H_b = rng.normal(size=(n, 2, 6)), rng.normal(size=(n, 2, 6))
+    M = rng.normal(size=(n, 2, 2))
+    R = M @ np.swapaxes(M, 1, 2) + 0.1 * np.eye(2)
+    e = rng.normal(size=(n, 2))
+    H = np.concatenate([H_a, H_b], axis=2)
+    S = R + H @ P @ np.swapaxes(H, 1, 2)
+    expected = [e[i] @ np.linalg.solve(S[i], e[i]) for i in range(n)]
+    np.testing.assert_allclose(innovation_mahalanobis(e, H_a, H_b, P, R), expected, rtol=1e-10)

@@ -8,7 +8,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cdtm_graph.geometry import (
+    make_pose,
     quat_wxyz_to_rotation,
+    rays_in_world,
     rotation_to_quat_wxyz,
     so3_exp,
     so3_log,
@@ -74,3 +76,16 @@ def test_quarter_turn_about_z_maps_x_to_y():
 def test_log_is_accurate_for_tiny_angles(angle):
     w = np.array([angle, -0.5 * angle, 0.25 * angle])
     np.testing.assert_allclose(so3_log(so3_exp(w)), w, rtol=1e-6)
+
+
+def test_rays_in_world_are_each_cameras_rotation_and_centre():
+    rng = np.random.default_rng(4)
+    cams = np.stack([make_pose(so3_exp(rng.normal(size=3)), rng.normal(0, 100, 3))
+                     for _ in range(5)])
+    camera = rng.integers(0, 5, 40)
+    ray_cam = rng.normal(size=(40, 3))
+    centre, ray = rays_in_world(cams, camera, ray_cam)
+    for m in range(40):
+        np.testing.assert_array_equal(centre[m], cams[camera[m], :3, 3])
+        np.testing.assert_allclose(ray[m], cams[camera[m], :3, :3] @ ray_cam[m], rtol=1e-14,
+                                   atol=1e-14)

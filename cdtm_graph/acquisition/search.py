@@ -137,7 +137,10 @@ def needs_acquisition(position_covariance_world: np.ndarray, heading_sigma_rad: 
     """
     settings = settings or AcquisitionSettings()
     P = np.asarray(position_covariance_world, dtype=float)[:2, :2]
-    reach_m = settings.n_sigma * math.sqrt(max(float(np.linalg.eigvalsh(P)[-1]), 0.0))
+    # the larger eigenvalue of the symmetric 2x2, closed form (asked every frame)
+    half_trace, half_diff = 0.5 * (P[0, 0] + P[1, 1]), 0.5 * (P[0, 0] - P[1, 1])
+    largest = half_trace + math.hypot(half_diff, 0.5 * (P[0, 1] + P[1, 0]))
+    reach_m = settings.n_sigma * math.sqrt(max(float(largest), 0.0))
     reach_deg = settings.n_sigma * math.degrees(heading_sigma_rad)
     # (a prior exactly at the pull-in, e.g. 50 m at 3 sigma, needs no search: round-off
     # in the eigenvalues must not decide)

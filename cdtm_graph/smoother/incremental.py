@@ -26,7 +26,6 @@ from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import FlightConfig, FlightLog
 from cdtm_graph.gating import InnovationGate, residual_test
-from cdtm_graph.geometry import so3_log
 from cdtm_graph.graph import (
     cdtm_factors,
     cdtm_information,
@@ -235,9 +234,9 @@ class IncrementalSmoother:
                 k, new, new_ids, self._pose_guess, self._pair_prior(k, link, values),
                 test=not self._converging)
         if new and self._judge is not None and not self._converging \
-                and self._judge.settle(k, self._position_sigma_m()):
+                and self._judge.settle(k, sigma_m := self._position_sigma_m()):
             new, new_ids, off_map, wrong = self._judge.judge_new(
-                k, new, new_ids, self._pose_guess, self._position_sigma_m())
+                k, new, new_ids, self._pose_guess, sigma_m)
             if off_map.size:
                 self._forget_tracks(off_map, Rejection.MAP_MISMATCH)
             if wrong.size:
@@ -517,9 +516,13 @@ class IncrementalSmoother:
 
     def _moved_far(self, k: int, predicted: np.ndarray) -> bool:
         """Whether frame k's estimate is past the refresh thresholds from ``predicted``."""
-        moved = np.linalg.inv(predicted) @ self._poses[k]
-        return bool(np.linalg.norm(moved[:3, 3]) >= self.NOISE_REFRESH_POSITION_M
-                    or np.linalg.norm(so3_log(moved[:3, :3])) >= self.NOISE_REFRESH_ROTATION_RAD)
+        pose = self._poses[k]
+        # predicted^-1 pose (rigid: no general inverse)
+        moved_m = float(np.linalg.norm(pose[:3, 3] - predicted[:3, 3]))
+        # the angle of predicted^T pose from its trace
+        cos_angle = 0.5 * (float(np.sum(predicted[:3, :3] * pose[:3, :3])) - 1.0)
+        return bool(moved_m >= self.NOISE_REFRESH_POSITION_M
+                    or cos_angle <= np.cos(self.NOISE_REFRESH_ROTATION_RAD))
 
     def _refresh_newest_noise(self, k: int, predicted: np.ndarray, n: int) -> None:
         """When frame k's update moved it far from its IMU prediction (early frames under a

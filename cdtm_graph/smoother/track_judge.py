@@ -15,12 +15,12 @@ import numpy as np
 
 from cdtm_graph.clutter import Clutter, ClutterSettings, assess, considered_offsets
 from cdtm_graph.dtm import Dtm
+from cdtm_graph.graph import heights_at
 from cdtm_graph.mismatch import (
     MismatchSettings,
     TrackHeights,
     TrackObservations,
     judge,
-    track_heights,
     untrusted,
 )
 from cdtm_graph.results import Rejection, Rejections
@@ -89,10 +89,9 @@ class TrackJudge:
                track_ids: Sequence[np.ndarray]) -> None:
         """The observations of factors that entered the solver, frame k their later one."""
         for f, ids in zip(factors, track_ids):
-            self.observations.add(np.r_[ids, ids],
-                                  np.r_[np.full(ids.size, _frame(f.key_a)),
-                                        np.full(ids.size, k)],
-                                  np.r_[f.features.q_a, f.features.q_b])
+            self.observations.add(np.concatenate((ids, ids)),
+                                  np.repeat([_frame(f.key_a), k], ids.size),
+                                  np.concatenate((f.features.q_a, f.features.q_b)))
 
     def keep_out(self, k: int, pairs: list[FramePairObservations]
                  ) -> list[FramePairObservations]:
@@ -108,16 +107,20 @@ class TrackJudge:
         none = np.zeros(0, np.int64)
         tid, frame, q = self.observations.of(np.concatenate(track_ids))
         # this frame's observations (and the earlier ones of tracks seen for the first time)
-        tid = np.r_[tid, *track_ids, *track_ids]
-        frame = np.r_[frame, *(np.full(i.size, k) for i in track_ids),
-                      *(np.full(i.size, _frame(f.key_a)) for f, i in zip(factors, track_ids))]
-        q = np.r_[q, *(f.features.q_b for f in factors), *(f.features.q_a for f in factors)]
+        tid = np.concatenate((tid, *track_ids, *track_ids))
+        frame = np.concatenate((frame, *(np.full(i.size, k) for i in track_ids),
+                                *(np.full(i.size, _frame(f.key_a))
+                                  for f, i in zip(factors, track_ids))))
+        q = np.concatenate((q, *(f.features.q_b for f in factors),
+                            *(f.features.q_a for f in factors)))
         first = first_sightings(tid, frame)
         tid, frame, q = tid[first], frame[first], q[first]
         # tracks seen before the poses settled are not judged (their early poses were off)
         assert self._judge_from is not None
-        judged = ~np.isin(tid, tid[frame < self._judge_from])
-        tid, frame, q = tid[judged], frame[judged], q[judged]
+        early = frame < self._judge_from
+        if early.any():
+            judged = ~np.isin(tid, tid[early])
+            tid, frame, q = tid[judged], frame[judged], q[judged]
         if tid.size == 0:
             return factors, track_ids, none, none
         judgement = judge(self._heights(tid, frame, q, pose_of, position_sigma_m),
@@ -185,11 +188,5 @@ class TrackJudge:
                  position_sigma_m: float | np.ndarray) -> TrackHeights:
         """These observations' tracks triangulated at the given poses (the frames' position
         1-sigma scalar or per frame of ``np.unique(frame)``)."""
-        frames = np.unique(frame)
-        world_T_cam = np.stack([pose_of(int(j)) @ self.body_T_cam for j in frames])
-        at = np.searchsorted(frames, frame)
-        sigma = np.asarray(position_sigma_m, dtype=float)
-        return track_heights(tid, world_T_cam[at, :3, 3],
-                             np.einsum("mij,mj->mi", world_T_cam[at, :3, :3], q),
-                             float(np.mean(self.noise.sigma_q_xy)), self.dtm,
-                             self.noise.sigma_h_m, sigma[at] if sigma.ndim else sigma)
+        return heights_at(tid, frame, q, pose_of, self.body_T_cam, self.dtm, self.noise,
+                          position_sigma_m)
