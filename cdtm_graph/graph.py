@@ -22,7 +22,7 @@ from cdtm_graph.geometry import rays_in_world, rigid_motion_to_tangent
 from cdtm_graph.imu import GapNoise, SampleHold, initial_bias
 from cdtm_graph.mismatch import MismatchSettings, TrackHeights, track_heights
 from cdtm_graph.results import Rejection, Rejections
-from cdtm_graph.tracks import FramePairObservations, first_sightings
+from cdtm_graph.tracks import FramePairObservations, first_sightings, frames_seen
 from factors import CdtmPairFactor, FeatureNoise, PairFeatures, PlaneMode, RobustKernel
 from factors.calibration import CalibrationLink
 
@@ -264,9 +264,8 @@ def heights_at(track_id: np.ndarray, frame: np.ndarray, ray_cam: np.ndarray,
     frame of ``np.unique(frame)``."""
     if track_id.size == 0:
         return TrackHeights.empty()
-    frames = np.unique(frame)
+    frames, at = frames_seen(frame)
     world_T_cam = np.stack([world_T_body(int(k)) for k in frames]) @ body_T_cam
-    at = np.searchsorted(frames, frame)
     centre, ray = rays_in_world(world_T_cam, at, ray_cam)
     sigma = np.asarray(pose_sigma_m, dtype=float)
     return track_heights(track_id, centre, ray, float(np.mean(noise.sigma_q_xy)), dtm,

@@ -40,7 +40,7 @@ from scipy.stats import chi2
 
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.neighbours import ball_sums, near_any
-from cdtm_graph.tracks import first_sightings
+from cdtm_graph.tracks import first_sightings, frames_seen
 
 #: chi-square(1) at 99.9%.
 CHI2_1DOF_999 = 10.827566170662733
@@ -391,8 +391,7 @@ def untrusted(track_id: np.ndarray, frame: np.ndarray, off: np.ndarray,
     """
     if off.size == 0 or track_id.size == 0:
         return off
-    frames, index = np.unique(frame, return_inverse=True)
-    index = index.reshape(-1)
+    frames, index = frames_seen(frame)
     bad = np.isin(track_id, off)
     share = np.bincount(index, weights=bad, minlength=frames.size) / np.bincount(
         index, minlength=frames.size)

@@ -226,6 +226,17 @@ def pairs_without(pairs: list[FramePairObservations], track_ids: np.ndarray, k: 
     return kept
 
 
+def frames_seen(frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct frames of a set of observations and each one's index among them: what
+    ``np.unique(frame, return_inverse=True)`` gives, by counting (frame indices are small
+    non-negative integers; a flight's observations are too many to sort twice a solve)."""
+    frame = np.asarray(frame)
+    if frame.size == 0:
+        return frame.astype(np.int64), np.zeros(0, np.int64)
+    seen = np.bincount(frame) > 0
+    return np.flatnonzero(seen), (np.cumsum(seen) - 1)[frame]
+
+
 def first_sightings(track_id: np.ndarray, frame: np.ndarray) -> np.ndarray:
     """Indices of the first of each (track, frame) among these observations, ordered by
     track then frame (as ``np.unique(np.c_[track_id, frame], axis=0, return_index=True)``

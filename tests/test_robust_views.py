@@ -33,7 +33,7 @@ from cdtm_graph.mismatch import (
 )
 from cdtm_graph.neighbours import ball_sums, near_any
 from cdtm_graph.results import StateCovariances
-from cdtm_graph.tracks import first_sightings
+from cdtm_graph.tracks import first_sightings, frames_seen
 
 SIGMA_PX = 0.5
 FOCAL_PX = 550.0
@@ -295,6 +295,15 @@ def test_first_sightings_are_the_first_of_each_track_and_frame():
         frame = rng.integers(0, 12, 300)
         _, expected = np.unique(np.c_[track_id, frame], axis=0, return_index=True)
         assert np.array_equal(first_sightings(track_id, frame), expected)
+
+
+def test_frames_seen_are_numpys_unique_frames_and_inverse():
+    rng = np.random.default_rng(15)
+    for size in (0, 1, 500):
+        frame = rng.integers(3, 40, size)
+        frames, index = frames_seen(frame)
+        expected, inverse = np.unique(frame, return_inverse=True)
+        assert np.array_equal(frames, expected) and np.array_equal(index, inverse)
 
 
 def test_a_frame_mostly_off_the_map_is_not_trusted_at_all():
