@@ -58,6 +58,9 @@ from factors.kernel import (
     triangularize,
 )
 
+#: ``cdtm_linearize``'s ``e_loss_out`` when only one kind of residual is wanted.
+_NO_LOSS = np.empty((0, 2))
+
 #: ``raycast(origin (3,) or (n,3), directions (n,3)) -> (points, normals, valid)``, fresh
 #: (n,3), (n,3), (n,) arrays; normals ``(-dh/dx, -dh/dy, 1)``. The factor stays free of
 #: any DTM class.
@@ -330,10 +333,12 @@ class CdtmPairFactor:
         scale = features.robust_scale if features.robust_scale is not None else np.ones(n)
         self._kernel_k = np.ascontiguousarray(self.robust_threshold * scale)
         self._e = np.empty((n, 2))
+        self._e_loss = np.empty((n, 2))  # the error evaluation's residuals (robust loss)
         self._Ha = np.empty((n, 2, 6))
         self._Hb = np.empty((n, 2, 6))
         self.n_inactive = 0
         self._planes_cache: tuple[bytes, np.ndarray, np.ndarray] | None = None
+        self._evaluated_at: bytes | None = None  # the poses _e, _Ha, _Hb were made at
         # Tall pairs reach GTSAM as a 13-row triangle: QR elimination of the raw 2n rows
         # was most of a fixed-lag update, and the batch's memory.
         keys = [key_a, key_b]
@@ -379,11 +384,19 @@ class CdtmPairFactor:
 
         The arrays are the factor's own buffers: copy them to keep them. With a
         calibration link, at its ``value`` (the variable's value: :meth:`evaluate_calibrated`).
+        Without one the Jacobians are made whether or not ``want_jacobians`` asks (and kept
+        for the next call at the same poses).
         """
         if self.calibration is not None:
             e, Ha, Hb, _ = self.evaluate_calibrated(world_T_body_a, world_T_body_b,
                                                     self.calibration.value, want_jacobians)
             return e, Ha, Hb
+        # An optimizer evaluates the error at a candidate and, taking the step, linearizes
+        # there: the Jacobians are made at the first call (about twice a bare error's
+        # cost) and the second is a lookup. (Rejected candidates pay for them unused.)
+        key = world_T_body_a.tobytes() + world_T_body_b.tobytes()
+        if self._evaluated_at == key:
+            return self._e if want_jacobians else self._e_loss, self._Ha, self._Hb
         wTc_a = world_T_body_a @ self.body_T_cam
         wTc_b = world_T_body_b @ self.body_T_cam
         G_E, N = self.planes(wTc_a)
@@ -391,8 +404,9 @@ class CdtmPairFactor:
         self.n_inactive = cdtm_linearize(
             wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3], self._Ad,
             f.q_a, G_E, N, f.basis_b, f.sqrt_info, self.robust.kernel_id,
-            self._kernel_k, want_jacobians, self._e, self._Ha, self._Hb)
-        return self._e, self._Ha, self._Hb
+            self._kernel_k, True, self._e, self._Ha, self._Hb, self._e_loss)
+        self._evaluated_at = key
+        return self._e if want_jacobians else self._e_loss, self._Ha, self._Hb
 
     def _calibrated_kernel(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray,
                            calibration: np.ndarray, kernel: int, want_jacobians: bool,
@@ -418,7 +432,7 @@ class CdtmPairFactor:
         sqrt_info = f.sqrt_info * (1.0 + s)
         self.n_inactive = cdtm_linearize(
             wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3], Ad, q_a, G_E, N,
-            basis_b, sqrt_info, kernel, self._kernel_k, want_jacobians, e, Ha, Hb)
+            basis_b, sqrt_info, kernel, self._kernel_k, want_jacobians, e, Ha, Hb, _NO_LOSS)
         return Ad
 
     def evaluate_calibrated(
@@ -557,7 +571,7 @@ class CdtmPairFactor:
             cdtm_linearize(wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3],
                            cdtm_math.body_to_cam_adjoint(body_T_cam), q_a, G_moved, N_moved,
                            basis_b, sqrt_moved * (1.0 + s) if calibrated else sqrt_moved,
-                           KERNEL_NONE, k_moved, False, e, H, H)
+                           KERNEL_NONE, k_moved, False, e, H, H, _NO_LOSS)
             sides = e.reshape(len(moves), 2, f.n, 2)
             odd = 0.5 * (sides[:, 0] - sides[:, 1])
             return float(weight @ np.einsum("mni,mni->n", odd, odd))
@@ -645,7 +659,7 @@ class CdtmPairFactor:
         Hb = np.empty((f.n, 2, 6)) if want_jacobians else self._Hb
         cdtm_linearize(wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3], self._Ad,
                        f.q_a, G_E, N, f.basis_b, f.sqrt_info, KERNEL_NONE, self._kernel_k,
-                       want_jacobians, e, Ha, Hb)
+                       want_jacobians, e, Ha, Hb, _NO_LOSS)
         return e, Ha, Hb
 
     def normalized_residuals(self, world_T_body_a: np.ndarray,

@@ -62,7 +62,7 @@ def robust_loss(kernel: int, k: float, s: float) -> float:
 @njit(cache=True)
 def cdtm_linearize(
     R_a, p_a, R_b, p_b, Ad, q_a, G_E, N, basis, sqrt_info, kernel, kernel_k,
-    want_jacobians, e_out, Ha_out, Hb_out,
+    want_jacobians, e_out, Ha_out, Hb_out, e_loss_out,
 ):
     """Whitened, robustly reweighted residuals and body-pose Jacobians of n features.
 
@@ -77,6 +77,9 @@ def cdtm_linearize(
             residuals (a linearization); otherwise return residuals whose half
             squared norm is the robust loss (an error evaluation).
         e_out: (n, 2) output. Ha_out, Hb_out: (n, 2, 6) outputs (body tangents).
+        e_loss_out: (n, 2) or (0, 2): with Jacobians, also the error evaluation's
+            residuals (so that an error and a linearization at the same poses are one
+            call); (0, 2) for none.
 
     Returns:
         Number of features that were inactive (ray parallel to the plane or
@@ -98,6 +101,9 @@ def cdtm_linearize(
             n_inactive += 1
             e_out[i, 0] = 0.0
             e_out[i, 1] = 0.0
+            if want_jacobians and e_loss_out.shape[0]:
+                e_loss_out[i, 0] = 0.0
+                e_loss_out[i, 1] = 0.0
             if want_jacobians:
                 Ha_out[i, :, :] = 0.0
                 Hb_out[i, :, :] = 0.0
@@ -120,15 +126,17 @@ def cdtm_linearize(
         w0 = S00 * u0 + S01 * u1
         w1 = S10 * u0 + S11 * u1
         s = np.sqrt(w0 * w0 + w1 * w1)
-        if not want_jacobians:
+        if not want_jacobians or e_loss_out.shape[0]:
+            loss_out = e_out if not want_jacobians else e_loss_out
             if kernel == KERNEL_NONE or s == 0.0:
-                e_out[i, 0] = w0
-                e_out[i, 1] = w1
+                loss_out[i, 0] = w0
+                loss_out[i, 1] = w1
             else:
                 scale = np.sqrt(2.0 * robust_loss(kernel, kernel_k[i], s)) / s
-                e_out[i, 0] = w0 * scale
-                e_out[i, 1] = w1 * scale
-            continue
+                loss_out[i, 0] = w0 * scale
+                loss_out[i, 1] = w1 * scale
+            if not want_jacobians:
+                continue
         sw = np.sqrt(robust_weight(kernel, kernel_k[i], s)) if kernel != KERNEL_NONE else 1.0
         e_out[i, 0] = sw * w0
         e_out[i, 1] = sw * w1

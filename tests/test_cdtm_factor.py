@@ -126,6 +126,32 @@ def test_a_derived_factor_keeps_the_planes_cast_at_the_same_pose(rng):
     assert len(casts) == n_casts + 1
 
 
+@pytest.mark.parametrize("robust", [RobustKernel.NONE, RobustKernel.CAUCHY])
+def test_an_error_then_a_linearization_at_the_same_poses_are_what_each_gives_alone(rng,
+                                                                                   robust):
+    """The factor keeps what it made at the last poses (the Jacobians too, at an error
+    evaluation): the next call there, with or without Jacobians, and calls at other poses
+    give what a fresh factor gives."""
+    body_T_cam, Ta, Tb, feats = random_pair(rng, n=40, pixel_noise=8e-3)
+    moved = Ta @ make_pose(np.eye(3), [3.0, -2.0, 1.0])
+
+    def fresh(Tx, want):
+        f = CdtmPairFactor(X(0), X(1), feats, body_T_cam, robust=robust)
+        return [a.copy() for a in f.evaluate(Tx, Tb, want)]
+
+    factor = CdtmPairFactor(X(0), X(1), feats, body_T_cam, robust=robust)
+    for Tx, want in ((moved, False), (moved, True), (moved, False), (Ta, True), (Ta, False),
+                     (moved, True)):
+        got = factor.evaluate(Tx, Tb, want)
+        expected = fresh(Tx, want)
+        np.testing.assert_array_equal(got[0], expected[0])
+        if want:
+            np.testing.assert_array_equal(got[1], expected[1])
+            np.testing.assert_array_equal(got[2], expected[2])
+    if robust is not RobustKernel.NONE:  # the two residuals differ under a kernel
+        assert np.abs(fresh(moved, True)[0] - fresh(moved, False)[0]).max() > 1e-3
+
+
 def test_data_jacobians_match_central_differences(rng):
     """Eq. 19 (q_b), eq. 20 (G_E) and the q_a Jacobian, feature by feature."""
     worst = 0.0
