@@ -339,6 +339,9 @@ class CdtmPairFactor:
         self.n_inactive = 0
         self._planes_cache: tuple[bytes, np.ndarray, np.ndarray] | None = None
         self._evaluated_at: bytes | None = None  # the poses _e, _Ha, _Hb were made at
+        # _calibrated_setup's, by time offset and by focal scale
+        self._shifts: dict[float, tuple[np.ndarray, ...]] = {}
+        self._rays: dict[float, tuple[np.ndarray, ...]] = {}
         # Tall pairs reach GTSAM as a 13-row triangle: QR elimination of the raw 2n rows
         # was most of a fixed-lag update, and the batch's memory.
         keys = [key_a, key_b]
@@ -414,26 +417,49 @@ class CdtmPairFactor:
         """The kernel at a calibration (5,); Jacobians w.r.t. the right perturbations of
         the bodies at exposure, ``X Exp(dt xi)``. Returns ``Ad(cam_T_body)`` of the
         corrected mount."""
-        link = self.calibration
-        assert link is not None
-        dt, s = float(calibration[TIME_OFFSET]), float(calibration[FOCAL_SCALE])
-        body_T_cam = corrected_mount(self.body_T_cam, calibration[MOUNT])
-        wTc_a = world_T_body_a @ shift(link.twist_a, dt) @ body_T_cam
-        wTc_b = world_T_body_b @ shift(link.twist_b, dt) @ body_T_cam
-        f = self.features
-        q_a = corrected_rays(f.q_a, s)
-        basis_b = cdtm_math.orthonormal_complement(corrected_rays(f.q_b, s))
+        s = float(calibration[FOCAL_SCALE])
+        shift_a, shift_b, body_T_cam, Ad, q_a, basis_b, sqrt_info = self._calibrated_setup(
+            calibration)
+        wTc_a = world_T_body_a @ shift_a @ body_T_cam
+        wTc_b = world_T_body_b @ shift_b @ body_T_cam
         G_E, N = self.planes(wTc_a, s)
-        Ad = cdtm_math.body_to_cam_adjoint(body_T_cam)
-        # The whitening was made for the nominal focal length: the pixel noise is (1 + s)
-        # times smaller in the corrected normalized coordinates. Without this the cost
-        # itself would fall as the focal length grows (every residual shrinks), pulling
-        # the scale (and with it the height) off: +0.46% and 8 m on a clean flight.
-        sqrt_info = f.sqrt_info * (1.0 + s)
         self.n_inactive = cdtm_linearize(
             wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3], Ad, q_a, G_E, N,
             basis_b, sqrt_info, kernel, self._kernel_k, want_jacobians, e, Ha, Hb, _NO_LOSS)
         return Ad
+
+    #: Time offsets and focal scales whose derived quantities a factor keeps (a solve's
+    #: current ones and the focal scale's two central-difference neighbours).
+    _SETUPS_KEPT = 4
+
+    def _calibrated_setup(self, calibration: np.ndarray) -> tuple[np.ndarray, ...]:
+        """What the kernel needs at a calibration (5,) besides the poses: the two body
+        shifts over the time offset, the corrected mount and its adjoint (shared by every
+        factor: :func:`_mount_at`), the corrected rays' ``q_a`` and ``q_b``'s basis, the
+        whitening. Kept for the last few values: a solve asks for the same ones at every
+        factor evaluation."""
+        link = self.calibration
+        assert link is not None
+        dt, s = float(calibration[TIME_OFFSET]), float(calibration[FOCAL_SCALE])
+        shifts = self._shifts.get(dt)
+        if shifts is None:
+            shifts = _kept(self._shifts, dt, (shift(link.twist_a, dt), shift(link.twist_b, dt)),
+                           self._SETUPS_KEPT)
+        rays = self._rays.get(s)
+        if rays is None:
+            f = self.features
+            # The whitening was made for the nominal focal length: the pixel noise is
+            # (1 + s) times smaller in the corrected normalized coordinates. Without this
+            # the cost itself would fall as the focal length grows (every residual
+            # shrinks), pulling the scale (and with it the height) off: +0.46% and 8 m on
+            # a clean flight.
+            rays = _kept(self._rays, s, (corrected_rays(f.q_a, s),
+                                         cdtm_math.orthonormal_complement(
+                                             corrected_rays(f.q_b, s)),
+                                         f.sqrt_info * (1.0 + s)), self._SETUPS_KEPT)
+        body_T_cam, Ad = _mount_at(self.body_T_cam.tobytes(),
+                                   np.asarray(calibration[MOUNT], dtype=float).tobytes())
+        return (*shifts, body_T_cam, Ad, *rays)
 
     def evaluate_calibrated(
         self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray,
@@ -754,6 +780,27 @@ class CdtmPairFactor:
         jacobians[1] = np.ascontiguousarray(R[:, 6:12])
         jacobians[2] = np.ascontiguousarray(R[:, 12:12 + CALIBRATION_DIM])
         return np.ascontiguousarray(R[:, -1])
+
+
+def _kept(cache: dict, key: Any, value: tuple[np.ndarray, ...], size: int
+          ) -> tuple[np.ndarray, ...]:
+    """``cache[key] = value``, the oldest entry out beyond ``size``; returns ``value``."""
+    if len(cache) >= size:
+        cache.pop(next(iter(cache)))
+    cache[key] = value
+    return value
+
+
+@functools.lru_cache(maxsize=8)
+def _mount_at(body_T_cam: bytes, mount: bytes) -> tuple[np.ndarray, np.ndarray]:
+    """The mount corrected by a calibration's mount part, and its ``Ad(cam_T_body)``
+    (both as bytes of float arrays: (4, 4) and (3,)); read-only, shared by the factors."""
+    corrected = corrected_mount(np.frombuffer(body_T_cam).reshape(4, 4),
+                                np.frombuffer(mount))
+    Ad = cdtm_math.body_to_cam_adjoint(corrected)
+    corrected.flags.writeable = False
+    Ad.flags.writeable = False
+    return corrected, Ad
 
 
 def make_feature_factors(
