@@ -73,7 +73,7 @@ class LinearSolver:
         self._failures = 0  # Cholesky failures in a row
         # the last solve's linearization, when it is at the values that solve returned (a
         # converged solve's final check): the marginals need just that
-        self._linearized: tuple[gtsam.Values, gtsam.GaussianFactorGraph] | None = None
+        self._linearized: tuple[gtsam.Values, gtsam.GaussianFactorGraph | None] | None = None
 
     def __call__(self, damped: gtsam.GaussianFactorGraph) -> gtsam.VectorValues:
         if not self.qr:
@@ -85,6 +85,11 @@ class LinearSolver:
                 self._failures += 1
                 self.qr = self._failures >= self.FAILURES_FOR_GOOD
         return damped.optimize(gtsam.EliminateQR)
+
+    def remember(self, values: gtsam.Values | None,
+                 linear: gtsam.GaussianFactorGraph | None = None) -> None:
+        """Keep a solve's final linearization at the values it returns (None: forget)."""
+        self._linearized = None if values is None else (values, linear)
 
     def linearized_at(self, values: gtsam.Values) -> gtsam.GaussianFactorGraph | None:
         """The last solve's graph linearized at ``values``, if these are (the same
@@ -119,7 +124,7 @@ def levenberg_marquardt(
     initial_error = error
     lam, nu = lambda_initial, 2.0
     solve = solver or LinearSolver()  # pass one along to keep its Cholesky/QR verdict
-    solve._linearized = None
+    solve.remember(None)
     iterations = 0
     converged = False
     try:
@@ -155,7 +160,7 @@ def levenberg_marquardt(
                 nu *= 2
             if not accepted:
                 converged = True  # no descent left at any damping
-                solve._linearized = (values, linear)
+                solve.remember(values, linear)
                 break
             decrease = (error - new_error) / max(error, 1e-300)
             values, error = candidate, new_error

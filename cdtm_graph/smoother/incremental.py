@@ -517,9 +517,9 @@ class IncrementalSmoother:
     def _moved_far(self, k: int, predicted: np.ndarray) -> bool:
         """Whether frame k's estimate is past the refresh thresholds from ``predicted``."""
         pose = self._poses[k]
-        # predicted^-1 pose (rigid: no general inverse)
+        # the motion predicted^-1 pose: its translation's length (a rotation keeps it) and
+        # its angle from the trace of predicted^T pose
         moved_m = float(np.linalg.norm(pose[:3, 3] - predicted[:3, 3]))
-        # the angle of predicted^T pose from its trace
         cos_angle = 0.5 * (float(np.sum(predicted[:3, :3] * pose[:3, :3])) - 1.0)
         return bool(moved_m >= self.NOISE_REFRESH_POSITION_M
                     or cos_angle <= np.cos(self.NOISE_REFRESH_ROTATION_RAD))
