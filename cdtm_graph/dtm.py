@@ -236,7 +236,7 @@ class Dtm:
         h = np.empty(xb.size)
         normal = np.empty((xb.size if normals else 0, 3))
         # compiled: callers ask for one point (a camera's ground) as often as for thousands
-        _surface_kernel(self.elevation, self.x0, self.y0, self.dx, self.dy,
+        surface_kernel(self.elevation, self.x0, self.y0, self.dx, self.dy,
                         np.ascontiguousarray(xb).reshape(-1), np.ascontiguousarray(yb).reshape(-1),
                         h, normal)
         return xb.shape, h, normal
@@ -459,10 +459,11 @@ def _smallest_root(A: float, B: float, C: float, s_lim: float) -> float:
 
 
 @njit(cache=True)
-def _surface_kernel(elev, x0, y0, dx, dy, x, y, h, normal):
+def surface_kernel(elev, x0, y0, dx, dy, x, y, h, normal):
     """Bilinear height of each point (NaN outside the grid, a hair of tolerance at its
     edge) and, if ``normal`` has rows, the patch's upward normal ``(-dh/dx, -dh/dy, 1)``
-    (NaN with the height). Points on the last row/column use the last cell."""
+    (NaN with the height). Points on the last row/column use the last cell. (Compiled:
+    :meth:`Dtm.height_and_normal`'s, for other kernels to call too.)"""
     rows, cols = elev.shape
     eps = _EDGE_TOL_CELLS
     for p in range(x.shape[0]):

@@ -12,7 +12,9 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
+from numba import njit
 
+from cdtm_graph.geometry import largest_eigenvalue_sym3
 from cdtm_graph.results import Rejection, Rejections
 from factors import CdtmPairFactor
 
@@ -41,10 +43,37 @@ def innovation_covariance(H_a: np.ndarray, H_b: np.ndarray, P: np.ndarray,
                           R: np.ndarray | None = None) -> np.ndarray:
     """Each feature's innovation covariance ``S_i = R_i + H_i P H_i^T``, (n, 2, 2)
     (:func:`innovation_mahalanobis`)."""
-    H = np.concatenate([H_a, H_b], axis=2)
-    # one (2n, 12) product, not n stacked ones
-    HP = (H.reshape(-1, 12) @ P).reshape(H.shape)
-    return np.einsum("nik,njk->nij", HP, H) + (np.eye(2) if R is None else R)
+    n = H_a.shape[0]
+    R = np.broadcast_to(np.eye(2), (n, 2, 2)) if R is None else R
+    # compiled: a frame's few hundred 2x12 products are too small for numpy's calls
+    return _innovation_covariance(np.ascontiguousarray(H_a, float),
+                                  np.ascontiguousarray(H_b, float),
+                                  np.ascontiguousarray(P, float), np.ascontiguousarray(R, float))
+
+
+@njit(cache=True)
+def _innovation_covariance(H_a, H_b, P, R):
+    n = H_a.shape[0]
+    S = np.empty((n, 2, 2))
+    H, HP = np.empty((2, 12)), np.empty((2, 12))
+    for i in range(n):
+        for r in range(2):
+            for j in range(6):
+                H[r, j], H[r, 6 + j] = H_a[i, r, j], H_b[i, r, j]
+        for r in range(2):
+            for c in range(12):
+                total = 0.0
+                for j in range(12):
+                    total += H[r, j] * P[j, c]
+                HP[r, c] = total
+        for r in range(2):
+            for c in range(r, 2):
+                total = 0.0
+                for j in range(12):
+                    total += HP[r, j] * H[c, j]
+                S[i, r, c] = total + R[i, r, c]
+        S[i, 1, 0] = S[i, 0, 1] - R[i, 0, 1] + R[i, 1, 0]
+    return S
 
 
 def _mahalanobis(e: np.ndarray, S: np.ndarray) -> np.ndarray:
@@ -193,7 +222,7 @@ class InnovationGate:
             return scaled, list(track_ids)
         d_all = np.concatenate(tested)
         self.nis.append(d_all)
-        spread = (max(1.0, float(np.median(d_all)) / CHI2_2DOF_MEDIAN)
+        spread = (max(1.0, _median(d_all) / CHI2_2DOF_MEDIAN)
                   if d_all.size >= self.MIN_FOR_SPREAD else 1.0)
         kept: list[CdtmPairFactor] = []
         kept_ids: list[np.ndarray] = []
@@ -221,8 +250,17 @@ class InnovationGate:
         return np.concatenate(self.nis) if self.nis else np.zeros(0)
 
 
+def _median(x: np.ndarray) -> float:
+    """``np.median`` of a non-empty 1-d array by one partition (a tenth of its cost)."""
+    lo, hi = (x.size - 1) // 2, x.size // 2
+    part = np.partition(x, (lo, hi, x.size - 1))
+    if np.isnan(part[-1]):  # NaNs sort last
+        return float("nan")
+    return float(0.5 * (part[lo] + part[hi]))
+
+
 def _sigmas_within(cov: np.ndarray, limit: float) -> bool:
-    """Whether every 1-sigma of a covariance is within ``limit``: its largest eigenvalue
+    """Whether every 1-sigma of a 3x3 covariance is within ``limit``: its largest eigenvalue
     against ``limit^2``, settled by the trace (an upper bound) where it can be."""
     return bool(np.trace(cov) <= limit * limit
-                or np.linalg.eigvalsh(cov).max() <= limit * limit)
+                or largest_eigenvalue_sym3(cov) <= limit * limit)

@@ -183,3 +183,27 @@ def _rays_in_world_kernel(world_T_cam, camera, ray_cam, centre, ray):
         for r in range(3):
             centre[m, r] = T[r, 3]
             ray[m, r] = T[r, 0] * ray_cam[m, 0] + T[r, 1] * ray_cam[m, 1] + T[r, 2] * ray_cam[m, 2]
+
+
+def largest_eigenvalue_sym3(A: np.ndarray) -> float:
+    """The largest eigenvalue of a symmetric 3x3 (a covariance's largest variance)."""
+    return float(sym3_eigenvalue_range(np.asarray(A, dtype=np.float64))[1])
+
+
+@njit(cache=True)
+def sym3_eigenvalue_range(A: np.ndarray) -> tuple[float, float]:
+    """The smallest and largest eigenvalues of a symmetric 3x3, in closed form (the
+    trigonometric solution of the characteristic cubic; LAPACK per matrix costs more than
+    what asks for them)."""
+    off = A[0, 1] ** 2 + A[0, 2] ** 2 + A[1, 2] ** 2
+    q = (A[0, 0] + A[1, 1] + A[2, 2]) / 3.0
+    p2 = (A[0, 0] - q) ** 2 + (A[1, 1] - q) ** 2 + (A[2, 2] - q) ** 2 + 2.0 * off
+    if p2 <= 0.0:  # a multiple of the identity
+        return q, q
+    p = np.sqrt(p2 / 6.0)
+    b00, b11, b22 = (A[0, 0] - q) / p, (A[1, 1] - q) / p, (A[2, 2] - q) / p
+    b01, b02, b12 = A[0, 1] / p, A[0, 2] / p, A[1, 2] / p
+    half_det = 0.5 * (b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02)
+                      + b02 * (b01 * b12 - b11 * b02))
+    phi = np.arccos(min(max(half_det, -1.0), 1.0)) / 3.0
+    return q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0), q + 2.0 * p * np.cos(phi)

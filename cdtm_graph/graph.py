@@ -265,7 +265,10 @@ def heights_at(track_id: np.ndarray, frame: np.ndarray, ray_cam: np.ndarray,
     if track_id.size == 0:
         return TrackHeights.empty()
     frames, at = frames_seen(frame)
-    world_T_cam = np.stack([world_T_body(int(k)) for k in frames]) @ body_T_cam
+    world_T_cam = np.empty((frames.size, 4, 4))
+    for i, k in enumerate(frames.tolist()):
+        world_T_cam[i] = world_T_body(k)
+    world_T_cam = world_T_cam @ body_T_cam
     centre, ray = rays_in_world(world_T_cam, at, ray_cam)
     sigma = np.asarray(pose_sigma_m, dtype=float)
     return track_heights(track_id, centre, ray, float(np.mean(noise.sigma_q_xy)), dtm,

@@ -914,8 +914,7 @@ def propagate_covariance(factor: gtsam.CombinedImuFactor, values: gtsam.Values,
         earlier state, ``C``, is ``M C``.
     """
     A, _ = factor.linearize(values).jacobian()
-    A_0, A_1 = A[:, _EARLIER_COLUMNS], A[:, _LATER_COLUMNS]
-    M = -np.linalg.solve(A_1, A_0)
-    A_1_inv = np.linalg.inv(A_1)
+    A_1_inv = np.linalg.inv(A[:, _LATER_COLUMNS])
+    M = -A_1_inv @ A[:, _EARLIER_COLUMNS]
     later = M @ covariance @ M.T + A_1_inv @ A_1_inv.T
     return 0.5 * (later + later.T), M

@@ -38,9 +38,10 @@ import numpy as np
 from numba import njit
 from scipy.stats import chi2
 
-from cdtm_graph.dtm import Dtm
+from cdtm_graph.dtm import Dtm, surface_kernel
+from cdtm_graph.geometry import sym3_eigenvalue_range
 from cdtm_graph.neighbours import ball_sums, near_any
-from cdtm_graph.tracks import first_sightings, frames_seen
+from cdtm_graph.tracks import frames_seen, track_groups
 
 #: chi-square(1) at 99.9%.
 CHI2_1DOF_999 = 10.827566170662733
@@ -143,21 +144,8 @@ def triangulate(track_index: np.ndarray, n_tracks: int, centre_m: np.ndarray,
 @njit(cache=True)
 def _well_conditioned(A: np.ndarray) -> bool:
     """Whether a symmetric positive semi-definite 3x3's smallest eigenvalue exceeds 1e-12
-    of its largest (the eigenvalues in closed form: LAPACK per track cost more than the
-    rest of the triangulation)."""
-    off = A[0, 1] ** 2 + A[0, 2] ** 2 + A[1, 2] ** 2
-    q = (A[0, 0] + A[1, 1] + A[2, 2]) / 3.0
-    p2 = (A[0, 0] - q) ** 2 + (A[1, 1] - q) ** 2 + (A[2, 2] - q) ** 2 + 2.0 * off
-    if p2 <= 0.0:  # a multiple of the identity
-        return q > 0.0
-    p = np.sqrt(p2 / 6.0)
-    b00, b11, b22 = (A[0, 0] - q) / p, (A[1, 1] - q) / p, (A[2, 2] - q) / p
-    b01, b02, b12 = A[0, 1] / p, A[0, 2] / p, A[1, 2] / p
-    half_det = 0.5 * (b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02)
-                      + b02 * (b01 * b12 - b11 * b02))
-    phi = np.arccos(min(max(half_det, -1.0), 1.0)) / 3.0
-    largest = q + 2.0 * p * np.cos(phi)
-    smallest = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    of its largest."""
+    smallest, largest = sym3_eigenvalue_range(A)
     return smallest > 1e-12 * max(largest, 1e-300)
 
 
@@ -243,33 +231,55 @@ def track_heights(track_id: np.ndarray, centre_m: np.ndarray, ray_world: np.ndar
             shift of a track's cameras moves its point by as much): each track's largest
             is added to its ``sigma``.
     """
-    ids, index, counts = np.unique(track_id, return_inverse=True, return_counts=True)
-    index = index.reshape(-1)
-    points, cov, chi2_fit = triangulate(index, ids.size, centre_m, ray_world, sigma_rad)
-    pose_var = np.asarray(pose_sigma_m, float) ** 2
-    if pose_var.ndim:  # each track's largest (grouped by a sort: no ufunc.at)
-        pose_var = np.maximum.reduceat(pose_var[np.argsort(index, kind="stable")],
-                                       np.cumsum(counts) - counts) if ids.size else pose_var[:0]
-    else:
-        pose_var = np.full(ids.size, float(pose_var))
-    ground, normal = dtm.height_and_normal(points[:, 0], points[:, 1])
-    dh = points[:, 2] - ground
-    # d(dh) = n . dX with n = (-dh/dx, -dh/dy, 1), the DTM's upward normal
-    var = np.einsum("ti,tij,tj->t", normal, cov, normal) + sigma_h_m**2 + pose_var
-    return TrackHeights(ids, points, counts, dh, np.sqrt(var), chi2_fit)
+    ids, index, counts = track_groups(track_id)
+    m, n_tracks = index.size, ids.size
+    points, cov, chi2_fit = np.empty((n_tracks, 3)), np.empty((n_tracks, 3, 3)), np.empty(n_tracks)
+    dh, sigma = np.empty(n_tracks), np.empty(n_tracks)
+    # (one compiled pass: the triangulation, the DTM there and the variance)
+    _heights_kernel(index, np.ascontiguousarray(centre_m, float),
+                    np.ascontiguousarray(ray_world, float),
+                    np.ascontiguousarray(np.broadcast_to(sigma_rad, (m,)), float),
+                    np.ascontiguousarray(np.broadcast_to(np.asarray(pose_sigma_m, float), (m,))),
+                    dtm.elevation, dtm.x0, dtm.y0, dtm.dx, dtm.dy, float(sigma_h_m),
+                    points, cov, chi2_fit, dh, sigma)
+    return TrackHeights(ids, points, counts, dh, sigma, chi2_fit)
+
+
+@njit(cache=True)
+def _heights_kernel(index, centre, ray, sigma_rad, pose_sigma, elev, x0, y0, dx, dy, sigma_h,
+                    points, cov, chi2_fit, dh, sigma):
+    """:func:`track_heights` into ``points``, ``cov``, ``chi2_fit``, ``dh``, ``sigma``."""
+    n_tracks = points.shape[0]
+    _triangulate_kernel(index, centre, ray, sigma_rad, points, cov, chi2_fit)
+    ground, normal = np.empty(n_tracks), np.empty((n_tracks, 3))
+    surface_kernel(elev, x0, y0, dx, dy, points[:, 0].copy(), points[:, 1].copy(), ground,
+                   normal)
+    pose_var = np.zeros(n_tracks)  # each track's largest
+    for i in range(index.shape[0]):
+        pose_var[index[i]] = max(pose_var[index[i]], pose_sigma[i] ** 2)
+    for t in range(n_tracks):
+        dh[t] = points[t, 2] - ground[t]
+        # d(dh) = n . dX with n = (-dh/dx, -dh/dy, 1), the DTM's upward normal
+        var = 0.0
+        for r in range(3):
+            for c in range(3):
+                var += normal[t, r] * cov[t, r, c] * normal[t, c]
+        sigma[t] = np.sqrt(var + sigma_h**2 + pose_var[t])
 
 
 def mismatched(heights: TrackHeights, sigma_h_m: float,
-               settings: MismatchSettings | None = None) -> np.ndarray:
+               settings: MismatchSettings | None = None,
+               wrong: np.ndarray | None = None) -> np.ndarray:
     """Which tracks lie off the DTM, (T,) bool: alone, or with their neighbourhood.
 
     Args:
         heights: the tracks. sigma_h_m: the DTM's height 1-sigma (the floor of a
             neighbourhood mean's uncertainty). settings: the tests.
+        wrong: (T,) :func:`inconsistent`'s answer, if known already.
     """
     s = settings or MismatchSettings()
-    known = (np.isfinite(heights.dh_m) & np.isfinite(heights.sigma_m)
-             & ~inconsistent(heights, s))
+    wrong = inconsistent(heights, s) if wrong is None else wrong
+    known = np.isfinite(heights.dh_m) & np.isfinite(heights.sigma_m) & ~wrong
     tested = known & (heights.n_observations >= s.min_observations)
     z2 = np.where(known, (heights.dh_m / np.where(known, heights.sigma_m, 1.0)) ** 2, 0.0)
     out = tested & (heights.sigma_m <= s.max_sigma_m) & (z2 > s.gate)
@@ -301,7 +311,7 @@ def inconsistent(heights: TrackHeights, settings: MismatchSettings | None = None
     s = settings or MismatchSettings()
     dof = 2 * heights.n_observations - 3
     limit = _chi2_quantiles(s.fit_probability, int(max(dof.max(initial=1), 1)))[
-        np.clip(dof, 1, None) - 1] if dof.size else np.zeros(0)
+        np.maximum(dof, 1) - 1] if dof.size else np.zeros(0)
     return (dof >= 1) & np.isfinite(heights.fit_chi2) & (heights.fit_chi2 > limit)
 
 
@@ -334,44 +344,9 @@ def judge(heights: TrackHeights, sigma_h_m: float,
           settings: MismatchSettings | None = None) -> TrackJudgement:
     """Every test on a set of tracks (:func:`mismatched`, :func:`inconsistent`)."""
     s = settings or MismatchSettings()
-    return TrackJudgement(heights.track_id[mismatched(heights, sigma_h_m, s)],
-                          heights.track_id[inconsistent(heights, s)])
-
-
-class TrackObservations:
-    """The observations that entered the graph, by track: what the incremental smoother
-    triangulates a track from when it is seen again."""
-
-    def __init__(self) -> None:
-        self._id = np.zeros(0, np.int64)
-        self._frame = np.zeros(0, np.int64)
-        self._q = np.zeros((0, 3))
-
-    def add(self, track_id: np.ndarray, frame: np.ndarray, q: np.ndarray) -> None:
-        """Record observations ((n,) ids, (n,) frames, (n, 3) rays); repeats are ignored."""
-        self._id = np.concatenate((self._id, track_id))
-        self._frame = np.concatenate((self._frame, frame))
-        self._q = np.concatenate((self._q, q))
-
-    def of(self, track_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The observations of these tracks, once each: (ids, frames, rays)."""
-        rows = np.flatnonzero(np.isin(self._id, track_ids))
-        if rows.size == 0:
-            return self._id[:0], self._frame[:0], self._q[:0]
-        first = first_sightings(self._id[rows], self._frame[rows])
-        rows = rows[first]
-        return self._id[rows], self._frame[rows], self._q[rows]
-
-    def since(self, frame: int) -> np.ndarray:
-        """Ids of the tracks observed at or after ``frame``."""
-        return np.unique(self._id[self._frame >= frame])
-
-    def forget_before(self, frame: int) -> None:
-        keep = self._frame >= frame
-        self._id, self._frame, self._q = self._id[keep], self._frame[keep], self._q[keep]
-
-    def __len__(self) -> int:
-        return int(self._id.size)
+    wrong = inconsistent(heights, s)
+    return TrackJudgement(heights.track_id[mismatched(heights, sigma_h_m, s, wrong)],
+                          heights.track_id[wrong])
 
 
 def untrusted(track_id: np.ndarray, frame: np.ndarray, off: np.ndarray,

@@ -31,20 +31,11 @@ def ball_sums(query_xy: np.ndarray, ref_xy: np.ndarray, ref_values: np.ndarray,
     query = np.ascontiguousarray(query_xy[:, :2], dtype=np.float64)
     ref = np.ascontiguousarray(ref_xy[:, :2], dtype=np.float64)
     values = np.ascontiguousarray(ref_values, dtype=np.float64).reshape(ref.shape[0], -1)
-    sums = np.zeros((query.shape[0], values.shape[1]))
-    counts = np.zeros(query.shape[0], np.int64)
-    finite = np.isfinite(ref).all(axis=1)
-    if not finite.any():
-        return sums, counts
-    ref, values = ref[finite], values[finite]
-    origin = ref.min(axis=0)
-    # cells one radius wide, rows offset by one so that a cell's neighbours never wrap
-    n_rows = int(np.floor((ref[:, 1].max() - origin[1]) / radius_m)) + 3
-    key = _cell_keys(ref, origin, radius_m, n_rows)
+    key, origin, n_rows, n_finite = _cell_keys(ref, float(radius_m))
+    # (numpy's sort: one inside numba costs seconds to compile)
     order = np.argsort(key, kind="stable")
-    _ball_sums_kernel(query, ref[order], values[order], key[order], origin, radius_m,
-                      n_rows, sums, counts)
-    return sums, counts
+    return _ball_sums_kernel(query, ref, values, key, order, n_finite, origin,
+                             float(radius_m), n_rows)
 
 
 def near_any(query_xy: np.ndarray, ref_xy: np.ndarray, radius_m: float) -> np.ndarray:
@@ -52,17 +43,52 @@ def near_any(query_xy: np.ndarray, ref_xy: np.ndarray, radius_m: float) -> np.nd
     return ball_sums(query_xy, ref_xy, np.zeros((ref_xy.shape[0], 0)), radius_m)[1] > 0
 
 
-def _cell_keys(xy: np.ndarray, origin: np.ndarray, size: float, n_rows: int) -> np.ndarray:
-    column = np.floor((xy[:, 0] - origin[0]) / size).astype(np.int64)
-    row = np.floor((xy[:, 1] - origin[1]) / size).astype(np.int64) + 1
-    return column * n_rows + row
+@njit(cache=True)
+def _cell_keys(ref, size):
+    """Each reference point's cell (column-major; the rows offset by one so that a cell's
+    neighbours never wrap), past every cell for a point with a NaN coordinate; the grid's
+    origin, its rows and how many points are finite."""
+    n = ref.shape[0]
+    finite = np.empty(n, np.bool_)
+    origin = np.full(2, np.inf)
+    top = -np.inf
+    for i in range(n):
+        finite[i] = np.isfinite(ref[i, 0]) and np.isfinite(ref[i, 1])
+        if finite[i]:
+            origin[0] = min(origin[0], ref[i, 0])
+            origin[1] = min(origin[1], ref[i, 1])
+            top = max(top, ref[i, 1])
+    key = np.full(n, np.iinfo(np.int64).max)
+    n_finite = 0
+    n_rows = 3
+    if np.isfinite(top):
+        n_rows = int(np.floor((top - origin[1]) / size)) + 3
+        for i in range(n):
+            if finite[i]:
+                column = int(np.floor((ref[i, 0] - origin[0]) / size))
+                row = int(np.floor((ref[i, 1] - origin[1]) / size)) + 1
+                key[i] = column * n_rows + row
+                n_finite += 1
+    return key, origin, n_rows, n_finite
 
 
 @njit(cache=True)
-def _ball_sums_kernel(query, ref, values, key, origin, radius, n_rows, sums, counts):
-    radius2 = radius * radius
+def _ball_sums_kernel(query, ref, values, key, order, n_finite, origin, radius, n_rows):
     m = values.shape[1]
-    n_columns = key[-1] // n_rows + 1
+    sums = np.zeros((query.shape[0], m))
+    counts = np.zeros(query.shape[0], np.int64)
+    if n_finite == 0:
+        return sums, counts
+    # the finite points in cell order, contiguous
+    sorted_key = np.empty(n_finite, np.int64)
+    xy = np.empty((n_finite, 2))
+    sorted_values = np.empty((n_finite, m))
+    for s in range(n_finite):
+        r = order[s]
+        sorted_key[s], xy[s, 0], xy[s, 1] = key[r], ref[r, 0], ref[r, 1]
+        sorted_values[s] = values[r]
+    radius2 = radius * radius
+    n_columns = sorted_key[-1] // n_rows + 1
     for q in range(query.shape[0]):
         qx, qy = query[q, 0], query[q, 1]
         if not (np.isfinite(qx) and np.isfinite(qy)):
@@ -75,11 +101,12 @@ def _ball_sums_kernel(query, ref, values, key, origin, radius, n_rows, sums, cou
         for c in range(column - 1, column + 2):
             if c < 0 or c >= n_columns:
                 continue
-            lo = np.searchsorted(key, c * n_rows + row - 1)
-            hi = np.searchsorted(key, c * n_rows + row + 1, side="right")
-            for r in range(lo, hi):
-                dx, dy = ref[r, 0] - qx, ref[r, 1] - qy
+            lo = np.searchsorted(sorted_key, c * n_rows + row - 1)
+            hi = np.searchsorted(sorted_key, c * n_rows + row + 1, side="right")
+            for s in range(lo, hi):
+                dx, dy = xy[s, 0] - qx, xy[s, 1] - qy
                 if dx * dx + dy * dy <= radius2:
                     counts[q] += 1
                     for j in range(m):
-                        sums[q, j] += values[r, j]
+                        sums[q, j] += sorted_values[s, j]
+    return sums, counts

@@ -4,7 +4,9 @@ The incremental smoother pairs each new observation of a track with the track's
 previous one (the consecutive pairs of :func:`cdtm_graph.graph.frame_pair_observations`).
 :class:`TrackTable` holds, per track id, the frame and ray of its last sighting and
 how many pairs it has made, as arrays sorted by id; a frame's look-up, update and
-grouping by earlier frame take one numba call and a small sort.
+grouping by earlier frame take one numba call and a small sort. :class:`TrackObservations`
+holds every sighting that entered the graph, sorted by track then frame, for triangulating
+a track again when it is seen.
 """
 
 from __future__ import annotations
@@ -213,17 +215,28 @@ class TrackTable:
 
 def pairs_without(pairs: list[FramePairObservations], track_ids: np.ndarray, k: int,
                   reason: Rejection, rejections: Rejections) -> list[FramePairObservations]:
-    """Frame k's pairs without the sightings of ``track_ids`` (counted for ``reason``);
-    pairs left empty are dropped."""
+    """Frame k's pairs without the sightings of ``track_ids`` (sorted, unique; counted for
+    ``reason``); pairs left empty are dropped."""
     if track_ids.size == 0:
         return pairs
     kept = []
     for pair in pairs:
-        off = np.isin(pair.track_id, track_ids)
+        off = _in_sorted(np.ascontiguousarray(pair.track_id, np.int64), track_ids)
         rejections.add(reason, k, int(off.sum()))
         if not off.all():
             kept.append(pair.subset(~off) if off.any() else pair)
     return kept
+
+
+@njit(cache=True)
+def _in_sorted(ids, sorted_ids):
+    """(n,) whether each id is one of ``sorted_ids`` (sorted, unique): ``np.isin`` by
+    binary search, which a frame's few hundred ids against a long list want."""
+    at = np.searchsorted(sorted_ids, ids)
+    found = np.zeros(ids.shape[0], np.bool_)
+    for i in range(ids.shape[0]):
+        found[i] = at[i] < sorted_ids.shape[0] and sorted_ids[at[i]] == ids[i]
+    return found
 
 
 def frames_seen(frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -235,6 +248,36 @@ def frames_seen(frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return frame.astype(np.int64), np.zeros(0, np.int64)
     seen = np.bincount(frame) > 0
     return np.flatnonzero(seen), (np.cumsum(seen) - 1)[frame]
+
+
+def track_groups(track_id: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The distinct tracks of a set of observations, each observation's index among them
+    and their counts: what ``np.unique(track_id, return_inverse=True, return_counts=True)``
+    gives, in one pass where the observations come sorted by track (they mostly do)."""
+    track_id = np.ascontiguousarray(track_id, dtype=np.int64)
+    ids, index, counts, is_sorted = _sorted_groups(track_id)
+    if is_sorted:
+        return ids, index, counts
+    ids, index, counts = np.unique(track_id, return_inverse=True, return_counts=True)
+    return ids, index.reshape(-1), counts
+
+
+@njit(cache=True)
+def _sorted_groups(track_id):
+    n = track_id.shape[0]
+    index = np.empty(n, np.int64)
+    counts = np.zeros(n, np.int64)
+    ids = np.empty(n, np.int64)
+    t = -1
+    for i in range(n):
+        if i and track_id[i] < track_id[i - 1]:
+            return ids[:0], index[:0], counts[:0], False
+        if i == 0 or track_id[i] != track_id[i - 1]:
+            t += 1
+            ids[t] = track_id[i]
+        index[i] = t
+        counts[t] += 1
+    return ids[:t + 1], index, counts[:t + 1], True
 
 
 def first_sightings(track_id: np.ndarray, frame: np.ndarray) -> np.ndarray:
@@ -254,6 +297,164 @@ def check_unique(k: int, track_id: np.ndarray) -> None:
     repeated = ids[1:][ids[1:] == ids[:-1]]
     if repeated.size:
         raise FlightLogError(f"frame {k}: track {int(repeated[0])} is seen twice")
+
+
+class TrackObservations:
+    """Every observation that entered the graph, once each, sorted by track then frame:
+    what the incremental smoother triangulates a track from when it is seen again.
+
+    Gathering a frame's tracks is then a binary search and a slice per track (one
+    compiled call), not a membership test over the whole window and a sort.
+    """
+
+    def __init__(self) -> None:
+        self._id = np.zeros(0, np.int64)
+        self._frame = np.zeros(0, np.int64)
+        self._q = np.zeros((0, 3))
+
+    def add(self, track_id: np.ndarray, frame: np.ndarray, q: np.ndarray) -> None:
+        """Record observations ((n,) ids, (n,) frames, (n, 3) rays); a (track, frame)
+        already held keeps its first ray."""
+        new_id, new_frame, new_q = _sorted_once(track_id, frame, q)
+        self._id, self._frame, self._q = _merge(self._id, self._frame, self._q,
+                                                new_id, new_frame, new_q)
+
+    def of(self, track_ids: np.ndarray, extra: tuple[np.ndarray, np.ndarray, np.ndarray]
+           | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The observations of these tracks, once each and sorted by track then frame:
+        (ids, frames, rays). ``extra`` observations (ids, frames, rays) not recorded
+        join them (a recorded (track, frame) keeps its ray); their tracks are asked for
+        too."""
+        query = np.unique(np.asarray(track_ids, np.int64))
+        if extra is None:
+            extra = (query[:0], query[:0], self._q[:0])
+        return _gather(self._id, self._frame, self._q, query, *_sorted_once(*extra))
+
+    def since(self, frame: int) -> np.ndarray:
+        """Ids of the tracks observed at or after ``frame`` (sorted)."""
+        return np.unique(self._id[self._frame >= frame])
+
+    def forget_before(self, frame: int) -> None:
+        n = _forget(self._id, self._frame, self._q, frame)
+        self._id, self._frame, self._q = self._id[:n], self._frame[:n], self._q[:n]
+
+    def __len__(self) -> int:
+        return int(self._id.size)
+
+
+def _sorted_once(track_id: np.ndarray, frame: np.ndarray, q: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Observations sorted by track then frame, the first of each (track, frame) only."""
+    track_id = np.ascontiguousarray(track_id, np.int64)
+    frame = np.ascontiguousarray(frame, np.int64)
+    order = np.lexsort((frame, track_id))  # stable: the first of equals stays first
+    return _first_of_each(order, track_id, frame, np.ascontiguousarray(q, float).reshape(-1, 3))
+
+
+@njit(cache=True)
+def _first_of_each(order, track_id, frame, q):
+    n = order.shape[0]
+    out_id, out_frame, out_q = np.empty(n, np.int64), np.empty(n, np.int64), np.empty((n, 3))
+    o = 0
+    for s in range(n):
+        i = order[s]
+        if o and track_id[i] == out_id[o - 1] and frame[i] == out_frame[o - 1]:
+            continue
+        _put(out_id, out_frame, out_q, o, track_id[i], frame[i], q, i)
+        o += 1
+    return out_id[:o], out_frame[:o], out_q[:o]
+
+
+@njit(cache=True)
+def _before(id_a, frame_a, id_b, frame_b):
+    """(id_a, frame_a) < (id_b, frame_b)."""
+    return id_a < id_b or (id_a == id_b and frame_a < frame_b)
+
+
+@njit(cache=True)
+def _merge(ids, frame, q, new_ids, new_frame, new_q):
+    """Two runs sorted by (track, frame) merged; a pair in both keeps the first run's
+    row."""
+    n, m = ids.shape[0], new_ids.shape[0]
+    out_id = np.empty(n + m, np.int64)
+    out_frame = np.empty(n + m, np.int64)
+    out_q = np.empty((n + m, 3))
+    i = j = o = 0
+    while i < n or j < m:
+        if j >= m or (i < n and not _before(new_ids[j], new_frame[j], ids[i], frame[i])):
+            if j < m and i < n and new_ids[j] == ids[i] and new_frame[j] == frame[i]:
+                j += 1  # held already
+            _put(out_id, out_frame, out_q, o, ids[i], frame[i], q, i)
+            i += 1
+        else:
+            _put(out_id, out_frame, out_q, o, new_ids[j], new_frame[j], new_q, j)
+            j += 1
+        o += 1
+    return out_id[:o], out_frame[:o], out_q[:o]
+
+
+@njit(cache=True)
+def _gather(ids, frame, q, query, extra_id, extra_frame, extra_q):
+    """The rows of the ``query`` tracks (sorted, unique) and of the ``extra`` rows' tracks,
+    each track's merged with its extra rows (sorted by (track, frame), unique; a held pair
+    keeps its row)."""
+    n_extra = extra_id.shape[0]
+    # the tracks asked for: the union of the query and the extra rows' tracks
+    tracks = np.empty(query.shape[0] + n_extra, np.int64)
+    n_tracks = a = e = 0
+    while a < query.shape[0] or e < n_extra:
+        if e >= n_extra or (a < query.shape[0] and query[a] <= extra_id[e]):
+            track = query[a]
+            a += 1
+        else:
+            track = extra_id[e]
+            e += 1
+        if n_tracks == 0 or tracks[n_tracks - 1] != track:
+            tracks[n_tracks] = track
+            n_tracks += 1
+    tracks = tracks[:n_tracks]
+    lo = np.searchsorted(ids, tracks)
+    hi = np.searchsorted(ids, tracks, side="right")
+    n_out = n_extra
+    for t in range(n_tracks):
+        n_out += hi[t] - lo[t]
+    out_id = np.empty(n_out, np.int64)
+    out_frame = np.empty(n_out, np.int64)
+    out_q = np.empty((n_out, 3))
+    o = e = 0
+    for t in range(n_tracks):
+        track = tracks[t]
+        i = lo[t]
+        while i < hi[t] or (e < n_extra and extra_id[e] == track):
+            if e < n_extra and extra_id[e] == track and (i >= hi[t] or extra_frame[e] < frame[i]):
+                _put(out_id, out_frame, out_q, o, track, extra_frame[e], extra_q, e)
+                e += 1
+            else:
+                if e < n_extra and extra_id[e] == track and extra_frame[e] == frame[i]:
+                    e += 1  # recorded: its own row
+                _put(out_id, out_frame, out_q, o, track, frame[i], q, i)
+                i += 1
+            o += 1
+    return out_id[:o], out_frame[:o], out_q[:o]
+
+
+@njit(cache=True)
+def _forget(ids, frame, q, oldest_frame):
+    """Keep the rows of ``oldest_frame`` or later, in order, in place: the new length."""
+    j = 0
+    for i in range(ids.shape[0]):
+        if frame[i] >= oldest_frame:
+            _put(ids, frame, q, j, ids[i], frame[i], q, i)
+            j += 1
+    return j
+
+
+@njit(cache=True, inline="always")
+def _put(out_id, out_frame, out_q, o, track, frame, q, i):
+    """Row o of the output: the track, the frame and row i of ``q`` (element by element:
+    numba's row slices cost more than the copy)."""
+    out_id[o], out_frame[o] = track, frame
+    out_q[o, 0], out_q[o, 1], out_q[o, 2] = q[i, 0], q[i, 1], q[i, 2]
 
 
 @njit(cache=True)

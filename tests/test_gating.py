@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cdtm_graph.gating import chi2_2dof_quantile, innovation_mahalanobis
+from cdtm_graph.gating import chi2_2dof_quantile, innovation_covariance, innovation_mahalanobis
 
 
 def test_innovation_distance_is_chi_square_2_for_a_linear_gaussian_model(rng):
@@ -38,4 +38,21 @@ def test_innovation_distance_is_e_S_inverse_e_with_a_measurement_covariance(rng)
     H = np.concatenate([H_a, H_b], axis=2)
     S = R + H @ P @ np.swapaxes(H, 1, 2)
     expected = [e[i] @ np.linalg.solve(S[i], e[i]) for i in range(n)]
+    np.testing.assert_allclose(innovation_covariance(H_a, H_b, P, R), S, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(innovation_covariance(H_a, H_b, P), S - R + np.eye(2),
+                               rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(innovation_mahalanobis(e, H_a, H_b, P, R), expected, rtol=1e-10)
+
+
+def test_the_gates_median_is_numpys(rng):
+    """The over-dispersion's median (one partition) equals ``np.median``: odd and even
+    sizes, one element, and NaN when one distance is NaN."""
+    from cdtm_graph.gating import _median
+
+    for n in (1, 2, 3, 170, 171):
+        for _ in range(50):
+            d = rng.chisquare(2, n)
+            assert _median(d) == np.median(d)
+    d = rng.chisquare(2, 20)
+    d[5] = np.nan
+    assert np.isnan(_median(d))

@@ -4,16 +4,19 @@ from __future__ import annotations
 
 import gtsam
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cdtm_graph.geometry import (
+    largest_eigenvalue_sym3,
     make_pose,
     quat_wxyz_to_rotation,
     rays_in_world,
     rotation_to_quat_wxyz,
     so3_exp,
     so3_log,
+    sym3_eigenvalue_range,
 )
 
 #: Round trips in double precision.
@@ -89,3 +92,18 @@ def test_rays_in_world_are_each_cameras_rotation_and_centre():
         np.testing.assert_array_equal(centre[m], cams[camera[m], :3, 3])
         np.testing.assert_allclose(ray[m], cams[camera[m], :3, :3] @ ray_cam[m], rtol=1e-14,
                                    atol=1e-14)
+
+
+def test_the_closed_form_eigenvalues_of_a_symmetric_3x3_are_lapacks(rng):
+    """Smallest and largest eigenvalue against ``eigvalsh`` over six decades of scale,
+    with a singular matrix, a multiple of the identity and a non-contiguous block."""
+    for _ in range(500):
+        L = rng.normal(size=(3, 3)) * 10.0 ** rng.uniform(-3, 3)
+        for A in (L @ L.T, L[:, :2] @ L[:, :2].T):
+            w = np.linalg.eigvalsh(A)
+            smallest, largest = sym3_eigenvalue_range(A)
+            assert largest == pytest.approx(w[-1], rel=1e-12)
+            assert abs(smallest - w[0]) <= 1e-12 * w[-1]
+    assert sym3_eigenvalue_range(2.5 * np.eye(3)) == (2.5, 2.5)
+    cov = np.diag([1.0, 2.0, 3.0, 9.0, 4.0, 1.0])
+    assert largest_eigenvalue_sym3(cov[3:, 3:]) == pytest.approx(9.0, rel=1e-14)

@@ -28,12 +28,13 @@ from cdtm_graph.mismatch import (
     TrackHeights,
     inconsistent,
     mismatched,
+    track_heights,
     triangulate,
     untrusted,
 )
 from cdtm_graph.neighbours import ball_sums, near_any
 from cdtm_graph.results import StateCovariances
-from cdtm_graph.tracks import first_sightings, frames_seen
+from cdtm_graph.tracks import first_sightings, frames_seen, track_groups
 
 SIGMA_PX = 0.5
 FOCAL_PX = 550.0
@@ -286,6 +287,45 @@ def test_triangulation_is_exact_on_noiseless_rays_and_refuses_degenerate_tracks(
             d = r / np.linalg.norm(r)
             A += (np.eye(3) - np.outer(d, d)) / (SIGMA_Q * np.linalg.norm(truth[t] - c)) ** 2
         np.testing.assert_allclose(cov[t], np.linalg.inv(A), rtol=1e-6, atol=1e-12)
+
+
+def test_track_heights_are_the_triangulation_against_the_dtm_written_out():
+    """The compiled heights against the formulas one by one: the tracks grouped as
+    numpy's unique groups them, each track's point and covariance from
+    :func:`triangulate`, ``dh`` against the DTM there and ``sigma^2 = n^T C n +
+    sigma_h^2 + (largest pose sigma)^2``; observations sorted by track or not, the pose
+    sigma per observation or one for all, a track off the map."""
+    rng = np.random.default_rng(21)
+    x = np.arange(0.0, 1230.1, 30.0)
+    elevation = 0.05 * x[None, :] - 0.03 * x[:, None] + 20 * np.sin(x[None, :] / 150.0)
+    dtm = Dtm(elevation, 0.0, 0.0, 30.0, 30.0, sigma_h_m=2.4)
+    n_tracks = 30
+    truth = np.c_[rng.uniform(100, 1100, (n_tracks, 2)), rng.uniform(0, 60, n_tracks)]
+    truth[-1, :2] = [1e5, 1e5]  # off the map
+    sizes = rng.integers(1, 7, n_tracks)
+    track_id = np.repeat(rng.permutation(n_tracks) * 5 + 3, sizes)
+    point = np.repeat(truth, sizes, axis=0)
+    centres = np.c_[rng.uniform(0, 1200, (point.shape[0], 2)), np.full(point.shape[0], 1800.0)]
+    rays = point - centres + rng.normal(0, 0.5, point.shape)
+    for order in (np.argsort(track_id, kind="stable"), rng.permutation(track_id.size)):
+        for pose_sigma in (3.0, rng.uniform(0, 20, track_id.size)):
+            tid, c, r = track_id[order], centres[order], rays[order]
+            s = pose_sigma[order] if np.ndim(pose_sigma) else pose_sigma
+            got = track_heights(tid, c, r, SIGMA_Q, dtm, 2.4, s)
+            ids, index, counts = np.unique(tid, return_inverse=True, return_counts=True)
+            groups = track_groups(tid)
+            assert all(np.array_equal(a, b) for a, b in zip(groups, (ids, index, counts)))
+            points, cov, fit = triangulate(index, ids.size, c, r, SIGMA_Q)
+            ground, normal = dtm.height_and_normal(points[:, 0], points[:, 1])
+            pose_var = np.array([np.max(np.broadcast_to(s, tid.shape)[index == t] ** 2)
+                                 for t in range(ids.size)])
+            var = np.einsum("ti,tij,tj->t", normal, cov, normal) + 2.4**2 + pose_var
+            assert np.array_equal(got.track_id, ids) and np.array_equal(got.n_observations, counts)
+            np.testing.assert_allclose(got.point_m, points, rtol=1e-12, atol=1e-9)
+            np.testing.assert_allclose(got.fit_chi2, fit, rtol=1e-12, atol=1e-9)
+            np.testing.assert_allclose(got.dh_m, points[:, 2] - ground, rtol=1e-12, atol=1e-9)
+            np.testing.assert_allclose(got.sigma_m, np.sqrt(var), rtol=1e-12)
+            assert np.isnan(got.dh_m[ids == track_id[-1]]).all()
 
 
 def test_first_sightings_are_the_first_of_each_track_and_frame():

@@ -11,6 +11,7 @@ from cdtm_graph.flightlog import Tracks
 from cdtm_graph.results import Rejection, Rejections
 from cdtm_graph.tracks import (
     FramePairObservations,
+    TrackObservations,
     TrackTable,
     frame_pair_observations,
     pairs_without,
@@ -127,3 +128,56 @@ def test_pairs_without_leaves_out_and_counts_the_sightings_of_given_tracks():
     assert rejections.total(Rejection.MAP_MISMATCH) == 3
     assert pairs_without(pairs, np.zeros(0, np.int64), 5, Rejection.MAP_MISMATCH,
                          rejections) is pairs
+
+
+class RecordedObservations:
+    """Reference: every observation appended as it comes; the first of each (track,
+    frame) counts, the rest in track then frame order (a sort of the whole record)."""
+
+    def __init__(self):
+        self.rows = []  # (track, frame, ray)
+
+    def add(self, track_id, frame, q):
+        self.rows += list(zip(track_id.tolist(), frame.tolist(), q))
+
+    def of(self, track_ids, extra=None):
+        asked = set(track_ids.tolist()) | set(() if extra is None else extra[0].tolist())
+        rows = [r for r in self.rows if r[0] in asked]
+        if extra is not None:
+            rows += list(zip(extra[0].tolist(), extra[1].tolist(), extra[2]))
+        first = {}
+        for r in rows:
+            first.setdefault((r[0], r[1]), r)
+        keys = sorted(first)
+        return (np.array([t for t, _ in keys], np.int64), np.array([f for _, f in keys], np.int64),
+                np.array([first[key][2] for key in keys]).reshape(-1, 3))
+
+    def forget_before(self, frame):
+        self.rows = [r for r in self.rows if r[1] >= frame]
+
+
+def test_recorded_observations_are_gathered_by_track_first_ray_kept(rng):
+    """The store against a plain record: random frames of observations with repeats
+    (a (track, frame) recorded twice keeps its first ray), ids out of order, tracks
+    asked for with observations not recorded, and the window moving on."""
+    store, reference = TrackObservations(), RecordedObservations()
+    for k in range(40):
+        n = int(rng.integers(0, 30))
+        track_id = rng.choice(60, n, replace=True) * 3 - 20
+        frame = np.maximum(k - rng.integers(0, 3, n), 0)
+        q = rng.normal(size=(n, 3))
+        store.add(track_id, frame, q)
+        reference.add(track_id, frame, q)
+        if k % 7 == 6:
+            store.forget_before(k - 10)
+            reference.forget_before(k - 10)
+        asked = rng.choice(70, 15) * 3 - 20
+        extra_id = rng.choice(70, 8) * 3 - 20
+        extra = (extra_id, np.maximum(k - rng.integers(0, 4, 8), 0), rng.normal(size=(8, 3)))
+        for args in ((asked,), (asked[:0], extra), (asked, extra)):
+            got, want = store.of(*args), reference.of(*args)
+            for g, w in zip(got, want):
+                assert np.array_equal(g, w)
+        since = store.since(k - 5)
+        assert np.array_equal(since, np.unique([r[0] for r in reference.rows if r[1] >= k - 5]))
+    assert len(store) == len({(r[0], r[1]) for r in reference.rows})

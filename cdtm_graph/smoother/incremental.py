@@ -26,6 +26,7 @@ from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import FlightConfig, FlightLog
 from cdtm_graph.gating import InnovationGate, residual_test
+from cdtm_graph.geometry import largest_eigenvalue_sym3
 from cdtm_graph.graph import (
     cdtm_factors,
     cdtm_information,
@@ -728,4 +729,4 @@ class IncrementalSmoother:
 
 def _largest_position_sigma_m(pose_cov: np.ndarray) -> float:
     """The largest position 1-sigma (m) of a pose covariance (GTSAM's [rot, trans])."""
-    return float(np.sqrt(np.linalg.eigvalsh(pose_cov[3:6, 3:6]).max()))
+    return float(np.sqrt(max(largest_eigenvalue_sym3(pose_cov[3:6, 3:6]), 0.0)))

@@ -16,15 +16,9 @@ import numpy as np
 from cdtm_graph.clutter import Clutter, ClutterSettings, assess, considered_offsets
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.graph import heights_at
-from cdtm_graph.mismatch import (
-    MismatchSettings,
-    TrackHeights,
-    TrackObservations,
-    judge,
-    untrusted,
-)
+from cdtm_graph.mismatch import MismatchSettings, TrackHeights, judge, untrusted
 from cdtm_graph.results import Rejection, Rejections
-from cdtm_graph.tracks import FramePairObservations, first_sightings, pairs_without
+from cdtm_graph.tracks import FramePairObservations, TrackObservations, pairs_without
 from factors import CdtmPairFactor, FeatureNoise
 
 #: Frame index -> the solver's pose of that frame now (4x4 world_T_body).
@@ -105,16 +99,15 @@ class TrackJudge:
         them so far and this frame, lie off the DTM or hold a wrong match (counted); and
         the ids of both (for the smoother to take their earlier features out)."""
         none = np.zeros(0, np.int64)
-        tid, frame, q = self.observations.of(np.concatenate(track_ids))
-        # this frame's observations (and the earlier ones of tracks seen for the first time)
-        tid = np.concatenate((tid, *track_ids, *track_ids))
-        frame = np.concatenate((frame, *(np.full(i.size, k) for i in track_ids),
-                                *(np.full(i.size, _frame(f.key_a))
-                                  for f, i in zip(factors, track_ids))))
-        q = np.concatenate((q, *(f.features.q_b for f in factors),
-                            *(f.features.q_a for f in factors)))
-        first = first_sightings(tid, frame)
-        tid, frame, q = tid[first], frame[first], q[first]
+        # this frame's observations (and the earlier ones of tracks seen for the first
+        # time) with everything recorded of their tracks
+        tid, frame, q = self.observations.of(none, extra=(
+            np.concatenate((*track_ids, *track_ids)),
+            np.concatenate((*(np.full(i.size, k) for i in track_ids),
+                            *(np.full(i.size, _frame(f.key_a))
+                              for f, i in zip(factors, track_ids)))),
+            np.concatenate((*(f.features.q_b for f in factors),
+                            *(f.features.q_a for f in factors)))))
         # tracks seen before the poses settled are not judged (their early poses were off)
         assert self._judge_from is not None
         early = frame < self._judge_from
