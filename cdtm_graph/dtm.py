@@ -716,23 +716,27 @@ def _grazing_kernel(elev, cell_max, x0, y0, dx, dy, z_top, origin, directions, p
     turned = np.empty((4 * n, 3))
     smooth_m = np.empty(n)
     for r in range(n):
-        d = directions[r] / np.sqrt(np.sum(directions[r] ** 2))
-        # two unit vectors perpendicular to the ray
-        h = np.array([0.0, 0.0, 1.0]) if abs(d[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-        u = np.array([d[1] * h[2] - d[2] * h[1], d[2] * h[0] - d[0] * h[2],
-                      d[0] * h[1] - d[1] * h[0]])
-        u /= np.sqrt(np.sum(u**2))
-        v = np.array([d[1] * u[2] - d[2] * u[1], d[2] * u[0] - d[0] * u[2],
-                      d[0] * u[1] - d[1] * u[0]])
+        # (scalars, not small arrays: allocating them per ray cost more than the casts)
+        norm = np.sqrt(directions[r, 0] ** 2 + directions[r, 1] ** 2 + directions[r, 2] ** 2)
+        d0, d1, d2 = directions[r, 0] / norm, directions[r, 1] / norm, directions[r, 2] / norm
+        # two unit vectors perpendicular to the ray: u = d x h, v = d x u
+        h0, h1, h2 = (0.0, 0.0, 1.0) if abs(d2) < 0.9 else (1.0, 0.0, 0.0)
+        u0, u1, u2 = d1 * h2 - d2 * h1, d2 * h0 - d0 * h2, d0 * h1 - d1 * h0
+        norm = np.sqrt(u0**2 + u1**2 + u2**2)
+        u0, u1, u2 = u0 / norm, u1 / norm, u2 / norm
+        v0, v1, v2 = d1 * u2 - d2 * u1, d2 * u0 - d0 * u2, d0 * u1 - d1 * u0
         a = angle[r]
-        for c in range(3):
-            turned[r, c] = d[c] + a * u[c]
-            turned[n + r, c] = d[c] - a * u[c]
-            turned[2 * n + r, c] = d[c] + a * v[c]
-            turned[3 * n + r, c] = d[c] - a * v[c]
-        cos_incidence = abs(np.sum(d * normals[r])) / np.sqrt(np.sum(normals[r] ** 2))
-        smooth_m[r] = (np.sqrt(np.sum((points[r] - origin) ** 2)) * a
-                       / max(cos_incidence, 1e-3))
+        turned[r, 0], turned[r, 1], turned[r, 2] = d0 + a * u0, d1 + a * u1, d2 + a * u2
+        turned[n + r, 0], turned[n + r, 1], turned[n + r, 2] = d0 - a * u0, d1 - a * u1, d2 - a * u2
+        turned[2 * n + r, 0], turned[2 * n + r, 1], turned[2 * n + r, 2] = (
+            d0 + a * v0, d1 + a * v1, d2 + a * v2)
+        turned[3 * n + r, 0], turned[3 * n + r, 1], turned[3 * n + r, 2] = (
+            d0 - a * v0, d1 - a * v1, d2 - a * v2)
+        nx, ny, nz = normals[r, 0], normals[r, 1], normals[r, 2]
+        cos_incidence = abs(d0 * nx + d1 * ny + d2 * nz) / np.sqrt(nx**2 + ny**2 + nz**2)
+        range_m = np.sqrt((points[r, 0] - origin[0]) ** 2 + (points[r, 1] - origin[1]) ** 2
+                          + (points[r, 2] - origin[2]) ** 2)
+        smooth_m[r] = range_m * a / max(cos_incidence, 1e-3)
     origins = np.empty((4 * n, 3))
     for r in range(4 * n):
         origins[r] = origin
@@ -746,7 +750,9 @@ def _grazing_kernel(elev, cell_max, x0, y0, dx, dy, z_top, origin, directions, p
     for w in range(4):
         for r in range(n):
             i = w * n + r
-            moved = np.sqrt(np.sum((hit_point[i] - points[r]) ** 2))
+            moved = np.sqrt((hit_point[i, 0] - points[r, 0]) ** 2
+                            + (hit_point[i, 1] - points[r, 1]) ** 2
+                            + (hit_point[i, 2] - points[r, 2]) ** 2)
             if status[i] != np.int8(RayStatus.HIT) or not moved <= jump * smooth_m[r]:
                 grazing[r] = True
     return grazing

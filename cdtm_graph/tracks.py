@@ -243,11 +243,31 @@ def frames_seen(frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The distinct frames of a set of observations and each one's index among them: what
     ``np.unique(frame, return_inverse=True)`` gives, by counting (frame indices are small
     non-negative integers; a flight's observations are too many to sort twice a solve)."""
-    frame = np.asarray(frame)
+    frame = np.ascontiguousarray(frame, dtype=np.int64)
     if frame.size == 0:
-        return frame.astype(np.int64), np.zeros(0, np.int64)
-    seen = np.bincount(frame) > 0
-    return np.flatnonzero(seen), (np.cumsum(seen) - 1)[frame]
+        return frame, np.zeros(0, np.int64)
+    return _frames_seen(frame)
+
+
+@njit(cache=True)
+def _frames_seen(frame):
+    first, last = frame.min(), frame.max()
+    index = np.full(last - first + 1, -1)
+    for f in frame:
+        index[f - first] = 0
+    n = 0
+    for f in range(index.shape[0]):
+        if index[f] == 0:
+            index[f] = n
+            n += 1
+    frames = np.empty(n, np.int64)
+    at = np.empty(frame.shape[0], np.int64)
+    for f in range(index.shape[0]):
+        if index[f] >= 0:
+            frames[index[f]] = first + f
+    for m in range(frame.shape[0]):
+        at[m] = index[frame[m] - first]
+    return frames, at
 
 
 def track_groups(track_id: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

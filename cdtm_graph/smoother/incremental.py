@@ -12,6 +12,7 @@ log has no ``nav.csv``.
 
 from __future__ import annotations
 
+import bisect
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -145,6 +146,7 @@ class IncrementalSmoother:
         self._cdtm: list[CdtmPairFactor | None] = []
         self._cdtm_slots: list[int] = []  # ... their solver slots
         self._cdtm_ids: list[np.ndarray] = []  # ... their features' track ids
+        self._cdtm_frame_b: list[int] = []  # ... their later frames (non-decreasing)
         # Warm-up: from a loose prior (or an acquired fix) every update moves its frame far
         # from the prediction, until one does not; nothing is judged meanwhile. Not a test
         # per update: outliers that moved one would switch off the tests that stop them.
@@ -281,11 +283,12 @@ class IncrementalSmoother:
         def prior(a: int) -> np.ndarray:
             if a not in cache:
                 if a == k - 1:
-                    P_a, cross = self._state_cov[:6, :6], (M @ self._state_cov)[:6, :6]
+                    P_a, cross = self._state_cov[:6, :6], M[:6] @ self._state_cov[:, :6]
                 else:
                     J = self._backend.joint_marginal([X(a), *frame_keys(k - 1)])
-                    P_a, cross = J[:6, :6], (M @ J[6:, :6])[:6]
-                cache[a] = np.block([[P_a, cross.T], [cross, P_k]])
+                    P_a, cross = J[:6, :6], M[:6] @ J[6:, :6]
+                P = cache[a] = np.empty((12, 12))
+                P[:6, :6], P[:6, 6:], P[6:, :6], P[6:, 6:] = P_a, cross.T, cross, P_k
             return cache[a]
 
         return prior
@@ -432,7 +435,9 @@ class IncrementalSmoother:
             self._forget_tracks(wrong, Rejection.WRONG_MATCH)
         if off.size or wrong.size:
             self._fetch(k)
-        self._judge.consider(since_frame, k, self._cdtm, self._cdtm_ids)
+        recent = bisect.bisect_left(self._cdtm_frame_b, since_frame)  # (a round's cost
+        # must not grow with the flight)
+        self._judge.consider(since_frame, k, self._cdtm[recent:], self._cdtm_ids[recent:])
         return int(off.size + wrong.size)
 
     def _forget_tracks(self, track_ids: np.ndarray, reason: Rejection) -> None:
@@ -442,8 +447,9 @@ class IncrementalSmoother:
         self._judge.left_out = np.union1d(self._judge.left_out, track_ids)
         graph = gtsam.NonlinearFactorGraph()
         slots, changed = [], []
-        for i, ids in enumerate(self._cdtm_ids):
-            f = self._cdtm[i]
+        # a factor whose later frame has left the window has left the solver
+        for i in range(bisect.bisect_left(self._cdtm_frame_b, self._settled), len(self._cdtm)):
+            f, ids = self._cdtm[i], self._cdtm_ids[i]
             if f is None or int(gtsam.Symbol(f.key_a).index()) < self._settled:
                 continue
             hit = np.isin(ids, track_ids)
@@ -472,6 +478,7 @@ class IncrementalSmoother:
         n_features = sum(f.features.n for f in factors)
         self._cdtm.extend(factors)
         self._cdtm_ids.extend(track_ids)
+        self._cdtm_frame_b.extend([k] * len(factors))
         self._cdtm_slots.extend(slots)
         if self._judge is not None:
             self._judge.record(k, factors, track_ids)
