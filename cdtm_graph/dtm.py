@@ -236,7 +236,7 @@ class Dtm:
         h = np.empty(xb.size)
         normal = np.empty((xb.size if normals else 0, 3))
         # compiled: callers ask for one point (a camera's ground) as often as for thousands
-        surface_kernel(self.elevation, self.x0, self.y0, self.dx, self.dy,
+        _surface_kernel(self.elevation, self.x0, self.y0, self.dx, self.dy,
                         np.ascontiguousarray(xb).reshape(-1), np.ascontiguousarray(yb).reshape(-1),
                         h, normal)
         return xb.shape, h, normal
@@ -459,11 +459,10 @@ def _smallest_root(A: float, B: float, C: float, s_lim: float) -> float:
 
 
 @njit(cache=True)
-def surface_kernel(elev, x0, y0, dx, dy, x, y, h, normal):
+def _surface_kernel(elev, x0, y0, dx, dy, x, y, h, normal):
     """Bilinear height of each point (NaN outside the grid, a hair of tolerance at its
     edge) and, if ``normal`` has rows, the patch's upward normal ``(-dh/dx, -dh/dy, 1)``
-    (NaN with the height). Points on the last row/column use the last cell. (Compiled:
-    :meth:`Dtm.height_and_normal`'s, for other kernels to call too.)"""
+    (NaN with the height). Points on the last row/column use the last cell."""
     rows, cols = elev.shape
     eps = _EDGE_TOL_CELLS
     for p in range(x.shape[0]):
@@ -718,6 +717,7 @@ def _grazing_kernel(elev, cell_max, x0, y0, dx, dy, z_top, origin, directions, p
     for r in range(n):
         # (scalars, not small arrays: allocating them per ray cost more than the casts)
         norm = np.sqrt(directions[r, 0] ** 2 + directions[r, 1] ** 2 + directions[r, 2] ** 2)
+        norm = norm if norm > 0.0 else np.nan  # no direction: NaN rays, judged grazing
         d0, d1, d2 = directions[r, 0] / norm, directions[r, 1] / norm, directions[r, 2] / norm
         # two unit vectors perpendicular to the ray: u = d x h, v = d x u
         h0, h1, h2 = (0.0, 0.0, 1.0) if abs(d2) < 0.9 else (1.0, 0.0, 0.0)

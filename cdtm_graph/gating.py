@@ -44,7 +44,7 @@ def innovation_covariance(H_a: np.ndarray, H_b: np.ndarray, P: np.ndarray,
     """Each feature's innovation covariance ``S_i = R_i + H_i P H_i^T``, (n, 2, 2)
     (:func:`innovation_mahalanobis`)."""
     n = H_a.shape[0]
-    R = np.broadcast_to(np.eye(2), (n, 2, 2)) if R is None else R
+    R = np.broadcast_to(np.eye(2) if R is None else R, (n, 2, 2))
     # compiled: a frame's few hundred 2x12 products are too small for numpy's calls
     return _innovation_covariance(np.ascontiguousarray(H_a, float),
                                   np.ascontiguousarray(H_b, float),

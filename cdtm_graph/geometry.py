@@ -207,3 +207,114 @@ def sym3_eigenvalue_range(A: np.ndarray) -> tuple[float, float]:
                       + b02 * (b01 * b12 - b11 * b02))
     phi = np.arccos(min(max(half_det, -1.0), 1.0)) / 3.0
     return q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0), q + 2.0 * p * np.cos(phi)
+
+
+def triangulate(track_index: np.ndarray, n_tracks: int, centre_m: np.ndarray,
+                ray_world: np.ndarray, sigma_rad: float | np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Least-squares points of many tracks at once, their covariances and fit.
+
+    Each observation constrains its track's point to its ray; the point minimizes the
+    sum of squared angular errors (perpendicular distance over range, ranges from a
+    first unweighted pass).
+
+    Args:
+        track_index: (M,) which track (0..T-1) each observation belongs to.
+        n_tracks: T.
+        centre_m: (M, 3) the observing camera's centre. ray_world: (M, 3) its ray.
+        sigma_rad: 1-sigma angular error of one observation, scalar or (M,).
+
+    Returns:
+        points (T, 3), covariances (T, 3, 3) and the fit's chi-square (T,) (squared angular
+        misses in sigmas, ``2 n - 3`` degrees of freedom for n rays); NaN where the rays do
+        not fix a point.
+    """
+    m = np.asarray(track_index).shape[0]
+    points = np.empty((n_tracks, 3))
+    cov = np.empty((n_tracks, 3, 3))
+    chi2_fit = np.empty(n_tracks)
+    # (one compiled pass: the grouped sums and 3x3 solves were most of a frame's judgement)
+    _triangulate_kernel(np.ascontiguousarray(track_index, np.int64),
+                        np.ascontiguousarray(centre_m, float),
+                        np.ascontiguousarray(ray_world, float),
+                        np.ascontiguousarray(np.broadcast_to(sigma_rad, (m,)), float),
+                        points, cov, chi2_fit)
+    return points, cov, chi2_fit
+
+
+@njit(cache=True)
+def _well_conditioned(A: np.ndarray) -> bool:
+    """Whether a symmetric positive semi-definite 3x3's smallest eigenvalue exceeds 1e-12
+    of its largest (in closed form: LAPACK per track cost more than the rest of the
+    triangulation)."""
+    smallest, largest = sym3_eigenvalue_range(A)
+    return smallest > 1e-12 * max(largest, 1e-300)
+
+
+@njit(cache=True)
+def _inverse_sym3(A: np.ndarray, out: np.ndarray) -> None:
+    """The inverse of a regular symmetric 3x3 (its adjugate over its determinant)."""
+    c00 = A[1, 1] * A[2, 2] - A[1, 2] * A[1, 2]
+    c01 = A[0, 2] * A[1, 2] - A[0, 1] * A[2, 2]
+    c02 = A[0, 1] * A[1, 2] - A[0, 2] * A[1, 1]
+    c11 = A[0, 0] * A[2, 2] - A[0, 2] * A[0, 2]
+    c12 = A[0, 1] * A[0, 2] - A[0, 0] * A[1, 2]
+    c22 = A[0, 0] * A[1, 1] - A[0, 1] * A[0, 1]
+    det = A[0, 0] * c00 + A[0, 1] * c01 + A[0, 2] * c02
+    out[0, 0], out[0, 1], out[0, 2] = c00 / det, c01 / det, c02 / det
+    out[1, 0], out[1, 1], out[1, 2] = c01 / det, c11 / det, c12 / det
+    out[2, 0], out[2, 1], out[2, 2] = c02 / det, c12 / det, c22 / det
+
+
+@njit(cache=True)
+def _triangulate_kernel(track_index: np.ndarray, centre: np.ndarray, ray: np.ndarray,
+                        sigma: np.ndarray, points: np.ndarray, cov: np.ndarray,
+                        chi2_fit: np.ndarray) -> None:
+    """:func:`triangulate` into ``points``, ``cov``, ``chi2_fit`` (T rows each)."""
+    m, n_tracks = track_index.shape[0], points.shape[0]
+    d = np.empty((m, 3))
+    for i in range(m):
+        norm = np.sqrt(ray[i, 0] ** 2 + ray[i, 1] ** 2 + ray[i, 2] ** 2)
+        for r in range(3):
+            d[i, r] = ray[i, r] / norm
+    weight = np.ones(m)
+    A = np.empty((n_tracks, 3, 3))
+    b = np.empty((n_tracks, 3))
+    for _ in range(2):
+        A[:] = 0.0
+        b[:] = 0.0
+        for i in range(m):
+            t, w = track_index[i], weight[i]
+            dc = d[i, 0] * centre[i, 0] + d[i, 1] * centre[i, 1] + d[i, 2] * centre[i, 2]
+            for r in range(3):
+                b[t, r] += w * (centre[i, r] - d[i, r] * dc)  # w P c, P = I - d d^T
+                for c in range(3):
+                    A[t, r, c] += w * ((1.0 if r == c else 0.0) - d[i, r] * d[i, c])
+        for t in range(n_tracks):
+            if _well_conditioned(A[t]):
+                _inverse_sym3(A[t], cov[t])  # with weights 1/(sigma r)^2: the covariance
+                for r in range(3):
+                    points[t, r] = (cov[t, r, 0] * b[t, 0] + cov[t, r, 1] * b[t, 1]
+                                    + cov[t, r, 2] * b[t, 2])
+            else:
+                cov[t] = np.nan
+                points[t] = np.nan
+        for i in range(m):
+            t = track_index[i]
+            range_m = np.sqrt((points[t, 0] - centre[i, 0]) ** 2
+                              + (points[t, 1] - centre[i, 1]) ** 2
+                              + (points[t, 2] - centre[i, 2]) ** 2)
+            if not np.isfinite(range_m):
+                range_m = 1.0
+            weight[i] = 1.0 / max(sigma[i] * range_m, 1e-12) ** 2
+    chi2_fit[:] = 0.0
+    for i in range(m):
+        t = track_index[i]
+        x0, x1, x2 = (points[t, 0] - centre[i, 0], points[t, 1] - centre[i, 1],
+                      points[t, 2] - centre[i, 2])
+        along = d[i, 0] * x0 + d[i, 1] * x1 + d[i, 2] * x2
+        chi2_fit[t] += weight[i] * ((x0 - along * d[i, 0]) ** 2 + (x1 - along * d[i, 1]) ** 2
+                                    + (x2 - along * d[i, 2]) ** 2)
+    for t in range(n_tracks):
+        if not np.isfinite(points[t, 0]):
+            chi2_fit[t] = np.nan

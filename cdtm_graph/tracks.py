@@ -215,10 +215,13 @@ class TrackTable:
 
 def pairs_without(pairs: list[FramePairObservations], track_ids: np.ndarray, k: int,
                   reason: Rejection, rejections: Rejections) -> list[FramePairObservations]:
-    """Frame k's pairs without the sightings of ``track_ids`` (sorted, unique; counted for
-    ``reason``); pairs left empty are dropped."""
+    """Frame k's pairs without the sightings of ``track_ids`` (counted for ``reason``);
+    pairs left empty are dropped."""
     if track_ids.size == 0:
         return pairs
+    track_ids = np.ascontiguousarray(track_ids, np.int64)
+    if not (track_ids[1:] > track_ids[:-1]).all():
+        track_ids = np.unique(track_ids)
     kept = []
     for pair in pairs:
         off = _in_sorted(np.ascontiguousarray(pair.track_id, np.int64), track_ids)

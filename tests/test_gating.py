@@ -41,6 +41,9 @@ def test_innovation_distance_is_e_S_inverse_e_with_a_measurement_covariance(rng)
     np.testing.assert_allclose(innovation_covariance(H_a, H_b, P, R), S, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(innovation_covariance(H_a, H_b, P), S - R + np.eye(2),
                                rtol=1e-12, atol=1e-12)
+    one_R = R[0]  # one measurement covariance for all
+    np.testing.assert_allclose(innovation_covariance(H_a, H_b, P, one_R), S - R + one_R,
+                               rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(innovation_mahalanobis(e, H_a, H_b, P, R), expected, rtol=1e-10)
 
 

@@ -22,14 +22,13 @@ from cdtm_graph.clutter import (
 )
 from cdtm_graph.dtm import Dtm, grazing_hits
 from cdtm_graph.epipolar import EpipolarSettings, _sampson_kernel, _sampson_terms, check_pair
-from cdtm_graph.geometry import make_pose, so3_exp
+from cdtm_graph.geometry import make_pose, so3_exp, triangulate
 from cdtm_graph.mismatch import (
     MismatchSettings,
     TrackHeights,
     inconsistent,
     mismatched,
     track_heights,
-    triangulate,
     untrusted,
 )
 from cdtm_graph.neighbours import ball_sums, near_any
@@ -163,6 +162,10 @@ def test_a_ray_grazing_a_ridge_is_recognised_and_one_on_open_ground_is_not():
     turn = 30.0 / np.linalg.norm(points - origin, axis=1)
     grazing = grazing_hits(dtm, origin, directions, points, normals, turn)
     assert grazing.tolist() == [True, False, False]
+    # a ray with no direction (a pixel that undistorts to nothing) is not trusted
+    directions[1] = 0.0
+    grazing = grazing_hits(dtm, origin, directions, points, normals, turn)
+    assert grazing.tolist() == [True, True, False]
 
 
 # ------------------------------------------------------------------ terrain the DTM lacks
@@ -326,6 +329,13 @@ def test_track_heights_are_the_triangulation_against_the_dtm_written_out():
             np.testing.assert_allclose(got.dh_m, points[:, 2] - ground, rtol=1e-12, atol=1e-9)
             np.testing.assert_allclose(got.sigma_m, np.sqrt(var), rtol=1e-12)
             assert np.isnan(got.dh_m[ids == track_id[-1]]).all()
+    # a camera whose position sigma is unknown (NaN) leaves its track's sigma unknown
+    pose_sigma = np.full(track_id.size, 3.0)
+    known = track_heights(track_id, centres, rays, SIGMA_Q, dtm, 2.4, pose_sigma)
+    pose_sigma[0] = np.nan
+    got = track_heights(track_id, centres, rays, SIGMA_Q, dtm, 2.4, pose_sigma)
+    lost = np.isnan(got.sigma_m) & ~np.isnan(known.sigma_m)
+    assert got.track_id[lost].tolist() == [track_id[0]]
 
 
 def test_first_sightings_are_the_first_of_each_track_and_frame():

@@ -128,6 +128,9 @@ def test_pairs_without_leaves_out_and_counts_the_sightings_of_given_tracks():
     assert rejections.total(Rejection.MAP_MISMATCH) == 3
     assert pairs_without(pairs, np.zeros(0, np.int64), 5, Rejection.MAP_MISMATCH,
                          rejections) is pairs
+    # the ids to leave out in any order, repeated
+    again = pairs_without(pairs, np.array([7, 2, 7]), 5, Rejection.MAP_MISMATCH, Rejections())
+    assert [p.track_id.tolist() for p in again] == [[1, 3], [8]]
 
 
 class RecordedObservations:

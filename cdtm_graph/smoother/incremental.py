@@ -478,6 +478,8 @@ class IncrementalSmoother:
         n_features = sum(f.features.n for f in factors)
         self._cdtm.extend(factors)
         self._cdtm_ids.extend(track_ids)
+        # in frame order: the window's factors are found by bisection
+        assert not self._cdtm_frame_b or k >= self._cdtm_frame_b[-1]
         self._cdtm_frame_b.extend([k] * len(factors))
         self._cdtm_slots.extend(slots)
         if self._judge is not None:
