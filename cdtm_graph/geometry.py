@@ -1,5 +1,6 @@
 """Rotation and pose helpers on plain numpy (no GTSAM), vectorized or compiled where it
-matters.
+matters; the triangulation of many tracks at once and the closed-form symmetric 3x3
+algebra it shares.
 
 Conventions (docs/flightlog.md): quaternions are Hamilton, stored w first, and rotate
 body-frame vectors into the world frame; a pose ``a_T_b`` is a 4x4 matrix with
