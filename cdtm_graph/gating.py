@@ -67,12 +67,11 @@ def _innovation_covariance(H_a, H_b, P, R):
                     total += H[r, j] * P[j, c]
                 HP[r, c] = total
         for r in range(2):
-            for c in range(r, 2):
+            for c in range(2):
                 total = 0.0
                 for j in range(12):
                     total += HP[r, j] * H[c, j]
                 S[i, r, c] = total + R[i, r, c]
-        S[i, 1, 0] = S[i, 0, 1] - R[i, 0, 1] + R[i, 1, 0]
     return S
 
 

@@ -86,7 +86,8 @@ def _ball_sums_kernel(query, ref, values, key, order, n_finite, origin, radius, 
     for s in range(n_finite):
         r = order[s]
         sorted_key[s], xy[s, 0], xy[s, 1] = key[r], ref[r, 0], ref[r, 1]
-        sorted_values[s] = values[r]
+        for j in range(m):
+            sorted_values[s, j] = values[r, j]
     radius2 = radius * radius
     n_columns = sorted_key[-1] // n_rows + 1
     for q in range(query.shape[0]):

@@ -368,24 +368,10 @@ class TrackObservations:
 def _sorted_once(track_id: np.ndarray, frame: np.ndarray, q: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Observations sorted by track then frame, the first of each (track, frame) only."""
-    track_id = np.ascontiguousarray(track_id, np.int64)
-    frame = np.ascontiguousarray(frame, np.int64)
-    order = np.lexsort((frame, track_id))  # stable: the first of equals stays first
-    return _first_of_each(order, track_id, frame, np.ascontiguousarray(q, float).reshape(-1, 3))
-
-
-@njit(cache=True)
-def _first_of_each(order, track_id, frame, q):
-    n = order.shape[0]
-    out_id, out_frame, out_q = np.empty(n, np.int64), np.empty(n, np.int64), np.empty((n, 3))
-    o = 0
-    for s in range(n):
-        i = order[s]
-        if o and track_id[i] == out_id[o - 1] and frame[i] == out_frame[o - 1]:
-            continue
-        _put(out_id, out_frame, out_q, o, track_id[i], frame[i], q, i)
-        o += 1
-    return out_id[:o], out_frame[:o], out_q[:o]
+    first = first_sightings(np.asarray(track_id), np.asarray(frame))
+    return (np.ascontiguousarray(track_id[first], np.int64),
+            np.ascontiguousarray(frame[first], np.int64),
+            np.ascontiguousarray(np.asarray(q, float).reshape(-1, 3)[first]))
 
 
 @njit(cache=True)
