@@ -229,7 +229,7 @@ def cdtm_factors(
             calibration[0], calibration[1][pair.frame_a], calibration[1][k])
         build.factors.append(CdtmPairFactor(
             X(pair.frame_a), X(k), features, body_T_cam, settings.plane_mode,
-            raycast, settings.robust, settings.robust_threshold, link))
+            raycast, settings.robust, settings.robust_threshold, link).built_at(wTc_a))
         build.track_ids.append(ids)
         build.n_features += n_valid
         build.features_per_frame[k] = build.features_per_frame.get(k, 0) + n_valid

@@ -367,7 +367,7 @@ class CdtmPairFactor:
             return f.G_E, f.N
         # An optimizer evaluates the error at a candidate and then linearizes at the
         # same values: cast once per distinct camera-a pose.
-        key = world_T_cam_a.tobytes() + np.float64(focal_scale_minus_1).tobytes()
+        key = _planes_key(world_T_cam_a, focal_scale_minus_1)
         if self._planes_cache is not None and self._planes_cache[0] == key:
             return self._planes_cache[1], self._planes_cache[2]
         q_a = f.q_a if focal_scale_minus_1 == 0.0 else corrected_rays(f.q_a, focal_scale_minus_1)
@@ -379,6 +379,16 @@ class CdtmPairFactor:
             normals[~valid] = f.N[~valid]
         self._planes_cache = (key, points, normals)
         return points, normals
+
+    def built_at(self, world_T_cam_a: np.ndarray) -> CdtmPairFactor:
+        """Take the features' planes as this factor's cast at ``world_T_cam_a``, the
+        camera-a pose they were cast at when the features were built (with this factor's
+        ray caster), so an evaluation there (an innovation test's) does not cast them
+        again. Returns the factor."""
+        if self.plane_mode is PlaneMode.REINTERSECT:
+            self._planes_cache = (_planes_key(world_T_cam_a, 0.0), self.features.G_E,
+                                  self.features.N)
+        return self
 
     def evaluate(
         self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray, want_jacobians: bool = True
@@ -780,6 +790,11 @@ class CdtmPairFactor:
         jacobians[1] = np.ascontiguousarray(R[:, 6:12])
         jacobians[2] = np.ascontiguousarray(R[:, 12:12 + CALIBRATION_DIM])
         return np.ascontiguousarray(R[:, -1])
+
+
+def _planes_key(world_T_cam_a: np.ndarray, focal_scale_minus_1: float) -> bytes:
+    """What a cast of the planes depends on: the camera-a pose and the focal scale."""
+    return world_T_cam_a.tobytes() + np.float64(focal_scale_minus_1).tobytes()
 
 
 def _kept(cache: dict, key: Any, value: tuple[np.ndarray, ...], size: int
