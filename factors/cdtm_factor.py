@@ -54,6 +54,7 @@ from factors.kernel import (
     KERNEL_TUKEY,
     cdtm_linearize,
     feature_covariance_kernel,
+    focal_scale_kernel,
     residual_noise_kernel,
     triangularize,
 )
@@ -274,12 +275,6 @@ def _pose_matrix(values: gtsam.Values, key: int) -> np.ndarray:
 #: 5 calibration columns and the residual column.
 CALIBRATED_ROWS = 12 + CALIBRATION_DIM + 1
 
-#: Step of the central differences of the residual w.r.t. the focal scale.
-FOCAL_SCALE_STEP = 1e-5
-
-#: Step of the differences of the expected noise cost (rad, m, s, 1 alike).
-NOISE_COST_STEP = 1e-6
-
 
 class CdtmPairFactor:
     """Every C-DTM feature of a frame pair in one vectorized GTSAM factor.
@@ -439,7 +434,7 @@ class CdtmPairFactor:
         return Ad
 
     #: Time offsets and focal scales whose derived quantities a factor keeps (a solve's
-    #: current ones and the focal scale's two central-difference neighbours).
+    #: current ones and its last rejected candidates).
     _SETUPS_KEPT = 4
 
     def _calibrated_setup(self, calibration: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -479,9 +474,9 @@ class CdtmPairFactor:
         """Whitened, reweighted residuals (n, 2) and Jacobians w.r.t. X(a), X(b) (n, 2, 6)
         and the calibration (n, 2, 5), at the calibration ``calibration`` (5,).
 
-        The time offset and the mount are chained from the pose Jacobians (exact); the
-        focal scale by central differences of the residual, reweighted as its row. Fresh
-        arrays. ``robust=False``: no reweighting.
+        The time offset and the mount are chained from the pose Jacobians, the focal scale
+        is :func:`~factors.kernel.focal_scale_kernel`'s (all exact). Fresh arrays.
+        ``robust=False``: no reweighting.
         """
         link = self.calibration
         if link is None:
@@ -496,37 +491,31 @@ class CdtmPairFactor:
         if not want_jacobians:
             return e, Ha, Hb, Hc
         dt = float(c[TIME_OFFSET])
-        Hc[:, :, TIME_OFFSET] = Ha @ link.twist_a + Hb @ link.twist_b
+        # (as (2n, 6) rows: one matrix product each, not n small ones)
+        rows_a, rows_b = Ha.reshape(-1, 6), Hb.reshape(-1, 6)
+        Hc[:, :, TIME_OFFSET] = (rows_a @ link.twist_a + rows_b @ link.twist_b).reshape(n, 2)
         Ad_inv = np.linalg.inv(Ad)  # back to camera tangents: the mount turns both cameras
-        Hc[:, :, MOUNT] = ((Ha @ Ad_inv)[..., :3] + (Hb @ Ad_inv)[..., :3]) @ \
-            mount_jacobian(c[MOUNT])
+        Hc[:, :, MOUNT] = (((rows_a @ Ad_inv)[:, :3] + (rows_b @ Ad_inv)[:, :3])
+                           @ mount_jacobian(c[MOUNT])).reshape(n, 2, 3)
         Hc[:, :, FOCAL_SCALE] = self._focal_scale_column(world_T_body_a, world_T_body_b, c,
-                                                         e, kernel)
-        Ha = Ha @ shift_adjoint(link.twist_a, dt)
-        Hb = Hb @ shift_adjoint(link.twist_b, dt)
+                                                         kernel)
+        Ha = (rows_a @ shift_adjoint(link.twist_a, dt)).reshape(n, 2, 6)
+        Hb = (rows_b @ shift_adjoint(link.twist_b, dt)).reshape(n, 2, 6)
         return e, Ha, Hb, Hc
 
     def _focal_scale_column(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray,
-                            c: np.ndarray, e: np.ndarray, kernel: int) -> np.ndarray:
-        """d e / d(focal scale), (n, 2): central differences of the unweighted residual,
-        times each feature's robust weight as the kernel applied it to ``e``."""
-        n = self.features.n
-        side = []
-        for step in (FOCAL_SCALE_STEP, -FOCAL_SCALE_STEP):
-            moved = c.copy()
-            moved[FOCAL_SCALE] += step
-            out = np.empty((n, 2))
-            self._calibrated_kernel(world_T_body_a, world_T_body_b, moved, KERNEL_NONE,
-                                    False, out, self._Ha, self._Hb)
-            side.append(out)
-        column = (side[0] - side[1]) / (2.0 * FOCAL_SCALE_STEP)
-        if kernel != KERNEL_NONE:
-            plain = np.empty((n, 2))
-            self._calibrated_kernel(world_T_body_a, world_T_body_b, c, KERNEL_NONE, False,
-                                    plain, self._Ha, self._Hb)
-            norm = np.linalg.norm(plain, axis=1)
-            weight = np.divide(np.linalg.norm(e, axis=1), norm, out=np.ones(n), where=norm > 0)
-            column *= weight[:, None]
+                            c: np.ndarray, kernel: int) -> np.ndarray:
+        """d e / d(focal scale), (n, 2), reweighted as its row (:func:`focal_scale_kernel`,
+        at the planes the residual was just evaluated on)."""
+        s = float(c[FOCAL_SCALE])
+        shift_a, shift_b, body_T_cam, _, q_a, _, sqrt_info = self._calibrated_setup(c)
+        wTc_a = world_T_body_a @ shift_a @ body_T_cam
+        wTc_b = world_T_body_b @ shift_b @ body_T_cam
+        G_E, N = self.planes(wTc_a, s)
+        column = np.empty((self.features.n, 2))
+        focal_scale_kernel(wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3], q_a,
+                           corrected_rays(self.features.q_b, s), G_E, N, sqrt_info, 1.0 + s,
+                           kernel, self._kernel_k, column)
         return column
 
     def noise_cost_gradient(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray,
@@ -550,9 +539,34 @@ class CdtmPairFactor:
         so the expectation follows the residual exactly as the factor computes it
         (eqs. 19-26 describe the paper's 3-vector, which differs from the factor's
         2-vector at first order off the solution). Planes held where camera a casts them
-        now; robust weights as the kernel gives them here. Central differences over the
-        variables: 18 kernel calls over the 10 moved copies of the data, once per solve.
+        now; robust weights as the kernel gives them here (:meth:`noise_moved`). The
+        gradient is exact: the moved data's Jacobians, one evaluation of the 10 moved
+        copies of the data (``sum w odd . (J+ - J-)``).
         """
+        moved, weight, c = self.noise_moved(world_T_body_a, world_T_body_b, calibration)
+        if moved.calibration is not None:
+            e, Ha, Hb, Hc = moved.evaluate_calibrated(world_T_body_a, world_T_body_b, c,
+                                                      robust=False)
+            J = np.concatenate((Ha, Hb, Hc), axis=2)
+        else:
+            e, Ha, Hb = moved.innovations(world_T_body_a, world_T_body_b)
+            J = np.concatenate((Ha, Hb), axis=2)
+        n = self.features.n
+        sides_e = e.reshape(-1, 2, n, 2)
+        sides_J = J.reshape(-1, 2, n, 2, J.shape[2])
+        # d(w |odd|^2) = 2 w odd . d(odd), d(odd) = (J+ - J-) / 2
+        return np.einsum("n,mni,mnij->j", weight, 0.5 * (sides_e[:, 0] - sides_e[:, 1]),
+                         sides_J[:, 0] - sides_J[:, 1])
+
+    def noise_moved(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray,
+                    calibration: np.ndarray | None = None
+                    ) -> tuple[CdtmPairFactor, np.ndarray, np.ndarray]:
+        """The data moved by +- one sigma of each noise source (rows [source, sign,
+        feature]: ``q_a`` x and y, ``q_b`` x and y, the DTM height), as a factor on the
+        planes camera a casts now (held, no kernel; the calibration held at
+        ``calibration`` when given), with the features' IRLS weights (n,) here and the
+        calibration (5,) used. Its residuals' half differences are the noise's linear
+        part (:meth:`noise_cost_gradient`)."""
         f = self.features
         if f.noise is None:
             raise ValueError("features built without their noise settings have no noise cost")
@@ -570,64 +584,27 @@ class CdtmPairFactor:
         # the kernel's IRLS weight (its loss over the plain one: exact for a quadratic)
         weight = np.divide(np.einsum("ni,ni->n", e_r, e_r), plain, out=np.ones(f.n),
                            where=plain > 0)
-
-        def cameras(Ta: np.ndarray, Tb: np.ndarray, c: np.ndarray):
-            body_T_cam = corrected_mount(self.body_T_cam, c[MOUNT])
-            if link is not None and calibrated:
-                Ta = Ta @ shift(link.twist_a, float(c[TIME_OFFSET]))
-                Tb = Tb @ shift(link.twist_b, float(c[TIME_OFFSET]))
-            return Ta @ body_T_cam, Tb @ body_T_cam, body_T_cam
-
-        G_E, N = self.planes(cameras(world_T_body_a, world_T_body_b, c)[0],
-                             float(c[FOCAL_SCALE]))
+        body_T_cam = corrected_mount(self.body_T_cam, c[MOUNT])
+        wTc_a = world_T_body_a
+        if link is not None and calibrated:
+            wTc_a = wTc_a @ shift(link.twist_a, float(c[TIME_OFFSET]))
+        G_E, N = self.planes(wTc_a @ body_T_cam, float(c[FOCAL_SCALE]))
         (sx, sy), sh = f.noise.sigma_q_xy, float(f.noise.sigma_h_m)
-        # the data moved by +- one sigma of each noise source, stacked for one kernel call:
-        # rows [source, sign, feature]
         moves = ((0, 0, sx), (0, 1, sy), (1, 0, sx), (1, 1, sy), (2, 2, sh))
-        stacked = [np.tile(a, (2 * len(moves), 1)) for a in (f.q_a, f.q_b, G_E)]
+        copies = 2 * len(moves)
+        stacked = [np.tile(a, (copies, 1)) for a in (f.q_a, f.q_b, G_E)]
         for m, (which, axis, sigma) in enumerate(moves):
             for half, sign in enumerate((1.0, -1.0)):
                 rows = slice((2 * m + half) * f.n, (2 * m + half + 1) * f.n)
                 stacked[which][rows, axis] += sign * sigma
-        q_a_moved, q_b_moved, G_moved = stacked
-        N_moved = np.tile(N, (2 * len(moves), 1))
-        sqrt_moved = np.tile(f.sqrt_info, (2 * len(moves), 1, 1))
-        k_moved = np.tile(self._kernel_k, 2 * len(moves))
-        e = np.empty((q_a_moved.shape[0], 2))
-        H = np.empty((q_a_moved.shape[0], 2, 6))
-        rays: dict[float, tuple[np.ndarray, np.ndarray]] = {}
-
-        def expected(Ta: np.ndarray, Tb: np.ndarray, c: np.ndarray) -> float:
-            s = float(c[FOCAL_SCALE])
-            if s not in rays:
-                rays[s] = (corrected_rays(q_a_moved, s),
-                           cdtm_math.orthonormal_complement(corrected_rays(q_b_moved, s)))
-            q_a, basis_b = rays[s]
-            wTc_a, wTc_b, body_T_cam = cameras(Ta, Tb, c)
-            cdtm_linearize(wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3],
-                           cdtm_math.body_to_cam_adjoint(body_T_cam), q_a, G_moved, N_moved,
-                           basis_b, sqrt_moved * (1.0 + s) if calibrated else sqrt_moved,
-                           KERNEL_NONE, k_moved, False, e, H, H, _NO_LOSS)
-            sides = e.reshape(len(moves), 2, f.n, 2)
-            odd = 0.5 * (sides[:, 0] - sides[:, 1])
-            return float(weight @ np.einsum("mni,mni->n", odd, odd))
-
-        # forward differences: the cost is ~1e3 and smooth on scales of metres and degrees,
-        # so a 1e-6 step leaves ~1e-7 of truncation and ~1e-8 of rounding (relative)
-        out = np.zeros(12 + CALIBRATION_DIM * calibrated)
-        here = expected(world_T_body_a, world_T_body_b, c)
-        for j in range(out.size):
-            Ta, Tb, cj = world_T_body_a, world_T_body_b, c
-            if j < 12:
-                d = np.zeros(6)
-                d[j % 6] = NOISE_COST_STEP
-                turn = gtsam.Pose3.Expmap(d).matrix()
-                Ta, Tb = (Ta @ turn, Tb) if j < 6 else (Ta, Tb @ turn)
-            else:
-                cj = c.copy()
-                cj[j - 12] += NOISE_COST_STEP
-            out[j] = (expected(Ta, Tb, cj) - here) / NOISE_COST_STEP
-        return out
+        q_a, q_b, G = stacked
+        moved = PairFeatures(
+            q_a, q_b, G, np.tile(N, (copies, 1)), np.tile(f.Sigma_e, (copies, 1, 1)),
+            np.tile(f.Sigma_f, (copies, 1, 1)), cdtm_math.orthonormal_complement(q_b),
+            np.tile(f.sqrt_info, (copies, 1, 1)), f.noise)
+        return CdtmPairFactor(self.key_a, self.key_b, moved, self.body_T_cam, PlaneMode.FIXED,
+                              calibration=link.fixed_at(c) if calibrated and link else None
+                              ), weight, c
 
     def refreshed(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray) -> CdtmPairFactor:
         """The same factor with planes and noise (eqs. 19-26) linearized at these poses.

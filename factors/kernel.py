@@ -59,6 +59,31 @@ def robust_loss(kernel: int, k: float, s: float) -> float:
     return 0.5 * s * s
 
 
+@njit(cache=True, inline="always")
+def _hit_in_b(i, R_a, p_a, R_b, p_b, q_a, G_E, N):
+    """Feature i's ray ``r = R_a q_a``, ``N.r``, where it meets its plane ``P = p_a + lam
+    r`` and ``g = R_b^T (P - p_b)``: ``(r0, r1, r2, Nr, lam, g0, g1, g2)``. ``lam`` is NaN
+    for an inactive feature (the ray parallel to the plane or the hit behind camera a)."""
+    r0 = R_a[0, 0] * q_a[i, 0] + R_a[0, 1] * q_a[i, 1] + R_a[0, 2] * q_a[i, 2]
+    r1 = R_a[1, 0] * q_a[i, 0] + R_a[1, 1] * q_a[i, 1] + R_a[1, 2] * q_a[i, 2]
+    r2 = R_a[2, 0] * q_a[i, 0] + R_a[2, 1] * q_a[i, 1] + R_a[2, 2] * q_a[i, 2]
+    Nr = N[i, 0] * r0 + N[i, 1] * r1 + N[i, 2] * r2
+    c = N[i, 0] * (G_E[i, 0] - p_a[0]) + N[i, 1] * (G_E[i, 1] - p_a[1]) \
+        + N[i, 2] * (G_E[i, 2] - p_a[2])
+    # (written so that NaN data, which fails every comparison, is inactive too)
+    if not (abs(Nr) >= _MIN_RAY_NORMAL_DOT and c / Nr > 0.0):
+        return r0, r1, r2, Nr, np.nan, 0.0, 0.0, 0.0
+    lam = c / Nr
+    d0 = p_a[0] + lam * r0 - p_b[0]
+    d1 = p_a[1] + lam * r1 - p_b[1]
+    d2 = p_a[2] + lam * r2 - p_b[2]
+    # g = R_b^T d
+    g0 = R_b[0, 0] * d0 + R_b[1, 0] * d1 + R_b[2, 0] * d2
+    g1 = R_b[0, 1] * d0 + R_b[1, 1] * d1 + R_b[2, 1] * d2
+    g2 = R_b[0, 2] * d0 + R_b[1, 2] * d1 + R_b[2, 2] * d2
+    return r0, r1, r2, Nr, lam, g0, g1, g2
+
+
 @njit(cache=True)
 def cdtm_linearize(
     R_a, p_a, R_b, p_b, Ad, q_a, G_E, N, basis, sqrt_info, kernel, kernel_k,
@@ -90,14 +115,8 @@ def cdtm_linearize(
     Hc_a = np.empty((2, 6))
     Hc_b = np.empty((2, 6))
     for i in range(n):
-        r0 = R_a[0, 0] * q_a[i, 0] + R_a[0, 1] * q_a[i, 1] + R_a[0, 2] * q_a[i, 2]
-        r1 = R_a[1, 0] * q_a[i, 0] + R_a[1, 1] * q_a[i, 1] + R_a[1, 2] * q_a[i, 2]
-        r2 = R_a[2, 0] * q_a[i, 0] + R_a[2, 1] * q_a[i, 1] + R_a[2, 2] * q_a[i, 2]
-        Nr = N[i, 0] * r0 + N[i, 1] * r1 + N[i, 2] * r2
-        c = N[i, 0] * (G_E[i, 0] - p_a[0]) + N[i, 1] * (G_E[i, 1] - p_a[1]) \
-            + N[i, 2] * (G_E[i, 2] - p_a[2])
-        # (written so that NaN data, which fails every comparison, is inactive too)
-        if not (abs(Nr) >= _MIN_RAY_NORMAL_DOT and c / Nr > 0.0):
+        r0, r1, r2, Nr, lam, g0, g1, g2 = _hit_in_b(i, R_a, p_a, R_b, p_b, q_a, G_E, N)
+        if np.isnan(lam):
             n_inactive += 1
             e_out[i, 0] = 0.0
             e_out[i, 1] = 0.0
@@ -108,14 +127,6 @@ def cdtm_linearize(
                 Ha_out[i, :, :] = 0.0
                 Hb_out[i, :, :] = 0.0
             continue
-        lam = c / Nr
-        d0 = p_a[0] + lam * r0 - p_b[0]
-        d1 = p_a[1] + lam * r1 - p_b[1]
-        d2 = p_a[2] + lam * r2 - p_b[2]
-        # g = R_b^T d
-        g0 = R_b[0, 0] * d0 + R_b[1, 0] * d1 + R_b[2, 0] * d2
-        g1 = R_b[0, 1] * d0 + R_b[1, 1] * d1 + R_b[2, 1] * d2
-        g2 = R_b[0, 2] * d0 + R_b[1, 2] * d1 + R_b[2, 2] * d2
         gn = np.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
         h0, h1, h2 = g0 / gn, g1 / gn, g2 / gn
         # unwhitened residual e = B^T h
@@ -185,6 +196,77 @@ def cdtm_linearize(
                 Ha_out[i, k, j] = acc_a
                 Hb_out[i, k, j] = acc_b
     return n_inactive
+
+
+@njit(cache=True)
+def focal_scale_kernel(R_a, p_a, R_b, p_b, q_a, q_b, G_E, N, sqrt_info, one_plus_s, kernel,
+                       kernel_k, out):
+    """``d e / d s`` of the whitened, reweighted residuals of n features w.r.t. the focal
+    scale ``s`` (:mod:`factors.calibration`), the poses and the tangent planes held.
+
+    The rays are the corrected ones at ``s``, ``q = [q0_xy / (1 + s), 1]``, so
+    ``dq/ds = -[q_xy, 0] / (1 + s)`` moves both rays; the whitening is ``S0 (1 + s)``
+    (``sqrt_info``), so ``dS/ds = S / (1 + s)``; ``B = B(q_b)`` is
+    :func:`factors.cdtm_math.orthonormal_complement`'s basis. With ``P = p_a + lam r``
+    on the plane, ``dP = lam P(r, N) dr``; ``dh = (I - h h^T) dg / |g|``; the row is
+    reweighted by the feature's sqrt weight, as :func:`cdtm_linearize` weighs its
+    Jacobians. (Moving a hit along its tangent plane changes the plane only at second
+    order, so holding the planes is exact to first order where they are re-cast.)
+
+    Args:
+        R_a, p_a, R_b, p_b, G_E, N, kernel, kernel_k: as :func:`cdtm_linearize`.
+        q_a, q_b: (n, 3) the corrected rays (z = 1). sqrt_info: (n, 2, 2) at ``s``.
+        one_plus_s: ``1 + s``. out: (n, 2) output; zero rows for inactive features.
+    """
+    for i in range(q_a.shape[0]):
+        out[i, 0] = 0.0
+        out[i, 1] = 0.0
+        r0, r1, r2, Nr, lam, g0, g1, g2 = _hit_in_b(i, R_a, p_a, R_b, p_b, q_a, G_E, N)
+        if np.isnan(lam):
+            continue
+        gn = np.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+        h0, h1, h2 = g0 / gn, g1 / gn, g2 / gn
+        # camera a's ray: dr = R_a dq_a, dP = lam (dr - r (N.dr) / N.r), dg = R_b^T dP
+        k = -1.0 / one_plus_s
+        dqa0, dqa1 = k * q_a[i, 0], k * q_a[i, 1]
+        dr0 = R_a[0, 0] * dqa0 + R_a[0, 1] * dqa1
+        dr1 = R_a[1, 0] * dqa0 + R_a[1, 1] * dqa1
+        dr2 = R_a[2, 0] * dqa0 + R_a[2, 1] * dqa1
+        Ndr = (N[i, 0] * dr0 + N[i, 1] * dr1 + N[i, 2] * dr2) / Nr
+        dP0, dP1, dP2 = lam * (dr0 - r0 * Ndr), lam * (dr1 - r1 * Ndr), lam * (dr2 - r2 * Ndr)
+        dg0 = R_b[0, 0] * dP0 + R_b[1, 0] * dP1 + R_b[2, 0] * dP2
+        dg1 = R_b[0, 1] * dP0 + R_b[1, 1] * dP1 + R_b[2, 1] * dP2
+        dg2 = R_b[0, 2] * dP0 + R_b[1, 2] * dP1 + R_b[2, 2] * dP2
+        hdg = h0 * dg0 + h1 * dg1 + h2 * dg2
+        dh0, dh1, dh2 = (dg0 - h0 * hdg) / gn, (dg1 - h1 * hdg) / gn, (dg2 - h2 * hdg) / gn
+        # camera b's ray and its basis: b1 = (qz, 0, -qx) / |(qx, qz)|, b2 = q^ x b1
+        qx, qy, qz = q_b[i, 0], q_b[i, 1], q_b[i, 2]
+        dqx, dqy = k * qx, k * qy
+        rho = np.sqrt(qx * qx + qz * qz)
+        b10, b12 = qz / rho, -qx / rho
+        db10 = -qz * qx * dqx / rho**3
+        db12 = -dqx / rho + qx * qx * dqx / rho**3
+        qn = np.sqrt(qx * qx + qy * qy + qz * qz)
+        u0, u1, u2 = qx / qn, qy / qn, qz / qn
+        udq = (u0 * dqx + u1 * dqy) / qn
+        du0, du1, du2 = dqx / qn - u0 * udq, dqy / qn - u1 * udq, -u2 * udq
+        b20, b21, b22 = u1 * b12, u2 * b10 - u0 * b12, -u1 * b10
+        db20 = du1 * b12 + u1 * db12
+        db21 = du2 * b10 + u2 * db10 - du0 * b12 - u0 * db12
+        db22 = -du1 * b10 - u1 * db10
+        e0 = b10 * h0 + b12 * h2
+        e1 = b20 * h0 + b21 * h1 + b22 * h2
+        de0 = db10 * h0 + db12 * h2 + b10 * dh0 + b12 * dh2
+        de1 = db20 * h0 + db21 * h1 + db22 * h2 + b20 * dh0 + b21 * dh1 + b22 * dh2
+        S00, S01, S10, S11 = sqrt_info[i, 0, 0], sqrt_info[i, 0, 1], sqrt_info[i, 1, 0], \
+            sqrt_info[i, 1, 1]
+        w0 = S00 * e0 + S01 * e1
+        w1 = S10 * e0 + S11 * e1
+        s = np.sqrt(w0 * w0 + w1 * w1)
+        sw = np.sqrt(robust_weight(kernel, kernel_k[i], s)) if kernel != KERNEL_NONE else 1.0
+        # d(S e) = S de + (dS/ds) e, dS/ds = S / (1 + s)
+        out[i, 0] = sw * (S00 * de0 + S01 * de1 + w0 / one_plus_s)
+        out[i, 1] = sw * (S10 * de0 + S11 * de1 + w1 / one_plus_s)
 
 
 #: Rows of a compressed pair factor: 12 pose columns plus the residual column.

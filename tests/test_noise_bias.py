@@ -11,9 +11,23 @@ import pytest
 from gtsam.symbol_shorthand import X
 
 from cdtm_graph.geometry import make_pose
-from factors import CdtmPairFactor, FeatureNoise, PairFeatures, PlaneMode, cdtm_math
+from factors import (
+    CdtmPairFactor,
+    FeatureNoise,
+    PairFeatures,
+    PlaneMode,
+    RobustKernel,
+    cdtm_math,
+)
 from factors.calibration import CalibrationLink
-from tests.manifold import downward_body_T_cam, random_rotation
+from tests.manifold import (
+    WavyTerrain,
+    downward_body_T_cam,
+    numerical_jacobian,
+    numerical_pose_jacobian,
+    random_rotation,
+)
+from tests.test_cdtm_factor import random_pair
 
 #: Features of one simulated pair, in twins whose noise draws are opposite.
 N_TWINS = 8_000
@@ -102,3 +116,49 @@ def test_noise_cost_gradient_is_the_gradient_of_the_noise_expected_cost(rng, cal
         measured[j] = (side[0] - side[1]) / (2.0 * step)
     scale = np.abs(predicted).max()
     np.testing.assert_allclose(measured, predicted, atol=GRADIENT_TOL * scale)
+
+
+def _moved_cost(moved: CdtmPairFactor, weight: np.ndarray, Ta: np.ndarray, Tb: np.ndarray,
+                c: np.ndarray) -> np.ndarray:
+    """The noise's expected cost over the moved data (planes and weights held), (1,)."""
+    if moved.calibration is not None:
+        e = moved.evaluate_calibrated(Ta, Tb, c, False, robust=False)[0]
+    else:
+        e = moved.whitened_residuals(Ta, Tb)
+    sides = e.reshape(-1, 2, weight.size, 2)
+    odd = 0.5 * (sides[:, 0] - sides[:, 1])
+    return np.array([np.einsum("n,mni,mni->", weight, odd, odd)])
+
+
+#: The exact gradient against central differences (1e-6 steps) of the same cost.
+EXACT_GRADIENT_RTOL = 1e-6
+
+
+@pytest.mark.parametrize("calibrated", [False, True])
+def test_noise_cost_gradient_is_the_exact_gradient_of_its_cost(rng, calibrated):
+    """The gradient (the moved data's Jacobians) equals central differences of the cost
+    it differentiates, with its planes (cast by the factor, REINTERSECT) and robust
+    weights (a Cauchy kernel, some features far out) held, every variable, the
+    calibration's at a non-zero value."""
+    terrain = WavyTerrain(amplitude_m=40.0, wavelength_m=500.0)
+    body_T_cam, Ta, Tb, feats = random_pair(rng, terrain, n=20, pixel_noise=2e-2)
+    feats = dataclasses.replace(feats, noise=FeatureNoise((2e-3, 2e-3), 3.0))
+    link = None
+    if calibrated:
+        twist = lambda: np.r_[rng.normal(0, 0.05, 3), rng.normal(0, 100, 3)]  # noqa: E731
+        link = CalibrationLink(gtsam.symbol("c", 0), twist(), twist())
+    fac = CdtmPairFactor(X(0), X(1), feats, body_T_cam, PlaneMode.REINTERSECT, terrain.raycast,
+                         robust=RobustKernel.CAUCHY, robust_threshold=1.0, calibration=link)
+    c = np.r_[0.01, np.radians([0.3, -0.2, 0.5]), 0.004] if calibrated else None
+    gradient = fac.noise_cost_gradient(Ta, Tb, c)
+    moved, weight, c_used = fac.noise_moved(Ta, Tb, c)
+    assert weight.min() < 0.9  # the kernel weighs some features down
+    numeric = [numerical_pose_jacobian(lambda T: _moved_cost(moved, weight, T, Tb, c_used), Ta),
+               numerical_pose_jacobian(lambda T: _moved_cost(moved, weight, Ta, T, c_used), Tb)]
+    if calibrated:
+        numeric.append(numerical_jacobian(lambda x: _moved_cost(moved, weight, Ta, Tb, x),
+                                          c_used))
+    numeric_gradient = np.concatenate(numeric, axis=1)[0]
+    assert gradient.shape == numeric_gradient.shape == (17 if calibrated else 12,)
+    np.testing.assert_allclose(gradient, numeric_gradient,
+                               atol=EXACT_GRADIENT_RTOL * np.abs(numeric_gradient).max())

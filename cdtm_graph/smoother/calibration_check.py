@@ -19,7 +19,7 @@ solve from its estimate estimates the calibration too (``C(0)``,
 
 A correction that is significant but does not move the positions beyond their covariance
 (a 0.5 deg mount error, which the attitude takes) is a note, ``calibration_held``. Cost:
-two batch solves (the calibration pinned, then free) without mismatch rounds: 0.8-0.9 s
+two batch solves (the calibration pinned, then free) without mismatch rounds: 0.6-0.7 s
 on the issue's 90-frame flight (``benchmarks/bench_calibration.py``).
 """
 
