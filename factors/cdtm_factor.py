@@ -552,6 +552,8 @@ class CdtmPairFactor:
             e, Ha, Hb = moved.innovations(world_T_body_a, world_T_body_b)
             J = np.concatenate((Ha, Hb), axis=2)
         n = self.features.n
+        if n == 0:
+            return np.zeros(J.shape[2])
         sides_e = e.reshape(-1, 2, n, 2)
         sides_J = J.reshape(-1, 2, n, 2, J.shape[2])
         # d(w |odd|^2) = 2 w odd . d(odd), d(odd) = (J+ - J-) / 2

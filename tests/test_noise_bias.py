@@ -162,3 +162,12 @@ def test_noise_cost_gradient_is_the_exact_gradient_of_its_cost(rng, calibrated):
     assert gradient.shape == numeric_gradient.shape == (17 if calibrated else 12,)
     np.testing.assert_allclose(gradient, numeric_gradient,
                                atol=EXACT_GRADIENT_RTOL * np.abs(numeric_gradient).max())
+
+
+@pytest.mark.parametrize("calibrated", [False, True])
+def test_a_factor_without_features_has_no_noise_cost_gradient(rng, calibrated):
+    """Every feature taken out: the gradient is zero, of the variables' size."""
+    fac, Ta, Tb = _noisy_pair(rng, calibrated)
+    empty = fac.with_features(np.zeros(fac.features.n, dtype=bool))
+    gradient = empty.noise_cost_gradient(Ta, Tb, np.zeros(5) if calibrated else None)
+    np.testing.assert_array_equal(gradient, np.zeros(17 if calibrated else 12))
