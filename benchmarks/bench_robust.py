@@ -14,10 +14,14 @@ drift hits every variant alike, with:
 - ``bare``: no defence and no check (the estimator before the robustness work).
 
 Prints each variant's median batch time, its ratio to ``robust none`` and to ``bare``,
-and its 3-D RMSE and position ANEES; then each variant's fixed-lag (10 s) median update
-from frame 100 on (the calibration check runs after a run, never in an update). Ends with
-one line ``held_over_robust_none=... held_over_bare=... check_over_held=...
-fixedlag_held_over_bare=...``.
+and its 3-D RMSE and position ANEES. Then the fixed lag (10 s) as a live system runs it
+(``keep_exit_covariances=False``, as ``bench_smoother.py``): the median update from
+frame ``--lag-from`` on, the defences taken off one step at a time (``held``; ``robust
+none``; no track tests; no epipolar check or grazing test either; ``bare + gate``: no
+kernel and no fix search either; ``bare``: no innovation gate either), each step's
+share beside it; interleaved as the batch (the calibration check runs after a run, never
+in an update). Ends with one line ``held_over_robust_none=... held_over_bare=...
+check_over_held=... fixedlag_held_over_bare=... fixedlag_held_ms=... fixedlag_bare_ms=...``.
 """
 
 from __future__ import annotations
@@ -35,8 +39,7 @@ from interleaved import interleaved  # noqa: E402 (benchmarks/)
 
 from cdtm_graph.evaluation import trajectory_errors  # noqa: E402
 from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight  # noqa: E402
-from cdtm_graph.smoother import SmootherMode, SmootherSettings  # noqa: E402
-from cdtm_graph.smoother.incremental import IncrementalSmoother  # noqa: E402
+from cdtm_graph.smoother import SmootherMode, SmootherSettings, smooth  # noqa: E402
 from factors import RobustKernel  # noqa: E402
 
 
@@ -62,6 +65,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--features", type=int, default=170)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--lag-from", type=int, default=100,
+                        help="fixed-lag figures from this frame on")
     args = parser.parse_args(argv)
     flight, dtm = simulate_flight(SimulationSettings(
         frames=args.frames, fps=args.fps, n_features=args.features, seed=args.seed,
@@ -81,20 +86,52 @@ def main(argv: list[str] | None = None) -> None:
         e = errors[name]
         print(f"{name:12} {t:9.2f} {t / base_none:6.2f} {t / base_bare:6.2f} "
               f"{e.rmse_position_3d_m:10.2f} {e.anees_position:6.2f}")
-    lag_ms = {}
-    for name, settings in runs.items():
-        if name == "defaults":
-            continue  # the same updates as "held"
-        lag = dataclasses.replace(settings, mode=SmootherMode.INCREMENTAL, lag_s=10.0)
-        smoother = IncrementalSmoother(flight.config, dtm, lag, imu=flight.imu,
-                                       frame_interval_s=1.0 / args.fps)
-        smoother.run(flight)
-        lag_ms[name] = 1e3 * float(np.median(smoother.update_times_s[100:]))
-        print(f"fixed lag 10 s, {name:12} median update {lag_ms[name]:.2f} ms")
+    lag = lag_variants(runs["held"])
+    lag_ms: dict[str, list[float]] = {name: [] for name in lag}
+    for _ in range(args.repeats):  # interleaved, as the batch
+        for name, settings in lag.items():
+            result = smooth(flight, dtm, settings)
+            lag_ms[name].append(1e3 * float(np.median(result.stats.update_times_s[args.lag_from:])))
+    median_ms = {name: float(np.median(v)) for name, v in lag_ms.items()}
+    print(f"fixed lag 10 s, live (no exit covariances), median update from frame "
+          f"{args.lag_from}; each step takes one more defence off")
+    print(f"{'variant':34} {'median_ms':>9} {'step_ms':>8} {'runs_ms':>20}")
+    names = list(lag)
+    for i, name in enumerate(names):
+        step = median_ms[name] - median_ms[names[i + 1]] if i + 1 < len(names) else 0.0
+        runs_ms = ", ".join(f"{v:.2f}" for v in lag_ms[name])
+        print(f"{name:34} {median_ms[name]:9.2f} {step:8.2f} {runs_ms:>20}")
     t = float(np.median(times["held"]))
+    held_ms, bare_ms = median_ms[names[0]], median_ms[names[-1]]
     print(f"held_over_robust_none={t / base_none:.2f} held_over_bare={t / base_bare:.2f} "
           f"check_over_held={float(np.median(times['defaults'])) / t:.2f} "
-          f"fixedlag_held_over_bare={lag_ms['held'] / lag_ms['bare']:.2f}")
+          f"fixedlag_held_over_bare={held_ms / bare_ms:.2f} fixedlag_held_ms={held_ms:.2f} "
+          f"fixedlag_bare_ms={bare_ms:.2f}")
+
+
+def lag_variants(held: SmootherSettings) -> dict[str, SmootherSettings]:
+    """The fixed lag (10 s, live) with every defence, then one more taken off at each
+    step: the track tests (and the clutter fit), the epipolar check and grazing test,
+    the kernel and the fix search, the innovation gate."""
+    live = dataclasses.replace(held, mode=SmootherMode.INCREMENTAL, lag_s=10.0,
+                               keep_exit_covariances=False)
+    steps = {
+        "every defence (held)": {},
+        "- track tests, clutter": dict(mismatch=None, clutter=None),
+        "- epipolar check, grazing test": dict(epipolar=None, grazing_turn_cells=None),
+        "- kernel, fix search (bare + gate)": dict(robust=RobustKernel.NONE),
+        "- innovation gate (bare)": {},
+    }
+    out, graph = {}, live.graph
+    for name, off in steps.items():
+        graph = dataclasses.replace(graph, **off)
+        live = dataclasses.replace(live, graph=graph)
+        if name.startswith("- kernel"):
+            live = dataclasses.replace(live, acquisition=None)
+        if name.startswith("- innovation gate"):
+            live = dataclasses.replace(live, innovation_gate=None)
+        out[name] = live
+    return out
 
 
 if __name__ == "__main__":
