@@ -300,11 +300,10 @@ def considered_offsets(clutter: Clutter, key_a: Sequence[int], key_b: Sequence[i
 def with_vertical_bias(covariances: StateCovariances, world_T_body: np.ndarray,
                        offset_m: np.ndarray) -> StateCovariances:
     """The covariances with each frame's considered vertical offset (K,) added to its
-    position's world-up variance (the pose covariance is body-frame: ``R^T e_z``)."""
-    up_body = world_T_body[:, 2, :3]  # rows of R^T e_z = third row of R
-    pose = covariances.pose.copy()
-    pose[:, 3:, 3:] += (offset_m**2)[:, None, None] * up_body[:, :, None] * up_body[:, None, :]
-    return StateCovariances(pose, covariances.velocity, covariances.bias)
+    position's world-up variance."""
+    up = np.zeros((offset_m.size, 3, 3))
+    up[:, 2, 2] = offset_m**2
+    return covariances.with_position_added(world_T_body, up)
 
 
 def findings(clutter: Clutter, offsets_m: np.ndarray) -> TerrainFindings:

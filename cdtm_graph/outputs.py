@@ -206,6 +206,7 @@ def run_report(result: SmootherResult, report: Mapping[str, Any]) -> dict[str, A
         "flags": result.flags,
         "terrain": result.terrain,
         "calibration": result.calibration,
+        "map_offset": result.map_offset,
         "conventions": {
             "world": "local ENU, metres",
             "pose": "world_T_body (body = IMU)",

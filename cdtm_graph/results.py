@@ -15,6 +15,7 @@ import numpy as np
 
 if TYPE_CHECKING:
     from cdtm_graph.calibration import CalibrationEstimate
+    from cdtm_graph.flightlog.model import DtmConfig
     from cdtm_graph.smoother.calibration_check import CalibrationCheck
 
 
@@ -56,6 +57,79 @@ class StateCovariances:
     pose: np.ndarray
     velocity: np.ndarray
     bias: np.ndarray
+
+    def with_position_added(self, world_T_body: np.ndarray, position_cov_world: np.ndarray
+                            ) -> StateCovariances:
+        """These covariances with a world-frame position covariance added
+        (:func:`with_position_covariance`)."""
+        return StateCovariances(with_position_covariance(self.pose, world_T_body,
+                                                         position_cov_world),
+                                self.velocity, self.bias)
+
+
+def with_position_covariance(pose_cov: np.ndarray, world_T_body: np.ndarray,
+                             position_cov_world: np.ndarray) -> np.ndarray:
+    """(K, 6, 6) body-frame pose covariances with a world-frame position covariance ((3, 3)
+    for every pose, or (K, 3, 3)) added: an error the estimate cannot see and so does not
+    hold (a considered parameter), e.g. an offset of the whole map. A right perturbation
+    moves the position by ``R v``: the body-frame block takes ``R^T C R``."""
+    R = world_T_body[:, :3, :3]
+    out = pose_cov.copy()
+    out[:, 3:, 3:] += np.swapaxes(R, 1, 2) @ position_cov_world @ R
+    return out
+
+
+@dataclass(frozen=True)
+class MapOffset:
+    """How far the whole map under the flight may be off: its registration and its
+    vertical datum (flight.yaml's ``dtm.horizontal_offset_sigma_m`` and
+    ``dtm.vertical_offset_sigma_m``, 1-sigma, m; None: not declared, taken as 0).
+
+    The camera and the DTM cannot see such an offset: moving the map and the trajectory
+    together changes no measurement, so the estimate takes the offset one for one. Its
+    covariance is added to every position covariance, as a considered parameter
+    (:meth:`StateCovariances.with_position_added`).
+    """
+
+    horizontal_sigma_m: float | None = None
+    vertical_sigma_m: float | None = None
+
+    @classmethod
+    def of(cls, dtm: DtmConfig) -> MapOffset:
+        return cls(dtm.horizontal_offset_sigma_m, dtm.vertical_offset_sigma_m)
+
+    @property
+    def undeclared(self) -> tuple[str, ...]:
+        """flight.yaml's keys of the sigmas not declared."""
+        return tuple(key for key, sigma in (("dtm.horizontal_offset_sigma_m",
+                                             self.horizontal_sigma_m),
+                                            ("dtm.vertical_offset_sigma_m",
+                                             self.vertical_sigma_m)) if sigma is None)
+
+    def covariance_world(self) -> np.ndarray:
+        """(3, 3) world (east, north, up), m^2; an undeclared sigma counts as 0."""
+        h, v = self.horizontal_sigma_m or 0.0, self.vertical_sigma_m or 0.0
+        return np.diag([h**2, h**2, v**2])
+
+    @property
+    def declared_zero(self) -> bool:
+        """Nothing to add (declared 0, or not declared)."""
+        return not (self.horizontal_sigma_m or self.vertical_sigma_m)
+
+    def added_to(self, covariances: StateCovariances, world_T_body: np.ndarray
+                 ) -> StateCovariances:
+        """``covariances`` (of the poses ``world_T_body``) with the offset's added."""
+        if self.declared_zero:
+            return covariances
+        return covariances.with_position_added(world_T_body, self.covariance_world())
+
+    def added_to_pose(self, pose_cov: np.ndarray, world_T_body: np.ndarray) -> np.ndarray:
+        """One (6, 6) pose covariance (of the pose ``world_T_body``) with the offset's added
+        (a copy)."""
+        if self.declared_zero:
+            return pose_cov.copy()
+        return with_position_covariance(pose_cov[None], world_T_body[None],
+                                        self.covariance_world())[0]
 
 
 class Solver(enum.Enum):
@@ -222,6 +296,8 @@ class SmootherResult:
             the incremental modes always): what a batch side solve estimating it found
             (:class:`cdtm_graph.smoother.calibration_check.CalibrationCheck`), unless the
             settings hold it unchecked.
+        map_offset: flight.yaml's sigmas of an offset of the whole map, in
+            ``covariances``.
     """
 
     estimate: TrajectoryEstimate
@@ -234,6 +310,7 @@ class SmootherResult:
     terrain: TerrainFindings | None = None
     calibration: CalibrationEstimate | None = None
     calibration_check: CalibrationCheck | None = None
+    map_offset: MapOffset = field(default_factory=MapOffset)
 
 
 def frame_flags(counts: GraphCounts, extra: dict[int, list[str]] | None = None

@@ -793,7 +793,22 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
     else:
         status = Status.TRUSTED
     return Verdict(status, reasons, flags, checks,
-                   tuple(notes + _calibration_notes(result) + calibration_notes))
+                   tuple(notes + _calibration_notes(result) + calibration_notes
+                         + _map_offset_notes(result)))
+
+
+def _map_offset_notes(result: SmootherResult) -> list[str]:
+    """``map_offset_undeclared``: flight.yaml does not say how far the whole map may be
+    off (:class:`~cdtm_graph.results.MapOffset`). A note, not a reason: nothing in the run
+    can tell, and a simulated or surveyed map is not off; but the positions are relative
+    to the map, and their covariances say nothing of its own offset."""
+    missing = result.map_offset.undeclared
+    if not missing:
+        return []
+    return [f"map_offset_undeclared: flight.yaml does not give {' or '.join(missing)}: how "
+            "far the whole map may be off (its registration, its vertical datum: a DEM "
+            "product's absolute accuracy); the camera and the DTM cannot see such an offset, "
+            "every position takes it one for one, and the covariances hold none of it"]
 
 
 def _calibration_notes(result: SmootherResult) -> list[str]:

@@ -317,7 +317,8 @@ def test_the_worked_example_end_to_end(tmp_path: Path):
     assert main(["simulate", str(log), "--origin", "36.5", "127.25", "120", "--frames", "8",
                  "--nav", "noisy_truth"]) == 0
     document = yaml.safe_load((log / "flight.yaml").read_text())
-    assert document["dtm"] == {"path": "dem.tif", "sigma_h_m": 2.4, "vertical_datum": "egm96"}
+    assert document["dtm"] == {"path": "dem.tif", "sigma_h_m": 2.4, "vertical_datum": "egm96",
+                               "horizontal_offset_sigma_m": 0.0, "vertical_offset_sigma_m": 0.0}
     assert "latitude_deg" in document["initial_state"]
     assert (log / "groundtruth.csv").read_text().startswith(
         "#t_ns,latitude_deg,longitude_deg,height_m,")

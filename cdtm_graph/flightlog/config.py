@@ -60,6 +60,9 @@ class Range:
 RANGES: dict[str, Range] = {
     "gravity_mps2": Range(1.0, 30.0, "m/s^2"),
     "dtm.sigma_h_m": Range(1e-4, 1e3, "m"),
+    # a map registered within kilometres; 0: exactly (a simulation's own map)
+    "dtm.horizontal_offset_sigma_m": Range(0.0, 1e4, "m"),
+    "dtm.vertical_offset_sigma_m": Range(0.0, 1e3, "m"),
     "dtm.origin_enu_m": Range(-1e8, 1e8, "m"),
     "camera.pixel_sigma_px": Range(1e-3, 100.0, "px"),
     "camera.distortion_coeffs": Range(-1e3, 1e3),
@@ -302,7 +305,7 @@ def _parse_dtm(y: _Yaml, node: yaml.Node, line: int, root: Path,
                origin: GeodeticOrigin | None) -> DtmConfig:
     geodetic_keys = ("vertical_datum", "crs", "margin_m", "spacing_m")
     m = y.keys(y.pairs(node, "dtm", line), "dtm", line, ("path",),
-               ("sigma_h_m", "origin_enu_m", *geodetic_keys))
+               ("sigma_h_m", *DtmConfig.OFFSET_SIGMA_KEYS, "origin_enu_m", *geodetic_keys))
     suffixes = DTM_SUFFIXES if origin is None else GEODETIC_DTM_SUFFIXES
     path_node = m["path"]
     if isinstance(path_node, yaml.SequenceNode):
@@ -318,6 +321,9 @@ def _parse_dtm(y: _Yaml, node: yaml.Node, line: int, root: Path,
     sigma_h = None
     if "sigma_h_m" in m and y.value(m["sigma_h_m"]) is not None:
         sigma_h = y.bounded(m["sigma_h_m"], "dtm.sigma_h_m")
+    offset_sigmas = {key: y.bounded(m[key], f"dtm.{key}")
+                     for key in DtmConfig.OFFSET_SIGMA_KEYS
+                     if key in m and y.value(m[key]) is not None}
     if origin is None:
         for key in geodetic_keys:
             if key in m:
@@ -327,7 +333,7 @@ def _parse_dtm(y: _Yaml, node: yaml.Node, line: int, root: Path,
         offset = (0.0, 0.0, 0.0)
         if "origin_enu_m" in m:
             offset = tuple(y.vector(m["origin_enu_m"], "dtm.origin_enu_m", (3,), True).tolist())
-        return DtmConfig(paths[0], sigma_h, offset)  # type: ignore[arg-type]
+        return DtmConfig(paths[0], sigma_h, offset, **offset_sigmas)  # type: ignore[arg-type]
     if "origin_enu_m" in m:
         y.fail(m["origin_enu_m"], "dtm.origin_enu_m with a geodetic origin",
                "no origin_enu_m: georeferenced DEMs are placed by their CRS")
@@ -355,7 +361,7 @@ def _parse_dtm(y: _Yaml, node: yaml.Node, line: int, root: Path,
     margin, spacing = (y.number(m[key], f"dtm.{key}", positive=True) if key in m else None
                        for key in ("margin_m", "spacing_m"))
     return DtmConfig(paths[0], sigma_h, (0.0, 0.0, 0.0), tuple(paths[1:]), datum, crs, margin,
-                     spacing)
+                     spacing, **offset_sigmas)
 
 
 def _intrinsics(y: _Yaml, node: yaml.Node, width: int, height: int

@@ -9,7 +9,7 @@ import math
 import os
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -113,7 +113,17 @@ class DtmConfig:
             of :mod:`cdtm_graph.dem`.
         spacing_m: spacing of the world grid the DEM is resampled into (m); None: the
             DEM's own finest pixel size in metres.
+        horizontal_offset_sigma_m, vertical_offset_sigma_m: 1-sigma of an offset of the
+            whole map under the flight (its registration and its vertical datum, a DEM
+            product's absolute accuracy), apart from ``sigma_h_m``, the point-to-point
+            error. The camera and the DTM cannot see such an offset: it passes one for
+            one into every position, so it is added to the position covariances. None:
+            not declared (taken as 0, and the verdict says so in a note).
     """
+
+    #: flight.yaml's keys (under ``dtm:``) of the map's own offset, horizontal then vertical.
+    OFFSET_SIGMA_KEYS: ClassVar[tuple[str, str]] = ("horizontal_offset_sigma_m",
+                                                     "vertical_offset_sigma_m")
 
     path: Path
     sigma_h_m: float | None = None
@@ -123,6 +133,8 @@ class DtmConfig:
     crs: str | None = None
     margin_m: float | None = None
     spacing_m: float | None = None
+    horizontal_offset_sigma_m: float | None = None
+    vertical_offset_sigma_m: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "path", Path(self.path))
@@ -134,7 +146,7 @@ class DtmConfig:
             object.__setattr__(self, "sigma_h_m", float(self.sigma_h_m))
         if self.vertical_datum is not None:
             object.__setattr__(self, "vertical_datum", VerticalDatum(self.vertical_datum))
-        for name in ("margin_m", "spacing_m"):
+        for name in ("margin_m", "spacing_m", *self.OFFSET_SIGMA_KEYS):
             if getattr(self, name) is not None:
                 object.__setattr__(self, name, float(getattr(self, name)))
 

@@ -110,6 +110,9 @@ def _yaml_document(log: FlightLog, target: Path, geodetic: bool = False) -> str:
     dtm: dict[str, Any] = {"path": paths if len(paths) > 1 else paths[0]}
     if cfg.dtm.sigma_h_m is not None:
         dtm["sigma_h_m"] = float(cfg.dtm.sigma_h_m)
+    for key in cfg.dtm.OFFSET_SIGMA_KEYS:
+        if getattr(cfg.dtm, key) is not None:
+            dtm[key] = float(getattr(cfg.dtm, key))
     if cfg.origin is None:
         dtm["origin_enu_m"] = [float(x) for x in cfg.dtm.origin_enu_m]
     else:

@@ -204,6 +204,14 @@ def with_dtm_ending(log: FlightLog, dtm: Dtm, at_s: float) -> Dtm:
     return Dtm(elevation, dtm.x0, dtm.y0, dtm.dx, dtm.dy, sigma_h_m=dtm.sigma_h_m)
 
 
+def with_map_offset(dtm: Dtm, offset_enu_m: tuple[float, float, float]) -> Dtm:
+    """The log's DTM moved as a whole by ``offset_enu_m`` (east, north, up) against the
+    true ground: a map registered off, or on another vertical datum."""
+    east, north, up = (float(v) for v in offset_enu_m)
+    return Dtm(dtm.elevation + up, dtm.x0 + east, dtm.y0 + north, dtm.dx, dtm.dy,
+               sigma_h_m=dtm.sigma_h_m)
+
+
 def with_wrong_matches(log: FlightLog, fraction: float, rng: np.random.Generator
                        ) -> tuple[FlightLog, np.ndarray]:
     """A fraction of the observations moved to a uniformly random pixel of the image: the

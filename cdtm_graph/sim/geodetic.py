@@ -186,15 +186,15 @@ def write_geodetic_simulation_files(result: SimulationResult, directory: Path,
     """
     from pyproj import CRS
 
-    from cdtm_graph.flightlog import DtmConfig
     from cdtm_graph.flightlog.writer import write_flightlog_files
 
     frame = LocalFrame(_origin_of(result, origin))
     if pixel_size is None:
         pixel_size = (1.0 / 3600.0 if CRS.from_user_input(dem_crs).is_geographic
                       else result.dtm.grid_spacing_m)
-    config = dataclasses.replace(result.log.config, dtm=DtmConfig(
-        Path(GEODETIC_DEM_FILENAME), result.dtm.sigma_h_m, vertical_datum=vertical_datum))
+    config = dataclasses.replace(result.log.config, dtm=dataclasses.replace(
+        result.log.config.dtm, path=Path(GEODETIC_DEM_FILENAME), sigma_h_m=result.dtm.sigma_h_m,
+        vertical_datum=vertical_datum))
     log = dataclasses.replace(result.log, config=config)
     write_dem_tile(result.terrain, frame, directory / GEODETIC_DEM_FILENAME, dem_crs,
                    pixel_size, vertical_datum)

@@ -648,7 +648,9 @@ def simulate(settings: SimulationSettings) -> SimulationResult:
     config = FlightConfig(
         gravity_mps2=(settings.gravity_mps2 if origin is None else
                       float(normal_gravity_mps2(origin.latitude_deg, origin.height_m))),
-        dtm=DtmConfig(Path(DTM_FILENAME), dtm.sigma_h_m, (0.0, 0.0, 0.0)),
+        # the simulated map is registered exactly: no offset of the whole map
+        dtm=DtmConfig(Path(DTM_FILENAME), dtm.sigma_h_m, (0.0, 0.0, 0.0),
+                      horizontal_offset_sigma_m=0.0, vertical_offset_sigma_m=0.0),
         camera=CameraConfig(camera, settings.pixel_sigma_px, body_T_cam),
         imu=ImuConfig(settings.imu_rate_hz, imu_noise.gyroscope_noise_density,
                       imu_noise.accelerometer_noise_density, imu_noise.gyroscope_random_walk,

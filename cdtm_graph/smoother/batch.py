@@ -51,6 +51,7 @@ from cdtm_graph.preflight import check_constraints
 from cdtm_graph.replay import replay
 from cdtm_graph.results import (
     GraphCounts,
+    MapOffset,
     Rejection,
     Rejections,
     SmootherResult,
@@ -433,10 +434,11 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
                      outliers_per_frame=residuals.outliers_per_frame,
                      rejected_per_frame=built.rejections.per_frame(K),
                      residual_chi2_per_frame=residuals.chi2_within_per_frame)
-    result = SmootherResult(estimate, covariances, stats, counts, settings_dict,
-                            frame_flags(counts, flags), cdtm_information(
-                                checked, estimate.world_T_body.__getitem__, K), terrain,
-                            calibrated)
+    map_offset = MapOffset.of(flight.config.dtm)
+    result = SmootherResult(estimate, map_offset.added_to(covariances, estimate.world_T_body),
+                            stats, counts, settings_dict, frame_flags(counts, flags),
+                            cdtm_information(checked, estimate.world_T_body.__getitem__, K),
+                            terrain, calibrated, map_offset=map_offset)
     if calibrated is not None:
         return result
     return _checked(flight, dtm, settings, result, np.union1d(guess.off_map, built.found_off),

@@ -46,6 +46,7 @@ from cdtm_graph.imu import (
 from cdtm_graph.replay import replay
 from cdtm_graph.results import (
     GraphCounts,
+    MapOffset,
     Rejection,
     Rejections,
     SmootherResult,
@@ -70,7 +71,9 @@ class FrameUpdate:
     Attributes:
         frame: index of the newest frame. t_ns: its time.
         world_T_body: (4, 4) its current estimate. velocity_mps: (3,).
-        pose_covariance: (6, 6) its marginal, GTSAM tangent order [rot, trans], body frame.
+        pose_covariance: (6, 6) its marginal, GTSAM tangent order [rot, trans], body frame,
+            with an offset of the whole map added (flight.yaml's ``dtm.*_offset_sigma_m``,
+            :class:`~cdtm_graph.results.MapOffset`).
         n_features: C-DTM features that arrived with it. update_time_s: the update's cost.
         imu_time_s: time spent preintegrating this frame's interval as its IMU samples
             arrived (``add_imu``), before this update.
@@ -133,6 +136,7 @@ class IncrementalSmoother:
             FullHistory() if settings.lag_s is None
             else FixedLag(settings.lag_s, frame_interval_s))
         self._state_cov = np.zeros((15, 15))  # newest frame's [X, V, B] covariance
+        self._map_offset = MapOffset.of(config.dtm)  # in what it reports, not what it uses
         self._camera = config.camera.camera
         self._body_T_cam = config.camera.body_T_cam
         self._t_ns: list[int] = []
@@ -262,11 +266,12 @@ class IncrementalSmoother:
         if self._search is not None and self._search.active:
             self._try_acquisition(k)
         self._imu.start(int(t_ns), self._biases[k])
+        pose_cov = self._map_offset.added_to_pose(self._state_cov[:6, :6], self._poses[k])
         elapsed = time.perf_counter() - start
         self.update_times_s.append(elapsed)
         self.imu_times_s.append(self._imu.take_time_s())
-        return FrameUpdate(k, int(t_ns), self._poses[k], self._velocities[k],
-                           self._state_cov[:6, :6].copy(), n_new, elapsed, self.imu_times_s[-1])
+        return FrameUpdate(k, int(t_ns), self._poses[k], self._velocities[k], pose_cov, n_new,
+                           elapsed, self.imu_times_s[-1])
 
     def _pair_prior(self, k: int, imu: gtsam.CombinedImuFactor, predicted: gtsam.Values
                     ) -> Callable[[int], np.ndarray]:
@@ -732,8 +737,10 @@ class IncrementalSmoother:
             terrain = findings(self._judge.clutter, offsets)
             for k, v in clutter_flags(offsets, clutter_settings).items():
                 flags.setdefault(k, []).extend(v)
-        return SmootherResult(estimate, covariances, stats, counts, settings,
-                              frame_flags(counts, flags), information, terrain)
+        return SmootherResult(estimate, self._map_offset.added_to(covariances,
+                                                                  estimate.world_T_body),
+                              stats, counts, settings, frame_flags(counts, flags), information,
+                              terrain, map_offset=self._map_offset)
 
 
 def _largest_position_sigma_m(pose_cov: np.ndarray) -> float:
