@@ -15,7 +15,7 @@ import numpy as np
 
 if TYPE_CHECKING:
     from cdtm_graph.calibration import CalibrationEstimate
-    from cdtm_graph.flightlog.model import DtmConfig
+    from cdtm_graph.flightlog.model import DtmConfig, FlightConfig
     from cdtm_graph.smoother.calibration_check import CalibrationCheck
 
 
@@ -130,6 +130,44 @@ class MapOffset:
             return pose_cov.copy()
         return with_position_covariance(pose_cov[None], world_T_body[None],
                                         self.covariance_world())[0]
+
+
+@dataclass(frozen=True)
+class BiasPrior:
+    """What flight.yaml says of the IMU biases: their value and 1-sigma at the first frame
+    (``initial_state``) and how fast they may wander (``imu.*_random_walk``). The run's
+    bias estimates are held against it (:meth:`excess`, the verdict's ``imu_bias``).
+    """
+
+    accel_mps2: np.ndarray
+    gyro_radps: np.ndarray
+    sigma_accel_mps2: float
+    sigma_gyro_radps: float
+    accel_random_walk: float  # m/s^3/sqrt(Hz)
+    gyro_random_walk: float  # rad/s^2/sqrt(Hz)
+
+    @classmethod
+    def of(cls, config: FlightConfig) -> BiasPrior:
+        init, imu = config.initial_state, config.imu
+        return cls(np.asarray(init.accel_bias, float), np.asarray(init.gyro_bias, float),
+                   float(init.sigma_accel_bias), float(init.sigma_gyro_bias),
+                   float(imu.accelerometer_random_walk), float(imu.gyroscope_random_walk))
+
+    def excess(self, t_ns: np.ndarray, accel_bias: np.ndarray, gyro_bias: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """(K,) each frame's squared distance of the accelerometer and of the gyro bias
+        estimates from the prior's value, in the prior's variance there (its initial
+        variance plus the random walk's since the first frame): chi-square(3)-like for
+        biases the prior describes (a little less: the estimate shrinks toward it)."""
+        t_s = (np.asarray(t_ns) - t_ns[0]) * 1e-9
+        out = []
+        for bias, value, sigma, walk in ((accel_bias, self.accel_mps2, self.sigma_accel_mps2,
+                                          self.accel_random_walk),
+                                         (gyro_bias, self.gyro_radps, self.sigma_gyro_radps,
+                                          self.gyro_random_walk)):
+            variance = sigma**2 + walk**2 * t_s
+            out.append(np.sum((bias - value) ** 2, axis=1) / variance)
+        return out[0], out[1]
 
 
 class Solver(enum.Enum):
@@ -298,6 +336,8 @@ class SmootherResult:
             settings hold it unchecked.
         map_offset: flight.yaml's sigmas of an offset of the whole map, in
             ``covariances``.
+        bias_prior: flight.yaml's IMU bias prior, which the verdict holds the bias
+            estimates against (``None``: not checked).
     """
 
     estimate: TrajectoryEstimate
@@ -311,6 +351,7 @@ class SmootherResult:
     calibration: CalibrationEstimate | None = None
     calibration_check: CalibrationCheck | None = None
     map_offset: MapOffset = field(default_factory=MapOffset)
+    bias_prior: BiasPrior | None = None
 
 
 def frame_flags(counts: GraphCounts, extra: dict[int, list[str]] | None = None

@@ -285,6 +285,9 @@ class VerdictSettings:
         max_beyond_999_fraction: with ground truth, FAILED (``confidently_wrong``) when
             more frames than this share have their position NEES beyond the chi-square(3)
             99.9% bound.
+        bias_probability: ``imu_bias`` when an IMU bias estimate (accelerometer or gyro)
+            lies beyond this chi-square(3) probability of flight.yaml's prior at some frame
+            (:meth:`~cdtm_graph.results.BiasPrior.excess`).
     """
 
     window_s: float = 10.0
@@ -302,6 +305,7 @@ class VerdictSettings:
     innovation_nis_median_band: tuple[float, float] = (1.0, 2.0)
     min_fix_fraction: float = 0.5
     max_beyond_999_fraction: float = 0.5
+    bias_probability: float = 0.999
 
 
 #: Checks that make a run FAILED; every other reason makes it DEGRADED.
@@ -772,6 +776,8 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
                  for code, message, a, b in _groundtruth_checks(errors, settings)]
     calibration_reasons, calibration_notes = _calibration_check(result)
     run_wide += [reason(code, message, 0, last) for code, message in calibration_reasons]
+    run_wide += [reason(code, message, a, b)
+                 for code, message, a, b in _bias_check(result, f.t_s, settings)]
 
     stretches: list[Reason] = []
     known = {t.code for t in tests}
@@ -809,6 +815,36 @@ def _map_offset_notes(result: SmootherResult) -> list[str]:
             "far the whole map may be off (its registration, its vertical datum: a DEM "
             "product's absolute accuracy); the camera and the DTM cannot see such an offset, "
             "every position takes it one for one, and the covariances hold none of it"]
+
+
+def _bias_check(result: SmootherResult, t_s: np.ndarray, settings: VerdictSettings
+                ) -> list[tuple[str, str, int, int]]:
+    """``imu_bias``: an IMU bias the run estimates lies beyond flight.yaml's prior. The
+    prior holds the biases near its value, so the first frames' states bend to a wrong
+    bias at a confident covariance (a gyro bias at 10 prior sigmas: the first frames 10-19
+    m off at 2-3 m sigma), and the positions' NEES sees it only with ground truth; the
+    bias estimates see it on every flight."""
+    prior, est = result.bias_prior, result.estimate
+    if prior is None or len(est) == 0:
+        return []
+    limit = float(chi2.ppf(settings.bias_probability, 3))
+    out = []
+    for name, key, walk, excess in zip(
+            ("accelerometer", "gyro"), ("accel_bias", "gyro_bias"),
+            ("accelerometer_random_walk", "gyroscope_random_walk"),
+            prior.excess(est.t_ns, est.accel_bias, est.gyro_bias)):
+        beyond = np.flatnonzero(excess > limit)
+        if not beyond.size:
+            continue
+        worst = int(np.argmax(excess))
+        out.append(("imu_bias", (
+            f"the {name} bias the run estimates lies beyond flight.yaml's prior "
+            f"(initial_state.{key} within sigma_{key}, wandering by imu.{walk}): "
+            f"{math.sqrt(excess[worst]):.1f} sigma at {t_s[worst]:.1f} s (chi-square(3) "
+            f"{100 * settings.bias_probability:g}% bound: {math.sqrt(limit):.1f}); the prior is "
+            "too tight or the IMU is off, and the states lean on it"),
+            int(beyond[0]), int(beyond[-1])))
+    return out
 
 
 def _calibration_notes(result: SmootherResult) -> list[str]:

@@ -73,6 +73,29 @@ def test_analyze_table_is_in_metres_and_degrees(capsys):
     assert "deg" in text and "p2_x" in text and "condition number" in text
 
 
+def test_an_empty_log_argument_is_named(tmp_path, capsys):
+    assert main(["smooth", "", "--out", str(tmp_path / "out"), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert err == "cdtm smooth: error: LOG is empty; expected a flight log directory\n"
+
+
+def test_analyze_refuses_a_pair_it_cannot_analyze_in_one_line(tmp_path, capsys):
+    """A pair without common features, and frames beyond groundtruth.csv: one line each,
+    exit 1 (they printed tables of inf and nan with exit 0, or named an internal class)."""
+    n_frames = len((SAMPLE / "frames.csv").read_text().splitlines()) - 1
+    assert main(["analyze", str(SAMPLE), "--pair", "0", str(n_frames - 1)]) == 1
+    out, err = capsys.readouterr()
+    assert out == "" and len(err.splitlines()) == 1
+    assert f"frames A=0 and B={n_frames - 1} share no tracked feature" in err
+    log = _broken_copy(tmp_path)
+    gt = (log / "groundtruth.csv").read_text().splitlines()
+    (log / "groundtruth.csv").write_text("\n".join(gt[:1] + gt[30:]) + "\n")  # from 2.9 s on
+    assert main(["analyze", str(log), "--pair", "0", "1"]) == 1
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1
+    assert "groundtruth.csv: covers 2.900-" in err and "frame A=0 at 0.000 s is outside it" in err
+
+
 def _broken_copy(tmp_path: Path) -> Path:
     log = tmp_path / "log"
     shutil.copytree(SAMPLE, log)
@@ -154,6 +177,8 @@ def test_terrain_figures_script_reproduces_fig6(tmp_path, capsys):
 @pytest.mark.parametrize("args, must_name", [
     (["--mode", "incremental", "--gate", "1.5"], "--gate 1.5"),
     (["--lag-s", "5"], "--lag-s needs --mode incremental"),
+    (["--mode", "incremental", "--lag-s", "inf"], "--lag-s inf: expected a finite lag > 0"),
+    (["--mode", "incremental", "--lag-s", "nan"], "--lag-s nan: expected a finite lag > 0"),
 ])
 def test_bad_smoothing_options_give_one_line(tmp_path, capsys, args, must_name):
     out = tmp_path / "out"

@@ -213,3 +213,40 @@ def test_the_innovation_gate_drops_gross_outliers_before_they_enter():
     rmse = {g: np.linalg.norm(r.errors.rmse_position_m) for g, r in runs.items()}
     assert rmse[0.999] < 0.5 * rmse[None]
     assert rmse[0.999] < 2 * np.linalg.norm(clean.errors.rmse_position_m)
+
+
+def test_a_fixed_lag_too_short_for_the_fix_search_is_refused_or_said():
+    """The fix search moves the oldest of its window's frames; a lag that lets them go
+    cannot apply a fix (it raised deep in GTSAM). Needed from the start (a wide prior):
+    refused up front, one line. Needed later (a long gap grew the covariance): the frame
+    goes on unsearched and is flagged, the run completes."""
+    from cdtm_graph.errors import CdtmError
+    from cdtm_graph.smoother.settings import SmootherMode, SmootherSettings
+
+    flight, dtm = simulate_flight(SimulationSettings(frames=12, n_features=60, seed=8))
+    dt_s = float(np.diff(flight.frames.t_ns).max()) * 1e-9
+    window = SmootherSettings().acquisition.window_frames
+    short = SmootherSettings(mode=SmootherMode.INCREMENTAL, lag_s=(window - 2) * dt_s)
+    wide = dataclasses.replace(flight.config, initial_state=dataclasses.replace(
+        flight.config.initial_state, sigma_position_m=1000.0))
+    with pytest.raises(CdtmError, match=rf"a fixed lag of {(window - 2) * dt_s:g} s is shorter "
+                                        rf"than the fix search's window \({window} frames"):
+        IncrementalSmoother(wide, dtm, short, imu=flight.imu, frame_interval_s=dt_s)
+    long_enough = dataclasses.replace(short, lag_s=window * dt_s)
+    IncrementalSmoother(wide, dtm, long_enough, imu=flight.imu, frame_interval_s=dt_s)
+
+    # a tight prior: no search at the start; the covariance "outgrows" the pull-in at
+    # frame 6 (what a long gap does), with a lag too short and one long enough
+    flags = {}
+    for name, settings in (("short", short), ("long enough", long_enough)):
+        smoother = IncrementalSmoother(flight.config, dtm, settings, imu=flight.imu,
+                                       frame_interval_s=dt_s)
+        assert smoother._search is not None
+        needed = smoother._search.needed
+        smoother._search.needed = lambda pose, cov, n=smoother: len(n._t_ns) == 7 or needed(
+            pose, cov)
+        result = smoother.run(flight)
+        flags[name] = result.flags
+        assert len(result.estimate) == len(flight.frames)
+    assert flags["short"].get(6) == ["search_beyond_lag"]
+    assert "no_fix" in flags["long enough"].get(6, [])

@@ -327,6 +327,8 @@ def test_noisy_truth_nav_has_its_sigma():
     dict(altitude_m=-1.0), dict(frames=1), dict(n_features=0), dict(fps=0.0), dict(nav="gps"),
     dict(fov_deg=180.0), dict(dtm_spacing_m=float("nan")), dict(seed=-1),
     dict(resolution_px=(400,)),
+    # beyond what the log's reader takes: the simulator must not write a log it refuses
+    dict(resolution_px=(100_001, 400)), dict(resolution_px=(400, 1)),
 ])
 def test_bad_settings_are_refused(changes):
     with pytest.raises(SimulationError):

@@ -385,7 +385,14 @@ def analyze_log_pair(flight, dtm, frame_a: int, frame_b: int, poses_from: str = 
     if states is None:
         raise FlightLogError(f"{flight.root}: no {poses_from}.csv to take the poses from; "
                              "expected --at groundtruth or --at nav with that file present")
-    poses = states.interpolate(flight.frames.t_ns[[frame_a, frame_b]]).world_T_body
+    t_ns = flight.frames.t_ns[[frame_a, frame_b]]
+    for name, k, t in (("A", frame_a, t_ns[0]), ("B", frame_b, t_ns[1])):
+        if not states.t_ns[0] <= t <= states.t_ns[-1]:
+            raise FlightLogError(
+                f"{flight.root / (poses_from + '.csv')}: covers {states.t_ns[0] * 1e-9:.3f}-"
+                f"{states.t_ns[-1] * 1e-9:.3f} s; frame {name}={k} at {t * 1e-9:.3f} s is "
+                "outside it; expected frames within its time range")
+    poses = states.interpolate(t_ns).world_T_body
     tracks = flight.tracks
     if tracks is None:
         raise FlightLogError(f"{flight.root / 'tracks.csv'}: missing; expected feature tracks")
@@ -393,6 +400,10 @@ def analyze_log_pair(flight, dtm, frame_a: int, frame_b: int, poses_from: str = 
     in_b = tracks.frame == frame_b
     common, ia, ib = np.intersect1d(tracks.track_id[in_a], tracks.track_id[in_b],
                                     return_indices=True)
+    if common.size == 0:
+        raise FlightLogError(f"{flight.root / 'tracks.csv'}: frames A={frame_a} and "
+                             f"B={frame_b} share no tracked feature; expected two frames that "
+                             "see common features")
     camera = flight.config.camera.camera
     q_a = camera.pixels_to_rays(tracks.uv_px[in_a][ia])
     q_b = camera.pixels_to_rays(tracks.uv_px[in_b][ib])
@@ -404,6 +415,10 @@ def analyze_log_pair(flight, dtm, frame_a: int, frame_b: int, poses_from: str = 
     sigma_h = flight.config.dtm.sigma_h_m
     sigma_h = dtm.sigma_h() if sigma_h is None else sigma_h
     noise = FeatureNoise(camera.sigma_normalized(cam_cfg.pixel_sigma_px), sigma_h)
+    if not valid.any():
+        raise FlightLogError(f"frames A={frame_a} and B={frame_b}: none of their "
+                             f"{common.size} common features' rays from A hits the DTM; "
+                             "expected a pair over the map")
     unc = pair_uncertainty(poses[0], poses[1], body_T_cam, q_a[valid], q_b[valid], G_E[valid],
                            N[valid], noise, TwoFrameSettings(raise_on_degenerate=False))
     return LogPairAnalysis(frame_a, frame_b, poses_from, int(valid.sum()),

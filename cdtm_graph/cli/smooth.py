@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -106,8 +107,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def settings_from_args(args: argparse.Namespace) -> SmootherSettings:
-    if args.lag_s is not None and not args.lag_s > 0:
-        raise CdtmError(f"--lag-s {args.lag_s}: expected a lag > 0 seconds")
+    if args.lag_s is not None and not (math.isfinite(args.lag_s) and args.lag_s > 0):
+        raise CdtmError(f"--lag-s {args.lag_s}: expected a finite lag > 0 seconds (without "
+                        "--lag-s: the full history)")
     if args.lag_s is not None and args.mode != "incremental":
         raise CdtmError("--lag-s needs --mode incremental")
     if args.gate is not None and not 0.0 < args.gate < 1.0:
@@ -241,6 +243,8 @@ def smooth_log_to_dir(log_dir: str, out_dir: Path, args: argparse.Namespace) -> 
 
 
 def run(args: argparse.Namespace) -> int:
+    if not str(args.log).strip():
+        raise CdtmError("LOG is empty; expected a flight log directory")
     out_dir = Path(args.out)
     out = smooth_log_to_dir(args.log, out_dir, args)
     if not args.quiet:

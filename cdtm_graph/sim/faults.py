@@ -241,6 +241,15 @@ def with_imu_gap(log: FlightLog, start_s: float, duration_s: float) -> FlightLog
     return dataclasses.replace(log, imu=imu)
 
 
+def with_imu_bias(log: FlightLog, accel_mps2: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                  gyro_radps: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> FlightLog:
+    """Every IMU sample offset by a constant bias that flight.yaml's prior does not know (an
+    IMU out of its specification, a prior copied from another unit)."""
+    imu = log.imu
+    return dataclasses.replace(log, imu=ImuSamples(
+        imu.t_ns, imu.gyro_radps + np.asarray(gyro_radps), imu.acc_mps2 + np.asarray(accel_mps2)))
+
+
 def with_calibration_error(log: FlightLog, focal_scale: float = 1.0,
                            mount_rotation_deg: tuple[float, float, float] = (0.0, 0.0, 0.0),
                            time_offset_s: float = 0.0) -> FlightLog:

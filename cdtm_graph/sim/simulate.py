@@ -64,6 +64,7 @@ from cdtm_graph.flightlog import (
     Tracks,
     write_flightlog_files,
 )
+from cdtm_graph.flightlog.config import RESOLUTION_RANGE_PX
 from cdtm_graph.geodesy import GeodeticOrigin, local_frame, normal_gravity_mps2
 from cdtm_graph.geometry import make_pose, rotation_to_quat_wxyz, so3_exp
 from cdtm_graph.imu import NS_PER_S, ImuNoise, dead_reckoning
@@ -330,10 +331,12 @@ class SimulationSettings:
             raise SimulationError(f"n_features = {self.n_features!r}, expected an integer >= 1")
         if not _is_int(self.seed) or self.seed < 0:
             raise SimulationError(f"seed = {self.seed!r}, expected an integer >= 0")
+        lo_px, hi_px = RESOLUTION_RANGE_PX  # what the log's reader takes
         if (len(self.resolution_px) != 2
-                or not all(_is_int(n) and n > 0 for n in self.resolution_px)):
+                or not all(_is_int(n) and lo_px <= n <= hi_px for n in self.resolution_px)):
             raise SimulationError(
-                f"resolution_px = {self.resolution_px!r}, expected (width, height) > 0")
+                f"resolution_px = {self.resolution_px!r}, expected (width, height), each "
+                f"from {lo_px} to {hi_px} px")
         if not self.fov_deg < 180.0:
             raise SimulationError(f"fov_deg = {self.fov_deg!r}, expected 0 < fov_deg < 180")
         if not self.fps <= self.imu_rate_hz:

@@ -50,6 +50,7 @@ from cdtm_graph.optimizer import LinearSolver, explain_indeterminant, levenberg_
 from cdtm_graph.preflight import check_constraints
 from cdtm_graph.replay import replay
 from cdtm_graph.results import (
+    BiasPrior,
     GraphCounts,
     MapOffset,
     Rejection,
@@ -438,7 +439,8 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     result = SmootherResult(estimate, map_offset.added_to(covariances, estimate.world_T_body),
                             stats, counts, settings_dict, frame_flags(counts, flags),
                             cdtm_information(checked, estimate.world_T_body.__getitem__, K),
-                            terrain, calibrated, map_offset=map_offset)
+                            terrain, calibrated, map_offset=map_offset,
+                            bias_prior=BiasPrior.of(flight.config))
     if calibrated is not None:
         return result
     return _checked(flight, dtm, settings, result, np.union1d(guess.off_map, built.found_off),

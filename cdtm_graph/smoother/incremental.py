@@ -24,7 +24,7 @@ from gtsam.symbol_shorthand import V, X
 from cdtm_graph.acquisition import Correction, SearchPrior
 from cdtm_graph.clutter import clutter_flags, findings, with_vertical_bias
 from cdtm_graph.dtm import Dtm
-from cdtm_graph.errors import FlightLogError
+from cdtm_graph.errors import CdtmError, FlightLogError
 from cdtm_graph.flightlog import FlightConfig, FlightLog
 from cdtm_graph.gating import InnovationGate, residual_test
 from cdtm_graph.geometry import largest_eigenvalue_sym3
@@ -45,6 +45,7 @@ from cdtm_graph.imu import (
 )
 from cdtm_graph.replay import replay
 from cdtm_graph.results import (
+    BiasPrior,
     GraphCounts,
     MapOffset,
     Rejection,
@@ -131,6 +132,10 @@ class IncrementalSmoother:
         # sightings are held back until a search over the newest frames finds the fix
         self._search = (None if settings.acquisition is None else
                         FixSearch(settings.acquisition, config, dtm, self.rejections))
+        self._frame_interval_s = frame_interval_s
+        if frame_interval_s is not None and self._search is not None \
+                and self._search.needed_at_start() and not self._lag_holds_search(frame_interval_s):
+            raise self._lag_too_short(frame_interval_s)
         self._frame_flags: dict[int, list[str]] = {}
         self._backend: Backend = (
             FullHistory() if settings.lag_s is None
@@ -229,9 +234,15 @@ class IncrementalSmoother:
         if k:
             self._leave_window(k)
         if self._search is not None and (self._search.active or self._should_acquire(k)):
-            self._search.hold(k, seen)
-            seen = None  # held back: no C-DTM factor until the fix is found
-            self._frame_flags.setdefault(k, []).append("no_fix")
+            if not self._search.active and k and not self._lag_holds_search(
+                    self._frame_interval_s or (t_ns - self._t_ns[k - 1]) * 1e-9):
+                # the covariance outgrew what the smoothers pull in (a long gap), but the
+                # lag cannot hold the frames a search needs: on unsearched, and said so
+                self._frame_flags.setdefault(k, []).append("search_beyond_lag")
+            else:
+                self._search.hold(k, seen)
+                seen = None  # held back: no C-DTM factor until the fix is found
+                self._frame_flags.setdefault(k, []).append("no_fix")
         new, new_ids = self._new_cdtm(k, *seen) if seen is not None else ([], [])
         if new and link is not None:
             # Each feature's innovation against the IMU's prediction: the kernel's scale
@@ -307,10 +318,31 @@ class IncrementalSmoother:
             return self._search.needed_at_start()
         return self._search.needed(self._poses[k - 1], self._state_cov)
 
+    def _lag_holds_search(self, frame_interval_s: float) -> bool:
+        """Whether the fixed lag holds the fix search's frames: the fix is applied to the
+        oldest of them, and a frame that left the window cannot be moved (frames leave
+        one interval before the lag, :meth:`_leave_window`)."""
+        assert self._search is not None
+        return (self.settings.lag_s is None
+                or self.settings.lag_s >= self._search.settings.window_frames * frame_interval_s)
+
+    def _lag_too_short(self, frame_interval_s: float) -> CdtmError:
+        assert self._search is not None and self.settings.lag_s is not None
+        frames = self._search.settings.window_frames
+        need_s = frames * frame_interval_s
+        return CdtmError(
+            f"a fixed lag of {self.settings.lag_s:g} s is shorter than the fix search's window "
+            f"({frames} frames, {need_s:g} s at {1 / frame_interval_s:.3g} frames/s): expected "
+            f"a lag of at least {need_s:g} s, or no fix search (SmootherSettings.acquisition="
+            "None)")
+
     def _try_acquisition(self, k: int) -> None:
         """Search the held frames for the fix if a search is due (:class:`FixSearch`); on
         success, move the estimate there and let the held sightings in."""
         assert self._search is not None
+        j0 = self._search.held[0][0] if self._search.held else k
+        if j0 < self._settled:  # live, the frame interval not given: found out now
+            raise self._lag_too_short((self._t_ns[k] - self._t_ns[j0]) * 1e-9 / (k - j0))
         correction = self._search.search(k, self._t_ns.__getitem__, self._pose_guess,
                                          self._search_prior)
         if correction is None:
@@ -740,7 +772,8 @@ class IncrementalSmoother:
         return SmootherResult(estimate, self._map_offset.added_to(covariances,
                                                                   estimate.world_T_body),
                               stats, counts, settings, frame_flags(counts, flags), information,
-                              terrain, map_offset=self._map_offset)
+                              terrain, map_offset=self._map_offset,
+                              bias_prior=BiasPrior.of(self.config))
 
 
 def _largest_position_sigma_m(pose_cov: np.ndarray) -> float:

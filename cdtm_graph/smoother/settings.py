@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import enum
+import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
@@ -58,6 +59,11 @@ class SmootherSettings:
     keep_exit_covariances: bool = True
     innovation_gate: float | None = 0.999
     acquisition: AcquisitionSettings | None = field(default_factory=AcquisitionSettings)
+
+    def __post_init__(self) -> None:
+        if self.lag_s is not None and not (math.isfinite(self.lag_s) and self.lag_s > 0):
+            raise ValueError(f"SmootherSettings.lag_s = {self.lag_s!r}: expected a finite lag "
+                             "> 0 seconds, or None for the full history")
 
     def to_dict(self) -> dict:
         """Plain values for report.json (enums as their values)."""
