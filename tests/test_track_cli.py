@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
+import os
 import runpy
 import shutil
 from pathlib import Path
@@ -13,6 +15,7 @@ import numpy as np
 import pytest
 
 from cdtm_graph.cli import main
+from cdtm_graph.cli.track import REPORT_FORMAT
 from cdtm_graph.flightlog import load_log_and_dtm, read_flightlog
 from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.sim.render import RenderSettings, render_flight
@@ -65,8 +68,163 @@ def test_track_writes_tracks_and_report(log, tmp_path, capsys):
     flight = read_flightlog(log)
     assert flight.tracks is not None and len(flight.tracks) > 100
     data = json.loads(report.read_text())
+    assert data["format"] == REPORT_FORMAT  # the marker that lets a rerun replace it
     assert data["frames"] == 4 and data["tracks"] == np.unique(flight.tracks.track_id).size
     assert set(data["rejected"]) == {"lost", "forward_backward", "left_image", "epipolar"}
+
+
+def _must_not_track(*args, **kwargs):
+    raise AssertionError("the images were tracked although the outputs were refused")
+
+
+def _temp_files(*folders: Path) -> list[str]:
+    return [p.name for d in folders for p in d.iterdir() if p.name.endswith(".tmp")]
+
+
+def _snapshot(folder: Path) -> dict[str, bytes]:
+    """Every file under ``folder`` (the log), by relative path."""
+    return {p.relative_to(folder).as_posix(): p.read_bytes()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("where, force, expected", [
+    ("imu.csv", False, "is the flight log's"),          # issue repro: imu.csv replaced
+    ("flight.yaml", True, "is the flight log's"),
+    ("tracks.csv", True, "is the flight log's"),
+    ("nav.csv", True, "is the flight log's"),           # not in this log: still its name
+    ("dtm.npz", True, "is the flight log's"),
+    ("images/000001.png", True, "is the flight log's"),
+    ("../notes.json", True, "is not a report cdtm track wrote"),
+    ("../other.json", True, "is not a report cdtm track wrote"),
+])
+def test_report_never_overwrites_a_file_it_did_not_write(log, capsys, monkeypatch, where,
+                                                         force, expected):
+    (log.parent / "notes.json").write_text("my notes\n")
+    (log.parent / "other.json").write_text(json.dumps({"frames": 4, "tracks": 9}) + "\n")
+    if not force:
+        (log / "tracks.csv").unlink()
+    before, notes = _snapshot(log), _snapshot(log.parent)
+    monkeypatch.setattr("cdtm_graph.cli.track.track_log", _must_not_track)  # checked first
+    report = log / where
+    argv = ["track", str(log), "--quiet", "--report", str(report)]
+    assert main(argv + (["--force"] if force else [])) == 1
+    err = _one_line_error(capsys)
+    assert f"--report {report}" in err and expected in err
+    assert _snapshot(log) == before and _snapshot(log.parent) == notes  # nothing written
+
+
+def test_report_replaces_an_earlier_report(log, tmp_path, capsys):
+    report = tmp_path / "report.json"
+    assert main(["track", str(log), "--quiet", "--force", "--report", str(report)]) == 0
+    data = json.loads(report.read_text())
+    report.write_text(json.dumps({**data, "frames": -1}))  # still our marker
+    assert main(["track", str(log), "--quiet", "--force", "--report", str(report)]) == 0
+    again = json.loads(report.read_text())
+    assert again["format"] == REPORT_FORMAT and again["frames"] == 4
+    assert _temp_files(tmp_path, log) == []
+
+
+@pytest.mark.parametrize("fault, expected", [
+    ("directory", "is a directory"),                  # issue repro: failed after tracks.csv
+    ("missing parent", "does not exist"),
+    ("parent is a file", "is not a directory"),
+    ("trailing slash", "names a directory"),
+    ("symbolic link", "is a symbolic link"),
+])
+def test_a_report_path_that_cannot_be_written_fails_before_any_work(
+        log, tmp_path, capsys, monkeypatch, fault, expected):
+    (log / "tracks.csv").unlink()
+    (tmp_path / "reports").mkdir()
+    (tmp_path / "afile").write_text("x\n")
+    report = {"directory": str(tmp_path / "reports"),
+              "missing parent": str(tmp_path / "nowhere" / "report.json"),
+              "parent is a file": str(tmp_path / "afile" / "report.json"),
+              "trailing slash": str(tmp_path / "new") + "/",
+              "symbolic link": str(tmp_path / "link.json")}[fault]
+    (tmp_path / "link.json").symlink_to(tmp_path / "reports" / "report.json")
+    monkeypatch.setattr("cdtm_graph.cli.track.track_log", _must_not_track)
+    assert main(["track", str(log), "--quiet", "--report", report]) == 1
+    err = _one_line_error(capsys)
+    assert f"--report {report}:" in err and expected in err and ".tmp" not in err
+    assert not (log / "tracks.csv").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "link.json", "log",
+                                                         "reports"]
+    assert list((tmp_path / "reports").iterdir()) == [] and _temp_files(log) == []
+
+
+@pytest.mark.parametrize("earlier_report", [False, True])
+def test_tracks_and_report_are_published_together(log, tmp_path, capsys, monkeypatch,
+                                                  earlier_report):
+    """tracks.csv cannot be renamed into place after the report was: the report is put
+    back as it was, tracks.csv (--force) stays as it was, no temporary file is left."""
+    report = tmp_path / "report.json"
+    if earlier_report:
+        report.write_text(json.dumps({"format": REPORT_FORMAT, "frames": -1}) + "\n")
+    report_before = report.read_bytes() if earlier_report else None
+    tracks_before = (log / "tracks.csv").read_bytes()
+    replace = os.replace
+
+    def failing_replace(src, dst, *args, **kwargs):
+        if Path(dst) == log / "tracks.csv":
+            raise OSError(errno.EIO, "Input/output error", str(src))
+        return replace(src, dst, *args, **kwargs)
+
+    monkeypatch.setattr(os, "replace", failing_replace)
+    assert main(["track", str(log), "--quiet", "--force", "--report", str(report)]) == 1
+    err = _one_line_error(capsys)
+    assert "Input/output error" in err and str(log / "tracks.csv") in err
+    assert ".tmp" not in err  # the files, never a temporary name
+    assert (log / "tracks.csv").read_bytes() == tracks_before
+    assert (report.read_bytes() if report.exists() else None) == report_before
+    assert _temp_files(tmp_path, log) == []
+
+
+def test_a_failure_writing_the_report_publishes_no_tracks(log, tmp_path, capsys,
+                                                          monkeypatch):
+    report = tmp_path / "report.json"
+    tracks_before = (log / "tracks.csv").read_bytes()
+
+    def disk_full(path, text):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr("cdtm_graph.cli.track._write_text", disk_full)
+    assert main(["track", str(log), "--quiet", "--force", "--report", str(report)]) == 1
+    err = _one_line_error(capsys)
+    assert "No space left on device" in err and f"--report {report}" in err
+    assert ".tmp" not in err
+    assert (log / "tracks.csv").read_bytes() == tracks_before and not report.exists()
+    assert _temp_files(tmp_path, log) == []
+
+
+@pytest.mark.parametrize("blank, found", [
+    ("every image", "no feature found in any image"),            # issue repro
+    ("all but frame 0", "each in one frame only"),  # features, but none in two frames
+])
+def test_nothing_tracked_keeps_tracks_csv(log, tmp_path, capsys, blank, found):
+    for path in sorted((log / "images").glob("*.png")):
+        if blank == "every image" or path.name != "000000.png":
+            cv2.imwrite(str(path), cv2.imread(str(path), cv2.IMREAD_UNCHANGED) * 0)
+    tracks_before = (log / "tracks.csv").read_bytes()
+    report = tmp_path / "report.json"
+    assert main(["track", str(log), "--quiet", "--force", "--report", str(report)]) == 1
+    err = _one_line_error(capsys)
+    assert str(log / "frames.csv") in err and "4 image(s) (frames 0-3" in err and found in err
+    assert "left as it was" in err
+    assert (log / "tracks.csv").read_bytes() == tracks_before and not report.exists()
+    assert _temp_files(tmp_path, log) == []
+
+
+def test_tracks_csv_that_is_a_directory_is_named(log, capsys, monkeypatch):
+    (log / "tracks.csv").unlink()
+    (log / "tracks.csv").mkdir()
+    (log / "tracks.csv" / "mine.txt").write_text("kept\n")
+    monkeypatch.setattr("cdtm_graph.cli.track.track_log", _must_not_track)
+    assert main(["track", str(log), "--quiet", "--force"]) == 1
+    err = _one_line_error(capsys)
+    assert f"{log / 'tracks.csv'}: is a directory; expected the tracks.csv file" in err
+    assert ".tmp" not in err
+    assert (log / "tracks.csv" / "mine.txt").read_text() == "kept\n"
+    assert _temp_files(log) == []
 
 
 def test_track_without_tracks_csv_needs_no_force(log):
