@@ -45,7 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cdtm_graph.dtm import Dtm, sigma_h_from_grid_spacing
+from cdtm_graph.dtm import Dtm, gdal_quiet, gdal_reason, sigma_h_from_grid_spacing
 from cdtm_graph.errors import DtmError
 from cdtm_graph.geodesy import WGS84_A_M, WGS84_E2, LocalFrame, VerticalDatum
 
@@ -84,6 +84,11 @@ CHUNK_NODES = 1 << 18
 #: interpolation (1.35 m rms on a 1" tile of fractal terrain whose sigma_h is 2.4 m), at
 #: half of it by far less (0.28 m; docs/geodesy.md).
 SPACING_PER_PIXEL = 0.5
+#: Most nodes of the world grid :func:`import_dem` makes (8 GB of float64 heights, e.g.
+#: 474 x 474 km at 15 m, a 30 m DEM's default spacing): beyond it the region (the prior
+#: track plus ``dtm.margin_m``) or the spacing (``dtm.spacing_m``) is a typo, refused
+#: before anything is allocated.
+MAX_GRID_NODES = 1_000_000_000
 #: Points at which the resampling error is measured (folded into sigma_h).
 RESAMPLING_CHECK_POINTS = 4096
 #: Points per edge of the region outline mapped into a source CRS.
@@ -192,16 +197,18 @@ def read_dem_sources(paths: Sequence[str | os.PathLike], vertical_datum: Vertica
                         f"one of {', '.join(DEM_SUFFIXES)}")
         if not path.is_file():
             raise _fail(path, "no such file", "a DEM file")
-        try:
-            with rasterio.open(path) as src:
-                file_crs = src.crs
-                t = src.transform
-                width, height, count = src.width, src.height, src.count
-                scale = float(src.scales[0]) if src.scales else 1.0
-                offset = float(src.offsets[0]) if src.offsets else 0.0
-        except Exception as exc:  # rasterio raises its own types; report them all alike
-            raise _fail(path, f"cannot read it ({exc})",
-                        "a GeoTIFF, an ESRI .asc grid or an SRTM .hgt tile") from None
+        with gdal_quiet() as notes:  # GDAL's warnings on a damaged file: in the message
+            try:
+                with rasterio.open(path) as src:
+                    file_crs = src.crs
+                    t = src.transform
+                    width, height, count = src.width, src.height, src.count
+                    scale = float(src.scales[0]) if src.scales else 1.0
+                    offset = float(src.offsets[0]) if src.offsets else 0.0
+            except Exception as exc:  # rasterio raises its own types; report them all alike
+                raise _fail(path, "cannot read it: the file is damaged, truncated or of "
+                            f"another format ({gdal_reason(exc, notes)})",
+                            "a GeoTIFF, an ESRI .asc grid or an SRTM .hgt tile") from None
         if count < 1:
             raise _fail(path, "no raster band", "one band of heights")
         if t.b != 0.0 or t.d != 0.0:
@@ -333,13 +340,15 @@ def _group_surface(group: list[DemSource], frame: LocalFrame,
         r0, r1 = max(row_lo, orow), min(row_hi, orow + src.height - 1)
         if c1 < c0 or r1 < r0:
             continue
-        try:
-            with rasterio.open(src.path) as ds:
-                band = ds.read(1, window=Window(c0 - oc, r0 - orow, c1 - c0 + 1, r1 - r0 + 1),
-                               masked=True)
-        except Exception as exc:
-            raise _fail(src.path, f"cannot read its pixels ({exc})", "a readable raster") \
-                from None
+        with gdal_quiet() as notes:
+            try:
+                with rasterio.open(src.path) as ds:
+                    band = ds.read(1, window=Window(c0 - oc, r0 - orow, c1 - c0 + 1,
+                                                    r1 - r0 + 1), masked=True)
+            except Exception as exc:
+                raise _fail(src.path, "cannot read its pixels: the file is damaged or "
+                            f"truncated ({gdal_reason(exc, notes)})", "a complete raster") \
+                    from None
         heights = np.ma.filled(band.astype(np.float64) * src.scale + src.offset, np.nan)
         target = mosaic[r0 - row_lo:r1 - row_lo + 1, c0 - col_lo:c1 - col_lo + 1]
         empty = np.isnan(target)
@@ -516,8 +525,23 @@ def import_dem(paths: Sequence[str | os.PathLike], frame: LocalFrame,
     i0, i1 = math.floor(xmin / spacing_m), math.ceil(xmax / spacing_m)
     j0, j1 = math.floor(ymin / spacing_m), math.ceil(ymax / spacing_m)
     cols, rows = i1 - i0 + 1, j1 - j0 + 1
+    if cols * rows > MAX_GRID_NODES:
+        names = ", ".join(str(s.path) for s in sources)
+        raise DtmError(
+            f"{names}: the world grid would be {cols} x {rows} = {cols * rows:.3g} nodes "
+            f"({8e-9 * cols * rows:.3g} GB) at a spacing of {spacing_m:g} m over "
+            f"{(xmax - xmin) / 1e3:.4g} x {(ymax - ymin) / 1e3:.4g} km (the prior track plus "
+            f"dtm.margin_m); expected at most {MAX_GRID_NODES:.3g} nodes: a larger "
+            "dtm.spacing_m or a smaller dtm.margin_m in flight.yaml")
     xs = (i0 + np.arange(cols)) * spacing_m
-    elevation = np.full((rows, cols), np.nan)
+    try:
+        elevation = np.full((rows, cols), np.nan)
+    except MemoryError:
+        names = ", ".join(str(s.path) for s in sources)
+        raise DtmError(
+            f"{names}: the world grid of {cols} x {rows} nodes at {spacing_m:g} m "
+            f"({8e-9 * cols * rows:.3g} GB) does not fit in memory; expected a larger "
+            "dtm.spacing_m or a smaller dtm.margin_m in flight.yaml") from None
     rows_per_chunk = max(1, CHUNK_NODES // cols)
     unconverged = 0
     for r0 in range(0, rows, rows_per_chunk):

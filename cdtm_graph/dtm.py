@@ -20,11 +20,18 @@ naming the file, the line where there is one, and what was expected.
 
 from __future__ import annotations
 
+import contextlib
 import enum
+import logging
 import math
 import os
-from collections.abc import Sequence
-from dataclasses import dataclass
+import struct
+import tokenize
+import warnings
+import zipfile
+import zlib
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -785,6 +792,73 @@ def visible_from(occluder: Dtm, world_T_cam: np.ndarray, points: np.ndarray,
     return visible & (p_cam[:, 2] > 0), p_cam
 
 
+@dataclass
+class GdalNotes:
+    """What GDAL said during a read, collected by :func:`gdal_quiet` instead of printed.
+
+    Attributes:
+        messages: GDAL's warnings and errors (rasterio logs them), in order.
+        not_georeferenced: rasterio warned that the raster has no geotransform (it then
+            reports the identity transform).
+    """
+
+    messages: list[str] = field(default_factory=list)
+    not_georeferenced: bool = False
+
+
+class _Collect(logging.Handler):
+    def __init__(self, notes: GdalNotes):
+        super().__init__(logging.WARNING)
+        self.notes = notes
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.notes.messages.append(record.getMessage())
+
+
+@contextlib.contextmanager
+def gdal_quiet() -> Iterator[GdalNotes]:
+    """Collect GDAL's chatter during a rasterio read instead of printing it.
+
+    A damaged GeoTIFF makes GDAL log a warning per tag and per block it cannot read
+    (rasterio passes them to the ``rasterio`` loggers) and rasterio warn
+    ``NotGeoreferencedWarning``: ten lines before the one error line. Inside the block
+    they go to the yielded :class:`GdalNotes`, for the error message to quote.
+    """
+    notes = GdalNotes()
+    logger = logging.getLogger("rasterio")
+    handler = _Collect(notes)
+    propagate = logger.propagate
+    logger.addHandler(handler)
+    logger.propagate = False
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                yield notes
+            finally:
+                for w in caught:
+                    if w.category.__name__ == "NotGeoreferencedWarning":
+                        notes.not_georeferenced = True
+                    else:
+                        notes.messages.append(str(w.message))
+    finally:
+        logger.removeHandler(handler)
+        logger.propagate = propagate
+
+
+def gdal_reason(exc: BaseException, notes: GdalNotes) -> str:
+    """The most telling line of a rasterio failure: the GDAL error it chains (rasterio's
+    own says "See previous exception for details"), else its text, else GDAL's first
+    warning."""
+    detail = exc
+    while detail.__cause__ is not None:
+        detail = detail.__cause__
+    text = _short(str(detail))
+    if not text or "See previous exception" in text:
+        text = _short(notes.messages[0]) if notes.messages else type(exc).__name__
+    return text
+
+
 def load_dtm(
     path: str | os.PathLike,
     origin_enu_m: Sequence[float] = (0.0, 0.0, 0.0),
@@ -820,14 +894,18 @@ def load_dtm(
         raise DtmError(f"{path}: unknown DTM file type {suffix!r}, expected .npz, .asc or .tif")
     if not path.is_file():
         raise DtmError(f"{path}: no such file, expected a DTM file")
-    elevation, x0, y0, dx, dy = readers[suffix](path)
-    _refuse_degrees(path, elevation.shape, x0, y0, dx, dy)
     try:
+        elevation, x0, y0, dx, dy = readers[suffix](path)
+        _refuse_degrees(path, elevation.shape, x0, y0, dx, dy)
         return Dtm(
             elevation - origin[2], x0 - origin[0], y0 - origin[1], dx, dy, sigma_h_m=sigma_h_m
         )
     except DtmError as exc:
-        raise DtmError(f"{path}: {exc}") from None
+        text = str(exc)
+        raise DtmError(text if text.startswith(f"{path}: ") else f"{path}: {text}") from None
+    except MemoryError as exc:  # a grid (or a damaged header's) larger than the memory
+        raise DtmError(f"{path}: the grid does not fit in memory ({exc or 'MemoryError'}); "
+                       "expected a DTM this machine can hold (crop it to the flight)") from None
 
 
 #: A grid read as metres whose spacing is finer than this and whose coordinates all fit
@@ -874,13 +952,31 @@ def save_dtm_npz(dtm: Dtm, path: str | os.PathLike) -> None:
 _NPZ_SCALARS = ("x0", "y0", "dx", "dy")
 
 
+#: What numpy's loader raises on a damaged or truncated ``.npz`` (zip directory, CRC,
+#: deflate stream, ``.npy`` header, short data): all reported alike, as a damaged file.
+_NPZ_DAMAGE = (OSError, EOFError, ValueError, zipfile.BadZipFile, zlib.error,
+               NotImplementedError, RuntimeError, KeyError, struct.error, SyntaxError,
+               tokenize.TokenError)
+
+
+def _short(text: str, limit: int = 160) -> str:
+    """One line of at most ``limit`` characters (zipfile quotes whole binary headers)."""
+    text = " ".join(text.split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _npz_damaged(path: Path, exc: BaseException) -> DtmError:
+    detail = _short(str(exc)) or type(exc).__name__
+    return DtmError(f"{path}: not a readable .npz archive ({detail}): the file is damaged, "
+                    "truncated or not an .npz; expected a complete numpy .npz file")
+
+
 def _read_npz(path: Path) -> tuple[np.ndarray, float, float, float, float]:
     """Arrays of a ``.npz`` DTM; other keys in the archive are ignored."""
     try:
         archive = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, EOFError) as exc:
-        raise DtmError(f"{path}: not a readable .npz archive ({exc}), "
-                       "expected a numpy .npz file") from None
+    except _NPZ_DAMAGE as exc:
+        raise _npz_damaged(path, exc) from None
     if not isinstance(archive, np.lib.npyio.NpzFile):
         raise DtmError(f"{path}: holds a single array, expected an .npz archive of arrays")
     with archive:
@@ -893,11 +989,15 @@ def _read_npz(path: Path) -> tuple[np.ndarray, float, float, float, float]:
         for key in ("elevation", *_NPZ_SCALARS):
             try:
                 values[key] = archive[key]
-            except ValueError as exc:  # object arrays need pickle, refused here
-                raise DtmError(
-                    f"{path}: array '{key}' cannot be read without pickle ({exc}), "
-                    "expected a plain numeric array"
-                ) from None
+            except ValueError as exc:
+                if "allow_pickle" in str(exc):  # object arrays need pickle, refused here
+                    raise DtmError(
+                        f"{path}: array '{key}' cannot be read without pickle ({exc}), "
+                        "expected a plain numeric array"
+                    ) from None
+                raise _npz_damaged(path, exc) from None
+            except _NPZ_DAMAGE as exc:
+                raise _npz_damaged(path, exc) from None
     elevation = values["elevation"]
     if elevation.dtype.kind not in "fiu" or elevation.ndim != 2:
         raise DtmError(
@@ -1016,7 +1116,9 @@ def _read_asc(path: Path) -> tuple[np.ndarray, float, float, float, float]:
         )
     nodata = as_float("NODATA_value", *header["nodata_value"]) if "nodata_value" in header else None
 
-    elevation = np.empty((n_rows, n_cols))
+    # Rows are collected as read, not into an (nrows, ncols) array made from the header: a
+    # header claiming more than the file holds fails on the data, not on the allocation.
+    data: list[np.ndarray] = []
     row = 0
     last_line = data_start
     for n in range(data_start, len(lines)):
@@ -1031,7 +1133,8 @@ def _read_asc(path: Path) -> tuple[np.ndarray, float, float, float, float]:
             )
         if len(tokens) != n_cols:
             raise DtmError(
-                f"{path}: line {n + 1}: {len(tokens)} values, expected ncols = {n_cols}"
+                f"{path}: line {n + 1}: {len(tokens)} values, expected ncols = {n_cols} "
+                f"(header line {header['ncols'][1]})"
             )
         try:
             values = np.array(tokens, dtype=np.float64)
@@ -1044,12 +1147,13 @@ def _read_asc(path: Path) -> tuple[np.ndarray, float, float, float, float]:
                 f"{path}: line {n + 1}: value {bad!r}, expected a finite number "
                 "(mark no data with NODATA_value)"
             )
-        elevation[row] = values
+        data.append(values)
         row += 1
     if row < n_rows:
         raise DtmError(
             f"{path}: line {last_line}: file ends after {row} data rows, expected nrows = {n_rows}"
         )
+    elevation = np.array(data, dtype=np.float64)
     if nodata is not None:
         elevation[elevation == nodata] = np.nan
     # Samples sit at cell centres; a corner registration is half a cell off. Row 0 is the
@@ -1069,19 +1173,36 @@ def _read_tif(path: Path) -> tuple[np.ndarray, float, float, float, float]:
             f"{path}: reading GeoTIFF needs rasterio, expected it installed: "
             "pip install 'cdtm-graph[geotiff]' (the geotiff extra)"
         ) from None
-    try:
-        with rasterio.open(path) as src:
-            transform = src.transform
-            crs = src.crs
-            if src.count < 1:
-                raise DtmError(f"{path}: has no raster band, expected one elevation band")
-            band = src.read(1, masked=True)
-    except DtmError:
-        raise
-    except Exception as exc:  # rasterio raises its own error types; report them all alike
-        raise DtmError(
-            f"{path}: cannot read GeoTIFF ({exc}), expected a readable GeoTIFF"
-        ) from None
+    stage = "open"
+    with gdal_quiet() as notes:
+        try:
+            with rasterio.open(path) as src:
+                transform = src.transform
+                crs = src.crs
+                if src.count < 1:
+                    raise DtmError(f"{path}: has no raster band, expected one elevation band")
+                stage = "read"
+                band = src.read(1, masked=True)
+        except DtmError:
+            raise
+        except MemoryError:
+            raise  # load_dtm says the grid does not fit
+        except Exception as exc:  # rasterio raises its own error types; report them all alike
+            if stage == "open":
+                raise DtmError(f"{path}: not a readable GeoTIFF: the file is damaged, "
+                               f"truncated or of another format ({gdal_reason(exc, notes)}); "
+                               "expected a complete GeoTIFF") from None
+            raise DtmError(f"{path}: the GeoTIFF is damaged or truncated: its pixels cannot "
+                           f"be read ({gdal_reason(exc, notes)}); expected a complete "
+                           "GeoTIFF") from None
+    if notes.not_georeferenced:
+        io_errors = [m for m in notes.messages if "error" in m.lower()]
+        if io_errors:  # the georeferencing tags are there but cannot be read
+            raise DtmError(f"{path}: the GeoTIFF is damaged or truncated: its georeferencing "
+                           f"cannot be read ({_short(io_errors[0])}); expected a complete "
+                           "GeoTIFF")
+        raise DtmError(f"{path}: the GeoTIFF has no georeferencing (no geotransform), so its "
+                       "pixels have no coordinates; expected a georeferenced GeoTIFF")
     if crs is not None and getattr(crs, "is_geographic", False):
         raise DtmError(
             f"{path}: CRS {crs} is geographic (degrees); expected a metric projected CRS, or "

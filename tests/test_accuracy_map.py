@@ -132,6 +132,22 @@ def test_bad_settings_are_user_errors(half_flat_dtm, change):
         accuracy_map(half_flat_dtm, AccuracyMapSettings(**kwargs))
 
 
+@pytest.mark.parametrize("change, words", [
+    ({"heading_deg": math.nan}, "heading_deg = nan, expected a finite angle in [-360, 360]"),
+    ({"heading_deg": math.inf}, "heading_deg = inf, expected a finite angle"),
+    ({"heading_deg": 361.0}, "heading_deg = 361.0, expected a finite angle"),
+    ({"n_features": 100_001}, "n_features = 100001, expected 1 to 100000 features per pair"),
+    ({"n_features": 10**400}, "n_features = 1000000000000000..., expected 1 to 100000"),
+    ({"resolution_px": 1}, "resolution_px = 1, expected 2 to 100000 px"),
+    ({"resolution_px": 100_001}, "resolution_px = 100001, expected 2 to 100000 px"),
+])
+def test_non_finite_or_oversized_settings_are_refused_up_front(change, words):
+    settings = AccuracyMapSettings(**({"altitude_m": 500.0, "fov_deg": 60.0} | change))
+    with pytest.raises(CdtmError) as info:
+        settings.check()
+    assert str(info.value) == words or str(info.value).startswith(words), str(info.value)
+
+
 def test_cli_writes_npz_and_png(tmp_path, half_flat_dtm, capsys):
     dtm_path = tmp_path / "dtm.npz"
     save_dtm_npz(half_flat_dtm, dtm_path)
@@ -155,3 +171,32 @@ def test_cli_missing_dtm_is_one_line(tmp_path, capsys):
     assert code == 1
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
     assert not (tmp_path / "map").exists()
+
+
+@pytest.mark.parametrize("options, words", [
+    (["--heading-deg", "nan"], "heading_deg = nan, expected a finite angle in [-360, 360] deg"),
+    (["--heading-deg=-inf"], "heading_deg = -inf, expected a finite angle"),
+    (["--features", "100000000000"],
+     "n_features = 100000000000, expected 1 to 100000 features per pair"),
+    (["--step-m", "1e-6"], "step_m = 1e-06 m makes about 2.4e+09 x 2.4e+09 nodes over the "
+                           "DTM's 2400 x 2400 m; expected at most 1e+06 nodes: a larger step"),
+    (["--step-m", "2"], "makes about 1.2e+03 x 1.2e+03 nodes"),
+])
+def test_cli_refuses_a_non_finite_or_oversized_option_in_one_line(tmp_path, half_flat_dtm,
+                                                                  capsys, options, words):
+    dtm_path = tmp_path / "dtm.npz"
+    save_dtm_npz(half_flat_dtm, dtm_path)
+    out = tmp_path / "map"
+    code = cdtm_main(["accuracy-map", str(dtm_path), "--alt-m", "500", "--fov-deg", "60",
+                      "--step-m", "600", "--workers", "1", *options, "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1 and len(err) == 1, err
+    assert err[0].startswith("cdtm accuracy-map: error: ") and words in err[0], err[0]
+    assert not out.exists()
+
+
+def test_map_nodes_refuses_a_grid_beyond_the_cap_before_allocating(half_flat_dtm):
+    with pytest.raises(CdtmError, match=r"step_m = 1e-09 m makes about 2\.4e\+12 x"):
+        map_nodes(half_flat_dtm, 1e-9)  # 5.8e24 nodes: np.arange would fail to allocate
+    x, y = map_nodes(half_flat_dtm, 2.4)  # 1000 x 1000: the cap itself is accepted
+    assert x.size * y.size == 1_000_000

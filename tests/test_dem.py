@@ -375,3 +375,36 @@ def test_a_flat_flight_smooths_the_same_over_npz_and_over_a_georeferenced_tile(t
     mahalanobis = np.sqrt(np.einsum("ni,nij,nj->n", d, np.linalg.inv(cov), d))
     assert np.all(mahalanobis < SAME_SMOOTHING_MAHALANOBIS)
     assert results[1].counts.n_cdtm_features == results[0].counts.n_cdtm_features
+
+
+# --------------------------------------------------------------------------- hostile input
+
+
+def test_a_world_grid_beyond_the_node_cap_is_refused_before_it_is_allocated(tmp_path):
+    utm = write_dem_tile(_smooth_native(), _frame(), tmp_path / "u.tif", UTM_52N, 30.0)
+    # 1 cm over the 4 x 3 km region: 1.2e11 nodes, 960 GB of heights
+    with pytest.raises(DtmError) as info:
+        import_dem([utm], _frame(), REGION, VerticalDatum.ELLIPSOID, spacing_m=0.01)
+    message = str(info.value)
+    assert message.startswith(f"{utm}: the world grid would be 400001 x 300001 = 1.2e+11 "
+                              "nodes (960 GB) at a spacing of 0.01 m over 4 x 3 km"), message
+    assert "expected at most 1e+09 nodes: a larger dtm.spacing_m or a smaller dtm.margin_m" \
+        in message and "\n" not in message
+
+
+def test_a_truncated_dem_tile_is_one_line_without_gdal_warnings(tmp_path, caplog):
+    import logging
+    import warnings
+
+    utm = write_dem_tile(_smooth_native(), _frame(), tmp_path / "u.tif", UTM_52N, 30.0)
+    utm.write_bytes(utm.read_bytes()[:100])
+    with caplog.at_level(logging.DEBUG), warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with pytest.raises(DtmError) as info:
+            import_dem([utm], _frame(), REGION, VerticalDatum.ELLIPSOID)
+    message = str(info.value)
+    assert message.startswith(f"{utm}: cannot read it: the file is damaged, truncated or of "
+                              "another format ("), message
+    assert "See previous exception" not in message and "\n" not in message
+    assert not [r for r in caplog.records if r.name.startswith("rasterio")], caplog.text
+    assert not caught, [str(w.message) for w in caught]

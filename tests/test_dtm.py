@@ -780,3 +780,151 @@ def test_tif_without_rasterio_names_the_extra(tmp_path, monkeypatch):
     with pytest.raises(DtmError) as info:
         load_dtm(path)
     assert str(path) in str(info.value) and "geotiff" in str(info.value)
+
+
+# --------------------------------------------------------------------------- damaged files
+
+
+def _good_npz_bytes(tmp_path: Path, compressed: bool = False) -> bytes:
+    path = tmp_path / "good.npz"
+    arrays = dict(elevation=np.arange(600.0).reshape(20, 30), x0=0.0, y0=0.0, dx=1.0, dy=1.0)
+    (np.savez_compressed if compressed else np.savez)(path, **arrays)
+    return path.read_bytes()
+
+
+def _flip(data: bytes, at: int) -> bytes:
+    return data[:at] + bytes([data[at] ^ 0xFF]) + data[at + 1:]
+
+
+def _flip_in_elevation_data(data: bytes) -> bytes:
+    """One byte of elevation.npy's values changed: the zip's CRC no longer matches."""
+    return _flip(data, data.index(b"NUMPY") + 200)
+
+
+def _garbled_header(data: bytes) -> bytes:
+    """elevation.npy's header dict cut open (the CRC is checked only after it)."""
+    at = data.index(b"{'descr'")
+    return data[:at] + b"{'descr': ('<f8', " + data[at + 18:]
+
+
+def _huge_shape(data: bytes) -> bytes:
+    """elevation.npy's header claims 10^6 x 10^6 samples, 8 TB (same length: the zip holds)."""
+    old = b"'shape': (20, 30), }"
+    new = b"'shape': (1000000, 1000000), }"
+    at = data.index(old)
+    pad = data.index(b"\n", at) - (at + len(old))  # the header's padding spaces
+    assert pad >= len(new) - len(old)
+    return data[:at] + new + data[at + len(old):at + len(old) + pad - (len(new) - len(old))] \
+        + data[at + len(old) + pad:]
+
+
+@pytest.mark.parametrize("damage", [
+    lambda b, c: b[: len(b) // 2],  # truncated: zipfile.BadZipFile
+    lambda b, c: b[:-30],  # the central directory cut
+    lambda b, c: _flip_in_elevation_data(b),  # BadZipFile: Bad CRC-32
+    lambda b, c: _flip(c, 150),  # zlib.error in elevation.npy's deflate stream
+    lambda b, c: _garbled_header(b),  # tokenize / SyntaxError in the .npy header
+    lambda b, c: _huge_shape(b),  # MemoryError (or, memory overcommitted, a short read)
+], ids=["half", "no_directory", "crc", "deflate", "npy_header", "huge_shape"])
+def test_a_damaged_npz_is_one_error_line_naming_the_file(tmp_path, damage):
+    path = tmp_path / "dtm.npz"
+    path.write_bytes(damage(_good_npz_bytes(tmp_path), _good_npz_bytes(tmp_path, True)))
+    with pytest.raises(DtmError) as info:
+        load_dtm(path)
+    message = str(info.value)
+    assert message.startswith(f"{path}: ") and "\n" not in message and len(message) < 400
+    assert "not a readable .npz archive" in message or "does not fit in memory" in message
+    assert "pickle" not in message
+
+
+def test_every_command_reading_a_truncated_npz_says_one_line_and_writes_nothing(
+        tmp_path, capsys):
+    import shutil
+
+    from cdtm_graph.cli import main
+
+    log = tmp_path / "log"
+    shutil.copytree(Path(__file__).resolve().parents[1] / "data" / "sample_flight", log)
+    data = (log / "dtm.npz").read_bytes()
+    (log / "dtm.npz").write_bytes(data[: len(data) // 2])
+    commands = {
+        "smooth": ["smooth", str(log), "--out", str(tmp_path / "out"), "--quiet"],
+        "analyze": ["analyze", str(log), "--pair", "0", "1"],
+        "accuracy-map": ["accuracy-map", str(log / "dtm.npz"), "--alt-m", "1000",
+                         "--fov-deg", "60", "--out", str(tmp_path / "out")],
+        "simulate": ["simulate", str(tmp_path / "out"), "--frames", "10", "--terrain",
+                     str(log / "dtm.npz")],
+    }
+    for name, args in commands.items():
+        capsys.readouterr()
+        assert main(args) == 1, name
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1, (name, err)
+        assert err[0].startswith(f"cdtm {name}: error: ") and "dtm.npz: not a readable " \
+            ".npz archive (File is not a zip file)" in err[0], err[0]
+        assert not (tmp_path / "out").exists(), name
+
+
+@pytest.mark.parametrize("header, fragments", [
+    # 10^22 samples: reading into an array made from the header would fail on allocation
+    (GOOD_ASC_HEADER.replace("ncols 4", "ncols 99999999999")
+     .replace("nrows 3", "nrows 99999999999"),
+     ["line 7: 4 values, expected ncols = 99999999999 (header line 1)"]),
+    (GOOD_ASC_HEADER.replace("nrows 3", "nrows 999999999999"),
+     ["line 9: file ends after 3 data rows, expected nrows = 999999999999"]),
+])
+def test_an_asc_header_claiming_more_than_the_file_holds_is_refused(tmp_path, header,
+                                                                     fragments):
+    path = tmp_path / "dtm.asc"
+    path.write_text(header + GOOD_ASC_BODY)
+    with pytest.raises(DtmError) as info:
+        load_dtm(path)
+    assert str(info.value).startswith(f"{path}: ")
+    for fragment in fragments:
+        assert fragment in str(info.value)
+
+
+def _write_geotiff(path: Path, georeferenced: bool = True) -> Path:
+    rasterio = pytest.importorskip("rasterio")
+    from rasterio.transform import from_origin
+
+    values = np.arange(200 * 150, dtype=np.float32).reshape(150, 200)
+    extra = dict(crs="EPSG:32633", transform=from_origin(500000.0, 4000000.0, 10.0, 10.0)) \
+        if georeferenced else {}
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # rasterio warns when writing without a transform
+        with rasterio.open(path, "w", driver="GTiff", height=150, width=200, count=1,
+                           dtype="float32", **extra) as dst:
+            dst.write(values, 1)
+    return path
+
+
+@pytest.mark.parametrize("keep_bytes, words", [
+    (200, "the GeoTIFF is damaged or truncated: its pixels cannot be read"),
+    (100, "not a readable GeoTIFF: the file is damaged, truncated or of another format"),
+])
+def test_a_truncated_geotiff_is_one_line_without_gdal_warnings(tmp_path, caplog, keep_bytes,
+                                                               words):
+    import logging
+    import warnings
+
+    path = _write_geotiff(tmp_path / "dtm.tif")
+    path.write_bytes(path.read_bytes()[:keep_bytes])
+    with caplog.at_level(logging.DEBUG), warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with pytest.raises(DtmError) as info:
+            load_dtm(path, origin_enu_m=(500000.0, 3998500.0, 0.0))
+    message = str(info.value)
+    assert message.startswith(f"{path}: ") and words in message and "\n" not in message
+    assert "See previous exception" not in message
+    assert not [r for r in caplog.records if r.name.startswith("rasterio")], caplog.text
+    assert not caught, [str(w.message) for w in caught]
+
+
+def test_a_geotiff_without_a_geotransform_is_refused(tmp_path):
+    path = _write_geotiff(tmp_path / "dtm.tif", georeferenced=False)
+    with pytest.raises(DtmError, match=r"dtm\.tif: the GeoTIFF has no georeferencing \(no "
+                                       r"geotransform\)"):
+        load_dtm(path)

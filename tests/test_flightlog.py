@@ -895,3 +895,51 @@ def test_writer_refuses_image_names_it_could_not_read_back(log: FlightLog) -> No
         write_flightlog(FlightLog(log.root, log.config, log.imu, frames, log.tracks),
                         log.root.parent / "other")
     assert not (log.root.parent / "other").exists()
+
+
+# --------------------------------------------------------------------------- hostile numbers
+
+
+@pytest.mark.parametrize("digits, words", [
+    (400, ("imu.rate_hz is '1000", "expected a number in [1, 100000] Hz")),  # > float max
+    (5000, ("value '1000", "Exceeds the limit (4300 digits)", "expected a number")),
+])
+def test_an_integer_too_large_for_a_float_is_one_line(log: FlightLog, digits: int,
+                                                      words: tuple[str, ...]) -> None:
+    path = log.root / "flight.yaml"
+    line = _line_of(path, "rate_hz:")
+    _set_line(path, line, "  rate_hz: 1" + "0" * digits)
+    message = _expect_error(log.root, "flight.yaml", line, *words)
+    assert len(message) < 300
+
+
+def _geodetic_log(root: Path, rng: np.random.Generator) -> FlightLog:
+    """A log with a geodetic origin whose DEM (never read here) is an empty dem.tif."""
+    from cdtm_graph.geodesy import GeodeticOrigin, VerticalDatum
+
+    the_log = _make_log(root, rng)
+    config = dataclasses.replace(
+        the_log.config, origin=GeodeticOrigin(36.5, 127.25, 120.0),
+        dtm=DtmConfig(root / "dem.tif", 2.4, vertical_datum=VerticalDatum.EGM96,
+                      margin_m=2000.0, spacing_m=15.0))
+    the_log = dataclasses.replace(the_log, config=config, nav=None, groundtruth=None)
+    write_flightlog(the_log, root)
+    (root / "dem.tif").write_bytes(b"")
+    return the_log
+
+
+@pytest.mark.parametrize("key, value, words", [
+    ("margin_m", "1e12", ("dtm.margin_m is 1000000000000.0", "[1, 1e+06] m")),
+    ("margin_m", "0.5", ("dtm.margin_m is 0.5", "[1, 1e+06] m")),
+    ("spacing_m", "0.001", ("dtm.spacing_m is 0.001", "[0.01, 10000] m")),
+    ("spacing_m", "1e5", ("dtm.spacing_m is 100000.0", "[0.01, 10000] m")),
+])
+def test_dem_margin_and_spacing_out_of_range_name_the_key(tmp_path: Path, rng, key: str,
+                                                           value: str,
+                                                           words: tuple[str, ...]) -> None:
+    the_log = _geodetic_log(tmp_path / "geo", rng)
+    assert read_flightlog(the_log.root).config.dtm.spacing_m == 15.0  # as written: valid
+    path = the_log.root / "flight.yaml"
+    line = _line_of(path, f"{key}:")
+    _set_line(path, line, f"  {key}: {value}")
+    _expect_error(the_log.root, "flight.yaml", line, *words)

@@ -430,3 +430,57 @@ def test_recording_times_on_request_and_zero_stamps_refused(native, files, tmp_p
     with pytest.raises(SensorDataError, match="header stamps are zero.*--stamps bag"):
         import_rosbag(tmp_path / "unstamped.bag", tmp_path / "c", tmp_path / "c",
                       _settings(native), **kwargs)
+
+
+# --------------------------------------------------------------------------- damaged DTM
+
+
+def _damaged_dtm(native: FlightLog, tmp_path: Path, kind: str) -> Path:
+    """The native DTM cut in half (.npz), or as an .asc whose header claims 10^11 columns."""
+    if kind == "npz":
+        data = native.config.dtm.path.read_bytes()
+        path = tmp_path / "dtm.npz"
+        path.write_bytes(data[: len(data) // 2])
+        return path
+    path = tmp_path / "dtm.asc"
+    path.write_text("ncols 99999999999\nnrows 2\nxllcenter 0\nyllcenter 0\ncellsize 30\n"
+                    "1 2 3\n4 5 6\n")
+    return path
+
+
+@pytest.mark.parametrize("source, kind, copy", [
+    ("euroc", "npz", True), ("euroc", "npz", False), ("euroc", "asc", False),
+    ("rosbag", "npz", True)])
+def test_an_unreadable_dtm_fails_the_import_and_publishes_nothing(native, files, tmp_path,
+                                                                  capsys, source, kind, copy):
+    dtm = _damaged_dtm(native, tmp_path, kind)
+    out = tmp_path / "imported"
+    args = (["import", "euroc", str(files / "plain")] if source == "euroc" else
+            ["import", "rosbag", str(files / "flight.bag"), "--kalibr",
+             str(files / "camchain.yaml"), "--kalibr-imu", str(files / "imu.yaml"),
+             "--groundtruth", str(NATIVE / "groundtruth.csv")])
+    code = main(args + ["--dtm", str(dtm), "--out", str(out), "--quiet"]
+                + (["--copy-dtm"] if copy else []))
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1 and len(err) == 1, err
+    assert err[0].startswith(f"cdtm import: error: {dtm}: "), err[0]
+    assert ("not a readable .npz archive (File is not a zip file)" if kind == "npz" else
+            "line 6: 3 values, expected ncols = 99999999999") in err[0]
+    assert not out.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == [dtm.name]  # no staging left
+
+
+def test_an_unreadable_image_met_by_track_is_named_as_the_user_s_file(files, native, tmp_path,
+                                                                      capsys):
+    mav0 = tmp_path / "mav0"
+    shutil.copytree(files / "plain" / "mav0", mav0)
+    image = mav0 / "cam0" / "data" / "2000000000.png"  # not the first: read for its size
+    image.write_bytes(image.read_bytes()[:300])
+    out = tmp_path / "imported"
+    code = main(["import", "euroc", str(mav0), "--dtm", str(native.config.dtm.path),
+                 "--out", str(out), "--track", "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1 and len(err) == 1, err
+    assert err[0].startswith(f"cdtm import: error: {image}: cannot be read as an image"), err[0]
+    assert "staging" not in err[0]
+    assert not out.exists()

@@ -41,6 +41,14 @@ _CANDIDATES_PER_FEATURE = 3
 DEFAULT_NODES_PER_SIDE = 40
 #: Highest camera altitude (m) of a map: beyond it the camera is in space.
 MAX_ALTITUDE_M = 1e5
+#: Most features per pair (each node casts three times as many rays).
+MAX_FEATURES = 100_000
+#: Most nodes of a map (1000 x 1000; 40 x 40 by default): a finer --step-m is a typo.
+MAX_NODES = 1_000_000
+#: Image sides (px), as flight.yaml's camera.resolution.
+RESOLUTION_RANGE_PX = (2, 100_000)
+#: Headings (deg) accepted: one turn either way.
+MAX_ABS_HEADING_DEG = 360.0
 #: Body axis of the inter-frame rotation: equal roll, pitch and yaw.
 _ROTATION_AXIS_BODY = np.ones(3) / math.sqrt(3.0)
 
@@ -109,11 +117,26 @@ class AccuracyMapSettings:
 
     def check(self) -> None:
         """Raise CdtmError on settings that make no sense."""
-        positive = {"altitude_m": self.altitude_m, "resolution_px": self.resolution_px,
-                    "n_features": self.n_features, "pixel_sigma_px": self.pixel_sigma_px}
+        # integers first: math.isfinite(10**400) raises OverflowError
+        if not 1 <= self.n_features <= MAX_FEATURES:
+            shown = repr(self.n_features)
+            shown = shown if len(shown) <= 20 else shown[:16] + "..."
+            raise CdtmError(f"n_features = {shown}, expected 1 to {MAX_FEATURES} "
+                            "features per pair")
+        lo_px, hi_px = RESOLUTION_RANGE_PX
+        if not lo_px <= self.resolution_px <= hi_px:
+            shown = repr(self.resolution_px)
+            shown = shown if len(shown) <= 20 else shown[:16] + "..."
+            raise CdtmError(f"resolution_px = {shown}, expected {lo_px} to "
+                            f"{hi_px} px")
+        positive = {"altitude_m": self.altitude_m, "pixel_sigma_px": self.pixel_sigma_px}
         for name, value in positive.items():
             if not (math.isfinite(value) and value > 0):
                 raise CdtmError(f"{name} = {value!r}, expected > 0")
+        if not (math.isfinite(self.heading_deg)
+                and abs(self.heading_deg) <= MAX_ABS_HEADING_DEG):
+            raise CdtmError(f"heading_deg = {self.heading_deg!r}, expected a finite angle in "
+                            f"[-{MAX_ABS_HEADING_DEG:g}, {MAX_ABS_HEADING_DEG:g}] deg")
         sigma = RANGES["camera.pixel_sigma_px"]  # as flight.yaml: 1e-300 px is singular
         if not sigma.lo <= self.pixel_sigma_px <= sigma.hi:
             raise CdtmError(f"pixel_sigma_px = {self.pixel_sigma_px!r}, expected {sigma}")
@@ -271,16 +294,27 @@ def map_nodes(dtm: Dtm, step_m: float | None) -> tuple[np.ndarray, np.ndarray]:
     """Node coordinates ``(x_m (nx,), y_m (ny,))``: cell centres of a ``step_m`` grid.
 
     The grid covers the DTM's extent, centred on it, half a step in from the edges.
+
+    Raises:
+        CdtmError: the grid would have more than :data:`MAX_NODES` nodes.
     """
     xmin, xmax, ymin, ymax = dtm.bounds
     if step_m is None:
         step_m = max(xmax - xmin, ymax - ymin) / DEFAULT_NODES_PER_SIDE
+    step = step_m
+    # (capped before floor: a step of 1e-320 m makes the ratio infinite)
+    nx, ny = (max(1, math.floor(min((hi - lo) / step, 1e18))) for lo, hi in ((xmin, xmax),
+                                                                             (ymin, ymax)))
+    if nx * ny > MAX_NODES:
+        raise CdtmError(f"step_m = {step:g} m makes about {(xmax - xmin) / step:.3g} x "
+                        f"{(ymax - ymin) / step:.3g} nodes over the DTM's {xmax - xmin:.6g} x "
+                        f"{ymax - ymin:.6g} m; expected at most {MAX_NODES:.3g} nodes: a "
+                        "larger step")
 
-    def axis(lo: float, hi: float) -> np.ndarray:
-        n = max(1, int(math.floor((hi - lo) / step_m)))
-        return (lo + hi) / 2 + (np.arange(n) - (n - 1) / 2) * step_m
+    def axis(lo: float, hi: float, n: int) -> np.ndarray:
+        return (lo + hi) / 2 + (np.arange(n) - (n - 1) / 2) * step
 
-    return axis(xmin, xmax), axis(ymin, ymax)
+    return axis(xmin, xmax, nx), axis(ymin, ymax, ny)
 
 
 @dataclass(frozen=True)

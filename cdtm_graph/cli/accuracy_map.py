@@ -20,6 +20,10 @@ import numpy as np
 
 from cdtm_graph.analysis.accuracy_map import (
     DEGENERACY_CODE_NAMES,
+    MAX_ABS_HEADING_DEG,
+    MAX_FEATURES,
+    MAX_NODES,
+    RESOLUTION_RANGE_PX,
     AccuracyMap,
     AccuracyMapSettings,
     AltitudeReference,
@@ -53,9 +57,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "default) or above the ground below the camera")
     parser.add_argument("--fov-deg", type=float, required=True, help="horizontal FOV [deg]")
     parser.add_argument("--resolution-px", type=int, default=400,
-                        help="image width = height [px] (default: %(default)s)")
+                        help=f"image width = height [px], {RESOLUTION_RANGE_PX[0]} to "
+                             f"{RESOLUTION_RANGE_PX[1]} (default: %(default)s)")
     parser.add_argument("--features", type=int, default=170,
-                        help="features per frame pair (default: %(default)s)")
+                        help=f"features per frame pair, 1 to {MAX_FEATURES} "
+                             "(default: %(default)s)")
     parser.add_argument("--baseline-m", type=float, default=40.0,
                         help="baseline |p12| [m] (default: %(default)s)")
     parser.add_argument("--rotation-deg", type=float, default=10.0,
@@ -65,9 +71,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--sigma-h-m", type=float, default=None,
                         help="DTM height error, 1 sigma [m] (default: from the grid spacing)")
     parser.add_argument("--heading-deg", type=float, default=0.0,
-                        help="flight direction, counter-clockwise from +x [deg] (default: 0)")
+                        help="flight direction, counter-clockwise from +x [deg], finite, "
+                             f"within +-{MAX_ABS_HEADING_DEG:g} (default: 0)")
     parser.add_argument("--step-m", type=float, default=None,
-                        help="node spacing [m] (default: 40 nodes along the longer side)")
+                        help="node spacing [m] (default: 40 nodes along the longer side); "
+                             f"at most {MAX_NODES:.0e} nodes in all")
     parser.add_argument("--workers", type=int, default=None,
                         help="local worker processes (default: all cores)")
     add_out_option(parser, "output directory", default="accuracy_map")

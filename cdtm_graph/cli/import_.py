@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 from tqdm import tqdm
 
@@ -215,7 +215,8 @@ def run(args: argparse.Namespace) -> int:
         else:
             log, contents = _import_bag(args, staging, out, settings, progress)
         progress.close()
-        tracked = _track(log, staging, args.quiet) if args.track else None
+        tracked = (_track(log, staging, args.quiet, _image_sources(args, log))
+                   if args.track else None)
     if not args.quiet:
         print(_summary(log, out, contents, tracked))
     return 0
@@ -240,12 +241,31 @@ def _import_bag(args, staging: Path, out: Path, settings, progress):
                          stamps=StampSource(args.stamps), progress=progress)
 
 
-def _track(log: FlightLog, staging: Path, quiet: bool):
+def _image_sources(args: argparse.Namespace, log: FlightLog) -> dict[str, str]:
+    """What the user knows each imported image as: the EuRoC file it was copied from, or
+    the bag it was decoded from (the staging copies vanish with a failed import)."""
+    if args.source == "euroc":
+        from cdtm_graph.flightlog.importers.euroc import find_mav0
+
+        data = find_mav0(args.mav0) / args.camera / "data"
+        return {name: str(data / PurePosixPath(name).name) for name in log.frames.image}
+    return {name: f"{args.bag} (image {PurePosixPath(name).name} decoded from "
+                  f"{args.image_topic or 'the image topic'})" for name in log.frames.image}
+
+
+def _track(log: FlightLog, staging: Path, quiet: bool, sources: dict[str, str]):
     from cdtm_graph.frontend import track_log
 
-    with tqdm(total=len(log.frames), unit="frame", desc="tracking", file=sys.stderr,
-              disable=quiet, leave=False) as bar:
-        result = track_log(log, progress=lambda done, total: bar.update(1))
+    try:
+        with tqdm(total=len(log.frames), unit="frame", desc="tracking", file=sys.stderr,
+                  disable=quiet, leave=False) as bar:
+            result = track_log(log, progress=lambda done, total: bar.update(1))
+    except CdtmError as exc:  # name the user's files, not the staging copies
+        text = str(exc)
+        for name, source in sources.items():
+            text = text.replace(str(log.root / name), source)
+        exc.args = (text,)
+        raise
     write_tracks(result.tracks, staging / TRACKS_CSV)
     return result
 

@@ -64,6 +64,11 @@ RANGES: dict[str, Range] = {
     "dtm.horizontal_offset_sigma_m": Range(0.0, 1e4, "m"),
     "dtm.vertical_offset_sigma_m": Range(0.0, 1e3, "m"),
     "dtm.origin_enu_m": Range(-1e8, 1e8, "m"),
+    # DEM import (geodetic logs): the margin around the prior track, up to 1000 km, and
+    # the world grid's spacing, 1 cm (lidar) to 10 km; the grid itself is capped at
+    # cdtm_graph.dem.MAX_GRID_NODES nodes.
+    "dtm.margin_m": Range(1.0, 1e6, "m"),
+    "dtm.spacing_m": Range(0.01, 1e4, "m"),
     "camera.pixel_sigma_px": Range(1e-3, 100.0, "px"),
     "camera.distortion_coeffs": Range(-1e3, 1e3),
     "camera.body_T_cam.translation_m": Range(-100.0, 100.0, "m"),
@@ -122,8 +127,7 @@ class _Yaml:
             self.fail(line, f"{label} is not a mapping", f"a mapping of {label}'s keys")
         out: dict[str, tuple[yaml.Node, yaml.Node]] = {}
         for key_node, value_node in node.value:
-            key = self.loader.construct_object(key_node) if isinstance(
-                key_node, yaml.ScalarNode) else None
+            key = self.value(key_node) if isinstance(key_node, yaml.ScalarNode) else None
             if not isinstance(key, str):
                 self.fail(key_node, f"key {key!r} in {name} is not a name", "string keys")
             if key in out:
@@ -149,7 +153,14 @@ class _Yaml:
         return {key: value for key, (_, value) in pairs.items()}
 
     def value(self, node: yaml.Node) -> Any:
-        return self.loader.construct_object(node, deep=True)
+        try:
+            return self.loader.construct_object(node, deep=True)
+        except ValueError as exc:
+            # Python refuses integers of more than 4300 digits (int_max_str_digits).
+            token = node.value if isinstance(node, yaml.ScalarNode) else ""
+            self.fail(node, f"value {_show(str(token))} cannot be read ({exc})".replace(
+                "; use sys.set_int_max_str_digits() to increase the limit", ""),
+                "a number of sensible size")
 
     def scalar(self, node: yaml.Node, name: str, expected: str) -> Any:
         if not isinstance(node, yaml.ScalarNode):
@@ -163,7 +174,10 @@ class _Yaml:
         value = self.scalar(node, name, expected)
         number: float | None = None
         if isinstance(value, int | float) and not isinstance(value, bool):
-            number = float(value)
+            try:
+                number = float(value)
+            except OverflowError:  # an integer beyond float's range: as 1e400, infinite
+                number = math.inf
         elif isinstance(value, str):
             # PyYAML (YAML 1.1) reads 1e-4 as a string; it is a number to anyone else.
             number = _parse_float(value)
@@ -358,7 +372,7 @@ def _parse_dtm(y: _Yaml, node: yaml.Node, line: int, root: Path,
         except CRSError:
             y.fail(m["crs"], f"dtm.crs {_show(crs)} is not a CRS PROJ knows",
                    "a CRS such as EPSG:4326 or EPSG:32652")
-    margin, spacing = (y.number(m[key], f"dtm.{key}", positive=True) if key in m else None
+    margin, spacing = (y.bounded(m[key], f"dtm.{key}") if key in m else None
                        for key in ("margin_m", "spacing_m"))
     return DtmConfig(paths[0], sigma_h, (0.0, 0.0, 0.0), tuple(paths[1:]), datum, crs, margin,
                      spacing, **offset_sigmas)

@@ -36,7 +36,7 @@ from cdtm_graph.flightlog.model import (
     States,
     normalized_path,
 )
-from cdtm_graph.flightlog.reader import read_flightlog
+from cdtm_graph.flightlog.reader import load_flight_dtm, read_flightlog
 from cdtm_graph.flightlog.tables import (
     _GROUNDTRUTH_SPEC,
     _is_geodetic_states,
@@ -272,6 +272,8 @@ def assemble_flightlog(recording: SensorRecording, images: tuple[str, ...],
     Raises:
         SensorDataError: the initial state is not known; fewer than 2 frames lie inside
             the IMU's time span.
+        DtmError: the DTM cannot be read, or is nowhere near the flight (it is read here
+            as the smoother will read it).
     """
     cam = recording.camera
     camera_config = CameraConfig(cam.camera, settings.pixel_sigma_px, cam.body_T_cam,
@@ -301,8 +303,23 @@ def assemble_flightlog(recording: SensorRecording, images: tuple[str, ...],
                         "frames_outside_imu": len(images) - len(frames)}}
     config = FlightConfig(gravity, dtm_config, camera_config, recording.imu_config, initial,
                           extra, origin)
-    return FlightLog(Path("."), config, recording.imu, frames, None, None,
-                     recording.groundtruth)
+    log = FlightLog(Path("."), config, recording.imu, frames, None, None,
+                    recording.groundtruth)
+    _check_dtm(log, dtm)
+    return log
+
+
+def _check_dtm(log: FlightLog, dtm: DtmSource) -> None:
+    """Read the DTM the way the smoother will read the imported log (the whole file, or
+    the DEM window under the prior track, resampled), before anything is written: a
+    damaged or oversized map, or one nowhere near the flight, fails the import instead of
+    being published in a log that can never be smoothed.
+
+    Raises:
+        DtmError: naming the user's file.
+    """
+    cfg = dataclasses.replace(log.config.dtm, path=dtm.paths[0], more_paths=dtm.paths[1:])
+    load_flight_dtm(dataclasses.replace(log, config=dataclasses.replace(log.config, dtm=cfg)))
 
 
 def _frames_inside_imu(recording: SensorRecording, frames: Frames) -> Frames:
