@@ -147,7 +147,7 @@ def _write_synced(path: Path, text: str) -> None:
         os.fsync(f.fileno())
 
 
-def _fsync_path(path: Path) -> None:
+def fsync_path(path: Path) -> None:
     """Flush a file's or a directory's content to disk (best effort where not supported)."""
     try:
         fd = os.open(path, os.O_RDONLY)
@@ -165,7 +165,7 @@ def _fsync_path(path: Path) -> None:
 
 
 @contextlib.contextmanager
-def _signals_deferred() -> Iterator[None]:
+def signals_deferred() -> Iterator[None]:
     """Hold SIGINT and SIGTERM until the block ends, then deliver them as they would have been.
 
     Only in the main thread (where Python runs signal handlers); elsewhere a no-op.
@@ -479,7 +479,7 @@ def _publish_into(target: Path, staging: _Staging, writer: str, names: list[str]
                 folder = folder.parent
         _write_manifest(target, {**kept, **{n: writer for n in names}}, complete=True,
                         scratch=staging.path)
-        _fsync_path(target)
+        fsync_path(target)
 
 
 @contextlib.contextmanager
@@ -547,10 +547,10 @@ def atomic_output_dir(target: str | os.PathLike, *, writer: str, force: bool = F
     published = False
     try:
         yield staging.path
-        with _signals_deferred():
+        with signals_deferred():
             payload = staging.payload()
             for name in payload:
-                _fsync_path(staging.path / name)
+                fsync_path(staging.path / name)
             if not into:
                 published = _rename_into_place(staging, path, writer, payload)
             if not published:
@@ -558,7 +558,7 @@ def atomic_output_dir(target: str | os.PathLike, *, writer: str, force: bool = F
                 published = True
                 staging.remove()
     except BaseException:
-        with _signals_deferred():
+        with signals_deferred():
             if not published:
                 staging.remove()
                 _remove_created(created)
@@ -578,7 +578,7 @@ def _rename_into_place(staging: _Staging, path: Path, writer: str, payload: list
             raise
         os.unlink(staging.path / MANIFEST_NAME)
         return False
-    _fsync_path(path.parent)
+    fsync_path(path.parent)
     return True
 
 

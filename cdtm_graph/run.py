@@ -14,7 +14,7 @@ from cdtm_graph.dtm import Dtm
 from cdtm_graph.evaluation import ErrorReport, free_vs_compensated, trajectory_errors
 from cdtm_graph.flightlog import FlightLog
 from cdtm_graph.imu import dead_reckoning
-from cdtm_graph.imu_faults import check_imu
+from cdtm_graph.imu_faults import check_imu, sample_noise
 from cdtm_graph.results import SmootherResult, TrajectoryEstimate
 from cdtm_graph.smoother import Progress, SmootherSettings, smooth
 from cdtm_graph.verdict import Verdict, VerdictSettings, assess
@@ -59,6 +59,10 @@ def smooth_and_evaluate(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
     for finding in findings:
         logger.warning("%s", finding.message)
     report["imu_findings"] = [f.to_dict(flight.frames.t_ns) for f in findings]
+    noise = sample_noise(imu.t_ns, imu.gyro_radps, imu.acc_mps2,
+                         flight.config.imu.gyroscope_noise_density,
+                         flight.config.imu.accelerometer_noise_density)
+    report["imu_noise"] = noise.to_dict() if noise is not None else None
     errors = free = free_errors = None
     if flight.groundtruth is not None:
         errors = trajectory_errors(result.estimate, result.covariances, flight.groundtruth)
@@ -70,7 +74,7 @@ def smooth_and_evaluate(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
             "free": free_errors.to_dict(),
             "table1": free_vs_compensated(errors, free_errors),
         }
-    verdict = assess(result, errors, flight.imu.t_ns, verdict_settings)
+    verdict = assess(result, errors, flight.imu.t_ns, verdict_settings, noise)
     if result.calibration is None and (flight.config.camera.calibration is not None
                                        or settings.graph.calibration_online):
         # asked for, not estimated (the incremental modes): never silent

@@ -71,6 +71,7 @@ from scipy.stats import chi2
 from cdtm_graph.evaluation import CovarianceVerdict, ErrorReport
 from cdtm_graph.gating import OUTLIER_TEST_PROBABILITY, chi2_2dof_quantile
 from cdtm_graph.geometry import rigid_motion_transfer
+from cdtm_graph.imu_faults import ImuNoise
 from cdtm_graph.results import Rejection, SmootherResult
 
 NS_PER_S = 1_000_000_000
@@ -288,6 +289,9 @@ class VerdictSettings:
         bias_probability: ``imu_bias`` when an IMU bias estimate (accelerometer or gyro)
             lies beyond this chi-square(3) probability of flight.yaml's prior at some frame
             (:meth:`~cdtm_graph.results.BiasPrior.excess`).
+        max_imu_noise_ratio: ``imu_noise`` when the IMU samples' own scatter exceeds
+            flight.yaml's noise density by more than this factor
+            (:class:`~cdtm_graph.imu_faults.ImuNoise`).
     """
 
     window_s: float = 10.0
@@ -306,6 +310,7 @@ class VerdictSettings:
     min_fix_fraction: float = 0.5
     max_beyond_999_fraction: float = 0.5
     bias_probability: float = 0.999
+    max_imu_noise_ratio: float = 1.5
 
 
 #: Checks that make a run FAILED; every other reason makes it DEGRADED.
@@ -713,7 +718,8 @@ def _groundtruth_checks(errors: ErrorReport | None, settings: VerdictSettings
 
 def assess(result: SmootherResult, errors: ErrorReport | None = None,
            imu_t_ns: np.ndarray | None = None,
-           settings: VerdictSettings | None = None) -> Verdict:
+           settings: VerdictSettings | None = None,
+           imu_noise: ImuNoise | None = None) -> Verdict:
     """The verdict on a run (module docstring).
 
     Args:
@@ -721,6 +727,8 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
         errors: its errors against ground truth, if the log has it.
         imu_t_ns: (M,) the log's IMU sample times, to find IMU gaps; None: not checked.
         settings: the rules.
+        imu_noise: the IMU samples' own scatter against flight.yaml's densities
+            (:func:`~cdtm_graph.imu_faults.sample_noise`); None: not checked.
 
     Returns:
         Status, reasons, per-frame flags and the self-checks.
@@ -778,6 +786,8 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
     run_wide += [reason(code, message, 0, last) for code, message in calibration_reasons]
     run_wide += [reason(code, message, a, b)
                  for code, message, a, b in _bias_check(result, f.t_s, settings)]
+    run_wide += [reason(code, message, 0, last)
+                 for code, message in _noise_check(imu_noise, settings)]
 
     stretches: list[Reason] = []
     known = {t.code for t in tests}
@@ -847,6 +857,31 @@ def _bias_check(result: SmootherResult, t_s: np.ndarray, settings: VerdictSettin
     return out
 
 
+def _noise_check(noise: ImuNoise | None, settings: VerdictSettings
+                 ) -> list[tuple[str, str]]:
+    """``imu_noise``: the IMU samples scatter more than flight.yaml's noise densities say.
+    The preintegration's covariance then understates what it integrates, and the
+    smoother pools the frames through it as if they were tied tighter than they are: 5x
+    too small densities gave ANEES 7-21 at trusted, with the features' residuals and the
+    bias estimates in bounds. The samples show it directly."""
+    if noise is None:
+        return []
+    out = []
+    for (name, key, unit), ratio, measured, stated in zip(
+            (("gyro", "gyroscope_noise_density", "rad/s/sqrt(Hz)"),
+             ("accelerometer", "accelerometer_noise_density", "m/s^2/sqrt(Hz)")),
+            noise.ratios, (noise.gyro_density, noise.accel_density),
+            (noise.stated_gyro_density, noise.stated_accel_density)):
+        if ratio > settings.max_imu_noise_ratio:
+            out.append(("imu_noise", (
+                f"the {name} samples scatter {ratio:.1f}x more than flight.yaml's "
+                f"imu.{key} says (measured {float(np.median(measured)):.3g} against "
+                f"{stated:.3g} {unit}, sample to sample, vibration included): the IMU "
+                "factors claim more than the samples hold, and every covariance leans on "
+                f"them; set imu.{key} to what the IMU shows, or check the IMU")))
+    return out
+
+
 def _calibration_notes(result: SmootherResult) -> list[str]:
     """``calibration_unobservable``: a calibration parameter estimated online that the
     flight barely told (posterior sigma near the prior's, :mod:`cdtm_graph.calibration`).
@@ -887,12 +922,24 @@ def _calibration_check(result: SmootherResult) -> tuple[list[tuple[str, str]], l
                 "covariance; held as flight.yaml writes it"]
 
 
-def _smoother_flag(name: str, flags: Mapping[int, list[str]], k: int) -> FrameTest:
-    """A flag the smoother set that no rule here knows (a new one): kept as it is."""
-    def describe(a: int, b: int) -> str:
-        return f"flagged '{name}' by the smoother"
+#: What the smoother's own frame flags mean, for the reasons they become (a reason at
+#: any length: each is an event, not a weak stretch the IMU bridges).
+SMOOTHER_FLAG_TEXT = MappingProxyType({
+    "search_beyond_lag": (
+        "the covariance outgrew what the smoothers pull in (a long stretch without camera "
+        "constraints), but the fixed lag is shorter than the fix search's window: the "
+        "frames went on without a search for the fix (a longer --lag-s searches)"),
+})
 
-    return FrameTest(name, np.array([name in flags.get(j, []) for j in range(k)]), describe)
+
+def _smoother_flag(name: str, flags: Mapping[int, list[str]], k: int) -> FrameTest:
+    """A flag the smoother set that no rule here knows (:data:`SMOOTHER_FLAG_TEXT`
+    says what it means, if it knows it): kept as it is."""
+    def describe(a: int, b: int) -> str:
+        return SMOOTHER_FLAG_TEXT.get(name, f"flagged '{name}' by the smoother")
+
+    return FrameTest(name, np.array([name in flags.get(j, []) for j in range(k)]), describe,
+                     any_length=name in SMOOTHER_FLAG_TEXT)
 
 
 def _frame_interval_s(f: _Frames) -> float:

@@ -229,3 +229,52 @@ def test_a_gyro_bias_beyond_its_prior_is_named_without_ground_truth(mode, lag):
     named = [r for r in verdict.reasons if r.code == "imu_bias"]
     assert len(named) == 1 and named[0].message.startswith("the gyro bias the run estimates")
     assert verdict.status is not Status.TRUSTED
+
+
+def test_the_samples_own_noise_is_measured_through_a_flights_motion(rng):
+    """White noise of known densities on a turning, accelerating flight's smooth signals
+    (200 Hz): the second differences give the densities back within a few percent; the
+    motion alone reads as next to nothing."""
+    from cdtm_graph.imu_faults import sample_noise
+
+    n, rate_hz = 20_000, 200.0
+    t_ns = (np.arange(n) * 1e9 / rate_hz).astype(np.int64)
+    t_s = t_ns * 1e-9
+    motion_gyro = np.column_stack([0.3 * np.sin(0.2 * t_s), 0.05 * np.cos(0.5 * t_s),
+                                   0.1 * np.sin(0.05 * t_s)])
+    motion_acc = np.column_stack([2.0 * np.sin(0.3 * t_s), np.zeros(n), 9.81 + np.cos(t_s)])
+    gyro_density, accel_density = 1.7e-4, 2e-3
+    gyro = motion_gyro + rng.normal(scale=gyro_density * np.sqrt(rate_hz), size=(n, 3))
+    acc = motion_acc + rng.normal(scale=accel_density * np.sqrt(rate_hz), size=(n, 3))
+    noise = sample_noise(t_ns, gyro, acc, gyro_density, accel_density)
+    np.testing.assert_allclose(noise.gyro_density, gyro_density, rtol=0.05)
+    np.testing.assert_allclose(noise.accel_density, accel_density, rtol=0.05)
+    np.testing.assert_allclose(noise.ratios, 1.0, rtol=0.05)
+    quiet = sample_noise(t_ns, motion_gyro, motion_acc, gyro_density, accel_density)
+    assert max(quiet.ratios) < 0.01
+    understated = sample_noise(t_ns, gyro, acc, gyro_density / 5, accel_density / 5)
+    np.testing.assert_allclose(understated.ratios, 5.0, rtol=0.05)
+
+
+def test_noise_densities_stated_too_small_are_named():
+    """flight.yaml's four IMU densities 5x smaller than the IMU's (the clean flight's
+    samples): the run leans on the IMU far more than it should (ANEES 7-21 at trusted
+    before), with its residuals and bias estimates in bounds; the samples say so."""
+    from cdtm_graph.verdict import Status
+
+    log, dtm = simulate_flight(dataclasses.replace(BASE, frames=20))
+    clean = smooth_and_evaluate(log, dtm, SmootherSettings())
+    assert "imu_noise" not in [r.code for r in clean.verdict.reasons]
+    assert clean.report["imu_noise"]["measured_over_stated"] == pytest.approx([1.0, 1.0],
+                                                                              rel=0.05)
+    imu = log.config.imu
+    understated = dataclasses.replace(log, config=dataclasses.replace(log.config, imu=(
+        dataclasses.replace(imu, gyroscope_noise_density=imu.gyroscope_noise_density / 5,
+                            accelerometer_noise_density=imu.accelerometer_noise_density / 5,
+                            gyroscope_random_walk=imu.gyroscope_random_walk / 5,
+                            accelerometer_random_walk=imu.accelerometer_random_walk / 5))))
+    out = smooth_and_evaluate(understated, dtm, SmootherSettings())
+    named = [r for r in out.verdict.reasons if r.code == "imu_noise"]
+    assert [r.message.split(" samples")[0] for r in named] == ["the gyro", "the accelerometer"]
+    assert "5.0x more than flight.yaml's imu.gyroscope_noise_density" in named[0].message
+    assert out.verdict.status is not Status.TRUSTED

@@ -247,6 +247,11 @@ def test_a_fixed_lag_too_short_for_the_fix_search_is_refused_or_said():
             pose, cov)
         result = smoother.run(flight)
         flags[name] = result.flags
+        if name == "short":
+            result_short = result
         assert len(result.estimate) == len(flight.frames)
     assert flags["short"].get(6) == ["search_beyond_lag"]
+    from cdtm_graph.verdict import SMOOTHER_FLAG_TEXT, assess
+    assert any(r.code == "search_beyond_lag" and r.message == SMOOTHER_FLAG_TEXT[r.code]
+               for r in assess(result_short).reasons)
     assert "no_fix" in flags["long enough"].get(6, [])

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from cdtm_graph.atomic import _fsync_path, _signals_deferred
+from cdtm_graph.atomic import fsync_path, signals_deferred
 from cdtm_graph.errors import CdtmError, OutputError
 from cdtm_graph.flightlog import (
     FRAMES_CSV,
@@ -222,7 +222,7 @@ def _publish(tracks_tmp: Path, target: Path, report_tmp: Path | None, report: Pa
     _check_tracks_target(target, force)
     if report is None or report_tmp is None or report_given is None:
         os.replace(tracks_tmp, target)
-        _fsync_path(target.parent)
+        fsync_path(target.parent)
         return
     _check_report_owner(_check_report_path(report_given), report_given)  # still ours
     existed = os.path.lexists(report)
@@ -248,8 +248,8 @@ def _publish(tracks_tmp: Path, target: Path, report_tmp: Path | None, report: Pa
                     f"({undo.strerror}); expected a writable place: it holds this run's "
                     "report, which does not match the tracks.csv there") from None
             raise
-    _fsync_path(report.parent)
-    _fsync_path(target.parent)
+    fsync_path(report.parent)
+    fsync_path(target.parent)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -279,7 +279,7 @@ def run(args: argparse.Namespace) -> int:
             if report_tmp is not None:
                 data = {"format": REPORT_FORMAT, **result.report.to_dict()}
                 _write_text(report_tmp, json.dumps(data, indent=2) + "\n")
-            with _signals_deferred():
+            with signals_deferred():
                 _publish(tracks_tmp, target, report_tmp, report, args.force, given)
         except OSError as exc:
             where, kept = ((f"{target}", "it is as it was") if report is None else
