@@ -209,6 +209,9 @@ def read_dem_sources(paths: Sequence[str | os.PathLike], vertical_datum: Vertica
                 raise _fail(path, "cannot read it: the file is damaged, truncated or of "
                             f"another format ({gdal_reason(exc, notes)})",
                             "a GeoTIFF, an ESRI .asc grid or an SRTM .hgt tile") from None
+        if notes.not_georeferenced:  # rasterio would place it at 1 CRS unit per pixel
+            raise _fail(path, "no georeferencing (no geotransform): its pixels have no "
+                        "coordinates", "a georeferenced DEM")
         if count < 1:
             raise _fail(path, "no raster band", "one band of heights")
         if t.b != 0.0 or t.d != 0.0:

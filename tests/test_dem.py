@@ -408,3 +408,16 @@ def test_a_truncated_dem_tile_is_one_line_without_gdal_warnings(tmp_path, caplog
     assert "See previous exception" not in message and "\n" not in message
     assert not [r for r in caplog.records if r.name.startswith("rasterio")], caplog.text
     assert not caught, [str(w.message) for w in caught]
+
+
+def test_a_dem_tile_without_a_geotransform_is_refused(tmp_path):
+    """A GeoTIFF with a CRS but no geotransform: rasterio places it at one CRS unit per
+    pixel from (0, 0); the DEM import read it there without a word (a review found it)."""
+    import rasterio
+
+    path = tmp_path / "nogeo.tif"
+    with rasterio.open(path, "w", driver="GTiff", width=3, height=3, count=1,
+                       dtype="float32", crs="EPSG:4326") as dst:
+        dst.write(np.full((1, 3, 3), 100.0, np.float32))
+    with pytest.raises(DtmError, match=r"nogeo\.tif: no georeferencing \(no geotransform\)"):
+        import_dem([path], _frame(), REGION, VerticalDatum.ELLIPSOID)

@@ -218,12 +218,17 @@ def test_the_innovation_gate_drops_gross_outliers_before_they_enter():
 def test_a_fixed_lag_too_short_for_the_fix_search_is_refused_or_said():
     """The fix search moves the oldest of its window's frames; a lag that lets them go
     cannot apply a fix (it raised deep in GTSAM). Needed from the start (a wide prior):
-    refused up front, one line. Needed later (a long gap grew the covariance): the frame
-    goes on unsearched and is flagged, the run completes."""
+    refused up front, one line; a lag just long enough runs to the end, a failed search
+    and its retry included (a check of the wrong held frame raised there). Needed later
+    (a long gap grew the covariance): the frame goes on unsearched and is flagged, the
+    run completes. A dropped stretch of frames does not stand for the frame interval."""
     from cdtm_graph.errors import CdtmError
+    from cdtm_graph.flightlog import Frames, Tracks
+    from cdtm_graph.smoother.batch import smooth
     from cdtm_graph.smoother.settings import SmootherMode, SmootherSettings
+    from cdtm_graph.verdict import SMOOTHER_FLAG_TEXT, assess
 
-    flight, dtm = simulate_flight(SimulationSettings(frames=12, n_features=60, seed=8))
+    flight, dtm = simulate_flight(SimulationSettings(frames=14, n_features=60, seed=8))
     dt_s = float(np.diff(flight.frames.t_ns).max()) * 1e-9
     window = SmootherSettings().acquisition.window_frames
     short = SmootherSettings(mode=SmootherMode.INCREMENTAL, lag_s=(window - 2) * dt_s)
@@ -233,11 +238,27 @@ def test_a_fixed_lag_too_short_for_the_fix_search_is_refused_or_said():
                                         rf"than the fix search's window \({window} frames"):
         IncrementalSmoother(wide, dtm, short, imu=flight.imu, frame_interval_s=dt_s)
     long_enough = dataclasses.replace(short, lag_s=window * dt_s)
-    IncrementalSmoother(wide, dtm, long_enough, imu=flight.imu, frame_interval_s=dt_s)
+    searched = IncrementalSmoother(wide, dtm, long_enough, imu=flight.imu,
+                                   frame_interval_s=dt_s).run(dataclasses.replace(
+                                       flight, config=wide))
+    assert len(searched.estimate) == len(flight.frames)
+
+    # one 6 s drop of frames in a 1 fps log, a 10 s lag: not refused (the longest interval
+    # was taken as the log's, asking for a 36 s lag)
+    kept = np.r_[0:4, 9:14]
+    rows = np.isin(flight.tracks.frame, kept)
+    remap = np.full(14, -1)
+    remap[kept] = np.arange(kept.size)
+    dropped = dataclasses.replace(
+        flight, config=wide, nav=None,
+        frames=Frames(flight.frames.t_ns[kept], tuple(flight.frames.image[k] for k in kept)),
+        tracks=Tracks(remap[flight.tracks.frame[rows]], flight.tracks.track_id[rows],
+                      flight.tracks.uv_px[rows]))
+    assert len(smooth(dropped, dtm, dataclasses.replace(long_enough, lag_s=10.0)).estimate) == 9
 
     # a tight prior: no search at the start; the covariance "outgrows" the pull-in at
     # frame 6 (what a long gap does), with a lag too short and one long enough
-    flags = {}
+    flags, results = {}, {}
     for name, settings in (("short", short), ("long enough", long_enough)):
         smoother = IncrementalSmoother(flight.config, dtm, settings, imu=flight.imu,
                                        frame_interval_s=dt_s)
@@ -245,13 +266,10 @@ def test_a_fixed_lag_too_short_for_the_fix_search_is_refused_or_said():
         needed = smoother._search.needed
         smoother._search.needed = lambda pose, cov, n=smoother: len(n._t_ns) == 7 or needed(
             pose, cov)
-        result = smoother.run(flight)
-        flags[name] = result.flags
-        if name == "short":
-            result_short = result
-        assert len(result.estimate) == len(flight.frames)
+        results[name] = smoother.run(flight)
+        flags[name] = results[name].flags
+        assert len(results[name].estimate) == len(flight.frames)
     assert flags["short"].get(6) == ["search_beyond_lag"]
-    from cdtm_graph.verdict import SMOOTHER_FLAG_TEXT, assess
     assert any(r.code == "search_beyond_lag" and r.message == SMOOTHER_FLAG_TEXT[r.code]
-               for r in assess(result_short).reasons)
+               for r in assess(results["short"]).reasons)
     assert "no_fix" in flags["long enough"].get(6, [])

@@ -124,6 +124,22 @@ def test_report_replaces_an_earlier_report(log, tmp_path, capsys):
     assert _temp_files(tmp_path, log) == []
 
 
+def test_report_replaces_a_report_written_before_the_marker(log, tmp_path, capsys):
+    """Reports cdtm track wrote before it marked them (the same keys, no ``format``) are
+    its own: a rerun of an existing script replaces them."""
+    report = tmp_path / "report.json"
+    assert main(["track", str(log), "--quiet", "--force", "--report", str(report)]) == 0
+    data = json.loads(report.read_text())
+    del data["format"]
+    report.write_text(json.dumps(data))
+    assert main(["track", str(log), "--quiet", "--force", "--report", str(report)]) == 0
+    assert json.loads(report.read_text())["format"] == REPORT_FORMAT
+    data["extra"] = 1  # not the report's keys: somebody else's file
+    report.write_text(json.dumps(data))
+    assert main(["track", str(log), "--quiet", "--force", "--report", str(report)]) == 1
+    assert "exists and is not a report cdtm track wrote" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("fault, expected", [
     ("directory", "is a directory"),                  # issue repro: failed after tracks.csv
     ("missing parent", "does not exist"),

@@ -36,7 +36,9 @@ def add_smoothing_options(p: argparse.ArgumentParser) -> None:
                    help="per-feature M-estimator (default cauchy: redescending, reached from "
                         "a robust start; none is plain least squares, for studies)")
     p.add_argument("--lag-s", type=float, default=None,
-                   help="incremental mode: fixed-lag smoother with this lag (seconds)")
+                   help="incremental mode: fixed-lag smoother with this lag (seconds); "
+                        "with a wide initial prior at least the fix search's window (6 "
+                        "frame intervals)")
     p.add_argument("--gate", type=_gate_probability, default=0.999, metavar="P",
                    help="drop features whose innovation against the prior fails the "
                         "chi-square gate of probability P, as frames arrive (incremental "

@@ -46,6 +46,11 @@ _DEFAULTS = TrackerSettings()
 #: The marker of a report ``cdtm track`` wrote (its ``"format"`` key): only a file holding
 #: it may be replaced by ``--report``.
 REPORT_FORMAT = "cdtm-track-report/1"
+#: The keys of the reports cdtm track wrote before it marked them (replaced as its own).
+_UNMARKED_REPORT_KEYS = frozenset({
+    "frames", "tracks", "single_sightings_dropped", "features_per_frame", "pairs_per_frame",
+    "track_length_frames", "rejected", "epipolar_fits", "imu_rotations",
+    "seconds_per_frame_median"})
 #: A report is a few kB; a larger file is not one (and is not read whole to find out).
 REPORT_MAX_BYTES = 1 << 20
 
@@ -108,7 +113,8 @@ def _is_track_report(path: Path, shown: str) -> bool:
     except OSError as exc:
         raise OutputError(f"{shown}: cannot be read ({exc.strerror}); expected a new file "
                           "or a report cdtm track wrote earlier") from None
-    return isinstance(data, dict) and data.get("format") == REPORT_FORMAT
+    return isinstance(data, dict) and (data.get("format") == REPORT_FORMAT
+                                       or set(data) == _UNMARKED_REPORT_KEYS)
 
 
 def _report_expected() -> str:

@@ -337,7 +337,9 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
                              "expected at least 2")
     check_constraints(flight, dtm)  # no camera/DTM constraint at all: refuse, not IMU-only
     if settings.mode is SmootherMode.INCREMENTAL:
-        dt_s = float(np.max(np.diff(flight.frames.t_ns))) * 1e-9
+        # the expected interval, not the longest: one dropped stretch of frames must not
+        # stand for the log (the fix search's window, the relinearization rate)
+        dt_s = float(np.median(np.diff(flight.frames.t_ns))) * 1e-9
         smoother = IncrementalSmoother(flight.config, dtm, settings, frame_interval_s=dt_s)
         result = smoother.run(flight, progress)
         return _checked(flight, dtm, settings, result, smoother.mismatched_tracks,

@@ -94,6 +94,13 @@ class FixSearch:
             self._failed += 1
         return result.correction
 
+    def forget_before(self, frame: int) -> None:
+        """Drop the held frames before ``frame`` (the fixed lag let them go), counted as
+        ``no_fix``."""
+        while self.held and self.held[0][0] < frame:
+            j, ids, _ = self.held.pop(0)
+            self.rejections.add(Rejection.NO_FIX, j, len(ids))
+
     def found(self) -> list[Held]:
         """The fix was applied: stop holding; the frames that were held."""
         held, self.held = self.held, []

@@ -235,7 +235,7 @@ class IncrementalSmoother:
             self._leave_window(k)
         if self._search is not None and (self._search.active or self._should_acquire(k)):
             if not self._search.active and k and not self._lag_holds_search(
-                    self._frame_interval_s or (t_ns - self._t_ns[k - 1]) * 1e-9):
+                    self._frame_interval_s or float(np.median(np.diff(self._t_ns))) * 1e-9):
                 # the covariance outgrew what the smoothers pull in (a long gap), but the
                 # lag cannot hold the frames a search needs: on unsearched, and said so
                 self._frame_flags.setdefault(k, []).append("search_beyond_lag")
@@ -340,9 +340,10 @@ class IncrementalSmoother:
         """Search the held frames for the fix if a search is due (:class:`FixSearch`); on
         success, move the estimate there and let the held sightings in."""
         assert self._search is not None
-        j0 = self._search.held[0][0] if self._search.held else k
-        if j0 < self._settled:  # live, the frame interval not given: found out now
-            raise self._lag_too_short((self._t_ns[k] - self._t_ns[j0]) * 1e-9 / (k - j0))
+        # Held frames the lag let go cannot be moved to a fix: their sightings are lost
+        # (no_fix). Only when the lag is shorter than the search's window (a live smoother
+        # not told its frame interval, or frames that came slower than expected).
+        self._search.forget_before(self._settled)
         correction = self._search.search(k, self._t_ns.__getitem__, self._pose_guess,
                                          self._search_prior)
         if correction is None:
