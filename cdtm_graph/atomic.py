@@ -582,6 +582,20 @@ def _rename_into_place(staging: _Staging, path: Path, writer: str, payload: list
     return True
 
 
+def temporary_beside(target: Path) -> Path:
+    """A new, empty, hidden temporary file in ``target``'s directory, to be renamed over
+    it; readable as any output is (mkstemp makes it owner-only).
+
+    Raises:
+        OSError: the directory cannot take it.
+    """
+    fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    os.close(fd)
+    tmp = Path(name)
+    tmp.chmod(0o666 & ~_umask())
+    return tmp
+
+
 @contextlib.contextmanager
 def atomic_output_file(target: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path that is renamed over ``target`` on success (library use).
@@ -592,10 +606,7 @@ def atomic_output_file(target: str | os.PathLike) -> Iterator[Path]:
     """
     target = Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
-    fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    os.close(fd)
-    tmp = Path(name)
-    tmp.chmod(0o666 & ~_umask())  # mkstemp is owner-only; outputs are data to share
+    tmp = temporary_beside(target)
     try:
         yield tmp
         os.replace(tmp, target)

@@ -21,14 +21,13 @@ import json
 import os
 import shutil
 import sys
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
-from cdtm_graph.atomic import fsync_path, signals_deferred
+from cdtm_graph.atomic import fsync_path, signals_deferred, temporary_beside
 from cdtm_graph.errors import CdtmError, OutputError
 from cdtm_graph.flightlog import (
     FRAMES_CSV,
@@ -196,17 +195,11 @@ def _check_tracked(report: TrackingReport, log: Path, target: Path, existed: boo
 def _temporary_file(target: Path, shown: str) -> Iterator[Path]:
     """An empty temporary file beside ``target``, removed on exit unless renamed."""
     try:
-        fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp",
-                                    dir=target.parent)
+        tmp = temporary_beside(target)
     except OSError as exc:
         raise OutputError(f"{shown}: cannot write in {target.parent}: {exc.strerror}; "
                           "expected a writable directory") from None
-    os.close(fd)
-    tmp = Path(name)
     try:
-        mask = os.umask(0)
-        os.umask(mask)
-        tmp.chmod(0o666 & ~mask)  # mkstemp is owner-only; outputs are data to share
         yield tmp
     finally:
         with contextlib.suppress(FileNotFoundError):
