@@ -1,4 +1,4 @@
-"""Speed of :func:`cdtm_graph.acquisition.acquire` on the issue's flight.
+"""Speed of :func:`cdtm_graph.robust.acquisition.acquire` on the issue's flight.
 
 Scenario: 1 fps, 150 m/s at 1800 m, 150 features, 640x480, 60 deg FOV, 300 m fractal
 relief (12 km cell), 30 m DTM; the first 6 frames dead-reckoned from a prior 1000 m and
@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from cdtm_graph.acquisition import AcquisitionSettings, acquire, dead_reckoned_window
+from cdtm_graph.robust.acquisition import AcquisitionSettings, acquire, dead_reckoned_window
 from cdtm_graph.studies.robustness import BASE, SCENARIOS
 
 STAGES = {"make_cloud": "point clouds (heading profile and searched headings)",

@@ -60,7 +60,7 @@ estimate of the interval's first state then. ``earth=False`` is the flat model a
 (constant ``gravity_mps2`` along -z, no Earth rate), for comparisons: on a 50 km flight
 it is hundreds of metres off where the Earth-aware model is not (docs/geodesy.md).
 
-**Gaps** (:mod:`cdtm_graph.imu_faults`). Across consecutive samples more than a few
+**Gaps** (:mod:`cdtm_graph.verdict.imu_faults`). Across consecutive samples more than a few
 nominal periods apart the samples on either side are held as always, but nothing says
 how the aircraft moved in between. The pieces those samples hold get the noise of a
 maneuver model (:class:`GapNoise`), in steps of at most ``GAP_STEP_S`` so GTSAM's
@@ -80,13 +80,41 @@ import gtsam
 import numpy as np
 from numba import njit
 
+from cdtm_graph.constants import NS_PER_S
 from cdtm_graph.errors import FlightLogError, SolverError
 from cdtm_graph.flightlog import FlightConfig, InitialState
 from cdtm_graph.geodesy import LocalFrame
-from cdtm_graph.imu_faults import gap_after
 from cdtm_graph.results import TrajectoryEstimate
 
-NS_PER_S = 1_000_000_000
+#: A gap: consecutive samples more than this many nominal periods apart. One or two
+#: dropped samples (2 or 3 periods) are routine on a busy bus and cost nothing measurable
+#: (each neighbour is held a period longer); three or more are named and modelled.
+IMU_GAP_PERIODS = 3.0
+
+
+def gap_threshold_ns(rate_hz: float, gap_periods: float = IMU_GAP_PERIODS) -> int:
+    """The largest spacing (ns) that is not a gap at a nominal rate."""
+    if not rate_hz > 0:
+        raise ValueError(f"rate_hz must be > 0, got {rate_hz}")
+    return int(gap_periods * NS_PER_S / rate_hz)
+
+
+def gap_after(t_ns: np.ndarray, rate_hz: float,
+              gap_periods: float = IMU_GAP_PERIODS) -> np.ndarray:
+    """Which consecutive samples have a gap between them.
+
+    Args:
+        t_ns: (N,) sample times, ns.
+        rate_hz: the nominal rate (flight.yaml ``imu.rate_hz``).
+        gap_periods: the threshold in nominal periods.
+
+    Returns:
+        (N-1,) bool: ``t[i+1] - t[i]`` is a gap. The IMU model and :func:`check_imu` both
+        use this, so what is named is what is modelled.
+    """
+    return np.diff(np.asarray(t_ns, dtype=np.int64)) > gap_threshold_ns(rate_hz, gap_periods)
+
+
 
 PreintegratedCombined = (gtsam.PreintegratedCombinedMeasurements
                          | gtsam.PreintegratedCombinedMeasurementsManifold

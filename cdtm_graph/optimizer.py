@@ -13,9 +13,10 @@ import time
 
 import gtsam
 import numpy as np
+from gtsam.symbol_shorthand import B, V, X
 
 from cdtm_graph.errors import SolverError
-from cdtm_graph.results import Solver, SolverStats
+from cdtm_graph.results import Solver, SolverStats, StateCovariances
 from factors.calibration import CALIBRATION_DIM
 
 log = logging.getLogger(__name__)
@@ -180,3 +181,41 @@ _DIMENSIONS = {"x": 6, "v": 3, "b": 6, "c": CALIBRATION_DIM}
 
 def _dim_of(key: int) -> int:
     return _DIMENSIONS[chr(gtsam.Symbol(key).chr())]
+
+
+def marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+              K: int, qr_only: bool = False,
+              linear: gtsam.GaussianFactorGraph | None = None) -> StateCovariances:
+    """Per-frame marginals from a Bayes tree of the graph linearized at ``values``
+    (``linear``, if the caller has it already).
+
+    Cholesky first (as ``gtsam.Marginals``); where it declares the system indeterminant,
+    which happens on these wide-range systems (information from ~1e-4 for the pose prior
+    to ~1e10 for the bias random walk), QR, which does not square the condition number.
+    """
+    keys = [X(k) for k in range(K)] + [V(k) for k in range(K)] + [B(k) for k in range(K)]
+    cov = key_marginals(graph, values, keys, qr_only, linear)
+    return StateCovariances(np.stack(cov[:K]), np.stack(cov[K:2 * K]), np.stack(cov[2 * K:]))
+
+
+def key_marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+                  keys: list[int], qr_only: bool = False,
+                  linear: gtsam.GaussianFactorGraph | None = None) -> list[np.ndarray]:
+    """The marginal covariance of each key (as :func:`marginals`)."""
+    if linear is None:
+        linear = graph.linearize(values)
+    for qr in (True,) if qr_only else (False, True):
+        try:
+            tree = (linear.eliminateMultifrontal(function=gtsam.EliminateQR) if qr
+                    else linear.eliminateMultifrontal())
+
+            def cov(key: int, tree=tree, qr=qr) -> np.ndarray:
+                marginal = (tree.marginalFactor(key, gtsam.EliminateQR) if qr
+                            else tree.marginalFactor(key))
+                # information() includes the conditional's noise model (QR leaves sigmas)
+                return np.linalg.inv(marginal.information())
+
+            return [cov(key) for key in keys]
+        except RuntimeError as exc:
+            error = exc
+    raise explain_indeterminant(error) from None

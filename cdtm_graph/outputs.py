@@ -51,12 +51,11 @@ from typing import Any
 import numpy as np
 
 from cdtm_graph.atomic import atomic_output_dir
+from cdtm_graph.constants import NS_PER_S
 from cdtm_graph.errors import CdtmError
 from cdtm_graph.geodesy import LocalFrame
 from cdtm_graph.geometry import quat_wxyz_to_rotation, rotation_to_quat_wxyz
 from cdtm_graph.results import SmootherResult, pose_covariance_in_world
-
-NS_PER_S = 1_000_000_000
 
 TRAJECTORY_TUM = "trajectory.tum"
 TRAJECTORY_COV = "trajectory_cov.txt"

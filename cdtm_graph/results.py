@@ -13,10 +13,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from cdtm_graph.codes import Code
+
 if TYPE_CHECKING:
-    from cdtm_graph.calibration import CalibrationEstimate
+    from cdtm_graph.calibration.check import CalibrationCheck
+    from cdtm_graph.calibration.online import CalibrationEstimate
     from cdtm_graph.flightlog.model import DtmConfig, FlightConfig
-    from cdtm_graph.smoother.calibration_check import CalibrationCheck
 
 
 @dataclass(frozen=True)
@@ -261,7 +263,7 @@ class GraphCounts:
         residual_chi2_per_frame: (K,) sum of the squared Mahalanobis distances (full
             measurement noise) of the features within the chi-square test, by the frame
             the pair ends at (``features_per_frame - outliers_per_frame`` of them): the
-            residual self-check of :mod:`cdtm_graph.verdict`. Empty if not computed.
+            residual self-check of :mod:`cdtm_graph.verdict.rules`. Empty if not computed.
     """
 
     n_frames: int
@@ -287,7 +289,7 @@ class GraphCounts:
 @dataclass(frozen=True)
 class TerrainFindings:
     """What the smoother found of the ground against the DTM, seen as a population of
-    ground and clutter (:mod:`cdtm_graph.clutter`).
+    ground and clutter (:mod:`cdtm_graph.robust.clutter`).
 
     Attributes:
         clutter_found: the tracks' heights show clutter (forest, buildings) the DTM lacks.
@@ -318,7 +320,7 @@ class SmootherResult:
         stats: solver statistics.
         counts: graph contents.
         settings: the settings used, as a plain dict (for report.json).
-        flags: per-frame warnings, e.g. ``{12: ["no_features"]}``.
+        flags: per-frame warnings, e.g. ``{12: [Code.NO_FEATURES]}``.
         cdtm_information: (K, 6, 6) what the C-DTM features ending at each frame say
             about where the aircraft is, at the solution: the information their whitened,
             robustly weighted rows give a rigid motion of the poses they tie (the relative
@@ -326,13 +328,13 @@ class SmootherResult:
             axes, about the frame's body position (:func:`cdtm_graph.graph.
             cdtm_information`). Its eigen-structure over a window of frames names a weak
             geometry (flat terrain, few features, a narrow footprint:
-            :mod:`cdtm_graph.verdict`).
+            :mod:`cdtm_graph.verdict.rules`).
         terrain: the ground against the DTM (clutter), when the smoother looked.
         calibration: the camera calibration estimated online
-            (:class:`cdtm_graph.calibration.CalibrationEstimate`), when it was.
+            (:class:`cdtm_graph.calibration.online.CalibrationEstimate`), when it was.
         calibration_check: a run that held flight.yaml's calibration (the default, and
             the incremental modes always): what a batch side solve estimating it found
-            (:class:`cdtm_graph.smoother.calibration_check.CalibrationCheck`), unless the
+            (:class:`cdtm_graph.calibration.check.CalibrationCheck`), unless the
             settings hold it unchecked.
         map_offset: flight.yaml's sigmas of an offset of the whole map, in
             ``covariances``.
@@ -356,12 +358,12 @@ class SmootherResult:
 
 def frame_flags(counts: GraphCounts, extra: dict[int, list[str]] | None = None
                 ) -> dict[int, list[str]]:
-    """Per-frame warnings from what went into the graph: ``{k: ["no_features"]}``, with
+    """Per-frame warnings from what went into the graph: ``{k: [Code.NO_FEATURES]}``, with
     the smoother's own (``extra``, e.g. ``no_fix`` while the fix was not acquired)."""
     flags: dict[int, list[str]] = {k: list(v) for k, v in (extra or {}).items()}
     for k in range(1, counts.n_frames):
         if counts.features_per_frame[k] == 0:
-            flags.setdefault(k, []).append("no_features")
+            flags.setdefault(k, []).append(Code.NO_FEATURES)
     return dict(sorted(flags.items()))
 
 

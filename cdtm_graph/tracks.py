@@ -19,10 +19,10 @@ from numba import njit
 
 from cdtm_graph.camera import PinholeCamera
 from cdtm_graph.dtm import Dtm
-from cdtm_graph.epipolar import EpipolarSettings, check_pair
 from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import Tracks
 from cdtm_graph.results import Rejection, Rejections
+from cdtm_graph.robust.epipolar import EpipolarSettings, check_pair
 
 
 @dataclass(frozen=True)
@@ -314,6 +314,24 @@ def first_sightings(track_id: np.ndarray, frame: np.ndarray) -> np.ndarray:
     return order[new]
 
 
+def checked_sightings(k: int, track_id: np.ndarray | None, uv_px: np.ndarray | None
+                      ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Frame k's sightings as ``(ids int64 (m,), pixels (m, 2))``, or None without any.
+
+    Raises:
+        FlightLogError: shapes that do not match, or a track id seen twice.
+    """
+    if track_id is None or not len(track_id):
+        return None
+    ids = np.asarray(track_id, dtype=np.int64)
+    uv = np.asarray(uv_px, dtype=float)
+    if ids.ndim != 1 or uv.shape != (ids.size, 2):
+        raise FlightLogError(f"frame {k}: {ids.shape} track ids with pixels of "
+                             f"shape {uv.shape}; expected (m,) and (m, 2)")
+    check_unique(k, ids)
+    return ids, uv
+
+
 def check_unique(k: int, track_id: np.ndarray) -> None:
     """Raise ``FlightLogError`` if a track id appears twice in frame k."""
     ids = np.sort(np.asarray(track_id))
@@ -567,7 +585,7 @@ class SightingPairs:
 
     A :class:`TrackTable` pairs each sighting with its track's previous one; each pair's
     features are then checked against the epipolar geometry of the current relative pose
-    (:func:`cdtm_graph.epipolar.check_pair`). A rejected feature's newest sighting is
+    (:func:`cdtm_graph.robust.epipolar.check_pair`). A rejected feature's newest sighting is
     undone (:meth:`TrackTable.reject`), so the track pairs across the wrong match. The
     batch smoother pairs a whole log this way, frame by frame, as the incremental
     smoother does live.
@@ -588,7 +606,7 @@ class SightingPairs:
         self._body_T_cam = body_T_cam
         self._dtm = dtm
         self._sigma_q = float(np.mean(camera.sigma_normalized(pixel_sigma_px)))
-        self._settings = settings
+        self.settings = settings  # the epipolar check's (None: no check)
         self._rejections = rejections
         self.n_observations = 0
         self.n_pairs = 0
@@ -609,7 +627,7 @@ class SightingPairs:
         pairs, n_too_old = self.table.add_frame(k, track_id, q, oldest_frame)
         self._rejections.add(Rejection.TOO_OLD, k, n_too_old)
         self.n_pairs += sum(p.q_a.shape[0] for p in pairs) + n_too_old
-        if self._settings is None:
+        if self.settings is None:
             return pairs
         wTc_b = world_T_body(k) @ self._body_T_cam
         kept = []
@@ -617,7 +635,7 @@ class SightingPairs:
             wTc_a = world_T_body(pair.frame_a) @ self._body_T_cam
             check = check_pair(pair.q_a, pair.q_b, wTc_b[:3, :3].T @ wTc_a[:3, :3],
                                wTc_b[:3, :3].T @ (wTc_a[:3, 3] - wTc_b[:3, 3]), self._sigma_q,
-                               self._range_m(wTc_a[:3, 3]), self._settings)
+                               self._range_m(wTc_a[:3, 3]), self.settings)
             self.table.reject(pair, ~check.inlier)
             self.table.accept(pair, check.inlier)
             self._rejections.add(Rejection.WRONG_MATCH, k, int((~check.inlier).sum()))

@@ -531,7 +531,7 @@ class CdtmPairFactor:
         squares then leans toward the poses where the noise looks small: at the truth the
         expected gradient of ``|r|^2 / 2`` holds half this vector (an errors-in-variables
         bias; on the issue's flight it pulled the focal scale 2.5 sigma low).
-        :func:`cdtm_graph.noise_bias.debiased` subtracts it (a corrected score).
+        :func:`cdtm_graph.calibration.noise_bias.debiased` subtracts it (a corrected score).
 
         The noise is the factor's own residual moved by one sigma of each source, both
         ways (``q_a`` and ``q_b`` pixels, the DTM height without its sharing discount):

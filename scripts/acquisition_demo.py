@@ -1,7 +1,7 @@
 """Acquisition before smoothing, end to end, on the issue's far-fix flights.
 
 For each flight: the first frames are dead-reckoned from the log's initial state and
-searched (:func:`cdtm_graph.acquisition.acquire`); when the fix is ACQUIRED, a copy of the
+searched (:func:`cdtm_graph.robust.acquisition.acquire`); when the fix is ACQUIRED, a copy of the
 log gets the corrected initial position and attitude (the prior's sigmas unchanged, so
 only the smoothers' linearization point moves) and is smoothed in every mode. Beside
 it: the log as it is, smoothed with the smoothers' own search (the default: their first
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cdtm_graph.acquisition import (
+from cdtm_graph.robust.acquisition import (
     AcquisitionResult,
     Verdict,
     acquire,

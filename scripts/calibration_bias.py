@@ -1,6 +1,6 @@
 """The online calibration's bias on clean flights: each part's z-score (estimate over its
 posterior sigma, the truth being zero) over seeds, with the noise's bias taken out
-(``cdtm_graph.noise_bias``) or, with ``--uncorrected``, left in.
+(``cdtm_graph.calibration.noise_bias``) or, with ``--uncorrected``, left in.
 
 Run: ``python scripts/calibration_bias.py [--frames N] [--seeds A B] [--uncorrected]``
 (default: the issue's camera and flight, 30 frames, seeds 1-12, corrected).

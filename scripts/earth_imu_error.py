@@ -34,8 +34,8 @@ import gtsam
 import numpy as np
 import yaml
 
-from cdtm_graph.evaluation import trajectory_errors
-from cdtm_graph.flightlog import load_log_and_dtm
+from cdtm_graph.verdict.evaluation import trajectory_errors
+from cdtm_graph.run.prepare import load_log_and_dtm
 from cdtm_graph.geodesy import GeodeticOrigin
 from cdtm_graph.graph import GraphSettings
 from cdtm_graph.imu import EarthImu, ImuIntervals, SampleHold, dead_reckoning, navstate_predict

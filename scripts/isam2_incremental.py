@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cdtm_graph.flightlog import load_log_and_dtm
+from cdtm_graph.run.prepare import load_log_and_dtm
 from cdtm_graph.replay import replay
 from cdtm_graph.smoother import IncrementalSmoother, SmootherSettings
 

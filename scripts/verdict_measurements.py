@@ -1,5 +1,5 @@
 """Print what the verdict's rules test, per simulated flight: the measurements behind the
-thresholds of :class:`cdtm_graph.verdict.VerdictSettings` (docs/verdict.md).
+thresholds of :class:`cdtm_graph.verdict.rules.VerdictSettings` (docs/verdict.md).
 
 Run: ``python scripts/verdict_measurements.py [SCENARIO ...] [--seeds 1 2 3] [--frames N]
 [--modes batch fixed_lag isam2]`` (default: every scenario below and of the robustness
@@ -26,7 +26,7 @@ from cdtm_graph.flightlog import FlightLog
 from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.smoother import SmootherSettings
 from cdtm_graph.studies.robustness import BASE, SCENARIOS, Mode, Scenario
-from cdtm_graph.verdict import (
+from cdtm_graph.verdict.rules import (
     VerdictSettings,
     assess,
     fix_geometry,

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cdtm_graph.acquisition import (
+from cdtm_graph.robust.acquisition import (
     AcquisitionFrame,
     AcquisitionSettings,
     Correction,
@@ -27,7 +27,7 @@ from cdtm_graph.acquisition import (
     needs_acquisition,
     separation_z,
 )
-from cdtm_graph.acquisition.cloud import _bilinear, _triangulate_tracks
+from cdtm_graph.robust.acquisition.cloud import _bilinear, _triangulate_tracks
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import FlightLog, InitialState

@@ -16,7 +16,7 @@ from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.sim.faults import with_calibration_error
 from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
 from cdtm_graph.smoother import SmootherMode, SmootherSettings, calibration_check
-from cdtm_graph.smoother.calibration_check import thinned
+from cdtm_graph.calibration.check import thinned
 from cdtm_graph.studies.robustness import BASE, SCENARIOS
 from factors import CdtmPairFactor, PlaneMode, RobustKernel
 from factors.calibration import CALIBRATION_DIM, CalibrationLink
@@ -200,7 +200,7 @@ def _estimated(c, part: str):
 @pytest.fixture(scope="module")
 def noiseless_flight():
     """A noiseless flight that says so: its yaml's pixel noise 0.01 px. (At the nominal
-    0.5 px the batch takes out the bias that noise would leave, ``cdtm_graph.noise_bias``:
+    0.5 px the batch takes out the bias that noise would leave, ``cdtm_graph.calibration.noise_bias``:
     a step that scales with the stated variance, ~2e-3 of focal scale here.)"""
     log, dtm = simulate_flight(SimulationSettings(frames=30, altitude_m=1000.0, relief_m=300.0,
                                                   seed=1, noiseless=True))

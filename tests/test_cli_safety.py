@@ -29,7 +29,7 @@ from tests.conftest import TEST_SEED
 
 ROOT = Path(__file__).resolve().parents[1]
 #: Exit statuses of a smoothing run that wrote its outputs: 0 trusted, 3 degraded or failed
-#: (the verdict, cdtm_graph.verdict: this 6-frame log's is not what these tests are about).
+#: (the verdict, cdtm_graph.verdict.rules: this 6-frame log's is not what these tests are about).
 WROTE_OUTPUTS = (0, 3)
 #: Waiting for a child process to reach its stall point (s): imports and numba's cache
 #: load take a few seconds on a slow machine; this only bounds a hung test.

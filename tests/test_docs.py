@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cdtm_graph.flightlog import load_log_and_dtm
+from cdtm_graph.run.prepare import load_log_and_dtm
 from cdtm_graph.smoother import smooth
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -16,8 +16,9 @@ import numpy as np
 import pytest
 import yaml
 
-from cdtm_graph.evaluation import trajectory_errors
-from cdtm_graph.flightlog import ImuSamples, load_log_and_dtm
+from cdtm_graph.verdict.evaluation import trajectory_errors
+from cdtm_graph.flightlog import ImuSamples
+from cdtm_graph.run.prepare import load_log_and_dtm
 from cdtm_graph.geodesy import GeodeticOrigin, normal_gravity_mps2
 from cdtm_graph.graph import GraphSettings
 from cdtm_graph.imu import (
@@ -220,7 +221,7 @@ def test_the_acquisitions_correction_stays_dead_reckoning_on_the_earth(noiseless
     127 m, 0.6 m/s and 5.5 deg misplaces a 5 s window 13.5 km from the origin by 2.7 cm
     against dead reckoning from the corrected state (8 cm at 39 km), far below the DTM
     cell acquisition searches on: its propagation needs no Earth model."""
-    from cdtm_graph.acquisition.window import Correction
+    from cdtm_graph.robust.acquisition.window import Correction
     from cdtm_graph.geometry import rotation_to_quat_wxyz, so3_exp
 
     _, geo = noiseless

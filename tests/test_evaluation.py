@@ -1,4 +1,4 @@
-"""Tests of cdtm_graph.evaluation: errors, NEES/ANEES, dead reckoning, Table 1."""
+"""Tests of cdtm_graph.verdict.evaluation: errors, NEES/ANEES, dead reckoning, Table 1."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import pytest
 
 from cdtm_graph.camera import PinholeCamera
 from cdtm_graph.errors import FlightLogError
-from cdtm_graph.evaluation import (
+from cdtm_graph.verdict.evaluation import (
     POSE_DOF,
     POSITION_DOF,
     anees_band,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cdtm_graph.gating import chi2_2dof_quantile, innovation_covariance, innovation_mahalanobis
+from cdtm_graph.robust.gating import chi2_2dof_quantile, innovation_covariance, innovation_mahalanobis
 
 
 def test_innovation_distance_is_chi_square_2_for_a_linear_gaussian_model(rng):
@@ -50,7 +50,7 @@ def test_innovation_distance_is_e_S_inverse_e_with_a_measurement_covariance(rng)
 def test_the_gates_median_is_numpys(rng):
     """The over-dispersion's median (one partition) equals ``np.median``: odd and even
     sizes, one element, and NaN when one distance is NaN."""
-    from cdtm_graph.gating import _median
+    from cdtm_graph.robust.gating import _median
 
     for n in (1, 2, 3, 170, 171):
         for _ in range(50):

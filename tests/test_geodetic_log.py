@@ -13,15 +13,9 @@ import yaml
 
 from cdtm_graph.dem import import_dem
 from cdtm_graph.errors import DtmError
-from cdtm_graph.flightlog import (
-    DtmConfig,
-    FlightLog,
-    States,
-    load_log_and_dtm,
-    read_flightlog,
-    write_flightlog,
-)
-from cdtm_graph.flightlog.reader import dem_region_m
+from cdtm_graph.flightlog import DtmConfig, FlightLog, States, read_flightlog, write_flightlog
+from cdtm_graph.run.prepare import load_log_and_dtm
+from cdtm_graph.run.prepare import dem_region_m
 from cdtm_graph.flightlog.writer import _FlightYamlDumper
 from cdtm_graph.geodesy import (
     GeodeticOrigin,

@@ -21,7 +21,8 @@ import yaml
 
 from cdtm_graph.cli import main
 from cdtm_graph.errors import FlightLogError, SensorDataError
-from cdtm_graph.flightlog import FlightLog, load_log_and_dtm, read_flightlog, write_tracks
+from cdtm_graph.flightlog import FlightLog, read_flightlog, write_tracks
+from cdtm_graph.run.prepare import load_log_and_dtm
 from cdtm_graph.flightlog.importers import (
     BagTopics,
     DtmSource,

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from cdtm_graph.graph import GraphSettings
-from cdtm_graph.imu_faults import (
+from cdtm_graph.verdict.imu_faults import (
     IMU_GAP_PERIODS,
     SATURATION_MIN_SAMPLES,
     STUCK_MIN_SAMPLES,
@@ -217,7 +217,7 @@ def test_a_gyro_bias_beyond_its_prior_is_named_without_ground_truth(mode, lag):
     (batch ANEES 7, `trusted` before); the bias estimates say so on a flight without
     ground truth. The same flight without the bias is not named."""
     from cdtm_graph.sim.faults import with_imu_bias
-    from cdtm_graph.verdict import Status, assess
+    from cdtm_graph.verdict.rules import Status, assess
 
     log, dtm = simulate_flight(dataclasses.replace(BASE, frames=45))
     assert log.config.initial_state.sigma_gyro_bias == pytest.approx(1e-4)
@@ -235,7 +235,7 @@ def test_the_samples_own_noise_is_measured_through_a_flights_motion(rng):
     """White noise of known densities on a turning, accelerating flight's smooth signals
     (200 Hz): the second differences give the densities back within a few percent; the
     motion alone reads as next to nothing."""
-    from cdtm_graph.imu_faults import sample_noise
+    from cdtm_graph.verdict.imu_faults import sample_noise
 
     n, rate_hz = 20_000, 200.0
     t_ns = (np.arange(n) * 1e9 / rate_hz).astype(np.int64)
@@ -262,7 +262,7 @@ def test_noise_densities_stated_too_small_are_named():
     """flight.yaml's four IMU densities 5x smaller than the IMU's (the clean flight's
     samples): the run leans on the IMU far more than it should (ANEES 7-21 at trusted
     before), with its residuals and bias estimates in bounds; the samples say so."""
-    from cdtm_graph.verdict import Status
+    from cdtm_graph.verdict.rules import Status
 
     log, dtm = simulate_flight(dataclasses.replace(BASE, frames=20))
     clean = smooth_and_evaluate(log, dtm, SmootherSettings())

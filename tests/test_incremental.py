@@ -9,7 +9,7 @@ import pytest
 
 from cdtm_graph.errors import SolverError
 from cdtm_graph.flightlog import ImuSamples
-from cdtm_graph.gating import chi2_2dof_quantile
+from cdtm_graph.robust.gating import chi2_2dof_quantile
 from cdtm_graph.graph import GraphSettings
 from cdtm_graph.results import Rejection
 from cdtm_graph.run import smooth_and_evaluate
@@ -226,7 +226,7 @@ def test_a_fixed_lag_too_short_for_the_fix_search_is_refused_or_said():
     from cdtm_graph.flightlog import Frames, Tracks
     from cdtm_graph.smoother.batch import smooth
     from cdtm_graph.smoother.settings import SmootherMode, SmootherSettings
-    from cdtm_graph.verdict import SMOOTHER_FLAG_TEXT, assess
+    from cdtm_graph.verdict.rules import SMOOTHER_FLAG_TEXT, assess
 
     flight, dtm = simulate_flight(SimulationSettings(frames=14, n_features=60, seed=8))
     dt_s = float(np.diff(flight.frames.t_ns).max()) * 1e-9

@@ -78,7 +78,7 @@ def test_the_check_sees_a_violation(tmp_path, monkeypatch):
 
 def test_importing_the_core_loads_no_harness():
     core = ["cdtm_graph.smoother", "cdtm_graph.flightlog", "cdtm_graph.dtm", "factors",
-            "cdtm_graph.outputs", "cdtm_graph.run", "cdtm_graph.evaluation",
+            "cdtm_graph.outputs", "cdtm_graph.run", "cdtm_graph.verdict.evaluation",
             "cdtm_graph.analysis.two_frame", "cdtm_graph.analysis.accuracy_map"]
     code = ("import sys\n" + "".join(f"import {m}\n" for m in core)
             + "print('\\n'.join(m for m in sys.modules if m.startswith('cdtm_graph')))")

@@ -13,7 +13,7 @@ from cdtm_graph.cli import build_parser
 from cdtm_graph.cli import main as cdtm_main
 from cdtm_graph.cli.navsim import OUTPUT_FILES, settings_from_args
 from cdtm_graph.errors import CdtmError, SimulationError
-from cdtm_graph.evaluation import AXES
+from cdtm_graph.verdict.evaluation import AXES
 from cdtm_graph.sim.simulate import simulate
 from cdtm_graph.studies.navsim import (
     PAPER_TABLE1_M,

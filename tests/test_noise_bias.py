@@ -1,5 +1,5 @@
 """The noise's bias of the C-DTM estimate: its expected gradient at the truth, and the
-corrected-score step that takes it out (``cdtm_graph.noise_bias``)."""
+corrected-score step that takes it out (``cdtm_graph.calibration.noise_bias``)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""cdtm_graph.preflight: no IMU-only result presented as a smoothing result; DTM coverage."""
+"""cdtm_graph.verdict.preflight: no IMU-only result presented as a smoothing result; DTM coverage."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import NoConstraintError
 from cdtm_graph.flightlog import FlightLog, Tracks
-from cdtm_graph.preflight import check_constraints, dtm_coverage
+from cdtm_graph.verdict.preflight import check_constraints, dtm_coverage
 from cdtm_graph.sim.simulate import SimulationResult, SimulationSettings, simulate
 from cdtm_graph.smoother import SmootherSettings, smooth
 from tests.conftest import TEST_SEED

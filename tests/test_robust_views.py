@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cdtm_graph.clutter import (
+from cdtm_graph.robust.clutter import (
     MAX_SHARE,
     Clutter,
     ClutterSettings,
@@ -21,9 +21,9 @@ from cdtm_graph.clutter import (
     with_vertical_bias,
 )
 from cdtm_graph.dtm import Dtm, grazing_hits
-from cdtm_graph.epipolar import EpipolarSettings, _sampson_kernel, _sampson_terms, check_pair
+from cdtm_graph.robust.epipolar import EpipolarSettings, _sampson_kernel, _sampson_terms, check_pair
 from cdtm_graph.geometry import make_pose, so3_exp, triangulate
-from cdtm_graph.mismatch import (
+from cdtm_graph.robust.mismatch import (
     MismatchSettings,
     TrackHeights,
     inconsistent,
@@ -31,7 +31,7 @@ from cdtm_graph.mismatch import (
     track_heights,
     untrusted,
 )
-from cdtm_graph.neighbours import ball_sums, near_any
+from cdtm_graph.robust.neighbours import ball_sums, near_any
 from cdtm_graph.results import StateCovariances
 from cdtm_graph.tracks import first_sightings, frames_seen, track_groups
 

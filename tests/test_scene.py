@@ -9,7 +9,7 @@ import pytest
 import trimesh
 
 from cdtm_graph.cli import main
-from cdtm_graph.flightlog import load_log_and_dtm
+from cdtm_graph.run.prepare import load_log_and_dtm
 from cdtm_graph.outputs import read_trajectory_cov
 from cdtm_graph.plots.scene import FOOTPRINT_LIFT_M, MAX_TERRAIN_SIDE, WORLD_TO_GLTF, scene_frames
 

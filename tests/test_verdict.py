@@ -1,4 +1,4 @@
-"""Tests of cdtm_graph.verdict: the per-frame flags, the self-checks, the rules, and one
+"""Tests of cdtm_graph.verdict.rules: the per-frame flags, the self-checks, the rules, and one
 simulated flight per fault through the library and the CLI (verdict, frames, exit code)."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from scipy import integrate
 from scipy.stats import chi2
 
 from cdtm_graph.cli import main
-from cdtm_graph.evaluation import CovarianceVerdict, NeesConsistency
+from cdtm_graph.verdict.evaluation import CovarianceVerdict, NeesConsistency
 from cdtm_graph.geometry import (
     make_pose,
     rigid_motion_to_tangent,
@@ -40,7 +40,7 @@ from cdtm_graph.sim.simulate import simulate_flight, write_simulated_log
 from cdtm_graph.smoother import SmootherMode, SmootherSettings
 from cdtm_graph.smoother.batch import build_log_graph
 from cdtm_graph.studies.robustness import BASE, VerdictTask, judge
-from cdtm_graph.verdict import (
+from cdtm_graph.verdict.rules import (
     Status,
     VerdictSettings,
     assess,

@@ -5,7 +5,7 @@ Each subcommand module defines ``register(subparsers)``, which adds its parser a
 and the system's refusals (disk full, I/O errors) become one line on stderr and exit code
 1; anything else is a bug and keeps its traceback. A smoothing run that wrote its
 outputs exits 0 when its verdict is trusted and 3 when degraded or failed
-(:mod:`cdtm_graph.verdict`), each reason one line on stderr. SIGTERM is handled as SIGINT: a
+(:mod:`cdtm_graph.verdict.rules`), each reason one line on stderr. SIGTERM is handled as SIGINT: a
 ``KeyboardInterrupt`` unwinds (staging directories are removed, outputs stay as they
 were) and the exit code is 130.
 """

@@ -9,7 +9,7 @@ import numpy as np
 
 from cdtm_graph.analysis.closed_form import C2_NAMES, THETA_NAMES
 from cdtm_graph.analysis.two_frame import LogPairAnalysis, analyze_log_pair
-from cdtm_graph.flightlog import load_log_and_dtm
+from cdtm_graph.run.prepare import load_log_and_dtm
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -59,9 +59,10 @@ def run(args: argparse.Namespace) -> int:
 def run_images(out_dir: Path, args: argparse.Namespace) -> int:
     """Simulate, render, track, smooth; OUT/log is the flight log, OUT/run the run."""
     from cdtm_graph.cli.smooth import settings_from_args
-    from cdtm_graph.flightlog import TRACKS_CSV, load_log_and_dtm, write_tracks
+    from cdtm_graph.flightlog import TRACKS_CSV, write_tracks
     from cdtm_graph.frontend import track_log
     from cdtm_graph.run import smooth_and_evaluate
+    from cdtm_graph.run.prepare import load_log_and_dtm
     from cdtm_graph.sim.render import RenderSettings, render_flight
     from cdtm_graph.sim.simulate import SimulationSettings, simulate, write_simulation
 

@@ -10,11 +10,11 @@ from pathlib import Path
 
 from cdtm_graph.cli.outdir import add_out_option, output_dir
 from cdtm_graph.errors import CdtmError
-from cdtm_graph.flightlog import load_log_and_dtm
 from cdtm_graph.graph import GraphSettings
 from cdtm_graph.outputs import GEODETIC_RUN_FILES, RUN_FILES, RUN_WRITER, write_run_files
 from cdtm_graph.results import pose_covariance_in_world
 from cdtm_graph.run import RunOutput, smooth_and_evaluate
+from cdtm_graph.run.prepare import load_log_and_dtm
 from cdtm_graph.smoother import SmootherMode, SmootherSettings
 from factors import PlaneMode, RobustKernel
 
@@ -156,8 +156,8 @@ def plot_writers(out: RunOutput, dtm, flight) -> list:
     frame, cfg = flight.config.local_frame, flight.config.dtm
     if frame is not None:
         from cdtm_graph.dem import read_dem_window
-        from cdtm_graph.flightlog.reader import dem_region_m
         from cdtm_graph.plots.dem import plot_trajectory_over_dem
+        from cdtm_graph.run.prepare import dem_region_m
 
         window = read_dem_window(cfg.paths, frame, dem_region_m(flight), cfg.vertical_datum,
                                  cfg.crs)

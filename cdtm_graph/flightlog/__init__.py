@@ -35,14 +35,14 @@ from cdtm_graph.flightlog.model import (
     States,
     Tracks,
 )
-from cdtm_graph.flightlog.reader import load_log_and_dtm, read_flightlog
+from cdtm_graph.flightlog.reader import read_flightlog
 from cdtm_graph.flightlog.writer import write_flightlog, write_flightlog_files, write_tracks
 
 __all__ = [
     "FLIGHT_YAML", "FORMAT", "FRAMES_CSV", "GROUNDTRUTH_CSV", "IMU_CSV", "LOG_FILES", "NAV_CSV",
     "TRACKS_CSV", "CalibrationSigmas", "CameraConfig", "DtmConfig", "FlightConfig",
     "FlightLog", "Frames",
-    "ImuConfig", "ImuSamples", "InitialState", "States", "Tracks", "load_log_and_dtm",
+    "ImuConfig", "ImuSamples", "InitialState", "States", "Tracks",
     "read_flightlog", "write_flightlog", "write_flightlog_files",
     "write_tracks",
 ]

@@ -159,7 +159,7 @@ class DtmConfig:
 @dataclass(frozen=True)
 class CalibrationSigmas:
     """Prior 1-sigmas of the camera calibration a run may estimate online
-    (``camera.calibration`` in flight.yaml; :mod:`cdtm_graph.calibration`).
+    (``camera.calibration`` in flight.yaml; :mod:`cdtm_graph.calibration.online`).
 
     Attributes:
         time_offset_sigma_s: of the camera-IMU clock offset about ``time_offset_s``.

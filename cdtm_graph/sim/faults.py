@@ -22,11 +22,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from cdtm_graph.constants import NS_PER_S
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.flightlog import FlightLog, Frames, ImuSamples
 from cdtm_graph.geometry import make_pose, so3_exp
-
-NS_PER_S = 1_000_000_000
 
 
 class MismatchKind(enum.Enum):

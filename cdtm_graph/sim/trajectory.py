@@ -36,9 +36,8 @@ from enum import IntEnum
 
 import numpy as np
 
+from cdtm_graph.constants import STANDARD_GRAVITY_MPS2
 from cdtm_graph.geometry import quat_wxyz_to_rotation
-
-STANDARD_GRAVITY_MPS2 = 9.80665
 
 # Gauss-Legendre nodes for the position inside a turn-rate ramp. The integrand
 # cos(heading0 + d(s)) has d(s) <= turn_rate * ramp / 2 (0.05 rad at the defaults, and

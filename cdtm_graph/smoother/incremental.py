@@ -1,51 +1,30 @@
 """Incremental smoothing: one frame at a time, the current estimate and its covariance.
 
-:class:`IncrementalSmoother` is a small front over a solver backend (full-history iSAM2
-or a fixed lag, :mod:`cdtm_graph.smoother.backends`) with three collaborators: the IMU
-feed (:class:`~cdtm_graph.imu.ImuFeed`: samples preintegrated as they arrive), the
-pairing of track sightings (:class:`~cdtm_graph.tracks.TrackTable`), the innovation gate
-(:class:`~cdtm_graph.gating.InnovationGate`) and the judge of tracks against the DTM
-(:class:`~cdtm_graph.smoother.track_judge.TrackJudge`: terrain the map lacks, clutter,
-wrong matches). Its pass over a log is also the batch smoother's initializer when the
-log has no ``nav.csv``.
+:class:`IncrementalSmoother` feeds each frame's sightings through the defences' stages
+(:mod:`cdtm_graph.robust.stages`: the fix search's hold, pairing with the epipolar check,
+tracks kept out, the factors built, the innovation gate, the track tests) and solves with
+a :class:`~cdtm_graph.smoother.window.SolverWindow` (full-history iSAM2 or a fixed lag).
+The IMU feed (:class:`~cdtm_graph.imu.ImuFeed`) preintegrates samples as they arrive. Its
+pass over a log is also the batch smoother's initializer when the log has no ``nav.csv``.
 """
 
 from __future__ import annotations
 
-import bisect
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import V, X
 
-from cdtm_graph.acquisition import Correction, SearchPrior
-from cdtm_graph.clutter import clutter_flags, findings, with_vertical_bias
+from cdtm_graph.codes import Code
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import CdtmError, FlightLogError
 from cdtm_graph.flightlog import FlightConfig, FlightLog
-from cdtm_graph.gating import InnovationGate, residual_test
-from cdtm_graph.geometry import largest_eigenvalue_sym3
-from cdtm_graph.graph import (
-    cdtm_factors,
-    cdtm_information,
-    feature_noise,
-    imu_factor,
-    insert_state,
-    prior_factors,
-)
-from cdtm_graph.imu import (
-    ImuArrays,
-    ImuFeed,
-    initial_bias,
-    navstate_predict,
-    propagate_covariance,
-)
+from cdtm_graph.graph import feature_noise, imu_factor, insert_state, prior_factors
+from cdtm_graph.imu import ImuArrays, ImuFeed, initial_bias, navstate_predict
 from cdtm_graph.replay import replay
 from cdtm_graph.results import (
-    BiasPrior,
     GraphCounts,
     MapOffset,
     Rejection,
@@ -55,13 +34,23 @@ from cdtm_graph.results import (
     SolverStats,
     StateCovariances,
     TrajectoryEstimate,
-    frame_flags,
 )
-from cdtm_graph.smoother.backends import Backend, FixedLag, FullHistory, frame_keys
-from cdtm_graph.smoother.fix_search import FixSearch
+from cdtm_graph.robust.acquisition import Correction
+from cdtm_graph.robust.fix_search import FixSearch
+from cdtm_graph.robust.gating import InnovationGate
+from cdtm_graph.robust.stages import (
+    BUILD,
+    BuildFactors,
+    FrameWork,
+    PairSightings,
+    incremental_stages,
+)
+from cdtm_graph.robust.track_judge import TrackJudge
+from cdtm_graph.smoother.assembly import ClutterOutcome, assemble_result
+from cdtm_graph.smoother.backends import frame_keys
 from cdtm_graph.smoother.settings import Progress, SmootherSettings
-from cdtm_graph.smoother.track_judge import TrackJudge
-from cdtm_graph.tracks import SightingPairs, check_unique
+from cdtm_graph.smoother.window import SolverWindow
+from cdtm_graph.tracks import SightingPairs, checked_sightings
 from factors import CdtmPairFactor
 
 
@@ -104,11 +93,21 @@ class IncrementalSmoother:
         dtm: the terrain.
         settings: the run's settings; the incremental smoother uses ``graph``, ``lag_s``
             (a fixed lag instead of the full history), ``keep_exit_covariances``,
-            ``innovation_gate`` and ``final_iterations``.
+            ``innovation_gate``, ``acquisition`` and ``final_iterations``.
         imu: IMU samples known up front (a log); otherwise feed them with ``add_imu``.
         frame_interval_s: expected time between frames; with a lag, it lets the smoother
             relinearize less often than every update (still four times per window).
+
+    It is the :class:`~cdtm_graph.robust.stages.SolverView` its stages ask.
     """
+
+    #: finalize(): a settled error within this relative spread of the lowest one is converged.
+    CONVERGED_SPREAD = 1e-4
+    #: finalize(): rounds of "judge every track, take out the ones off the map, relinearize".
+    MISMATCH_ROUNDS = 8
+    #: While the estimate moves to an acquired fix, the first window frame is held there by
+    #: a temporary prior this tight (rad, m, m/s).
+    ANCHOR_SIGMAS = (np.radians(0.2), 2.0, 0.2)
 
     def __init__(self, config: FlightConfig, dtm: Dtm, settings: SmootherSettings | None = None,
                  imu: ImuArrays | None = None, frame_interval_s: float | None = None):
@@ -116,64 +115,43 @@ class IncrementalSmoother:
         self.dtm = dtm
         self.settings = settings = settings or SmootherSettings()
         graph = settings.graph
-        self._noise = feature_noise(config, dtm, graph)
+        noise = feature_noise(config, dtm, graph)
         self._imu = ImuFeed(config, graph.imu_hold, imu, graph.earth_physics, graph.imu_gap_noise)
         self.rejections = Rejections()  # features left out, by reason and frame
-        self._pairing = SightingPairs(config.camera.camera, config.camera.body_T_cam, dtm,
-                                      config.camera.pixel_sigma_px, graph.epipolar,
-                                      self.rejections)
+        camera = config.camera
+        self._pairing = SightingPairs(camera.camera, camera.body_T_cam, dtm,
+                                      camera.pixel_sigma_px, graph.epipolar, self.rejections)
         self._gate = InnovationGate(settings.innovation_gate, max(abs(dtm.dx), abs(dtm.dy)),
                                     self.rejections)
         # terrain the DTM lacks, clutter, wrong matches: tracks judged and left out
         self._judge = (None if graph.mismatch is None else TrackJudge(
-            graph.mismatch, graph.clutter, dtm, self._noise, config.camera.body_T_cam,
-            self.rejections))
+            graph.mismatch, graph.clutter, dtm, noise, camera.body_T_cam, self.rejections))
         # fix acquisition: while the pose is too uncertain for the C-DTM linearization,
         # sightings are held back until a search over the newest frames finds the fix
         self._search = (None if settings.acquisition is None else
                         FixSearch(settings.acquisition, config, dtm, self.rejections))
+        self.stages = incremental_stages(
+            self._pairing, BuildFactors(camera.body_T_cam, dtm, noise, graph, self.rejections),
+            self._search, self._gate, settings.innovation_gate, self._judge)
         self._frame_interval_s = frame_interval_s
         if frame_interval_s is not None and self._search is not None \
-                and self._search.needed_at_start() and not self._lag_holds_search(frame_interval_s):
-            raise self._lag_too_short(frame_interval_s)
+                and self._search.needed_at_start() and not _lag_holds(settings, frame_interval_s):
+            raise _lag_too_short(settings, frame_interval_s)
         self._frame_flags: dict[int, list[str]] = {}
-        self._backend: Backend = (
-            FullHistory() if settings.lag_s is None
-            else FixedLag(settings.lag_s, frame_interval_s))
-        self._state_cov = np.zeros((15, 15))  # newest frame's [X, V, B] covariance
+        self._window = SolverWindow(settings.lag_s, frame_interval_s,
+                                    settings.keep_exit_covariances)
         self._map_offset = MapOffset.of(config.dtm)  # in what it reports, not what it uses
-        self._camera = config.camera.camera
-        self._body_T_cam = config.camera.body_T_cam
-        self._t_ns: list[int] = []
-        # latest estimate of every frame (frames out of a lag window keep their last)
-        self._poses: dict[int, np.ndarray] = {}
-        self._velocities: dict[int, np.ndarray] = {}
-        self._biases: dict[int, gtsam.imuBias.ConstantBias] = {}
-        self._settled = 0  # fixed lag: frames before this one have left the window
-        self._exit_cov: dict[int, tuple[np.ndarray, ...]] = {}  # ... their (X, V, B) then
-        # every C-DTM factor (outliers, refresh); None where its features all went
-        self._cdtm: list[CdtmPairFactor | None] = []
-        self._cdtm_slots: list[int] = []  # ... their solver slots
-        self._cdtm_ids: list[np.ndarray] = []  # ... their features' track ids
-        self._cdtm_frame_b: list[int] = []  # ... their later frames (non-decreasing)
+        self._pair_prior_of: Callable[[], Callable[[int], np.ndarray]] | None = None
         # Warm-up: from a loose prior (or an acquired fix) every update moves its frame far
         # from the prediction, until one does not; nothing is judged meanwhile. Not a test
         # per update: outliers that moved one would switch off the tests that stop them.
-        self._converging = True
+        self.converging = True
         self._features_per_frame: dict[int, int] = {}
         self.n_features = self.n_cdtm_factors = 0
         self.update_times_s: list[float] = []
         self.imu_times_s: list[float] = []
         self.final_error = float("nan")
         self.converged = False
-
-    #: finalize(): a settled error within this relative spread of the lowest one is converged.
-    CONVERGED_SPREAD = 1e-4
-
-    #: The newest C-DTM factors are rebuilt once when the update moved their frame this
-    #: far from the prediction their noise was linearized at (metres, radians).
-    NOISE_REFRESH_POSITION_M = 2.0
-    NOISE_REFRESH_ROTATION_RAD = np.radians(0.2)
 
     # -- input ------------------------------------------------------------------------
 
@@ -206,258 +184,147 @@ class IncrementalSmoother:
                 missing samples and retry the frame) or the system is unsolvable.
         """
         start = time.perf_counter()
-        k = len(self._t_ns)
-        if k and t_ns <= self._t_ns[-1]:
+        w = self._window
+        k = len(w.t_ns)
+        if k and t_ns <= w.t_ns[-1]:
             raise FlightLogError(f"frame {k}: time {t_ns} ns is not after the previous frame")
-        seen = self._checked_sightings(k, track_id, uv_px)  # before anything changes
+        seen = checked_sightings(k, track_id, uv_px)  # before anything changes
         if imu is not None:
             self._imu.hold(imu)
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        link = None  # the IMU factor from the previous frame
+        pim = None  # the IMU's preintegration from the previous frame
         if k == 0:
             init = self.config.initial_state
             graph.push_back(prior_factors(init, 0))
             predicted, bias = init.world_T_body, initial_bias(init)
             velocity = np.asarray(init.velocity_mps, float)
         else:
-            bias = self._biases[k - 1]  # the IMU feed's linearization point too
-            pim = self._imu.finish(int(t_ns), (self._poses[k - 1], self._velocities[k - 1]))
+            bias = w.biases[k - 1]  # the IMU feed's linearization point too
+            pim = self._imu.finish(int(t_ns), (w.poses[k - 1], w.velocities[k - 1]))
             if pim.spans_gap:  # predicted across an IMU gap: a guess, judge nothing by it
-                self._converging = True
+                self.converging = True
             link = imu_factor(k - 1, pim)
             graph.add(link)
-            predicted, velocity = navstate_predict(pim, self._poses[k - 1],
-                                                   self._velocities[k - 1], bias)
+            predicted, velocity = navstate_predict(pim, w.poses[k - 1], w.velocities[k - 1],
+                                                   bias)
         insert_state(values, k, predicted, velocity, bias)
-        self._t_ns.append(int(t_ns))
-        self._poses[k], self._velocities[k], self._biases[k] = predicted, velocity, bias
+        w.t_ns.append(int(t_ns))
+        w.poses[k], w.velocities[k], w.biases[k] = predicted, velocity, bias
         if k:
-            self._leave_window(k)
-        if self._search is not None and (self._search.active or self._should_acquire(k)):
-            if not self._search.active and k and not self._lag_holds_search(
-                    self._frame_interval_s or float(np.median(np.diff(self._t_ns))) * 1e-9):
-                # the covariance outgrew what the smoothers pull in (a long gap), but the
-                # lag cannot hold the frames a search needs: on unsearched, and said so
-                self._frame_flags.setdefault(k, []).append("search_beyond_lag")
-            else:
-                self._search.hold(k, seen)
-                seen = None  # held back: no C-DTM factor until the fix is found
-                self._frame_flags.setdefault(k, []).append("no_fix")
-        new, new_ids = self._new_cdtm(k, *seen) if seen is not None else ([], [])
-        if new and link is not None:
-            # Each feature's innovation against the IMU's prediction: the kernel's scale
-            # and the gate (not while the solution still converges from a loose prior: the
-            # linearized test would misjudge good features).
-            new, new_ids = self._gate.apply(
-                k, new, new_ids, self._pose_guess, self._pair_prior(k, link, values),
-                test=not self._converging)
-        if new and self._judge is not None and not self._converging \
-                and self._judge.settle(k, sigma_m := self._position_sigma_m()):
-            new, new_ids, off_map, wrong = self._judge.judge_new(
-                k, new, new_ids, self._pose_guess, sigma_m)
-            if off_map.size:
-                self._forget_tracks(off_map, Rejection.MAP_MISMATCH)
-            if wrong.size:
-                self._forget_tracks(wrong, Rejection.WRONG_MATCH)
-        n_new = sum(f.features.n for f in new)
+            w.leave_window(k, self.converging, self.settings.final_iterations)
+        self._pair_prior_of = (None if pim is None else
+                               lambda: w.pair_prior(k, link, values))
+        work = self.stages.run(FrameWork(k, *(seen or (None, None))), self)
+        if work.flags:
+            self._frame_flags.setdefault(k, []).extend(work.flags)
+        new = work.factors
         for f in new:
             graph.add(f.factor)
-        slots = self._update(graph, values, k)
-        self._commit(k, new, new_ids, slots[len(slots) - len(new):] if slots else [])
+        slots = w.update(graph, values, k)
+        self._commit(k, new, work.track_ids, slots[len(slots) - len(new):] if slots else [])
         if self._judge is not None and self._judge.due(k):
             self._mismatch_round(k, self._judge.window_start(k))
         if new:
-            self._refresh_newest_noise(k, predicted, len(new))
+            w.refresh_newest_noise(k, predicted, len(new))
             # (a frame without factors cannot move: it says nothing of convergence)
-            self._converging = self._converging and self._moved_far(k, predicted)
-        if link is not None and pim.spans_gap:  # predicted across an IMU gap: a poor
-            self._iterate(self.settings.final_iterations)  # linearization point, iterate
-            self._fetch(k)
-        self._state_cov = self._backend.joint_marginal(list(frame_keys(k)))
+            self.converging = self.converging and w.moved_far(k, predicted)
+        if pim is not None and pim.spans_gap:  # predicted across an IMU gap: a poor
+            w.iterate(self.settings.final_iterations)  # linearization point, iterate
+            w.fetch(k)
+        w.state_cov = w.backend.joint_marginal(list(frame_keys(k)))
         if self._search is not None and self._search.active:
             self._try_acquisition(k)
-        self._imu.start(int(t_ns), self._biases[k])
-        pose_cov = self._map_offset.added_to_pose(self._state_cov[:6, :6], self._poses[k])
+        self._imu.start(int(t_ns), w.biases[k])
+        pose_cov = self._map_offset.added_to_pose(w.state_cov[:6, :6], w.poses[k])
         elapsed = time.perf_counter() - start
         self.update_times_s.append(elapsed)
         self.imu_times_s.append(self._imu.take_time_s())
-        return FrameUpdate(k, int(t_ns), self._poses[k], self._velocities[k], pose_cov, n_new,
+        return FrameUpdate(k, int(t_ns), w.poses[k], w.velocities[k], pose_cov, work.n_features,
                            elapsed, self.imu_times_s[-1])
 
-    def _pair_prior(self, k: int, imu: gtsam.CombinedImuFactor, predicted: gtsam.Values
-                    ) -> Callable[[int], np.ndarray]:
-        """Earlier frame a -> the (12, 12) prior covariance of ``(X(a), X(k))``: frame
-        k-1's state covariance carried through the IMU factor (a Kalman prediction, no
-        solver update); an older frame a gets its joint covariance with frame k-1."""
-        values = gtsam.Values(predicted)
-        insert_state(values, k - 1, self._poses[k - 1], self._velocities[k - 1],
-                     self._biases[k - 1])
-        later, M = propagate_covariance(imu, values, self._state_cov)
-        P_k = later[:6, :6]
-        cache: dict[int, np.ndarray] = {}
+    # -- what the stages ask (robust.stages.SolverView) --------------------------------
 
-        def prior(a: int) -> np.ndarray:
-            if a not in cache:
-                if a == k - 1:
-                    P_a, cross = self._state_cov[:6, :6], M[:6] @ self._state_cov[:, :6]
-                else:
-                    J = self._backend.joint_marginal([X(a), *frame_keys(k - 1)])
-                    P_a, cross = J[:6, :6], M[:6] @ J[6:, :6]
-                P = cache[a] = np.empty((12, 12))
-                P[:6, :6], P[:6, 6:], P[6:, :6], P[6:, 6:] = P_a, cross.T, cross, P_k
-            return cache[a]
+    settled = property(lambda self: self._window.settled)
+    lagged = property(lambda self: self.settings.lag_s is not None)
+    poses = property(lambda self: self._window.poses)
 
-        return prior
+    def pose_guess(self, j: int) -> np.ndarray:
+        return self._window.pose_guess(j)
 
-    def _should_acquire(self, k: int) -> bool:
+    def pair_prior(self) -> Callable[[int], np.ndarray] | None:
+        return None if self._pair_prior_of is None else self._pair_prior_of()
+
+    def position_sigma_m(self) -> float:
+        return self._window.position_sigma_m()
+
+    def forget_tracks(self, track_ids: np.ndarray, reason: Rejection) -> None:
+        """Keep these tracks out from now on, and take their features that entered
+        earlier out of the solver (those still in it), counted for ``reason``."""
+        assert self._judge is not None
+        self._judge.left_out = np.union1d(self._judge.left_out, track_ids)
+        self._window.take_out(track_ids, reason, self.rejections)
+
+    def needs_fix(self, k: int) -> bool:
         """Whether frame k starts a search for the fix: the prior (frame 0) or, after a
         long stretch without camera constraints, the newest covariance reaches farther than
         the smoothers pull in."""
         assert self._search is not None
         if k == 0:
             return self._search.needed_at_start()
-        return self._search.needed(self._poses[k - 1], self._state_cov)
+        return self._search.needed(self._window.poses[k - 1], self._window.state_cov)
 
-    def _lag_holds_search(self, frame_interval_s: float) -> bool:
-        """Whether the fixed lag holds the fix search's frames: the fix is applied to the
-        oldest of them, and a frame that left the window cannot be moved (frames leave
-        one interval before the lag, :meth:`_leave_window`)."""
-        assert self._search is not None
-        return (self.settings.lag_s is None
-                or self.settings.lag_s >= self._search.settings.window_frames * frame_interval_s)
+    def lag_holds_search(self) -> bool:
+        t_ns = self._window.t_ns
+        return _lag_holds(self.settings, self._frame_interval_s
+                          or float(np.median(np.diff(t_ns))) * 1e-9)
 
-    def _lag_too_short(self, frame_interval_s: float) -> CdtmError:
-        assert self._search is not None and self.settings.lag_s is not None
-        frames = self._search.settings.window_frames
-        need_s = frames * frame_interval_s
-        return CdtmError(
-            f"a fixed lag of {self.settings.lag_s:g} s is shorter than the fix search's window "
-            f"({frames} frames, {need_s:g} s at {1 / frame_interval_s:.3g} frames/s): expected "
-            f"a lag of at least {need_s:g} s, or no fix search (SmootherSettings.acquisition="
-            "None)")
+    # -- the solver side of the defences ---------------------------------------------------
 
     def _try_acquisition(self, k: int) -> None:
         """Search the held frames for the fix if a search is due (:class:`FixSearch`); on
         success, move the estimate there and let the held sightings in."""
         assert self._search is not None
+        w = self._window
         # Held frames the lag let go cannot be moved to a fix: their sightings are lost
         # (no_fix). Only when the lag is shorter than the search's window (a live smoother
         # not told its frame interval, or frames that came slower than expected).
-        self._search.forget_before(self._settled)
-        correction = self._search.search(k, self._t_ns.__getitem__, self._pose_guess,
-                                         self._search_prior)
+        self._search.forget_before(w.settled)
+        correction = self._search.search(
+            k, w.t_ns.__getitem__, w.pose_guess,
+            lambda j: w.search_prior(j, self.config.gravity_mps2))
         if correction is None:
             return
         self._apply_fix(correction, self._search.held, k)
         for j, _, _ in self._search.found():  # their sightings are in now
-            self._frame_flags[j].remove("no_fix")
+            self._frame_flags[j].remove(Code.NO_FIX)
             if not self._frame_flags[j]:
                 del self._frame_flags[j]
 
-    def _search_prior(self, j: int) -> SearchPrior:
-        """Where frame j may be, for a search: its marginals now."""
-        velocity_cov = self._backend.marginal(V(j))
-        return SearchPrior.from_pose_covariance(
-            self._poses[j], self._backend.marginal(X(j)), self._backend.velocity(j),
-            float(np.sqrt(np.linalg.eigvalsh(velocity_cov).max())), self.config.gravity_mps2)
-
-    #: While the estimate moves to an acquired fix, the first window frame is held there by
-    #: a temporary prior this tight (rad, m, m/s).
-    ANCHOR_SIGMAS = (np.radians(0.2), 2.0, 0.2)
-
     def _apply_fix(self, correction: Correction,
                    held: list[tuple[int, np.ndarray, np.ndarray]], k: int) -> None:
-        """Move the estimate to the acquired fix, then add the held sightings.
-
-        iSAM2 cannot be told new linearization points: a temporary prior holds the first
-        window frame at the corrected state while relinearizing steps carry the IMU chain
-        there; then the held frames' C-DTM factors (built at the corrected poses) go in and
-        the temporary prior comes out.
-        """
+        """Move the estimate to the acquired fix (:meth:`SolverWindow.anchor`), then add
+        the held sightings, their factors built at the corrected poses (the stages up to
+        the factors: the fix is what they were held for), and release the anchor."""
+        w = self._window
         j0 = held[0][0]
-        pose, velocity = correction.apply_to_state(self._poses[j0], self._velocities[j0])
-        rot, pos, vel = self.ANCHOR_SIGMAS
-        anchor = gtsam.NonlinearFactorGraph()
-        anchor.add(gtsam.PriorFactorPose3(X(j0), gtsam.Pose3(pose),
-                                          gtsam.noiseModel.Diagonal.Sigmas(
-                                              np.r_[[rot] * 3, [pos] * 3])))
-        anchor.add(gtsam.PriorFactorVector(V(j0), velocity,
-                                           gtsam.noiseModel.Isotropic.Sigma(3, vel)))
-        slots = self._backend.update(anchor, gtsam.Values(), {})
-        self._iterate(2 * self.settings.final_iterations)
-        for j in range(j0, k + 1):
-            self._fetch(j)
+        pose, velocity = correction.apply_to_state(w.poses[j0], w.velocities[j0])
+        anchor = w.anchor(j0, pose, velocity, k, self.ANCHOR_SIGMAS,
+                          2 * self.settings.final_iterations)
         graph = gtsam.NonlinearFactorGraph()
         committed = []
         for j, ids, uv in held:
-            factors, track_ids = self._new_cdtm(j, ids, uv)
-            for f in factors:
+            work = self.stages.run(FrameWork(j, ids, uv), self, start=PairSightings.name,
+                                   stop=BUILD)
+            for f in work.factors:
                 graph.add(f.factor)
-            committed.append((j, factors, track_ids))
-        new_slots = self._backend.update(graph, gtsam.Values(), {})
+            committed.append((j, work.factors, work.track_ids))
+        new_slots = w.backend.update(graph, gtsam.Values(), {})
         at = 0
         for j, factors, track_ids in committed:
             self._commit(j, factors, track_ids, new_slots[at:at + len(factors)])
             at += len(factors)
-        self._iterate(self.settings.final_iterations)
-        self._backend.replace(gtsam.NonlinearFactorGraph(), slots)
-        self._iterate(self.settings.final_iterations)
-        self._fetch(k)
-        self._state_cov = self._backend.joint_marginal(list(frame_keys(k)))
-        self._converging = True  # judge nothing until the estimate has settled
-
-    def _checked_sightings(self, k: int, track_id: np.ndarray | None, uv_px: np.ndarray | None
-                           ) -> tuple[np.ndarray, np.ndarray] | None:
-        if track_id is None or not len(track_id):
-            return None
-        ids = np.asarray(track_id, dtype=np.int64)
-        uv = np.asarray(uv_px, dtype=float)
-        if ids.ndim != 1 or uv.shape != (ids.size, 2):
-            raise FlightLogError(f"frame {k}: {ids.shape} track ids with pixels of "
-                                 f"shape {uv.shape}; expected (m,) and (m, 2)")
-        check_unique(k, ids)
-        return ids, uv
-
-    def _new_cdtm(self, k: int, track_id: np.ndarray, uv_px: np.ndarray
-                  ) -> tuple[list[CdtmPairFactor], list[np.ndarray]]:
-        """The C-DTM factors frame k's sightings close (counted, not yet in the graph).
-
-        A fixed lag has let go of frames before the window: their pairs are dropped
-        (counted), and tracks last seen there can never pair again.
-        """
-        pairs = self._pairing.add_frame(k, track_id, uv_px, self._pose_guess, self._settled)
-        table = self._pairing.table
-        if self.settings.lag_s is not None and len(table) > 4 * len(track_id):
-            table.forget_before(self._settled)
-            if self._judge is not None:
-                self._judge.observations.forget_before(self._settled)
-        if self._judge is not None:  # tracks found off the map stay out
-            pairs = self._judge.keep_out(k, pairs)
-        build = cdtm_factors(pairs, self._poses, self._body_T_cam, self.dtm, self._noise,
-                             self.settings.graph, self.rejections)
-        return build.factors, build.track_ids
-
-    def _pose_guess(self, j: int) -> np.ndarray:
-        """Frame j's pose as the solver has it now (the newest frame: its prediction)."""
-        # fetch only the poses asked for; frames out of a lag window keep their last
-        if self._settled <= j != len(self._t_ns) - 1:
-            self._poses[j] = self._backend.pose(j)
-        return self._poses[j]
-
-    def _position_sigma_m(self) -> float:
-        """The newest estimated frame's largest position 1-sigma (m)."""
-        return _largest_position_sigma_m(self._state_cov)
-
-    def _frame_position_sigma_m(self, j: int) -> float:
-        """Frame j's largest position 1-sigma (m) now (as it left the window, if it has)."""
-        if j < self._settled:
-            cov = self._exit_cov[j][0] if j in self._exit_cov else None
-        else:
-            cov = self._backend.marginal(X(j))
-        return _largest_position_sigma_m(self._state_cov if cov is None else cov)
-
-    #: finalize(): rounds of "judge every track, take out the ones off the map, relinearize".
-    MISMATCH_ROUNDS = 8
+        w.release(anchor, k, self.settings.final_iterations)
+        self.converging = True  # judge nothing until the estimate has settled
 
     def _mismatch_round(self, k: int, since_frame: int) -> int:
         """Judge the tracks seen since ``since_frame`` at the current estimate
@@ -465,138 +332,27 @@ class IncrementalSmoother:
         many."""
         if self._judge is None:
             return 0
-        off, wrong = self._judge.round(since_frame, self._pose_guess,
-                                       self._frame_position_sigma_m)
+        w = self._window
+        off, wrong = self._judge.round(since_frame, w.pose_guess, w.frame_position_sigma_m)
         if off.size:
-            self._forget_tracks(off, Rejection.MAP_MISMATCH)
+            self.forget_tracks(off, Rejection.MAP_MISMATCH)
         if wrong.size:
-            self._forget_tracks(wrong, Rejection.WRONG_MATCH)
+            self.forget_tracks(wrong, Rejection.WRONG_MATCH)
         if off.size or wrong.size:
-            self._fetch(k)
-        recent = bisect.bisect_left(self._cdtm_frame_b, since_frame)  # (a round's cost
-        # must not grow with the flight)
-        self._judge.consider(since_frame, k, self._cdtm[recent:], self._cdtm_ids[recent:])
+            w.fetch(k)
+        recent = w.since(since_frame)
+        self._judge.consider(since_frame, k, w.cdtm[recent:], w.ids[recent:])
         return int(off.size + wrong.size)
-
-    def _forget_tracks(self, track_ids: np.ndarray, reason: Rejection) -> None:
-        """Keep these tracks out from now on, and take their features that entered
-        earlier out of the solver (those still in it), counted for ``reason``."""
-        assert self._judge is not None
-        self._judge.left_out = np.union1d(self._judge.left_out, track_ids)
-        graph = gtsam.NonlinearFactorGraph()
-        slots, changed = [], []
-        # a factor whose later frame has left the window has left the solver
-        for i in range(bisect.bisect_left(self._cdtm_frame_b, self._settled), len(self._cdtm)):
-            f, ids = self._cdtm[i], self._cdtm_ids[i]
-            if f is None or int(gtsam.Symbol(f.key_a).index()) < self._settled:
-                continue
-            hit = np.isin(ids, track_ids)
-            if not hit.any():
-                continue
-            self.rejections.add(reason, int(gtsam.Symbol(f.key_b).index()), int(hit.sum()))
-            slots.append(self._cdtm_slots[i])
-            replacement = f.with_features(~hit) if not hit.all() else None
-            if replacement is not None:
-                graph.add(replacement.factor)
-            changed.append((i, replacement, ids[~hit]))
-        if not slots:
-            return
-        new_slots = self._backend.replace(graph, slots)
-        at = 0
-        for i, replacement, ids in changed:
-            self._cdtm[i], self._cdtm_ids[i] = replacement, ids
-            if replacement is not None:
-                self._cdtm_slots[i] = new_slots[at]
-                at += 1
-            else:
-                self._cdtm_slots[i] = -1
 
     def _commit(self, k: int, factors: list[CdtmPairFactor], track_ids: list[np.ndarray],
                 slots: list[int]) -> None:
-        n_features = sum(f.features.n for f in factors)
-        self._cdtm.extend(factors)
-        self._cdtm_ids.extend(track_ids)
-        # in frame order: the window's factors are found by bisection
-        assert not self._cdtm_frame_b or k >= self._cdtm_frame_b[-1]
-        self._cdtm_frame_b.extend([k] * len(factors))
-        self._cdtm_slots.extend(slots)
+        self._window.commit(k, factors, track_ids, slots)
         if self._judge is not None:
             self._judge.record(k, factors, track_ids)
+        n_features = sum(f.features.n for f in factors)
         self.n_features += n_features
         self.n_cdtm_factors += len(factors)
         self._features_per_frame[k] = n_features
-
-    def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, k: int,
-                relinearize: bool = False) -> list[int]:
-        """One solver update with frame k's new factors and states; fetches frame k."""
-        t_s = self._t_ns[k] * 1e-9
-        slots = self._backend.update(graph, values, {key: t_s for key in frame_keys(k)},
-                                     relinearize)
-        self._fetch(k)  # only the newest state: a full estimate grows with the flight
-        return slots
-
-    def _leave_window(self, k: int) -> None:
-        """Fixed lag: fetch, for the last time, the frames that frame k's update may
-        marginalize (older than the lag, with one frame interval of margin so float
-        timestamps cannot race the smoother); they keep that estimate (and, offline,
-        their covariances)."""
-        lag_s = self.settings.lag_s
-        if lag_s is None:
-            return
-        margin_ns = self._t_ns[k] - self._t_ns[k - 1]
-        horizon = self._t_ns[k] - lag_s * 1e9 + margin_ns
-        if self._converging and self._settled < k and self._t_ns[self._settled] < horizon:
-            # A state is marginalized at its linearization point: not while the solution
-            # still converges (from a loose prior), or that point is frozen where it was.
-            self._iterate(self.settings.final_iterations)
-        while self._settled < k and self._t_ns[self._settled] < horizon:
-            j = self._settled
-            self._fetch(j)
-            if self.settings.keep_exit_covariances:  # ~1 ms: marginals deep in the tree
-                self._exit_cov[j] = tuple(self._backend.marginal(key) for key in frame_keys(j))
-            self._settled += 1
-
-    def _fetch(self, k: int) -> None:
-        """Current estimate of frame k's states."""
-        self._poses[k] = self._backend.pose(k)
-        self._velocities[k] = self._backend.velocity(k)
-        self._biases[k] = self._backend.bias(k)
-
-    def _moved_far(self, k: int, predicted: np.ndarray) -> bool:
-        """Whether frame k's estimate is past the refresh thresholds from ``predicted``."""
-        pose = self._poses[k]
-        # the motion predicted^-1 pose: its translation's length (a rotation keeps it) and
-        # its angle from the trace of predicted^T pose
-        moved_m = float(np.linalg.norm(pose[:3, 3] - predicted[:3, 3]))
-        cos_angle = 0.5 * (float(np.sum(predicted[:3, :3] * pose[:3, :3])) - 1.0)
-        return bool(moved_m >= self.NOISE_REFRESH_POSITION_M
-                    or cos_angle <= np.cos(self.NOISE_REFRESH_ROTATION_RAD))
-
-    def _refresh_newest_noise(self, k: int, predicted: np.ndarray, n: int) -> None:
-        """When frame k's update moved it far from its IMU prediction (early frames under a
-        loose prior), swap its ``n`` new C-DTM factors for ones whose planes and noise
-        (eqs. 19-26) are linearized at the updated estimate, as the batch smoother does at
-        its solution. Only the newest factors change: a local re-elimination."""
-        if not self._moved_far(k, predicted):
-            return
-        # (a mismatch round since the commit may have taken some of them out)
-        live = [i for i in range(len(self._cdtm) - n, len(self._cdtm))
-                if self._cdtm[i] is not None]
-        if not live:
-            return
-        refreshed = []
-        graph = gtsam.NonlinearFactorGraph()
-        for i in live:
-            f = self._cdtm[i]
-            assert f is not None
-            r = f.refreshed(self._backend.pose(int(gtsam.Symbol(f.key_a).index())),
-                            self._poses[k]).with_robust_scale(f.features.robust_scale)
-            refreshed.append(r)
-            graph.add(r.factor)
-        new_slots = self._backend.replace(graph, [self._cdtm_slots[i] for i in live])
-        for i, r, slot in zip(live, refreshed, new_slots):
-            self._cdtm[i], self._cdtm_slots[i] = r, slot
-        self._fetch(k)
 
     # -- results ----------------------------------------------------------------------
 
@@ -615,50 +371,24 @@ class IncrementalSmoother:
             their thresholds makes the error wander by ~1e-5 relative: it stops at the
             first step that does not gain.
         """
+        w = self._window
         steps = self.settings.final_iterations if iterations is None else iterations
-        previous, done, best = self._iterate(steps, relative_tol)
-        if self._t_ns and self._judge is not None:
+        previous, done, best = w.iterate(steps, relative_tol)
+        if w.t_ns and self._judge is not None:
             # the tracks in the solver, judged at the converged estimate, until none is off
-            k = len(self._t_ns) - 1
+            k = len(w.t_ns) - 1
             for _ in range(self.MISMATCH_ROUNDS):
-                if not self._mismatch_round(k, self._settled):
+                if not self._mismatch_round(k, w.settled):
                     break
-                previous, done, best = self._iterate(steps, relative_tol)
-        self._refresh(self._backend.estimate())
-        if self._t_ns:  # more frames may follow: the next interval at the new bias estimate
-            k = len(self._t_ns) - 1
-            self._imu.start(self._t_ns[k], self._biases[k])
+                previous, done, best = w.iterate(steps, relative_tol)
+        w.refresh(w.backend.estimate())
+        if w.t_ns:  # more frames may follow: the next interval at the new bias estimate
+            k = len(w.t_ns) - 1
+            self._imu.start(w.t_ns[k], w.biases[k])
             self._imu.advance()
         self.final_error = previous
         self.converged = done and previous <= best * (1.0 + self.CONVERGED_SPREAD)
         return self.converged
-
-    def _iterate(self, steps: int, relative_tol: float = 1e-6) -> tuple[float, bool, float]:
-        """Relinearizing updates with no new data until one gains less than
-        ``relative_tol`` (at most ``steps``): the final error, whether it stopped by
-        itself, and the lowest error seen."""
-        previous = best = self._backend.error()
-        done = False
-        for _ in range(steps):
-            self._backend.step()
-            error = self._backend.error()
-            best = min(best, error)
-            done = error >= previous * (1.0 - relative_tol)  # no gain left (or a loss)
-            previous = error
-            if done:
-                break
-        return previous, done, best
-
-    def _refresh(self, estimate: gtsam.Values) -> None:
-        for key in estimate.keys():
-            symbol = gtsam.Symbol(key)
-            i, c = int(symbol.index()), chr(symbol.chr())
-            if c == "x":
-                self._poses[i] = estimate.atPose3(key).matrix()
-            elif c == "v":
-                self._velocities[i] = np.asarray(estimate.atVector(key))
-            elif c == "b":
-                self._biases[i] = estimate.atConstantBias(key)
 
     @property
     def innovation_nis(self) -> np.ndarray:
@@ -680,41 +410,22 @@ class IncrementalSmoother:
     def unfixed_frames(self) -> np.ndarray:
         """Frames whose sightings were held back for a fix that was not found (sorted)."""
         return np.array(sorted(k for k, flags in self._frame_flags.items()
-                               if "no_fix" in flags), dtype=np.int64)
+                               if Code.NO_FIX in flags), dtype=np.int64)
 
     def values(self) -> gtsam.Values:
         """Latest estimate of every frame so far (frames out of a lag window keep the
         estimate they had when they left it)."""
-        values = gtsam.Values()
-        for k in range(len(self._t_ns)):
-            insert_state(values, k, self._poses[k], self._velocities[k], self._biases[k])
-        return values
+        return self._window.values()
 
     def estimate(self) -> TrajectoryEstimate:
         """Latest estimate of every frame so far."""
-        K = len(self._t_ns)
-        biases = [self._biases[k] for k in range(K)]
-        return TrajectoryEstimate(
-            t_ns=np.asarray(self._t_ns, dtype=np.int64),
-            world_T_body=np.stack([self._poses[k] for k in range(K)]),
-            velocity_mps=np.stack([self._velocities[k] for k in range(K)]),
-            gyro_bias=np.stack([b.gyroscope() for b in biases]),
-            accel_bias=np.stack([b.accelerometer() for b in biases]))
+        return self._window.estimate()
 
     def covariances(self) -> StateCovariances:
         """Marginals of every frame (full-history iSAM2), or of the frames still in the
         window (fixed lag; older frames keep the covariances they left the window with
         if ``keep_exit_covariances``, else NaN)."""
-        K = len(self._t_ns)
-        pose, vel, bias = np.full((K, 6, 6), np.nan), np.full((K, 3, 3), np.nan), \
-            np.full((K, 6, 6), np.nan)
-        current = self._backend.estimate()
-        for k in range(K):
-            if current.exists(X(k)):
-                pose[k], vel[k], bias[k] = (self._backend.marginal(key) for key in frame_keys(k))
-            elif k in self._exit_cov:  # as it left the window
-                pose[k], vel[k], bias[k] = self._exit_cov[k]
-        return StateCovariances(pose, vel, bias)
+        return self._window.covariances()
 
     def run(self, flight: FlightLog, progress: Progress | None = None) -> SmootherResult:
         """Feed a whole log frame by frame (:func:`~cdtm_graph.replay.replay`), finalize,
@@ -741,15 +452,11 @@ class IncrementalSmoother:
         t0 = time.perf_counter()
         covariances = self.covariances()
         estimate = self.estimate()
-        residuals = residual_test([f for f in self._cdtm if f is not None],
-                                  estimate.world_T_body, K)
         counts = GraphCounts(
             K, self._pairing.table.n_tracks, self._pairing.n_observations,
-            self._pairing.n_pairs, self.n_features,
-            self.n_cdtm_factors, K - 1,
+            self._pairing.n_pairs, self.n_features, self.n_cdtm_factors, K - 1,
             np.array([self._features_per_frame.get(k, 0) for k in range(K)]),
-            residuals.n_outliers, residuals.outliers_per_frame, self.rejections.per_frame(K),
-            residuals.chi2_within_per_frame)
+            rejected_per_frame=self.rejections.per_frame(K))
         nis = self.innovation_nis
         stats = SolverStats(
             Solver.ISAM2 if self.settings.lag_s is None else Solver.FIXED_LAG, K,
@@ -757,26 +464,30 @@ class IncrementalSmoother:
             time.perf_counter() - t0, tuple(self.update_times_s), tuple(self.imu_times_s),
             float(np.median(nis)) if nis.size else float("nan"),
             float(np.mean(nis)) if nis.size else float("nan"))
-        information = cdtm_information([f for f in self._cdtm if f is not None],
-                                       estimate.world_T_body.__getitem__, K)
-        settings = self.settings.to_dict()
-        settings["acquisitions"] = self.acquisitions
-        flags = {k: list(v) for k, v in self._frame_flags.items()}
-        terrain = None
+        settings = {**self.settings.to_dict(), "acquisitions": self.acquisitions,
+                    "stages": self.stages.summary(self.rejections)}
         clutter_settings = self.settings.graph.clutter
-        if self._judge is not None and clutter_settings is not None:
-            offsets = self._judge.considered(K)
-            covariances = with_vertical_bias(covariances, estimate.world_T_body, offsets)
-            terrain = findings(self._judge.clutter, offsets)
-            for k, v in clutter_flags(offsets, clutter_settings).items():
-                flags.setdefault(k, []).extend(v)
-        return SmootherResult(estimate, self._map_offset.added_to(covariances,
-                                                                  estimate.world_T_body),
-                              stats, counts, settings, frame_flags(counts, flags), information,
-                              terrain, map_offset=self._map_offset,
-                              bias_prior=BiasPrior.of(self.config))
+        clutter = None if self._judge is None or clutter_settings is None else ClutterOutcome(
+            self._judge.clutter, self._judge.considered(K), clutter_settings)
+        return assemble_result(self.config, estimate, covariances, stats, counts, settings,
+                               self._frame_flags, self._window.live_factors(), clutter)
 
 
-def _largest_position_sigma_m(pose_cov: np.ndarray) -> float:
-    """The largest position 1-sigma (m) of a pose covariance (GTSAM's [rot, trans])."""
-    return float(np.sqrt(max(largest_eigenvalue_sym3(pose_cov[3:6, 3:6]), 0.0)))
+def _lag_too_short(settings: SmootherSettings, frame_interval_s: float) -> CdtmError:
+    assert settings.acquisition is not None and settings.lag_s is not None
+    frames = settings.acquisition.window_frames
+    need_s = frames * frame_interval_s
+    return CdtmError(
+        f"a fixed lag of {settings.lag_s:g} s is shorter than the fix search's window "
+        f"({frames} frames, {need_s:g} s at {1 / frame_interval_s:.3g} frames/s): expected "
+        f"a lag of at least {need_s:g} s, or no fix search (SmootherSettings.acquisition="
+        "None)")
+
+
+def _lag_holds(settings: SmootherSettings, frame_interval_s: float) -> bool:
+    """Whether the fixed lag holds the fix search's frames: the fix is applied to the
+    oldest of them, and a frame that left the window cannot be moved (frames leave one
+    interval before the lag, :meth:`SolverWindow.leave_window`)."""
+    assert settings.acquisition is not None
+    return (settings.lag_s is None
+            or settings.lag_s >= settings.acquisition.window_frames * frame_interval_s)

@@ -7,8 +7,8 @@ import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
-from cdtm_graph.acquisition import AcquisitionSettings
 from cdtm_graph.graph import GraphSettings
+from cdtm_graph.robust.acquisition import AcquisitionSettings
 
 #: ``progress(done, total)``: called once per frame on long runs.
 Progress = Callable[[int, int], None]
@@ -41,7 +41,7 @@ class SmootherSettings:
             for frames older than the lag.
         acquisition: when the prior (or the covariance after a long gap without camera
             constraints) is wider than the smoothers pull in, the fix is searched for
-            first (:mod:`cdtm_graph.acquisition`) on the newest frames, their features
+            first (:mod:`cdtm_graph.robust.acquisition`) on the newest frames, their features
             held back until it is found; ``None``: never search.
         innovation_gate: incremental modes (and the batch's incremental first pass): drop
             each C-DTM feature whose innovation, against the prior covariance of its two

@@ -13,7 +13,7 @@ pair, and reports the **maximum** absolute position error per axis of IMU-only n
 :func:`run_navsim` flies each case with :func:`cdtm_graph.sim.simulate.simulate` and reports
 three estimates of the same flight:
 
-* **Free**: IMU dead reckoning from the initial state (:func:`~cdtm_graph.evaluation.
+* **Free**: IMU dead reckoning from the initial state (:func:`~cdtm_graph.verdict.evaluation.
   dead_reckoning`);
 * **Compensated (smoothed)**: batch Levenberg-Marquardt over the whole flight
   (:func:`~cdtm_graph.run.smooth_and_evaluate`), which uses future frames for past ones;
@@ -58,9 +58,9 @@ from typing import Any, cast
 
 import numpy as np
 
+from cdtm_graph.constants import STANDARD_GRAVITY_MPS2
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import SimulationError
-from cdtm_graph.evaluation import AXES, ErrorReport, trajectory_errors
 from cdtm_graph.flightlog import FlightLog
 from cdtm_graph.imu import ImuNoise
 from cdtm_graph.replay import replay
@@ -68,6 +68,7 @@ from cdtm_graph.results import TrajectoryEstimate
 from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.sim.simulate import SimulationSettings, simulate
 from cdtm_graph.smoother import IncrementalSmoother, SmootherMode, SmootherSettings
+from cdtm_graph.verdict.evaluation import AXES, ErrorReport, trajectory_errors
 
 logger = logging.getLogger(__name__)
 
@@ -92,7 +93,6 @@ __all__ = [
 
 _RAD_PER_DEG = math.pi / 180.0
 _S_PER_H = 3600.0
-_STANDARD_GRAVITY_MPS2 = 9.80665
 
 #: Tactical-grade IMU (Kalibr densities). Gyro: angle random walk 0.15 deg/sqrt(h)
 #: (= 0.15 deg/sqrt(h) / 60 sqrt(s/min) in rad/s/sqrt(Hz)), bias random walk 1e-6
@@ -101,7 +101,7 @@ _STANDARD_GRAVITY_MPS2 = 9.80665
 #: (:attr:`NavsimSettings.sigma_gyro_bias`, ``sigma_accel_bias``) dominate the drift.
 TACTICAL_IMU = ImuNoise(
     gyroscope_noise_density=0.15 * _RAD_PER_DEG / math.sqrt(_S_PER_H),
-    accelerometer_noise_density=100e-6 * _STANDARD_GRAVITY_MPS2,
+    accelerometer_noise_density=100e-6 * STANDARD_GRAVITY_MPS2,
     gyroscope_random_walk=1.0e-6,
     accelerometer_random_walk=3.0e-4,
 )
@@ -214,7 +214,7 @@ class NavsimSettings:
     sigma_velocity_mps: float = 0.2
     sigma_attitude_deg: float = 0.1
     sigma_gyro_bias: float = 10.0 * _RAD_PER_DEG / _S_PER_H
-    sigma_accel_bias: float = 1.0e-3 * _STANDARD_GRAVITY_MPS2
+    sigma_accel_bias: float = 1.0e-3 * STANDARD_GRAVITY_MPS2
     smoother: SmootherSettings = field(default_factory=SmootherSettings)
     as_arrived_skip_frames: int = 1
     seed: int = 0

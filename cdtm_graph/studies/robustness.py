@@ -3,7 +3,7 @@
 Each scenario is a simulated flight with one fault (wrong matches, terrain the DTM lacks,
 a far initial fix, an IMU gap, a calibration error, flat ground, few features, a DTM
 that ends under the flight) or none; each is smoothed in every mode with the given
-settings, judged (:mod:`cdtm_graph.verdict`) and evaluated against its ground truth.
+settings, judged (:mod:`cdtm_graph.verdict.rules`) and evaluated against its ground truth.
 ``scripts/robustness_matrix.py`` prints the table; the tests run small versions of the
 scenarios.
 """
@@ -34,7 +34,7 @@ from cdtm_graph.sim.faults import (
 )
 from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
 from cdtm_graph.smoother import SmootherMode, SmootherSettings
-from cdtm_graph.verdict import Verdict
+from cdtm_graph.verdict.rules import Verdict
 
 #: The issue's flight: 1 fps, 150 m/s at 1800 m, ~150 features, 640x480, FOV 60 deg.
 BASE = SimulationSettings(frames=90, fps=1.0, speed_mps=150.0, altitude_m=1800.0,

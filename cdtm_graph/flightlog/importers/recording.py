@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cdtm_graph.constants import STANDARD_GRAVITY_MPS2
 from cdtm_graph.errors import FlightLogError, SensorDataError
 from cdtm_graph.flightlog.config import RANGES
 from cdtm_graph.flightlog.importers.calibration import CameraCalibration
@@ -36,7 +37,7 @@ from cdtm_graph.flightlog.model import (
     States,
     normalized_path,
 )
-from cdtm_graph.flightlog.reader import load_flight_dtm, read_flightlog
+from cdtm_graph.flightlog.reader import read_flightlog
 from cdtm_graph.flightlog.tables import (
     _GROUNDTRUTH_SPEC,
     _is_geodetic_states,
@@ -44,11 +45,11 @@ from cdtm_graph.flightlog.tables import (
 )
 from cdtm_graph.flightlog.writer import write_flightlog_files
 from cdtm_graph.geodesy import GeodeticOrigin, VerticalDatum, local_frame, normal_gravity_mps2
+from cdtm_graph.run.prepare import load_flight_dtm
 
 logger = logging.getLogger(__name__)
 
 #: Gravity of a log without a geodetic origin unless told otherwise (m/s^2).
-STANDARD_GRAVITY_MPS2 = 9.80665
 #: Where image files go inside an imported log.
 IMAGE_DIR = "images"
 #: Sidecar files copied with a DTM (an .asc's CRS is in the .prj beside it).

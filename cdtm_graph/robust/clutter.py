@@ -2,7 +2,7 @@
 
 One tree is a track a few metres off the DTM, often within its triangulation error (a
 five-frame track at 1800 m knows its height to ~5 m), so the per-track test of
-:mod:`cdtm_graph.mismatch` misses most of a forest; but a forest is many of them, all on
+:mod:`cdtm_graph.robust.mismatch` misses most of a forest; but a forest is many of them, all on
 the same side, and together they pull the estimate down by a few metres while its
 covariance, built for independent DTM errors, says one. Seen as a population, the
 tracks' heights against the DTM are a mixture: ground (the DTM's own error about an offset
@@ -21,7 +21,7 @@ the estimate cannot remove, since a common vertical offset of the ground seen is
 indistinguishable from the aircraft's altitude.
 
 Pits and changed ground (``H < 0``) fit the same model; the neighbourhood test of
-:mod:`cdtm_graph.mismatch` catches those too.
+:mod:`cdtm_graph.robust.mismatch` catches those too.
 """
 
 from __future__ import annotations
@@ -33,9 +33,10 @@ import gtsam
 import numpy as np
 from numba import njit
 
-from cdtm_graph.mismatch import MismatchSettings, TrackHeights, TrackJudgement, judge
-from cdtm_graph.neighbours import ball_sums
+from cdtm_graph.codes import Code
 from cdtm_graph.results import StateCovariances, TerrainFindings
+from cdtm_graph.robust.mismatch import MismatchSettings, TrackHeights, TrackJudgement, judge
+from cdtm_graph.robust.neighbours import ball_sums
 
 #: Clutter heights the expectation-maximization starts from (pits and objects), m.
 _STARTS_M = (-30.0, -15.0, 15.0, 30.0)
@@ -164,7 +165,7 @@ def fit_clutter(heights: TrackHeights, settings: ClutterSettings | None = None) 
 def assess(heights: TrackHeights, sigma_h_m: float, mismatch: MismatchSettings,
            clutter: ClutterSettings | None) -> tuple[TrackJudgement, Clutter]:
     """Every view of a set of tracks: each alone and with its neighbourhood
-    (:func:`cdtm_graph.mismatch.judge`), and all of them as ground and clutter (the
+    (:func:`cdtm_graph.robust.mismatch.judge`), and all of them as ground and clutter (the
     consistent ones; ``Clutter.none()`` without ``clutter`` settings)."""
     judged = judge(heights, sigma_h_m, mismatch)
     if clutter is None:
@@ -314,5 +315,5 @@ def findings(clutter: Clutter, offsets_m: np.ndarray) -> TerrainFindings:
 
 
 def clutter_flags(offsets_m: np.ndarray, settings: ClutterSettings) -> dict[int, list[str]]:
-    """``{k: ["clutter"]}`` for the frames whose considered offset passes the flag."""
-    return {int(k): ["clutter"] for k in np.flatnonzero(offsets_m > settings.flag_offset_m)}
+    """``{k: [Code.CLUTTER]}`` for the frames whose considered offset passes the flag."""
+    return {int(k): [Code.CLUTTER] for k in np.flatnonzero(offsets_m > settings.flag_offset_m)}

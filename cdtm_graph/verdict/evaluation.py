@@ -36,13 +36,12 @@ from typing import Any
 
 import gtsam
 import numpy as np
-from scipy.stats import chi2
 
+from cdtm_graph.constants import chi2_quantile
 from cdtm_graph.flightlog import States
 from cdtm_graph.geometry import so3_log
 from cdtm_graph.results import StateCovariances, TrajectoryEstimate, pose_covariance_in_world
 
-NS_PER_S = 1_000_000_000
 AXES = ("x", "y", "z")
 #: Two-sided probability of the ANEES consistency band.
 ANEES_CONFIDENCE = 0.95
@@ -119,18 +118,18 @@ class NeesConsistency:
         values = values[np.isfinite(values)]
         if values.size == 0:
             return None
-        bound = float(chi2.ppf(NEES_BOUND_PROBABILITY, dof))
+        bound = float(chi2_quantile(NEES_BOUND_PROBABILITY, dof))
         inside = float(np.mean(values <= bound))
         median = float(np.median(values))
         if inside < bounds.min_inside_fraction:
             verdict = CovarianceVerdict.OPTIMISTIC
-        elif median < chi2.ppf(bounds.conservative_median_quantile, dof):
+        elif median < chi2_quantile(bounds.conservative_median_quantile, dof):
             verdict = CovarianceVerdict.CONSERVATIVE
         else:
             verdict = CovarianceVerdict.CONSISTENT
         return cls(dof, int(values.size),
                    {p: float(np.percentile(values, p)) for p in NEES_PERCENTILES},
-                   {p: float(chi2.ppf(p / 100.0, dof)) for p in NEES_PERCENTILES},
+                   {p: float(chi2_quantile(p / 100.0, dof)) for p in NEES_PERCENTILES},
                    bound, inside, float(values.mean()), verdict)
 
     def summary(self) -> str:
@@ -170,7 +169,7 @@ def anees_band(n_frames: int, dof: int, confidence: float = ANEES_CONFIDENCE
                ) -> tuple[float, float]:
     """Two-sided chi-square band of the average NEES of ``n_frames`` independent frames.
 
-    ``K * ANEES ~ chi2(K * dof)``, so the band is ``chi2.ppf((1 -+ c) / 2, K dof) / K``.
+    ``K * ANEES ~ chi2(K * dof)``, so the band is ``chi2_quantile((1 -+ c) / 2, K dof) / K``.
 
     Args:
         n_frames: K >= 1.
@@ -184,8 +183,8 @@ def anees_band(n_frames: int, dof: int, confidence: float = ANEES_CONFIDENCE
         raise ValueError(f"n_frames must be >= 1, got {n_frames}")
     tail = (1.0 - confidence) / 2.0
     total = n_frames * dof
-    return (float(chi2.ppf(tail, total)) / n_frames,
-            float(chi2.ppf(1.0 - tail, total)) / n_frames)
+    return (float(chi2_quantile(tail, total)) / n_frames,
+            float(chi2_quantile(1.0 - tail, total)) / n_frames)
 
 
 @dataclass(frozen=True)

@@ -13,16 +13,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cdtm_graph.acquisition.settings import AcquisitionSettings
+from cdtm_graph.constants import NS_PER_S
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import CameraConfig, FlightLog, InitialState
 from cdtm_graph.geometry import make_pose
 from cdtm_graph.imu import SampleHold, dead_reckoning
 from cdtm_graph.results import pose_covariance_in_world
+from cdtm_graph.robust.acquisition.settings import AcquisitionSettings
 from cdtm_graph.tracks import check_unique
-
-NS_PER_S = 1_000_000_000
 
 
 @dataclass(frozen=True)
@@ -267,7 +266,7 @@ def dead_reckoned_window(flight: FlightLog, n_frames: int,
                          hold: SampleHold = SampleHold.MIDPOINT
                          ) -> tuple[list[AcquisitionFrame], SearchPrior]:
     """The first frames of a log dead-reckoned from its initial state, and that state's
-    prior: what :func:`~cdtm_graph.acquisition.acquire` takes at the start of a flight.
+    prior: what :func:`~cdtm_graph.robust.acquisition.acquire` takes at the start of a flight.
 
     Args:
         flight: the log (tracks and IMU covering the frames).

@@ -21,7 +21,7 @@ A third view comes with the triangulation: a track whose rays do not meet in a p
 (their misses fail a chi-square test) holds a wrong match the epipolar check of single
 pairs let by (the random pixel fell near its epipolar line); it goes as such, and is no
 evidence about the ground (:func:`inconsistent`). A population of tracks each within
-its noise but many on the same side (a forest) is :mod:`cdtm_graph.clutter`'s view.
+its noise but many on the same side (a forest) is :mod:`cdtm_graph.robust.clutter`'s view.
 
 The smoothers drop the features of mismatched tracks (counted per frame as
 ``Rejection.MAP_MISMATCH``, or ``WRONG_MATCH``) and solve again: the estimate then rests
@@ -32,16 +32,18 @@ honestly.
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from scipy.stats import chi2
 
+from cdtm_graph.constants import chi2_quantile
 from cdtm_graph.dtm import Dtm
-from cdtm_graph.geometry import triangulate
-from cdtm_graph.neighbours import ball_sums, near_any
+from cdtm_graph.geometry import rays_in_world, triangulate
+from cdtm_graph.robust.neighbours import ball_sums, near_any
 from cdtm_graph.tracks import frames_seen, track_groups
+from factors import FeatureNoise
 
 #: chi-square(1) at 99.9%.
 CHI2_1DOF_999 = 10.827566170662733
@@ -207,7 +209,7 @@ def inconsistent(heights: TrackHeights, settings: MismatchSettings | None = None
 def _chi2_quantiles(probability: float, max_dof: int) -> np.ndarray:
     """(max_dof,) chi-square quantiles for 1..max_dof degrees of freedom (scipy's ppf
     costs more than the rest of a judgement of a frame's tracks)."""
-    return chi2.ppf(probability, np.arange(1, max_dof + 1))
+    return chi2_quantile(probability, np.arange(1, max_dof + 1))
 
 
 @dataclass(frozen=True)
@@ -259,3 +261,24 @@ def untrusted(track_id: np.ndarray, frame: np.ndarray, off: np.ndarray,
     share = np.bincount(index, weights=bad, minlength=frames.size) / np.bincount(
         index, minlength=frames.size)
     return np.union1d(off, track_id[share[index] > fraction])
+
+
+def heights_at(track_id: np.ndarray, frame: np.ndarray, ray_cam: np.ndarray,
+               world_T_body: Callable[[int], np.ndarray], body_T_cam: np.ndarray,
+               dtm: Dtm, noise: FeatureNoise, pose_sigma_m: float | np.ndarray = 0.0
+               ) -> TrackHeights:
+    """Tracks triangulated from their observations ((M,) ids, (M,) frames, (M, 3) rays in
+    the camera) at the given poses, against the DTM (:func:`cdtm_graph.robust.mismatch.
+    track_heights`); the frames' position 1-sigma ``pose_sigma_m`` is a scalar or one per
+    frame of ``np.unique(frame)``."""
+    if track_id.size == 0:
+        return TrackHeights.empty()
+    frames, at = frames_seen(frame)
+    world_T_cam = np.empty((frames.size, 4, 4))
+    for i, k in enumerate(frames.tolist()):
+        world_T_cam[i] = world_T_body(k)
+    world_T_cam = world_T_cam @ body_T_cam
+    centre, ray = rays_in_world(world_T_cam, at, ray_cam)
+    sigma = np.asarray(pose_sigma_m, dtype=float)
+    return track_heights(track_id, centre, ray, float(np.mean(noise.sigma_q_xy)), dtm,
+                         noise.sigma_h_m, sigma[at] if sigma.ndim else sigma)

@@ -1,6 +1,6 @@
 """Sums over the points within a horizontal radius: the one search behind the spatial
-views of the ground (:mod:`cdtm_graph.mismatch`'s neighbourhoods, :mod:`cdtm_graph.clutter`'s
-neighbourhood means).
+views of the ground (:mod:`cdtm_graph.robust.mismatch`'s neighbourhoods,
+:mod:`cdtm_graph.robust.clutter`'s neighbourhood means).
 
 The reference points are binned in square cells as wide as the radius and sorted by cell
 (column-major); a query then reads the three runs of cells (one per neighbouring column)

@@ -1,8 +1,8 @@
 """The incremental smoother's judge of tracks: terrain the DTM lacks, clutter, wrong matches.
 
 :class:`TrackJudge` keeps the observations that entered the solver and, at the solver's
-current poses, judges tracks with the views of :mod:`cdtm_graph.mismatch` (alone, with
-their neighbourhood, their rays' fit) and :mod:`cdtm_graph.clutter` (the population of
+current poses, judges tracks with the views of :mod:`cdtm_graph.robust.mismatch` (alone, with
+their neighbourhood, their rays' fit) and :mod:`cdtm_graph.robust.clutter` (the population of
 heights). It decides; the smoother takes the features out of its solver.
 """
 
@@ -13,11 +13,16 @@ from collections.abc import Callable, Sequence
 import gtsam
 import numpy as np
 
-from cdtm_graph.clutter import Clutter, ClutterSettings, assess, considered_offsets
 from cdtm_graph.dtm import Dtm
-from cdtm_graph.graph import heights_at
-from cdtm_graph.mismatch import MismatchSettings, TrackHeights, judge, untrusted
 from cdtm_graph.results import Rejection, Rejections
+from cdtm_graph.robust.clutter import Clutter, ClutterSettings, assess, considered_offsets
+from cdtm_graph.robust.mismatch import (
+    MismatchSettings,
+    TrackHeights,
+    heights_at,
+    judge,
+    untrusted,
+)
 from cdtm_graph.tracks import FramePairObservations, TrackObservations, pairs_without
 from factors import CdtmPairFactor, FeatureNoise
 
@@ -165,7 +170,7 @@ class TrackJudge:
     def consider(self, since_frame: int, k: int, factors: Sequence[CdtmPairFactor | None],
                  track_ids: Sequence[np.ndarray]) -> None:
         """The clutter the live factors ending since ``since_frame`` may still hold, frame
-        by frame (:func:`~cdtm_graph.clutter.considered_offsets`)."""
+        by frame (:func:`~cdtm_graph.robust.clutter.considered_offsets`)."""
         live = [(f, ids) for f, ids in zip(factors, track_ids)
                 if f is not None and _frame(f.key_b) >= since_frame]
         offsets = considered_offsets(self.clutter, [f.key_a for f, _ in live],

@@ -11,19 +11,19 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.ndimage import minimum_filter
 
-from cdtm_graph.acquisition.cloud import Cloud, best_over_headings, make_cloud, track_costs
-from cdtm_graph.acquisition.refine import Features, Refined, Refiner, pair_features
-from cdtm_graph.acquisition.settings import AcquisitionSettings
-from cdtm_graph.acquisition.window import (
+from cdtm_graph.dtm import Dtm
+from cdtm_graph.flightlog import CameraConfig
+from cdtm_graph.geometry import so3_exp
+from cdtm_graph.robust.acquisition.cloud import Cloud, best_over_headings, make_cloud, track_costs
+from cdtm_graph.robust.acquisition.refine import Features, Refined, Refiner, pair_features
+from cdtm_graph.robust.acquisition.settings import AcquisitionSettings
+from cdtm_graph.robust.acquisition.window import (
     AcquisitionFrame,
     Correction,
     Problem,
     SearchPrior,
     build_window,
 )
-from cdtm_graph.dtm import Dtm
-from cdtm_graph.flightlog import CameraConfig
-from cdtm_graph.geometry import so3_exp
 
 
 class Verdict(enum.Enum):

@@ -34,7 +34,7 @@ its covariance after a gap) and, when true, :func:`acquire` on the dead-reckoned
 then applies :attr:`AcquisitionResult.correction` to its first state.
 """
 
-from cdtm_graph.acquisition.search import (
+from cdtm_graph.robust.acquisition.search import (
     AcquisitionResult,
     Hypothesis,
     SearchRegion,
@@ -43,8 +43,8 @@ from cdtm_graph.acquisition.search import (
     needs_acquisition,
     separation_z,
 )
-from cdtm_graph.acquisition.settings import AcquisitionSettings
-from cdtm_graph.acquisition.window import (
+from cdtm_graph.robust.acquisition.settings import AcquisitionSettings
+from cdtm_graph.robust.acquisition.window import (
     AcquisitionFrame,
     Correction,
     SearchPrior,

@@ -14,16 +14,10 @@ import gtsam
 import numpy as np
 from numba import njit
 
+from cdtm_graph.constants import chi2_2dof_quantile
 from cdtm_graph.geometry import largest_eigenvalue_sym3
 from cdtm_graph.results import Rejection, Rejections
 from factors import CdtmPairFactor
-
-
-def chi2_2dof_quantile(p: float) -> float:
-    """The p-quantile of chi-square with 2 degrees of freedom: ``-2 ln(1 - p)``."""
-    if not 0.0 < p < 1.0:
-        raise ValueError(f"gate probability {p}: expected 0 < p < 1")
-    return float(-2.0 * np.log1p(-p))
 
 
 def innovation_mahalanobis(e: np.ndarray, H_a: np.ndarray, H_b: np.ndarray, P: np.ndarray,

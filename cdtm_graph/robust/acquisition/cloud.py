@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from cdtm_graph.acquisition.window import Correction, Problem
 from cdtm_graph.geometry import so3_exp
+from cdtm_graph.robust.acquisition.window import Correction, Problem
 
 
 @njit(cache=True)

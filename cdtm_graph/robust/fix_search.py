@@ -2,7 +2,7 @@
 
 While the pose is too uncertain for the C-DTM linearization (a loose prior, a long stretch
 without camera constraints), :class:`FixSearch` holds the frames' sightings back and, once
-it holds a window of them, searches them for the fix (:func:`cdtm_graph.acquisition.
+it holds a window of them, searches them for the fix (:func:`cdtm_graph.robust.acquisition.
 acquire`); a failed search waits twice as long as the last before the next. The smoother
 moves its estimate to a fix found and lets the held sightings in.
 """
@@ -13,7 +13,10 @@ from collections.abc import Callable
 
 import numpy as np
 
-from cdtm_graph.acquisition import (
+from cdtm_graph.dtm import Dtm
+from cdtm_graph.flightlog import FlightConfig
+from cdtm_graph.results import Rejection, Rejections
+from cdtm_graph.robust.acquisition import (
     AcquisitionFrame,
     AcquisitionSettings,
     Correction,
@@ -21,9 +24,6 @@ from cdtm_graph.acquisition import (
     acquire,
     needs_acquisition,
 )
-from cdtm_graph.dtm import Dtm
-from cdtm_graph.flightlog import FlightConfig
-from cdtm_graph.results import Rejection, Rejections
 
 #: One held frame: (frame index, track ids (m,), pixels (m, 2)).
 Held = tuple[int, np.ndarray, np.ndarray]

@@ -30,7 +30,7 @@ class AcquisitionSettings:
         merge_radius_m: modes of the search are at least this far apart, and a mode's
             refinement stays within half of it; fixes closer than this are one fix (the
             smoothers pull in from there: :attr:`pull_in_m`).
-        separation_z: how many standard errors (:func:`~cdtm_graph.acquisition.
+        separation_z: how many standard errors (:func:`~cdtm_graph.robust.acquisition.
             separation_z`) the best fix must beat every other by to be ACQUIRED (and a
             heading's rays the best heading's by to be rejected).
         information_z: how many standard errors the best offset must beat a typical one
@@ -38,7 +38,7 @@ class AcquisitionSettings:
         min_tracks: fewer tracks triangulated under the best heading: NO_INFORMATION.
         refine_iterations: Levenberg-Marquardt iterations of each mode's refinement.
         pull_in_m: horizontal error every smoother (batch, iSAM2, 10 s fixed lag) still
-            converges from on the issue's flight (:func:`~cdtm_graph.acquisition.
+            converges from on the issue's flight (:func:`~cdtm_graph.robust.acquisition.
             needs_acquisition`): 150 m in 21/21 runs at 1 and 3 sigma, 3 seeds; the
             fixed lag failed 9 of 21 at 200 m, batch and iSAM2 held to 300 m
             (``scripts/pull_in.py``).

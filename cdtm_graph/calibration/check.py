@@ -5,7 +5,7 @@ Unless asked to estimate it (``GraphSettings.calibration_online``, flight.yaml's
 A wrong one is not seen by the run's own checks: a 1% focal error is absorbed by the
 height (18 m off at ANEES ~700, residuals at their expectation). After the run, one batch
 solve from its estimate estimates the calibration too (``C(0)``,
-:mod:`cdtm_graph.calibration`, the noise's bias taken out); the run is
+:mod:`cdtm_graph.calibration.online`, the noise's bias taken out); the run is
 ``calibration_suspect`` when
 
 * estimating the calibration lowers the error beyond chance (``SUSPECT_COST_DROP``: a
@@ -32,15 +32,15 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 
-from cdtm_graph.calibration import CALIBRATION_KEY, CalibrationEstimate, prior_sigmas
-from cdtm_graph.calibration import estimate as calibration_estimate
+from cdtm_graph.calibration.noise_bias import debiased
+from cdtm_graph.calibration.online import CALIBRATION_KEY, CalibrationEstimate, prior_sigmas
+from cdtm_graph.calibration.online import estimate as calibration_estimate
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.flightlog import CalibrationSigmas, FlightLog, Frames, Tracks
-from cdtm_graph.noise_bias import debiased
-from cdtm_graph.optimizer import LinearSolver, levenberg_marquardt
+from cdtm_graph.graph import GraphSettings
+from cdtm_graph.graph.log_graph import build_log_graph
+from cdtm_graph.optimizer import LinearSolver, key_marginals, levenberg_marquardt
 from cdtm_graph.results import SmootherResult
-from cdtm_graph.smoother.batch import build_log_graph, key_marginals
-from cdtm_graph.smoother.settings import SmootherMode, SmootherSettings
 from factors.calibration import CALIBRATION_DIM
 
 #: The flight contradicts flight.yaml's calibration when estimating it lowers the error
@@ -153,17 +153,21 @@ class CalibrationCheck:
                 "suspect": self.suspect, "time_s": self.time_s, "n_frames": self.n_frames}
 
 
-def check_calibration(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
+def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
                       result: SmootherResult, sigmas: CalibrationSigmas,
                       left_out: np.ndarray | None = None,
-                      unfixed_frames: np.ndarray | None = None) -> CalibrationCheck:
+                      unfixed_frames: np.ndarray | None = None, max_iterations: int = 30,
+                      relative_error_tol: float = 1e-6) -> CalibrationCheck:
     """Estimate the calibration from ``result``'s estimate in a batch side solve.
 
     Args:
-        flight, dtm, settings: the run's. result: the incremental run's result.
+        flight, dtm, settings: the run's (how its graph is built). result: the run's
+            result.
         sigmas: the calibration's prior. left_out: tracks the run left out (off the map,
             wrong matches); unfixed_frames: frames whose sightings waited for a fix
             never found: both stay out of the side solve too.
+        max_iterations, relative_error_tol: the side solve's Levenberg-Marquardt limits
+            (the run's ``SmootherSettings``).
     """
     start = time.perf_counter()
     est = result.estimate
@@ -174,10 +178,9 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
         values.insert(V(j), np.asarray(est.velocity_mps[k], dtype=float))
         values.insert(B(j), gtsam.imuBias.ConstantBias(est.accel_bias[k], est.gyro_bias[k]))
     values.insert(CALIBRATION_KEY, np.zeros(CALIBRATION_DIM))
-    batch = replace(settings, mode=SmootherMode.BATCH, lag_s=None)
     if unfixed_frames is not None:  # the kept ones, as the thinned log numbers them
         unfixed_frames = np.searchsorted(kept, unfixed_frames[np.isin(unfixed_frames, kept)])
-    built = build_log_graph(sub, dtm, batch, values, left_out, unfixed_frames, sigmas)
+    built = build_log_graph(sub, dtm, settings, values, left_out, unfixed_frames, sigmas)
     solver = LinearSolver()
     # The likelihood ratio: this graph's optimum with the calibration pinned at
     # flight.yaml's, then free. (The run's own solution is not this graph's optimum: a
@@ -186,11 +189,11 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
     pinned.add(gtsam.PriorFactorVector(CALIBRATION_KEY, np.zeros(CALIBRATION_DIM),
                                        gtsam.noiseModel.Diagonal.Sigmas(
                                            PIN * prior_sigmas(sigmas))))
-    values, _ = levenberg_marquardt(pinned, values, batch.max_iterations,
-                                    batch.relative_error_tol, solver=solver)
+    values, _ = levenberg_marquardt(pinned, values, max_iterations,
+                                    relative_error_tol, solver=solver)
     held_error = built.graph.error(values)
-    values, _ = levenberg_marquardt(built.graph, values, batch.max_iterations,
-                                    batch.relative_error_tol, solver=solver)
+    values, _ = levenberg_marquardt(built.graph, values, max_iterations,
+                                    relative_error_tol, solver=solver)
     graph = built.graph
     cost_drop = held_error - graph.error(values)
     # (the noise stays linearized at the run's solution, as the likelihood ratio has it)

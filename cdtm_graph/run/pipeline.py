@@ -1,7 +1,7 @@
 """One smoothing run of a flight log: smooth, judge, evaluate against ground truth, report.
 
 No file I/O: :func:`smooth_and_evaluate` returns everything the CLI writes, the verdict
-(:mod:`cdtm_graph.verdict`) included.
+(:mod:`cdtm_graph.verdict.rules`) included.
 """
 
 from __future__ import annotations
@@ -11,13 +11,13 @@ import time
 from dataclasses import dataclass, replace
 
 from cdtm_graph.dtm import Dtm
-from cdtm_graph.evaluation import ErrorReport, free_vs_compensated, trajectory_errors
 from cdtm_graph.flightlog import FlightLog
 from cdtm_graph.imu import dead_reckoning
-from cdtm_graph.imu_faults import check_imu, sample_noise
 from cdtm_graph.results import SmootherResult, TrajectoryEstimate
 from cdtm_graph.smoother import Progress, SmootherSettings, smooth
-from cdtm_graph.verdict import Verdict, VerdictSettings, assess
+from cdtm_graph.verdict.evaluation import ErrorReport, free_vs_compensated, trajectory_errors
+from cdtm_graph.verdict.imu_faults import check_imu, sample_noise
+from cdtm_graph.verdict.rules import Verdict, VerdictSettings, assess
 
 logger = logging.getLogger(__name__)
 
@@ -47,7 +47,7 @@ class RunOutput:
 def smooth_and_evaluate(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
                         progress: Progress | None = None,
                         verdict_settings: VerdictSettings | None = None) -> RunOutput:
-    """Smooth ``flight``, judge the run (:func:`cdtm_graph.verdict.assess`: the result's
+    """Smooth ``flight``, judge the run (:func:`cdtm_graph.verdict.rules`: the result's
     flags become the verdict's) and, if it has ground truth, evaluate it as the paper's
     Table 1."""
     start = time.perf_counter()

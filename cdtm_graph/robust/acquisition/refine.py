@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cdtm_graph.acquisition.window import Correction, Problem, Window
 from cdtm_graph.geometry import skew, so3_exp, so3_log
+from cdtm_graph.robust.acquisition.window import Correction, Problem, Window
 from factors import CdtmPairFactor, FeatureNoise, PairFeatures, PlaneMode
 
 

@@ -38,12 +38,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-NS_PER_S = 1_000_000_000
+from cdtm_graph.constants import NS_PER_S
+from cdtm_graph.imu import IMU_GAP_PERIODS, gap_threshold_ns
 
-#: A gap: consecutive samples more than this many nominal periods apart. One or two
-#: dropped samples (2 or 3 periods) are routine on a busy bus and cost nothing measurable
-#: (each neighbour is held a period longer); three or more are named and modelled.
-IMU_GAP_PERIODS = 3.0
 #: The median spacing may differ from 1 / rate_hz by this fraction (clock drift and
 #: rounding of real IMUs is far below 1%).
 RATE_TOLERANCE = 0.05
@@ -98,7 +95,7 @@ class ImuFinding:
 
 
 @dataclass(frozen=True)
-class ImuNoise:
+class MeasuredImuNoise:
     """The white noise the samples themselves show, against flight.yaml's densities.
 
     Each channel's scatter from sample to sample, as a continuous-time density: the
@@ -134,8 +131,9 @@ class ImuNoise:
 
 
 def sample_noise(t_ns: np.ndarray, gyro_radps: np.ndarray, acc_mps2: np.ndarray,
-                 stated_gyro_density: float, stated_accel_density: float) -> ImuNoise | None:
-    """:class:`ImuNoise` of a sample stream (None with fewer than 10 samples)."""
+                 stated_gyro_density: float, stated_accel_density: float
+                 ) -> MeasuredImuNoise | None:
+    """:class:`MeasuredImuNoise` of a sample stream (None with fewer than 10 samples)."""
     t = np.asarray(t_ns, dtype=np.int64)
     if t.size < 10:
         return None
@@ -146,8 +144,9 @@ def sample_noise(t_ns: np.ndarray, gyro_radps: np.ndarray, acc_mps2: np.ndarray,
         mad = np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0)
         return 1.4826 * mad * np.sqrt(dt_s / 6.0)
 
-    return ImuNoise(density(np.asarray(gyro_radps, float)), density(np.asarray(acc_mps2, float)),
-                    float(stated_gyro_density), float(stated_accel_density))
+    return MeasuredImuNoise(density(np.asarray(gyro_radps, float)),
+                            density(np.asarray(acc_mps2, float)),
+                            float(stated_gyro_density), float(stated_accel_density))
 
 
 @dataclass(frozen=True)
@@ -172,27 +171,34 @@ class ImuCheckSettings:
     accel_range_mps2: float | None = None
 
 
-def gap_threshold_ns(rate_hz: float, gap_periods: float = IMU_GAP_PERIODS) -> int:
-    """The largest spacing (ns) that is not a gap at a nominal rate."""
-    if not rate_hz > 0:
-        raise ValueError(f"rate_hz must be > 0, got {rate_hz}")
-    return int(gap_periods * NS_PER_S / rate_hz)
-
-
-def gap_after(t_ns: np.ndarray, rate_hz: float,
-              gap_periods: float = IMU_GAP_PERIODS) -> np.ndarray:
-    """Which consecutive samples have a gap between them.
-
-    Args:
-        t_ns: (N,) sample times, ns.
-        rate_hz: the nominal rate (flight.yaml ``imu.rate_hz``).
-        gap_periods: the threshold in nominal periods.
+def imu_gaps(frame_t_ns: np.ndarray, imu_t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The stretches without an IMU sample in each frame's interval (from the previous
+    frame; none for the first frame).
 
     Returns:
-        (N-1,) bool: ``t[i+1] - t[i]`` is a gap. The IMU model and :func:`check_imu` both
-        use this, so what is named is what is modelled.
+        ``(inside_s, whole_s)``, (K,) each: the longest such stretch within the interval,
+        and the whole length of that stretch (also where it spans several frames).
     """
-    return np.diff(np.asarray(t_ns, dtype=np.int64)) > gap_threshold_ns(rate_hz, gap_periods)
+    frame_t_ns = np.asarray(frame_t_ns, dtype=np.int64)
+    imu_t_ns = np.asarray(imu_t_ns, dtype=np.int64)
+    k = frame_t_ns.size
+    inside, whole = np.zeros(k), np.zeros(k)
+    if k < 2 or imu_t_ns.size == 0:
+        return inside, whole
+    # the stretches between samples, and before the first and after the last one
+    edges = np.concatenate([[min(int(imu_t_ns[0]), int(frame_t_ns[0]))], imu_t_ns,
+                            [max(int(imu_t_ns[-1]), int(frame_t_ns[-1]))]])
+    starts, ends = edges[:-1], edges[1:]
+    for j in range(1, k):
+        t0, t1 = int(frame_t_ns[j - 1]), int(frame_t_ns[j])
+        lo = int(np.searchsorted(ends, t0, side="right"))
+        hi = int(np.searchsorted(starts, t1, side="left"))
+        if hi > lo:
+            span = np.minimum(ends[lo:hi], t1) - np.maximum(starts[lo:hi], t0)
+            i = int(np.argmax(span))
+            inside[j] = span[i] / NS_PER_S
+            whole[j] = (ends[lo + i] - starts[lo + i]) / NS_PER_S
+    return inside, whole
 
 
 def finding_frames(first_t_ns: int, last_t_ns: int,

@@ -14,15 +14,15 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 
-from cdtm_graph.clutter import ClutterSettings
 from cdtm_graph.dtm import Dtm, grazing_hits
-from cdtm_graph.epipolar import EpipolarSettings
 from cdtm_graph.flightlog import CalibrationSigmas, FlightConfig, InitialState
-from cdtm_graph.geometry import rays_in_world, rigid_motion_to_tangent
+from cdtm_graph.geometry import rigid_motion_to_tangent
 from cdtm_graph.imu import GapNoise, SampleHold, initial_bias
-from cdtm_graph.mismatch import MismatchSettings, TrackHeights, track_heights
 from cdtm_graph.results import Rejection, Rejections
-from cdtm_graph.tracks import FramePairObservations, first_sightings, frames_seen
+from cdtm_graph.robust.clutter import ClutterSettings
+from cdtm_graph.robust.epipolar import EpipolarSettings
+from cdtm_graph.robust.mismatch import MismatchSettings
+from cdtm_graph.tracks import FramePairObservations, first_sightings
 from factors import CdtmPairFactor, FeatureNoise, PairFeatures, PlaneMode, RobustKernel
 from factors.calibration import CalibrationLink
 
@@ -65,24 +65,24 @@ class GraphSettings:
         shared_dtm_error: a track's pairs share its ground point's DTM error
             (:func:`cdtm_factors`).
         epipolar: sightings are paired only where they agree with the epipolar geometry
-            of the current relative pose (:mod:`cdtm_graph.epipolar`): wrong matches are
+            of the current relative pose (:mod:`cdtm_graph.robust.epipolar`): wrong matches are
             left out and counted, and their tracks pair across them. ``None``: no check.
         grazing_turn_cells: features whose ray grazes a ridge are dropped and counted
             (:func:`cdtm_graph.dtm.grazing_hits`, the ray turned by this many DTM cells
             at its range). ``None``: no check.
         mismatch: tracks whose triangulated ground point lies off the DTM (terrain the
-            map lacks) lose their features (:mod:`cdtm_graph.mismatch`). ``None``: no
+            map lacks) lose their features (:mod:`cdtm_graph.robust.mismatch`). ``None``: no
             test.
         clutter: with ``mismatch``, the tracks' heights are also seen as a population of
-            ground and clutter (forest, towns: :mod:`cdtm_graph.clutter`); the likely
+            ground and clutter (forest, towns: :mod:`cdtm_graph.robust.clutter`); the likely
             clutter goes, and what may remain is a considered bias of the frames'
             vertical covariance. ``None``: no such view.
         calibration: prior sigmas of the camera calibration (camera-IMU time offset,
-            mount rotation, focal scale: :mod:`cdtm_graph.calibration`) when flight.yaml
+            mount rotation, focal scale: :mod:`cdtm_graph.calibration.online`) when flight.yaml
             gives none (its ``camera.calibration`` wins). With ``calibration_online`` (or
             flight.yaml's block) the batch estimates it; otherwise every mode holds
             flight.yaml's and checks it in a batch side solve
-            (:mod:`cdtm_graph.smoother.calibration_check`: ``calibration_suspect``).
+            (:mod:`cdtm_graph.calibration.check`: ``calibration_suspect``).
             ``None``: held as flight.yaml writes it, unchecked (unless flight.yaml asks).
         calibration_online: the batch estimates the calibration (off by default: on
             short flights the focal scale trades with the height, docs/design.md).
@@ -190,7 +190,7 @@ def cdtm_factors(
             the rank, known when the pair arrives, so batch and incremental weigh alike.
         rejections: where to count what is left out (a new record if None).
         calibration: the calibration variable's key and every frame's body twist (K, 6)
-            (:func:`cdtm_graph.calibration.body_twists`): each factor then holds the
+            (:func:`cdtm_graph.calibration.online.body_twists`): each factor then holds the
             calibration as its third variable. None: the nominal calibration.
 
     Returns:
@@ -252,27 +252,6 @@ def track_observations(factors: Sequence[CdtmPairFactor], track_ids: Sequence[np
     track_id, frame, ray = np.concatenate(ids), np.concatenate(frames), np.concatenate(rays)
     first = first_sightings(track_id, frame)
     return track_id[first], frame[first], ray[first]
-
-
-def heights_at(track_id: np.ndarray, frame: np.ndarray, ray_cam: np.ndarray,
-               world_T_body: Callable[[int], np.ndarray], body_T_cam: np.ndarray,
-               dtm: Dtm, noise: FeatureNoise, pose_sigma_m: float | np.ndarray = 0.0
-               ) -> TrackHeights:
-    """Tracks triangulated from their observations ((M,) ids, (M,) frames, (M, 3) rays in
-    the camera) at the given poses, against the DTM (:func:`cdtm_graph.mismatch.
-    track_heights`); the frames' position 1-sigma ``pose_sigma_m`` is a scalar or one per
-    frame of ``np.unique(frame)``."""
-    if track_id.size == 0:
-        return TrackHeights.empty()
-    frames, at = frames_seen(frame)
-    world_T_cam = np.empty((frames.size, 4, 4))
-    for i, k in enumerate(frames.tolist()):
-        world_T_cam[i] = world_T_body(k)
-    world_T_cam = world_T_cam @ body_T_cam
-    centre, ray = rays_in_world(world_T_cam, at, ray_cam)
-    sigma = np.asarray(pose_sigma_m, dtype=float)
-    return track_heights(track_id, centre, ray, float(np.mean(noise.sigma_q_xy)), dtm,
-                         noise.sigma_h_m, sigma[at] if sigma.ndim else sigma)
 
 
 def without_tracks(factors: Sequence[CdtmPairFactor], track_ids: Sequence[np.ndarray],

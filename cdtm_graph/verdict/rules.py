@@ -1,7 +1,7 @@
 """The verdict on a smoothing run: trusted, degraded or failed, and why.
 
 Pure, no I/O: :func:`assess` takes a :class:`~cdtm_graph.results.SmootherResult` (and,
-when the log has ground truth, its :class:`~cdtm_graph.evaluation.ErrorReport`; when the
+when the log has ground truth, its :class:`~cdtm_graph.verdict.evaluation.ErrorReport`; when the
 log is at hand, its IMU sample times) and returns a :class:`Verdict`: the flags of each
 frame, the reasons (stretches of flagged frames and run-wide self-checks) and the status.
 
@@ -36,7 +36,7 @@ share of features beyond the test (~0.1% expected); in incremental runs the inno
 squared Mahalanobis distances (chi-square(2): median 1.39; the median is judged, the
 mean, which the gated outliers dominate, only reported).
 
-**With ground truth**: the per-frame NEES (:class:`~cdtm_graph.evaluation.
+**With ground truth**: the per-frame NEES (:class:`~cdtm_graph.verdict.evaluation.
 NeesConsistency`).
 
 **Rules** (:class:`VerdictSettings`; the measurements behind the defaults are in
@@ -50,7 +50,7 @@ docs/verdict.md):
   chi-square(3) 99.9% bound of their covariance (``confidently_wrong``).
 - ``degraded``: any flagged stretch of at least ``min_stretch_s`` (an IMU gap at any
   length), or a self-check outside its bounds, or with ground truth a covariance the
-  errors call optimistic (``overconfident``: :class:`~cdtm_graph.evaluation.
+  errors call optimistic (``overconfident``: :class:`~cdtm_graph.verdict.evaluation.
   ConsistencyBounds`).
 - ``trusted``: none of these. A trusted run may still carry per-frame flags on
   stretches too short to matter.
@@ -66,21 +66,20 @@ from types import MappingProxyType
 from typing import Any
 
 import numpy as np
-from scipy.stats import chi2
 
-from cdtm_graph.evaluation import CovarianceVerdict, ErrorReport
-from cdtm_graph.gating import OUTLIER_TEST_PROBABILITY, chi2_2dof_quantile
+from cdtm_graph.codes import FAILING, Code
+from cdtm_graph.constants import NS_PER_S, chi2_2dof_quantile, chi2_quantile
 from cdtm_graph.geometry import rigid_motion_transfer
-from cdtm_graph.imu_faults import ImuNoise
 from cdtm_graph.results import Rejection, SmootherResult
-
-NS_PER_S = 1_000_000_000
+from cdtm_graph.robust.gating import OUTLIER_TEST_PROBABILITY
+from cdtm_graph.verdict.evaluation import CovarianceVerdict, ErrorReport
+from cdtm_graph.verdict.imu_faults import MeasuredImuNoise, imu_gaps
 
 
 def truncated_chi2_2dof_mean(probability: float) -> float:
     """Mean of chi-square(2) truncated at its ``probability`` quantile ``c``:
     ``2 - c (1 - p) / p`` (1.986 at 0.999), the expected residual of a feature within the
-    test of :func:`cdtm_graph.gating.residual_test`."""
+    test of :func:`cdtm_graph.robust.gating.residual_test`."""
     c = chi2_2dof_quantile(probability)
     return 2.0 - c * (1.0 - probability) / probability
 
@@ -223,25 +222,25 @@ class RejectionRule:
 #: Rejection reason value -> its rule. A reason not listed uses ``DEFAULT_REJECTION_RULE``.
 REJECTION_RULES: Mapping[str, RejectionRule] = MappingProxyType({
     Rejection.MISSED_DTM.value: RejectionRule(
-        "off_dtm", 0.5, "their rays miss the DTM (the flight is off the map): the position "
+        Code.OFF_DTM, 0.5, "their rays miss the DTM (the flight is off the map): the position "
         "comes from the IMU alone"),
     Rejection.MAP_MISMATCH.value: RejectionRule(
-        "map_mismatch", 0.2, "their ground points are not where the DTM says (terrain the "
+        Code.MAP_MISMATCH, 0.2, "their ground points are not where the DTM says (terrain the "
         "map lacks, a wrong calibration or camera timing)", min_run_fraction=0.1,
-        failed=("wrong_fix", 0.5, "most of the terrain seen is not where the DTM says: the "
+        failed=(Code.WRONG_FIX, 0.5, "most of the terrain seen is not where the DTM says: the "
                 "position is not where the map fits (a wrong fix, the wrong map, or a "
                 "noise model far too small)")),
     Rejection.WRONG_MATCH.value: RejectionRule(
-        "heavy_rejection", 0.3, "the tracker's matches, the DTM or the IMU disagree"),
+        Code.HEAVY_REJECTION, 0.3, "the tracker's matches, the DTM or the IMU disagree"),
     Rejection.GRAZING.value: RejectionRule(
-        "heavy_rejection", 0.3, "the tracker's matches, the DTM or the IMU disagree"),
+        Code.HEAVY_REJECTION, 0.3, "the tracker's matches, the DTM or the IMU disagree"),
     Rejection.GATED.value: RejectionRule(
-        "heavy_rejection", 0.3, "the tracker's matches, the DTM or the IMU disagree"),
+        Code.HEAVY_REJECTION, 0.3, "the tracker's matches, the DTM or the IMU disagree"),
     # the fixed lag's window moved on: normal operation, not a fault of the data
     Rejection.TOO_OLD.value: RejectionRule("too_old", None, ""),
 })
 DEFAULT_REJECTION_RULE = RejectionRule(
-    "heavy_rejection", 0.3, "the tracker's matches, the DTM or the IMU disagree")
+    Code.HEAVY_REJECTION, 0.3, "the tracker's matches, the DTM or the IMU disagree")
 
 
 @dataclass(frozen=True)
@@ -291,7 +290,7 @@ class VerdictSettings:
             (:meth:`~cdtm_graph.results.BiasPrior.excess`).
         max_imu_noise_ratio: ``imu_noise`` when the IMU samples' own scatter exceeds
             flight.yaml's noise density by more than this factor
-            (:class:`~cdtm_graph.imu_faults.ImuNoise`).
+            (:class:`~cdtm_graph.verdict.imu_faults.MeasuredImuNoise`).
     """
 
     window_s: float = 10.0
@@ -313,12 +312,9 @@ class VerdictSettings:
     max_imu_noise_ratio: float = 1.5
 
 
-#: Checks that make a run FAILED; every other reason makes it DEGRADED.
-FAILED_CODES = frozenset({"not_converged", "no_fix", "misfit", "wrong_fix",
-                          "confidently_wrong"})
 #: The per-frame flags :func:`assess` sets itself (besides the rejection rules' codes).
-FRAME_FLAGS = ("no_features", "few_features", "flat_terrain", "narrow_fov", "imu_gap",
-               "residual_misfit")
+FRAME_FLAGS = (Code.NO_FEATURES, Code.FEW_FEATURES, Code.FLAT_TERRAIN, Code.NARROW_FOV,
+               Code.IMU_GAP, Code.RESIDUAL_MISFIT)
 
 
 @dataclass(frozen=True)
@@ -431,36 +427,6 @@ def fix_geometry(window_info: np.ndarray) -> FixGeometry:
     return FixGeometry(np.clip(horizontal, 0.0, None), vertical, free)
 
 
-def imu_gaps(frame_t_ns: np.ndarray, imu_t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The stretches without an IMU sample in each frame's interval (from the previous
-    frame; none for the first frame).
-
-    Returns:
-        ``(inside_s, whole_s)``, (K,) each: the longest such stretch within the interval,
-        and the whole length of that stretch (also where it spans several frames).
-    """
-    frame_t_ns = np.asarray(frame_t_ns, dtype=np.int64)
-    imu_t_ns = np.asarray(imu_t_ns, dtype=np.int64)
-    k = frame_t_ns.size
-    inside, whole = np.zeros(k), np.zeros(k)
-    if k < 2 or imu_t_ns.size == 0:
-        return inside, whole
-    # the stretches between samples, and before the first and after the last one
-    edges = np.concatenate([[min(int(imu_t_ns[0]), int(frame_t_ns[0]))], imu_t_ns,
-                            [max(int(imu_t_ns[-1]), int(frame_t_ns[-1]))]])
-    starts, ends = edges[:-1], edges[1:]
-    for j in range(1, k):
-        t0, t1 = int(frame_t_ns[j - 1]), int(frame_t_ns[j])
-        lo = int(np.searchsorted(ends, t0, side="right"))
-        hi = int(np.searchsorted(starts, t1, side="left"))
-        if hi > lo:
-            span = np.minimum(ends[lo:hi], t1) - np.maximum(starts[lo:hi], t0)
-            i = int(np.argmax(span))
-            inside[j] = span[i] / NS_PER_S
-            whole[j] = (ends[lo + i] - starts[lo + i]) / NS_PER_S
-    return inside, whole
-
-
 def _stretches(flagged: np.ndarray) -> list[tuple[int, int]]:
     """(first, last) frames of each run of True."""
     padded = np.concatenate([[False], np.asarray(flagged, dtype=bool), [False]])
@@ -505,7 +471,7 @@ def _per_frame(values: Any, k: int) -> np.ndarray:
 
 def _no_features(f: _Frames, off_dtm: np.ndarray) -> FrameTest:
     flagged = f.later & (f.features == 0) & ~off_dtm
-    return FrameTest("no_features", flagged,
+    return FrameTest(Code.NO_FEATURES, flagged,
                      lambda a, b: "no C-DTM feature: the position comes from the IMU alone")
 
 
@@ -528,7 +494,7 @@ def _rejection_tests(f: _Frames, settings: VerdictSettings
         with np.errstate(invalid="ignore", divide="ignore"):
             share = np.where(offered > 0, total / np.maximum(offered, 1), 0.0)
         flagged = f.later & (share >= rule.min_fraction) & (total > 0)
-        if code == "off_dtm":  # a frame all of whose rays missed is off the map
+        if code == Code.OFF_DTM:  # a frame all of whose rays missed is off the map
             missed = sum((f.rejected[r] for r in reasons), np.zeros(f.k))
             flagged |= f.later & (f.features == 0) & (missed > 0)
 
@@ -565,7 +531,7 @@ def _geometry_tests(f: _Frames, result: SmootherResult, settings: VerdictSetting
     mean_features = (window_sum(np.where(judged, f.features, 0.0), f.half)
                      / np.maximum(window_sum(judged.astype(float), f.half), 1.0))
     few = judged & (mean_features < settings.min_features_per_frame)
-    tests = [FrameTest("few_features", few, lambda a, b: (
+    tests = [FrameTest(Code.FEW_FEATURES, few, lambda a, b: (
         f"{mean_features[a:b + 1].mean():.0f} C-DTM features per frame, fewer than "
         f"{settings.min_features_per_frame:g}: a weak fix"))]
     if result.cdtm_information is None or np.shape(result.cdtm_information)[0] != f.k:
@@ -593,8 +559,8 @@ def _geometry_tests(f: _Frames, result: SmootherResult, settings: VerdictSetting
                 f"{_pct(settings.min_attitude_free_fraction)}): position and tilt can barely "
                 "be told apart")
 
-    tests.append(FrameTest("flat_terrain", flat, flat_text))
-    tests.append(FrameTest("narrow_fov", narrow, narrow_text))
+    tests.append(FrameTest(Code.FLAT_TERRAIN, flat, flat_text))
+    tests.append(FrameTest(Code.NARROW_FOV, narrow, narrow_text))
     return tests
 
 
@@ -606,7 +572,7 @@ def _imu_test(frame_t_ns: np.ndarray, imu_t_ns: np.ndarray | None,
     median_s = float(np.median(np.diff(imu_t_ns))) / NS_PER_S
     limit_s = max(settings.max_imu_gap_s, 3.0 * median_s)
     inside, whole = imu_gaps(frame_t_ns, imu_t_ns)
-    return FrameTest("imu_gap", inside > limit_s, lambda a, b: (
+    return FrameTest(Code.IMU_GAP, inside > limit_s, lambda a, b: (
         f"no IMU sample for {whole[a:b + 1].max():.2f} s (more than {limit_s:.2f} s): the "
         "IMU factor holds a sample across the gap as if measured"), any_length=True)
 
@@ -639,13 +605,13 @@ def _residual_checks(f: _Frames, result: SmootherResult, settings: VerdictSettin
     if math.isfinite(overall):
         allowed = tolerance + 3.0 / math.sqrt(n_within)
         if overall > settings.misfit_residual_chi2:
-            failures.append(("misfit", (
+            failures.append((Code.MISFIT, (
                 f"the features' residuals at the solution are {overall:.2f} times their "
                 f"expected chi-square (more than {settings.misfit_residual_chi2:g}): the "
                 "solution does not fit its data (a wrong fix, an IMU or calibration fault, "
                 "or a noise model far too small)")))
         elif overall - 1.0 > allowed:
-            failures.append(("residual_chi2", (
+            failures.append((Code.RESIDUAL_CHI2, (
                 f"the features' residuals at the solution are {overall:.2f} times their "
                 f"expected chi-square (1 +- {allowed:.2f} tolerated): the noise model "
                 "(pixel_sigma_px, the DTM's sigma_h) or the data do not fit")))
@@ -658,7 +624,7 @@ def _residual_checks(f: _Frames, result: SmootherResult, settings: VerdictSettin
     n_features = f.features.sum()
     outlier_fraction = float(f.outliers.sum() / n_features) if n_features else math.nan
     if math.isfinite(outlier_fraction) and outlier_fraction > settings.max_outlier_fraction:
-        failures.append(("outliers", (
+        failures.append((Code.OUTLIERS, (
             f"{_pct(outlier_fraction)} of the features fail the chi-square(2) 99.9% test at "
             f"the solution (0.1% expected, at most {_pct(settings.max_outlier_fraction)} "
             "tolerated): wrong matches or terrain the DTM lacks")))
@@ -667,16 +633,16 @@ def _residual_checks(f: _Frames, result: SmootherResult, settings: VerdictSettin
     if math.isfinite(median) and median < a:
         notes.append(
             f"innovation_nis: the innovations' squared Mahalanobis distances have median "
-            f"{median:.2f} (chi-square(2): {chi2.median(2):.2f}; {a:g}-{b:g}): the prior "
+            f"{median:.2f} (chi-square(2): {chi2_2dof_quantile(0.5):.2f}; {a:g}-{b:g}): the prior "
             "covariances or the noise model are larger than the data's scatter")
     elif math.isfinite(median) and median > b:
-        failures.append(("innovation_nis", (
+        failures.append((Code.INNOVATION_NIS, (
             f"the innovations' squared Mahalanobis distances have median {median:.2f} "
-            f"(chi-square(2): {chi2.median(2):.2f}; {a:g}-{b:g} tolerated): the prior "
+            f"(chi-square(2): {chi2_2dof_quantile(0.5):.2f}; {a:g}-{b:g} tolerated): the prior "
             "covariances or the noise model do not fit the data")))
     judged = (window_within >= settings.min_window_features) & f.later
     off_band = judged & (per_window - 1.0 > window_allowed)  # (too small: a note above)
-    test = FrameTest("residual_misfit", off_band, lambda a, b: (
+    test = FrameTest(Code.RESIDUAL_MISFIT, off_band, lambda a, b: (
         f"the residuals are {np.nanmin(per_window[a:b + 1]):.2f}-"
         f"{np.nanmax(per_window[a:b + 1]):.2f} times their expected chi-square here (1 +- "
         f"{np.nanmax(window_allowed[a:b + 1]):.2f} tolerated)")) if f.has_chi2 else None
@@ -695,21 +661,21 @@ def _groundtruth_checks(errors: ErrorReport | None, settings: VerdictSettings
     nees = np.asarray(errors.position_nees, dtype=float)
     frames = np.flatnonzero(errors.evaluated)
     finite = np.isfinite(nees)
-    bound_999 = float(chi2.ppf(0.999, consistency.dof))
+    bound_999 = float(chi2_quantile(0.999, consistency.dof))
     beyond_999 = finite & (nees > bound_999)
     beyond_95 = finite & (nees > consistency.bound)
     share_999 = float(beyond_999.sum() / finite.sum())
     out = []
     if share_999 > settings.max_beyond_999_fraction:
         where = frames[beyond_999]
-        out.append(("confidently_wrong", (
+        out.append((Code.CONFIDENTLY_WRONG, (
             f"against ground truth, {_pct(share_999)} of the frames' position errors lie beyond "
             f"the chi-square(3) 99.9% bound of their covariance (NEES median "
             f"{consistency.percentiles[50.0]:.3g}): the estimate is wrong and says it is not"),
             int(where[0]), int(where[-1])))
     elif consistency.verdict is CovarianceVerdict.OPTIMISTIC:
         where = frames[beyond_95]
-        out.append(("overconfident", (
+        out.append((Code.OVERCONFIDENT, (
             f"against ground truth, only {_pct(consistency.inside_fraction)} of the frames "
             f"lie inside the chi-square(3) 95% bound of their covariance (~95% expected): "
             "the covariances are too small"), int(where[0]), int(where[-1])))
@@ -719,7 +685,7 @@ def _groundtruth_checks(errors: ErrorReport | None, settings: VerdictSettings
 def assess(result: SmootherResult, errors: ErrorReport | None = None,
            imu_t_ns: np.ndarray | None = None,
            settings: VerdictSettings | None = None,
-           imu_noise: ImuNoise | None = None) -> Verdict:
+           imu_noise: MeasuredImuNoise | None = None) -> Verdict:
     """The verdict on a run (module docstring).
 
     Args:
@@ -728,7 +694,7 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
         imu_t_ns: (M,) the log's IMU sample times, to find IMU gaps; None: not checked.
         settings: the rules.
         imu_noise: the IMU samples' own scatter against flight.yaml's densities
-            (:func:`~cdtm_graph.imu_faults.sample_noise`); None: not checked.
+            (:func:`~cdtm_graph.verdict.imu_faults.sample_noise`); None: not checked.
 
     Returns:
         Status, reasons, per-frame flags and the self-checks.
@@ -736,7 +702,7 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
     settings = settings or VerdictSettings()
     f = _Frames(result, settings)
     tests, rejection_failures = _rejection_tests(f, settings)
-    off_dtm = next((t.flagged for t in tests if t.code == "off_dtm"), np.zeros(f.k, bool))
+    off_dtm = next((t.flagged for t in tests if t.code == Code.OFF_DTM), np.zeros(f.k, bool))
     tests.insert(0, _no_features(f, off_dtm))
     unfixed = tests[0].flagged | off_dtm
     tests += _geometry_tests(f, result, settings, unfixed)
@@ -761,20 +727,20 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
     flags = dict(sorted(flags.items()))
 
     def reason(code: str, message: str, a: int, b: int) -> Reason:
-        status = Status.FAILED if code in FAILED_CODES else Status.DEGRADED
+        status = Status.FAILED if code in FAILING else Status.DEGRADED
         return Reason(code, message, a, b, status, float(f.t_s[a]), float(f.t_s[b]))
 
     last = f.k - 1
     run_wide: list[Reason] = []
     if not result.stats.converged:
-        run_wide.append(reason("not_converged", (
+        run_wide.append(reason(Code.NOT_CONVERGED, (
             f"the {result.stats.solver.value} solver did not converge (final error "
             f"{result.stats.final_error:.4g}): the estimate is not the optimum"), 0, last))
     n_later = int(f.later.sum())
     fixed = n_later - int((unfixed & f.later).sum())
     if n_later and fixed < settings.min_fix_fraction * n_later:
         where = np.flatnonzero(unfixed)
-        run_wide.append(reason("no_fix", (
+        run_wide.append(reason(Code.NO_FIX, (
             f"only {fixed} of {n_later} frames have a camera/DTM fix (at least "
             f"{_pct(settings.min_fix_fraction)} needed): the trajectory is mostly IMU dead "
             "reckoning"), int(where[0]), int(where[-1])))
@@ -837,7 +803,7 @@ def _bias_check(result: SmootherResult, t_s: np.ndarray, settings: VerdictSettin
     prior, est = result.bias_prior, result.estimate
     if prior is None or len(est) == 0:
         return []
-    limit = float(chi2.ppf(settings.bias_probability, 3))
+    limit = float(chi2_quantile(settings.bias_probability, 3))
     out = []
     for name, key, walk, excess in zip(
             ("accelerometer", "gyro"), ("accel_bias", "gyro_bias"),
@@ -847,7 +813,7 @@ def _bias_check(result: SmootherResult, t_s: np.ndarray, settings: VerdictSettin
         if not beyond.size:
             continue
         worst = int(np.argmax(excess))
-        out.append(("imu_bias", (
+        out.append((Code.IMU_BIAS, (
             f"the {name} bias the run estimates lies beyond flight.yaml's prior "
             f"(initial_state.{key} within sigma_{key}, wandering by imu.{walk}): "
             f"{math.sqrt(excess[worst]):.1f} sigma at {t_s[worst]:.1f} s (chi-square(3) "
@@ -857,7 +823,7 @@ def _bias_check(result: SmootherResult, t_s: np.ndarray, settings: VerdictSettin
     return out
 
 
-def _noise_check(noise: ImuNoise | None, settings: VerdictSettings
+def _noise_check(noise: MeasuredImuNoise | None, settings: VerdictSettings
                  ) -> list[tuple[str, str]]:
     """``imu_noise``: the IMU samples scatter more than flight.yaml's noise densities say.
     The preintegration's covariance then understates what it integrates, and the
@@ -873,7 +839,7 @@ def _noise_check(noise: ImuNoise | None, settings: VerdictSettings
             noise.ratios, (noise.gyro_density, noise.accel_density),
             (noise.stated_gyro_density, noise.stated_accel_density)):
         if ratio > settings.max_imu_noise_ratio:
-            out.append(("imu_noise", (
+            out.append((Code.IMU_NOISE, (
                 f"the {name} samples scatter {ratio:.1f}x more than flight.yaml's "
                 f"imu.{key} says (measured {float(np.median(measured)):.3g} against "
                 f"{stated:.3g} {unit}, sample to sample, vibration included): the IMU "
@@ -884,7 +850,7 @@ def _noise_check(noise: ImuNoise | None, settings: VerdictSettings
 
 def _calibration_notes(result: SmootherResult) -> list[str]:
     """``calibration_unobservable``: a calibration parameter estimated online that the
-    flight barely told (posterior sigma near the prior's, :mod:`cdtm_graph.calibration`).
+    flight barely told (posterior sigma near the prior's, :mod:`cdtm_graph.calibration.online`).
     A note, not a reason: its prior uncertainty is in the covariances, so the run is not
     overconfident for it; but the estimate is flight.yaml's value, not a measurement."""
     c = result.calibration
@@ -902,14 +868,14 @@ def _calibration_notes(result: SmootherResult) -> list[str]:
 def _calibration_check(result: SmootherResult) -> tuple[list[tuple[str, str]], list[str]]:
     """``calibration_suspect`` (a reason): the run held flight.yaml's calibration, and a
     batch side solve that estimates it finds it wrong beyond the run's covariance
-    (:mod:`cdtm_graph.smoother.calibration_check`). Notes: ``calibration_held`` (a
+    (:mod:`cdtm_graph.calibration.check`). Notes: ``calibration_held`` (a
     significant correction the positions do not feel), ``calibration_unresolved`` (a side
     solve that tells the calibration poorly: the flight cannot check it)."""
     check = result.calibration_check
     if check is None or not check.significant:
         return [], []
     if check.suspect:
-        return [("calibration_suspect", (
+        return [(Code.CALIBRATION_SUSPECT, (
             f"the run held flight.yaml's camera calibration, which the flight contradicts: "
             f"{check.describe()}; smooth in batch mode with the calibration estimated "
             "(--calibration online) or correct flight.yaml"))], []
@@ -922,24 +888,20 @@ def _calibration_check(result: SmootherResult) -> tuple[list[tuple[str, str]], l
                 "covariance; held as flight.yaml writes it"]
 
 
-#: What the smoother's own frame flags mean, for the reasons they become (a reason at
-#: any length: each is an event, not a weak stretch the IMU bridges).
-SMOOTHER_FLAG_TEXT = MappingProxyType({
-    "search_beyond_lag": (
-        "the covariance outgrew what the smoothers pull in (a long stretch without camera "
-        "constraints), but the fixed lag is shorter than the fix search's window: the "
-        "frames went on without a search for the fix (a longer --lag-s searches)"),
-})
+#: The smoother's own frame flags that are a reason at any length (each is an event, not
+#: a weak stretch the IMU bridges); :attr:`Code.text` says what each means.
+SMOOTHER_EVENTS = frozenset({Code.SEARCH_BEYOND_LAG})
 
 
 def _smoother_flag(name: str, flags: Mapping[int, list[str]], k: int) -> FrameTest:
-    """A flag the smoother set that no rule here knows (:data:`SMOOTHER_FLAG_TEXT`
-    says what it means, if it knows it): kept as it is."""
+    """A flag the smoother set that no rule here knows (its :class:`Code`'s text says
+    what it means, if it is one): kept as it is."""
     def describe(a: int, b: int) -> str:
-        return SMOOTHER_FLAG_TEXT.get(name, f"flagged '{name}' by the smoother")
+        return Code(name).text if name in Code.__members__.values() else (
+            f"flagged '{name}' by the smoother")
 
     return FrameTest(name, np.array([name in flags.get(j, []) for j in range(k)]), describe,
-                     any_length=name in SMOOTHER_FLAG_TEXT)
+                     any_length=name in SMOOTHER_EVENTS)
 
 
 def _frame_interval_s(f: _Frames) -> float:

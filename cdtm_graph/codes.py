@@ -1,0 +1,108 @@
+"""One vocabulary: every code a run's flags, reasons and notes carry, with what it means.
+
+A code is a :class:`Code` member everywhere in the package (the smoothers that set a
+frame's flag, the verdict's rules, the reports); being a ``str`` enum, it is written to
+report.json and printed as its plain string (``"no_fix"``), so reports keep their
+strings. ``Code.NO_FIX.text`` says what it means in words.
+
+The features left out of the graph have their own enum,
+:class:`~cdtm_graph.results.Rejection` (why one feature went); a frame flag says why a
+frame is weak, a reason why a run is not trusted, a note what a user should hear that is
+no reason to distrust it.
+"""
+
+from __future__ import annotations
+
+import enum
+
+
+class Kind(enum.Enum):
+    """Where a code appears."""
+
+    FRAME = "frame"  # a per-frame flag (a stretch of them may become a reason)
+    RUN = "run"      # a run-wide reason
+    NOTE = "note"    # a note: no reason to distrust the run
+
+
+class Code(enum.StrEnum):
+    """A flag, reason or note code, with its kind and its meaning."""
+
+    kind: Kind
+    text: str
+
+    def __new__(cls, value: str, kind: Kind, text: str) -> Code:
+        member = str.__new__(cls, value)
+        member._value_ = value
+        member.kind = kind
+        member.text = text
+        return member
+
+    # -- per-frame flags: why a frame's fix is weak or missing -----------------------
+    NO_FEATURES = ("no_features", Kind.FRAME,
+                   "no C-DTM feature ends at the frame (tracks lost): the IMU alone")
+    OFF_DTM = ("off_dtm", Kind.FRAME,
+               "most of the frame's rays miss the DTM (the flight left the map)")
+    FEW_FEATURES = ("few_features", Kind.FRAME, "few features per frame in the window")
+    FLAT_TERRAIN = ("flat_terrain", Kind.FRAME,
+                    "flat terrain: the horizontal position gets little information")
+    NARROW_FOV = ("narrow_fov", Kind.FRAME,
+                  "a narrow footprint: the horizontal position can barely be told from a tilt")
+    MAP_MISMATCH = ("map_mismatch", Kind.FRAME,
+                    "the ground points are not where the DTM says (terrain the map lacks)")
+    HEAVY_REJECTION = ("heavy_rejection", Kind.FRAME,
+                       "many features left out: the tracker's matches, the DTM or the IMU "
+                       "disagree")
+    IMU_GAP = ("imu_gap", Kind.FRAME, "IMU samples missing inside the frame's interval")
+    RESIDUAL_MISFIT = ("residual_misfit", Kind.FRAME,
+                       "the window's residual chi-square outside its band")
+    CLUTTER = ("clutter", Kind.FRAME,
+               "clutter the DTM lacks (forest, town) may bias the frame's height")
+    NO_FIX = ("no_fix", Kind.FRAME,
+              "the fix was not acquired: the prior is wider than the smoothers pull in, and "
+              "the frame's sightings were held back")
+    SEARCH_BEYOND_LAG = ("search_beyond_lag", Kind.FRAME,
+                         "the covariance outgrew what the smoothers pull in (a long stretch "
+                         "without camera constraints), but the fixed lag is shorter than the "
+                         "fix search's window: the frames went on without a search for the "
+                         "fix (a longer --lag-s searches)")
+    # -- run-wide reasons ---------------------------------------------------------------
+    NOT_CONVERGED = ("not_converged", Kind.RUN, "the solver did not converge")
+    MISFIT = ("misfit", Kind.RUN, "the solution does not fit its data")
+    WRONG_FIX = ("wrong_fix", Kind.RUN,
+                 "most of the terrain seen is not where the DTM says: the fix is wrong")
+    RESIDUAL_CHI2 = ("residual_chi2", Kind.RUN,
+                     "the features' residual chi-square is off its expectation")
+    OUTLIERS = ("outliers", Kind.RUN, "too many features fail the chi-square test")
+    INNOVATION_NIS = ("innovation_nis", Kind.RUN,
+                      "the innovations' squared Mahalanobis distances are off chi-square(2)")
+    CONFIDENTLY_WRONG = ("confidently_wrong", Kind.RUN,
+                         "against ground truth, most errors lie beyond the 99.9% bound of "
+                         "their covariance")
+    OVERCONFIDENT = ("overconfident", Kind.RUN,
+                     "against ground truth, the covariances are too small")
+    IMU_BIAS = ("imu_bias", Kind.RUN,
+                "an IMU bias the run estimates lies beyond flight.yaml's prior")
+    IMU_NOISE = ("imu_noise", Kind.RUN,
+                 "the IMU samples scatter more than flight.yaml's noise densities")
+    CALIBRATION_SUSPECT = ("calibration_suspect", Kind.RUN,
+                           "the flight contradicts flight.yaml's camera calibration")
+    # -- notes ----------------------------------------------------------------------------
+    MAP_OFFSET_UNDECLARED = ("map_offset_undeclared", Kind.NOTE,
+                             "flight.yaml does not say how far the whole map may be off")
+    CALIBRATION_UNOBSERVABLE = ("calibration_unobservable", Kind.NOTE,
+                                "a calibration part this flight cannot tell")
+    CALIBRATION_UNRESOLVED = ("calibration_unresolved", Kind.NOTE,
+                              "the side solve tells the calibration poorly: the flight "
+                              "cannot check it")
+    CALIBRATION_HELD = ("calibration_held", Kind.NOTE,
+                        "a significant correction the positions do not feel")
+
+    @property
+    def fails(self) -> bool:
+        """Whether this reason makes a run FAILED (the others make it DEGRADED)."""
+        return self in FAILING
+
+
+#: The reasons that make a run FAILED: an estimate that is not a navigation result.
+FAILING = frozenset({Code.NOT_CONVERGED, Code.NO_FIX, Code.MISFIT, Code.WRONG_FIX,
+                     Code.CONFIDENTLY_WRONG})
