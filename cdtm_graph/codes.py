@@ -97,6 +97,11 @@ class Code(enum.StrEnum):
     CALIBRATION_HELD = ("calibration_held", Kind.NOTE,
                         "a significant correction the positions do not feel")
 
+    @classmethod
+    def of(cls, value: str) -> Code | None:
+        """The member whose string ``value`` is, or None (a code from elsewhere)."""
+        return cls._value2member_map_.get(value)  # type: ignore[return-value]
+
     @property
     def fails(self) -> bool:
         """Whether this reason makes a run FAILED (the others make it DEGRADED)."""

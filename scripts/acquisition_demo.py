@@ -26,6 +26,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cdtm_graph.errors import CdtmError
+from cdtm_graph.flightlog import FlightLog
+from cdtm_graph.geometry import make_pose, quat_wxyz_to_rotation, rotation_to_quat_wxyz
 from cdtm_graph.robust.acquisition import (
     AcquisitionResult,
     Verdict,
@@ -33,9 +36,6 @@ from cdtm_graph.robust.acquisition import (
     dead_reckoned_window,
     needs_acquisition,
 )
-from cdtm_graph.errors import CdtmError
-from cdtm_graph.flightlog import FlightLog
-from cdtm_graph.geometry import make_pose, quat_wxyz_to_rotation, rotation_to_quat_wxyz
 from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.smoother import SmootherSettings
 from cdtm_graph.studies.robustness import BASE, SCENARIOS, Mode

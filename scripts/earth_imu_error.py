@@ -34,15 +34,14 @@ import gtsam
 import numpy as np
 import yaml
 
-from cdtm_graph.verdict.evaluation import trajectory_errors
-from cdtm_graph.run.prepare import load_log_and_dtm
 from cdtm_graph.geodesy import GeodeticOrigin
 from cdtm_graph.graph import GraphSettings
 from cdtm_graph.imu import EarthImu, ImuIntervals, SampleHold, dead_reckoning, navstate_predict
 from cdtm_graph.outputs import TRAJECTORY_GEODETIC_CSV, write_run
-from cdtm_graph.sim.geodetic import write_geodetic_simulation
-from cdtm_graph.sim.simulate import SimulationSettings, simulate
+from cdtm_graph.run.prepare import load_log_and_dtm
+from cdtm_graph.sim.simulate import SimulationSettings, simulate, write_geodetic_simulation
 from cdtm_graph.smoother import SmootherMode, SmootherSettings, smooth
+from cdtm_graph.verdict.evaluation import trajectory_errors
 
 ORIGIN = GeodeticOrigin(36.5, 127.25, 120.0)
 CHECKPOINTS_S = (30.0, 60.0, 120.0, 200.0)

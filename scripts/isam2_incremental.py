@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from cdtm_graph.run.prepare import load_log_and_dtm
 from cdtm_graph.replay import replay
+from cdtm_graph.run.prepare import load_log_and_dtm
 from cdtm_graph.smoother import IncrementalSmoother, SmootherSettings
 
 SAMPLE_LOG = Path(__file__).resolve().parents[1] / "data" / "sample_flight"

@@ -31,7 +31,7 @@ from cdtm_graph.imu import (
 )
 from cdtm_graph.outputs import TRAJECTORY_GEODETIC_CSV, write_run
 from cdtm_graph.sim.faults import with_imu_gap
-from cdtm_graph.sim.geodetic import write_geodetic_simulation
+from cdtm_graph.sim.simulate import write_geodetic_simulation
 from cdtm_graph.sim.simulate import SimulationError, SimulationSettings, simulate
 from cdtm_graph.smoother import SmootherSettings, smooth
 
@@ -189,7 +189,7 @@ def test_both_smoothers_integrate_the_earth_unless_switched_off(noiseless):
     with ``earth_physics=False`` neither does."""
     from cdtm_graph.graph import insert_state
     from cdtm_graph.smoother import IncrementalSmoother
-    from cdtm_graph.smoother.batch import build_log_graph
+    from cdtm_graph.graph.log_graph import build_log_graph
 
     _, geo = noiseless
     log = geo.log
@@ -203,7 +203,7 @@ def test_both_smoothers_integrate_the_earth_unless_switched_off(noiseless):
     batch_error, newest_error = {}, {}
     for earth in (True, False):
         settings = SmootherSettings(graph=GraphSettings(earth_physics=earth))
-        batch_error[earth] = build_log_graph(log, geo.dtm, settings, values).base.error(values)
+        batch_error[earth] = build_log_graph(log, geo.dtm, settings.graph, values).base.error(values)
         smoother = IncrementalSmoother(log.config, geo.dtm, settings, imu=log.imu)
         for k in range(last + 1):
             update = smoother.add_frame(int(t[k]))

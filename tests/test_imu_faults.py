@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from cdtm_graph.graph import GraphSettings
+from cdtm_graph.imu import IMU_GAP_PERIODS, gap_after
 from cdtm_graph.verdict.imu_faults import (
-    IMU_GAP_PERIODS,
     SATURATION_MIN_SAMPLES,
     STUCK_MIN_SAMPLES,
     ImuCheckSettings,
@@ -22,7 +22,6 @@ from cdtm_graph.verdict.imu_faults import (
     check_imu,
     finding_frames,
     frame_flags,
-    gap_after,
 )
 from cdtm_graph.results import BiasPrior
 from cdtm_graph.run import smooth_and_evaluate

@@ -226,7 +226,8 @@ def test_a_fixed_lag_too_short_for_the_fix_search_is_refused_or_said():
     from cdtm_graph.flightlog import Frames, Tracks
     from cdtm_graph.smoother.batch import smooth
     from cdtm_graph.smoother.settings import SmootherMode, SmootherSettings
-    from cdtm_graph.verdict.rules import SMOOTHER_FLAG_TEXT, assess
+    from cdtm_graph.codes import Code
+    from cdtm_graph.verdict.rules import assess
 
     flight, dtm = simulate_flight(SimulationSettings(frames=14, n_features=60, seed=8))
     dt_s = float(np.diff(flight.frames.t_ns).max()) * 1e-9
@@ -270,6 +271,6 @@ def test_a_fixed_lag_too_short_for_the_fix_search_is_refused_or_said():
         flags[name] = results[name].flags
         assert len(results[name].estimate) == len(flight.frames)
     assert flags["short"].get(6) == ["search_beyond_lag"]
-    assert any(r.code == "search_beyond_lag" and r.message == SMOOTHER_FLAG_TEXT[r.code]
+    assert any(r.code == "search_beyond_lag" and r.message == Code(r.code).text
                for r in assess(results["short"]).reasons)
     assert "no_fix" in flags["long enough"].get(6, [])

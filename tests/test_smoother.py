@@ -115,7 +115,8 @@ def test_covariances_are_symmetric_positive_definite(batch_run):
 
 def test_marginals_match_gtsam_with_cholesky_and_with_qr(nominal_log, batch_run):
     """Our Bayes-tree marginals (Cholesky, or the QR fallback) equal gtsam.Marginals."""
-    from cdtm_graph.smoother.batch import build_log_graph, marginals
+    from cdtm_graph.graph.log_graph import build_log_graph
+    from cdtm_graph.optimizer import marginals
 
     flight, dtm = nominal_log
     settings = SmootherSettings()
@@ -127,7 +128,7 @@ def test_marginals_match_gtsam_with_cholesky_and_with_qr(nominal_log, batch_run)
         values.insert(X(k), gtsam.Pose3(est.world_T_body[k]))
         values.insert(V(k), est.velocity_mps[k])
         values.insert(B(k), gtsam.imuBias.ConstantBias(est.accel_bias[k], est.gyro_bias[k]))
-    graph = build_log_graph(flight, dtm, settings, values).graph
+    graph = build_log_graph(flight, dtm, settings.graph, values).graph
     reference = gtsam.Marginals(graph, values)
     for qr_only in (False, True):
         ours = marginals(graph, values, len(est), qr_only=qr_only)

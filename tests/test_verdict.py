@@ -38,14 +38,14 @@ from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.sim.faults import FlatGround, with_dtm_ending, with_imu_gap
 from cdtm_graph.sim.simulate import simulate_flight, write_simulated_log
 from cdtm_graph.smoother import SmootherMode, SmootherSettings
-from cdtm_graph.smoother.batch import build_log_graph
+from cdtm_graph.graph.log_graph import build_log_graph
 from cdtm_graph.studies.robustness import BASE, VerdictTask, judge
+from cdtm_graph.verdict.imu_faults import imu_gaps
 from cdtm_graph.verdict.rules import (
     Status,
     VerdictSettings,
     assess,
     fix_geometry,
-    imu_gaps,
     truncated_chi2_2dof_mean,
     window_half_width,
     window_information,
@@ -137,7 +137,7 @@ def flat_and_hilly():
         bias = initial_bias(flight.config.initial_state)
         for k in range(len(flight.frames)):
             insert_state(values, k, truth.world_T_body[k], truth.velocity_mps[k], bias)
-        built = build_log_graph(flight, dtm, SmootherSettings(), values)
+        built = build_log_graph(flight, dtm, SmootherSettings().graph, values)
         info = cdtm_information(built.cdtm, truth.world_T_body.__getitem__,
                                 len(flight.frames))
         out[name] = (info, truth.world_T_body[:, :3, 3])

@@ -7,7 +7,7 @@ Each builder returns its own factors; the smoothers merge them. Keys (DESIGN.md)
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import gtsam
@@ -164,7 +164,7 @@ class CdtmBuild:
 
 def cdtm_factors(
     pairs: Sequence[FramePairObservations],
-    world_T_body: dict[int, np.ndarray] | Sequence[np.ndarray],
+    world_T_body: Mapping[int, np.ndarray] | Sequence[np.ndarray],
     body_T_cam: np.ndarray,
     dtm: Dtm,
     noise: FeatureNoise,

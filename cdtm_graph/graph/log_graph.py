@@ -8,7 +8,7 @@ out of it between solves.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import gtsam
@@ -165,7 +165,20 @@ class _InitialGuess:
     settled, lagged, converging = 0, False, False
 
     def __init__(self, pose_guess: Callable[[int], np.ndarray], poses: list[np.ndarray]):
-        self.pose_guess, self.poses = pose_guess, poses
+        self.pose_guess = pose_guess
+        self.poses: Mapping[int, np.ndarray] | Sequence[np.ndarray] = poses
 
     def pair_prior(self) -> None:
         return None
+
+    def position_sigma_m(self) -> float:
+        return float("inf")
+
+    def forget_tracks(self, track_ids: np.ndarray, reason: Rejection) -> None:
+        raise AssertionError("a graph built from an initial guess judges no tracks")
+
+    def needs_fix(self, k: int) -> bool:
+        return False
+
+    def lag_holds_search(self) -> bool:
+        return True

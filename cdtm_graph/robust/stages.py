@@ -161,8 +161,8 @@ class HoldForFix:
     """While the fix is not acquired, the frame's sightings wait (``no_fix``) for a search
     over the newest frames (:class:`~cdtm_graph.robust.fix_search.FixSearch`)."""
 
-    name = "hold_for_fix"
-    rejects = (Rejection.NO_FIX,)
+    name: str = "hold_for_fix"
+    rejects: tuple[Rejection, ...] = (Rejection.NO_FIX,)
 
     def __init__(self, search: FixSearch):
         self.search = search
@@ -177,7 +177,9 @@ class HoldForFix:
             # lag cannot hold the frames a search needs: on unsearched, and said so
             work.flags.append(Code.SEARCH_BEYOND_LAG)
             return
-        seen = None if work.track_id is None else (work.track_id, work.uv_px)
+        seen = None
+        if work.track_id is not None and work.uv_px is not None:
+            seen = (work.track_id, work.uv_px)
         self.search.hold(k, seen)
         work.track_id = work.uv_px = None  # held back: no C-DTM factor until the fix
         work.flags.append(Code.NO_FIX)
@@ -187,8 +189,8 @@ class HoldUnfixed:
     """The batch's: frames whose sightings waited for a fix the incremental pass never
     found stay out (``no_fix``): their linearization would be a guess."""
 
-    name = "hold_for_fix"
-    rejects = (Rejection.NO_FIX,)
+    name: str = "hold_for_fix"
+    rejects: tuple[Rejection, ...] = (Rejection.NO_FIX,)
     settings = None
 
     def __init__(self, unfixed_frames: np.ndarray | None, rejections: Rejections):
@@ -207,8 +209,8 @@ class PairSightings:
     across them: :class:`~cdtm_graph.tracks.SightingPairs`). With a fixed lag, pairs with
     a frame that left the window are dropped (``too_old``) and old sightings forgotten."""
 
-    name = "pair_sightings"
-    rejects = (Rejection.WRONG_MATCH, Rejection.TOO_OLD)
+    name: str = "pair_sightings"
+    rejects: tuple[Rejection, ...] = (Rejection.WRONG_MATCH, Rejection.TOO_OLD)
 
     def __init__(self, pairing: SightingPairs,
                  on_forget: Sequence[Callable[[int], None]] = ()):
@@ -217,7 +219,7 @@ class PairSightings:
         self.on_forget = tuple(on_forget)  # others that keep sightings by frame
 
     def run(self, work: FrameWork, solver: SolverView) -> None:
-        if work.track_id is None or not len(work.track_id):
+        if work.track_id is None or work.uv_px is None or not len(work.track_id):
             return
         work.pairs = self.pairing.add_frame(work.k, work.track_id, work.uv_px,
                                             solver.pose_guess, solver.settled)
@@ -232,8 +234,8 @@ class KeepOutTracks:
     """Tracks already found off the map (by the track tests, or the batch's incremental
     pass) stay out of new pairs (``map_mismatch``)."""
 
-    name = "keep_out_tracks"
-    rejects = (Rejection.MAP_MISMATCH,)
+    name: str = "keep_out_tracks"
+    rejects: tuple[Rejection, ...] = (Rejection.MAP_MISMATCH,)
     settings = None
 
     def __init__(self, left_out: Callable[[], np.ndarray], rejections: Rejections):
@@ -251,8 +253,8 @@ class BuildFactors:
     (``missed_dtm``) or graze a ridge (``grazing``) out (:func:`~cdtm_graph.graph.
     builders.cdtm_factors`)."""
 
-    name = "build_factors"
-    rejects = (Rejection.MISSED_DTM, Rejection.GRAZING)
+    name: str = "build_factors"
+    rejects: tuple[Rejection, ...] = (Rejection.MISSED_DTM, Rejection.GRAZING)
 
     def __init__(self, body_T_cam: np.ndarray, dtm: Dtm, noise: FeatureNoise,
                  settings: GraphSettings, rejections: Rejections,
@@ -275,8 +277,8 @@ class GateInnovations:
     loose prior, the chi-square(2) gate (``gated``;
     :class:`~cdtm_graph.robust.gating.InnovationGate`)."""
 
-    name = "gate_innovations"
-    rejects = (Rejection.GATED,)
+    name: str = "gate_innovations"
+    rejects: tuple[Rejection, ...] = (Rejection.GATED,)
 
     def __init__(self, gate: InnovationGate, probability: float | None):
         self.gate = gate
@@ -299,8 +301,8 @@ class JudgeNewTracks:
     this frame's features and leave the solver (:class:`~cdtm_graph.robust.track_judge.
     TrackJudge`; its periodic rounds are the smoother's)."""
 
-    name = "judge_new_tracks"
-    rejects = (Rejection.MAP_MISMATCH, Rejection.WRONG_MATCH)
+    name: str = "judge_new_tracks"
+    rejects: tuple[Rejection, ...] = (Rejection.MAP_MISMATCH, Rejection.WRONG_MATCH)
 
     def __init__(self, judge: TrackJudge):
         self.judge = judge

@@ -15,13 +15,16 @@ import dataclasses
 import math
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import SimulationError
 from cdtm_graph.geodesy import GeodeticOrigin, LocalFrame, VerticalDatum, geoid_undulation_m
-from cdtm_graph.sim.simulate import SimulationResult
+
+if TYPE_CHECKING:  # (the simulator writes through this module)
+    from cdtm_graph.sim.simulate import SimulationResult
 
 #: Name of the DEM tile in a simulated geodetic log directory.
 GEODETIC_DEM_FILENAME = "dem.tif"
@@ -118,47 +121,7 @@ def write_dem_tile(terrain: Dtm, frame: LocalFrame, path: str | os.PathLike, crs
     return path
 
 
-def write_geodetic_simulation(result: SimulationResult, out_dir: str | os.PathLike,
-                              origin: GeodeticOrigin | None = None,
-                              dem_crs: str = "EPSG:4326", pixel_size: float | None = None,
-                              vertical_datum: VerticalDatum = VerticalDatum.EGM96) -> Path:
-    """Write a geodetic simulation as a GNSS user would have it: lat/lon and a DEM tile
-    (into a new directory that appears complete; :func:`write_geodetic_simulation_files`
-    for a caller that holds the staging directory).
-
-    The simulator's world is the ENU tangent plane at the result's origin
-    (``SimulationSettings.origin``); the log's DTM is written as a GeoTIFF in ``dem_crs``
-    (``dem.tif``, heights in ``vertical_datum``), and the initial state, nav.csv and
-    groundtruth.csv in latitude, longitude and ellipsoidal height. The IMU is the
-    simulator's, which senses the Earth's rotation and normal gravity.
-
-    Args:
-        result: a :func:`~cdtm_graph.sim.simulate.simulate` result with an origin.
-        out_dir: the log directory (appears complete or not at all).
-        origin: the result's origin (checked), or None.
-        dem_crs: CRS of the DEM tile.
-        pixel_size: in CRS units; None: 1 arc-second for a geographic CRS, else the DTM's
-            spacing.
-        vertical_datum: heights of the tile above the ellipsoid or the EGM96 geoid.
-
-    Returns:
-        The log directory.
-
-    Raises:
-        SimulationError: the result was simulated without that origin (its IMU would not
-            be the Earth's).
-    """
-    from cdtm_graph.atomic import atomic_output_dir
-    from cdtm_graph.sim.simulate import WRITER
-
-    _origin_of(result, origin)  # before the directory is made
-    with atomic_output_dir(out_dir, writer=WRITER) as tmp:
-        write_geodetic_simulation_files(result, tmp, origin, dem_crs, pixel_size,
-                                        vertical_datum)
-    return Path(out_dir)
-
-
-def _origin_of(result: SimulationResult, origin: GeodeticOrigin | None) -> GeodeticOrigin:
+def origin_of(result: SimulationResult, origin: GeodeticOrigin | None) -> GeodeticOrigin:
     have = result.log.config.origin
     if have is None:
         raise SimulationError("a flat simulation written as a geodetic log: its IMU does not "
@@ -182,13 +145,13 @@ def write_geodetic_simulation_files(result: SimulationResult, directory: Path,
         The names written.
 
     Raises:
-        SimulationError: as :func:`write_geodetic_simulation`.
+        SimulationError: as :func:`~cdtm_graph.sim.simulate.write_geodetic_simulation`.
     """
     from pyproj import CRS
 
     from cdtm_graph.flightlog.writer import write_flightlog_files
 
-    frame = LocalFrame(_origin_of(result, origin))
+    frame = LocalFrame(origin_of(result, origin))
     if pixel_size is None:
         pixel_size = (1.0 / 3600.0 if CRS.from_user_input(dem_crs).is_geographic
                       else result.dtm.grid_spacing_m)

@@ -25,8 +25,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cdtm_graph.constants import NS_PER_S
 from cdtm_graph.geodesy import LocalFrame
-from cdtm_graph.imu import NS_PER_S, ImuNoise
+from cdtm_graph.imu import ImuNoise
 from cdtm_graph.sim.trajectory import FlightPlan, Trajectory, evaluate
 
 

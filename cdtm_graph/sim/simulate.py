@@ -49,6 +49,7 @@ import numpy as np
 
 from cdtm_graph.atomic import atomic_output_dir
 from cdtm_graph.camera import DOWNWARD_BODY_T_CAM, DistortionModel, PinholeCamera
+from cdtm_graph.constants import NS_PER_S
 from cdtm_graph.dtm import Dtm, RayStatus, load_dtm, save_dtm_npz, sigma_h_from_grid_spacing
 from cdtm_graph.errors import CdtmError, SimulationError  # noqa: F401  (re-exported)
 from cdtm_graph.flightlog import (
@@ -65,15 +66,16 @@ from cdtm_graph.flightlog import (
     write_flightlog_files,
 )
 from cdtm_graph.flightlog.config import RESOLUTION_RANGE_PX
-from cdtm_graph.geodesy import GeodeticOrigin, local_frame, normal_gravity_mps2
+from cdtm_graph.geodesy import GeodeticOrigin, VerticalDatum, local_frame, normal_gravity_mps2
 from cdtm_graph.geometry import make_pose, rotation_to_quat_wxyz, so3_exp
-from cdtm_graph.imu import NS_PER_S, ImuNoise, dead_reckoning
+from cdtm_graph.imu import ImuNoise, dead_reckoning
 from cdtm_graph.sim.faults import (
     FlatGround,
     TerrainMismatch,
     apply_flat_ground,
     apply_terrain_mismatch,
 )
+from cdtm_graph.sim.geodetic import origin_of, write_geodetic_simulation_files
 from cdtm_graph.sim.imu import ImuData, simulate_imu
 from cdtm_graph.sim.render import write_images
 from cdtm_graph.sim.terrain import NOMINAL_CORRELATION_LENGTH_M, clone_basic_cell, fractal_terrain
@@ -562,8 +564,6 @@ def write_simulation_files(result: SimulationResult, directory: Path,
         if images is not None:
             raise SimulationError("images of a geodetic simulation: rendering a geodetic "
                                   "log is not supported yet; expected one of the two")
-        from cdtm_graph.sim.geodetic import write_geodetic_simulation_files
-
         write_geodetic_simulation_files(result, directory)
         return
     if images is not None:
@@ -574,6 +574,43 @@ def write_simulation_files(result: SimulationResult, directory: Path,
                                                      write_images(images, directory)))
     save_dtm_npz(result.dtm, directory / DTM_FILENAME)
     write_flightlog_files(log, directory, final_dir)
+
+
+def write_geodetic_simulation(result: SimulationResult, out_dir: str | Path,
+                              origin: GeodeticOrigin | None = None,
+                              dem_crs: str = "EPSG:4326", pixel_size: float | None = None,
+                              vertical_datum: VerticalDatum = VerticalDatum.EGM96) -> Path:
+    """Write a geodetic simulation as a GNSS user would have it: lat/lon and a DEM tile
+    (into a new directory that appears complete; :func:`write_geodetic_simulation_files`
+    for a caller that holds the staging directory).
+
+    The simulator's world is the ENU tangent plane at the result's origin
+    (``SimulationSettings.origin``); the log's DTM is written as a GeoTIFF in ``dem_crs``
+    (``dem.tif``, heights in ``vertical_datum``), and the initial state, nav.csv and
+    groundtruth.csv in latitude, longitude and ellipsoidal height. The IMU is the
+    simulator's, which senses the Earth's rotation and normal gravity.
+
+    Args:
+        result: a :func:`~cdtm_graph.sim.simulate.simulate` result with an origin.
+        out_dir: the log directory (appears complete or not at all).
+        origin: the result's origin (checked), or None.
+        dem_crs: CRS of the DEM tile.
+        pixel_size: in CRS units; None: 1 arc-second for a geographic CRS, else the DTM's
+            spacing.
+        vertical_datum: heights of the tile above the ellipsoid or the EGM96 geoid.
+
+    Returns:
+        The log directory.
+
+    Raises:
+        SimulationError: the result was simulated without that origin (its IMU would not
+            be the Earth's).
+    """
+    origin_of(result, origin)  # before the directory is made
+    with atomic_output_dir(out_dir, writer=WRITER) as tmp:
+        write_geodetic_simulation_files(result, tmp, origin, dem_crs, pixel_size,
+                                        vertical_datum)
+    return Path(out_dir)
 
 
 def simulate(settings: SimulationSettings) -> SimulationResult:

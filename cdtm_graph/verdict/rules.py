@@ -212,11 +212,11 @@ class RejectionRule:
             this share of all its offered features was left out for the rule's reasons.
     """
 
-    code: str
+    code: str  # a Code, or a Rejection's own value ("too_old": never flagged)
     min_fraction: float | None
     meaning: str
     min_run_fraction: float | None = None
-    failed: tuple[str, float, str] | None = None
+    failed: tuple[Code, float, str] | None = None
 
 
 #: Rejection reason value -> its rule. A reason not listed uses ``DEFAULT_REJECTION_RULE``.
@@ -476,7 +476,7 @@ def _no_features(f: _Frames, off_dtm: np.ndarray) -> FrameTest:
 
 
 def _rejection_tests(f: _Frames, settings: VerdictSettings
-                     ) -> tuple[list[FrameTest], list[tuple[str, str]]]:
+                     ) -> tuple[list[FrameTest], list[tuple[Code, str]]]:
     """One test per rejection code, its reasons' counts summed over each window; and the
     run-wide failures (:attr:`RejectionRule.failed`)."""
     by_code: dict[str, tuple[RejectionRule, list[str]]] = {}
@@ -487,7 +487,7 @@ def _rejection_tests(f: _Frames, settings: VerdictSettings
         by_code.setdefault(rule.code, (rule, []))[1].append(reason)
     offered = window_sum(f.offered, f.half)
     tests = []
-    failures: list[tuple[str, str]] = []
+    failures: list[tuple[Code, str]] = []
     for code, (rule, reasons) in by_code.items():
         left_out = {r: window_sum(f.rejected[r], f.half) for r in reasons}
         total = sum(left_out.values(), np.zeros(f.k))
@@ -578,7 +578,7 @@ def _imu_test(frame_t_ns: np.ndarray, imu_t_ns: np.ndarray | None,
 
 
 def _residual_checks(f: _Frames, result: SmootherResult, settings: VerdictSettings
-                     ) -> tuple[SelfChecks, FrameTest | None, list[tuple[str, str]],
+                     ) -> tuple[SelfChecks, FrameTest | None, list[tuple[Code, str]],
                                 list[str]]:
     """The self-checks, the per-window residual test, the run-wide failures and notes.
 
@@ -590,7 +590,7 @@ def _residual_checks(f: _Frames, result: SmootherResult, settings: VerdictSettin
     expected = truncated_chi2_2dof_mean(OUTLIER_TEST_PROBABILITY)
     within = f.features - f.outliers
     tolerance = settings.residual_chi2_tolerance
-    failures: list[tuple[str, str]] = []
+    failures: list[tuple[Code, str]] = []
     notes: list[str] = []
     window_within = window_sum(within, f.half)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -651,7 +651,7 @@ def _residual_checks(f: _Frames, result: SmootherResult, settings: VerdictSettin
 
 
 def _groundtruth_checks(errors: ErrorReport | None, settings: VerdictSettings
-                        ) -> list[tuple[str, str, int, int]]:
+                        ) -> list[tuple[Code, str, int, int]]:
     """``overconfident`` / ``confidently_wrong`` from the per-frame position NEES."""
     if errors is None or errors.position_nees is None:
         return []
@@ -794,7 +794,7 @@ def _map_offset_notes(result: SmootherResult) -> list[str]:
 
 
 def _bias_check(result: SmootherResult, t_s: np.ndarray, settings: VerdictSettings
-                ) -> list[tuple[str, str, int, int]]:
+                ) -> list[tuple[Code, str, int, int]]:
     """``imu_bias``: an IMU bias the run estimates lies beyond flight.yaml's prior. The
     prior holds the biases near its value, so the first frames' states bend to a wrong
     bias at a confident covariance (a gyro bias at 10 prior sigmas: the first frames 10-19
@@ -824,7 +824,7 @@ def _bias_check(result: SmootherResult, t_s: np.ndarray, settings: VerdictSettin
 
 
 def _noise_check(noise: MeasuredImuNoise | None, settings: VerdictSettings
-                 ) -> list[tuple[str, str]]:
+                 ) -> list[tuple[Code, str]]:
     """``imu_noise``: the IMU samples scatter more than flight.yaml's noise densities say.
     The preintegration's covariance then understates what it integrates, and the
     smoother pools the frames through it as if they were tied tighter than they are: 5x
@@ -865,7 +865,7 @@ def _calibration_notes(result: SmootherResult) -> list[str]:
             "near flight.yaml's value, with the prior's uncertainty in the covariances"]
 
 
-def _calibration_check(result: SmootherResult) -> tuple[list[tuple[str, str]], list[str]]:
+def _calibration_check(result: SmootherResult) -> tuple[list[tuple[Code, str]], list[str]]:
     """``calibration_suspect`` (a reason): the run held flight.yaml's calibration, and a
     batch side solve that estimates it finds it wrong beyond the run's covariance
     (:mod:`cdtm_graph.calibration.check`). Notes: ``calibration_held`` (a
@@ -897,8 +897,8 @@ def _smoother_flag(name: str, flags: Mapping[int, list[str]], k: int) -> FrameTe
     """A flag the smoother set that no rule here knows (its :class:`Code`'s text says
     what it means, if it is one): kept as it is."""
     def describe(a: int, b: int) -> str:
-        return Code(name).text if name in Code.__members__.values() else (
-            f"flagged '{name}' by the smoother")
+        code = Code.of(name)
+        return code.text if code is not None else f"flagged '{name}' by the smoother"
 
     return FrameTest(name, np.array([name in flags.get(j, []) for j in range(k)]), describe,
                      any_length=name in SMOOTHER_EVENTS)
