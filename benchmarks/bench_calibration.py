@@ -27,10 +27,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from interleaved import interleaved  # noqa: E402 (benchmarks/)
 
-from cdtm_graph.verdict.evaluation import trajectory_errors  # noqa: E402
 from cdtm_graph.graph import GraphSettings  # noqa: E402
 from cdtm_graph.smoother import SmootherMode, SmootherSettings  # noqa: E402
 from cdtm_graph.studies.robustness import BASE, SCENARIOS  # noqa: E402
+from cdtm_graph.verdict.evaluation import trajectory_errors  # noqa: E402
 
 
 def variants() -> dict[str, SmootherSettings]:

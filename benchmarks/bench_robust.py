@@ -37,9 +37,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from interleaved import interleaved  # noqa: E402 (benchmarks/)
 
-from cdtm_graph.verdict.evaluation import trajectory_errors  # noqa: E402
 from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight  # noqa: E402
 from cdtm_graph.smoother import SmootherMode, SmootherSettings, smooth  # noqa: E402
+from cdtm_graph.verdict.evaluation import trajectory_errors  # noqa: E402
 from factors import RobustKernel  # noqa: E402
 
 

@@ -31,7 +31,7 @@ from cdtm_graph.flightlog import FlightLog
 from cdtm_graph.geometry import make_pose, quat_wxyz_to_rotation, rotation_to_quat_wxyz
 from cdtm_graph.robust.acquisition import (
     AcquisitionResult,
-    Verdict,
+    FixVerdict,
     acquire,
     dead_reckoned_window,
     needs_acquisition,
@@ -126,7 +126,7 @@ def demo(name: str, frames: int = BASE.frames, window: int = 6,
     no_search = SmootherSettings(acquisition=None)
     runs = [("no search", log, no_search), ("as logged", log, None),
             ("clean prior", with_initial_pose(log, truth, 50.0, 1.0), None)]
-    if result.verdict is Verdict.ACQUIRED:
+    if result.verdict is FixVerdict.ACQUIRED:
         assert result.correction is not None
         pose, _ = result.correction.apply_to_state(init.world_T_body, init.velocity_mps)
         runs.insert(2, ("acquired", with_initial_pose(log, pose), no_search))

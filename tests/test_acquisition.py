@@ -16,18 +16,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cdtm_graph.robust.acquisition import (
-    AcquisitionFrame,
-    AcquisitionSettings,
-    Correction,
-    SearchPrior,
-    Verdict,
-    acquire,
-    dead_reckoned_window,
-    needs_acquisition,
-    separation_z,
-)
-from cdtm_graph.robust.acquisition.cloud import _bilinear, _triangulate_tracks
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import FlightLog, InitialState
@@ -39,6 +27,18 @@ from cdtm_graph.geometry import (
     so3_log,
 )
 from cdtm_graph.imu import dead_reckoning
+from cdtm_graph.robust.acquisition import (
+    AcquisitionFrame,
+    AcquisitionSettings,
+    Correction,
+    SearchPrior,
+    FixVerdict,
+    acquire,
+    dead_reckoned_window,
+    needs_acquisition,
+    separation_z,
+)
+from cdtm_graph.robust.acquisition.cloud import _bilinear, _triangulate_tracks
 from cdtm_graph.sim.faults import with_wrong_matches
 from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
 
@@ -86,7 +86,7 @@ def test_a_fix_1000_m_and_3_deg_off_is_acquired(far_flight, wrong_fraction):
         log = with_wrong_matches(log, wrong_fraction, np.random.default_rng(7))[0]
     result, frames = _acquire(log, dtm)
     true_offset, true_heading = _truth_correction(log, frames)
-    assert result.verdict is Verdict.ACQUIRED, result.reason
+    assert result.verdict is FixVerdict.ACQUIRED, result.reason
     assert np.linalg.norm(true_offset) > 900  # the prior really was that far off
     fix = result.correction
     assert fix is not None
@@ -101,7 +101,7 @@ def test_the_corrected_first_state_is_near_the_truth_in_all_six_degrees(far_flig
     3 deg about the body axes)."""
     log, dtm = simulate_flight(dataclasses.replace(FAR, initial_error_deg=(2.0, -2.0, 3.0)))
     result, frames = _acquire(log, dtm)
-    assert result.verdict is Verdict.ACQUIRED, result.reason
+    assert result.verdict is FixVerdict.ACQUIRED, result.reason
     pose, _ = result.correction.apply_to_state(frames[0].world_T_body,
                                                log.config.initial_state.velocity_mps)
     gt = log.groundtruth
@@ -126,7 +126,7 @@ def test_noiseless_window_is_corrected_to_the_truth():
     prior = dataclasses.replace(prior, velocity_world_mps=velocity)
     # (the exact DTM is the 5 m truth: search it on a 30 m grid all the same)
     result = acquire(frames, log.config.camera, dtm, prior, AcquisitionSettings(offset_step_m=30.0))
-    assert result.verdict is Verdict.ACQUIRED, result.reason
+    assert result.verdict is FixVerdict.ACQUIRED, result.reason
     pose, v = result.correction.apply_to_state(frames[0].world_T_body, velocity)
     assert np.linalg.norm(pose[:3, 3] - true_frames[0].world_T_body[:3, 3]) < 0.5
     assert np.degrees(np.linalg.norm(so3_log(
@@ -135,8 +135,8 @@ def test_noiseless_window_is_corrected_to_the_truth():
 
 
 @pytest.mark.parametrize("relief_m, verdicts", [
-    (0.0, {Verdict.NO_INFORMATION}),
-    (10.0, {Verdict.NO_INFORMATION, Verdict.AMBIGUOUS}),
+    (0.0, {FixVerdict.NO_INFORMATION}),
+    (10.0, {FixVerdict.NO_INFORMATION, FixVerdict.AMBIGUOUS}),
 ])
 def test_flat_terrain_is_never_acquired(relief_m, verdicts):
     log, dtm = simulate_flight(dataclasses.replace(FAR, relief_m=relief_m))
@@ -150,7 +150,7 @@ def test_repeating_terrain_is_ambiguous_and_lists_the_copies():
     copies of it, which fit the same."""
     log, dtm = simulate_flight(dataclasses.replace(FAR, terrain_cell_m=3000.0))
     result, frames = _acquire(log, dtm)
-    assert result.verdict is Verdict.AMBIGUOUS, result.reason
+    assert result.verdict is FixVerdict.AMBIGUOUS, result.reason
     assert result.correction is None
     true_offset, _ = _truth_correction(log, frames)
     tied = [h for h in result.hypotheses if h.separation_z < AcquisitionSettings().separation_z]
@@ -163,8 +163,8 @@ def test_repeating_terrain_is_ambiguous_and_lists_the_copies():
 
 
 @pytest.mark.parametrize("sigma_m, verdict", [
-    (200.0, Verdict.NO_INFORMATION),  # the truth 5 sigma out: nothing inside fits
-    (300.0, Verdict.AT_EDGE),  # 3.3 sigma: the best fix refines out of the region
+    (200.0, FixVerdict.NO_INFORMATION),  # the truth 5 sigma out: nothing inside fits
+    (300.0, FixVerdict.AT_EDGE),  # 3.3 sigma: the best fix refines out of the region
 ])
 def test_a_prior_that_misses_the_truth_is_not_acquired(far_flight, sigma_m, verdict):
     log, dtm = far_flight
@@ -180,7 +180,7 @@ def test_too_few_tracks_is_no_information(far_flight):
     frames, prior = dead_reckoned_window(log, WINDOW)
     few = [dataclasses.replace(f, track_id=f.track_id[:10], uv_px=f.uv_px[:10]) for f in frames]
     result = acquire(few, log.config.camera, dtm, prior)
-    assert result.verdict is Verdict.NO_INFORMATION
+    assert result.verdict is FixVerdict.NO_INFORMATION
     assert "triangulate" in result.reason
 
 
@@ -315,7 +315,7 @@ def test_the_demo_acquires_then_every_mode_smooths_as_from_a_clean_prior():
     consistent covariance."""
     demo = runpy.run_path(str(ROOT / "scripts" / "acquisition_demo.py"))["demo"]
     result, rows = demo("far300", frames=15)
-    assert result.verdict is Verdict.ACQUIRED, result.reason
+    assert result.verdict is FixVerdict.ACQUIRED, result.reason
     by = {(r.label, r.mode.value): r for r in rows}
     assert by[("no search", "isam2")].rmse_3d_m > 100.0  # what acquisition prevents
     for mode in ("batch", "isam2", "fixed_lag"):

@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 from gtsam.symbol_shorthand import X
 
+from cdtm_graph.calibration import check as calibration_check
+from cdtm_graph.calibration.check import thinned
 from cdtm_graph.flightlog import CalibrationSigmas, read_flightlog, write_flightlog
 from cdtm_graph.graph import GraphSettings
 from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.sim.faults import with_calibration_error
 from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
-from cdtm_graph.calibration import check as calibration_check
 from cdtm_graph.smoother import SmootherMode, SmootherSettings
-from cdtm_graph.calibration.check import thinned
 from cdtm_graph.studies.robustness import BASE, SCENARIOS
 from factors import CdtmPairFactor, PlaneMode, RobustKernel
 from factors.calibration import CALIBRATION_DIM, CalibrationLink

@@ -337,9 +337,9 @@ def test_a_flat_flight_smooths_the_same_over_npz_and_over_a_georeferenced_tile(t
 
     from cdtm_graph.dtm import save_dtm_npz
     from cdtm_graph.flightlog import DtmConfig, write_flightlog
-    from cdtm_graph.run.prepare import load_log_and_dtm
     from cdtm_graph.graph import GraphSettings
     from cdtm_graph.results import pose_covariance_in_world
+    from cdtm_graph.run.prepare import load_log_and_dtm
     from cdtm_graph.sim.simulate import SimulationSettings, simulate, write_simulation
     from cdtm_graph.smoother import SmootherSettings, smooth
 

@@ -16,9 +16,7 @@ import numpy as np
 import pytest
 import yaml
 
-from cdtm_graph.verdict.evaluation import trajectory_errors
 from cdtm_graph.flightlog import ImuSamples
-from cdtm_graph.run.prepare import load_log_and_dtm
 from cdtm_graph.geodesy import GeodeticOrigin, normal_gravity_mps2
 from cdtm_graph.graph import GraphSettings
 from cdtm_graph.imu import (
@@ -30,10 +28,16 @@ from cdtm_graph.imu import (
     navstate_predict,
 )
 from cdtm_graph.outputs import TRAJECTORY_GEODETIC_CSV, write_run
+from cdtm_graph.run.prepare import load_log_and_dtm
 from cdtm_graph.sim.faults import with_imu_gap
-from cdtm_graph.sim.simulate import write_geodetic_simulation
-from cdtm_graph.sim.simulate import SimulationError, SimulationSettings, simulate
+from cdtm_graph.sim.simulate import (
+    SimulationError,
+    SimulationSettings,
+    simulate,
+    write_geodetic_simulation,
+)
 from cdtm_graph.smoother import SmootherSettings, smooth
+from cdtm_graph.verdict.evaluation import trajectory_errors
 
 ORIGIN = GeodeticOrigin(36.5, 127.25, 120.0)
 #: The Earth model's dead reckoning may differ from the same flight's in a flat world by
@@ -188,8 +192,8 @@ def test_both_smoothers_integrate_the_earth_unless_switched_off(noiseless):
     incremental smoother with no camera constraint (IMU only) lands where the truth is;
     with ``earth_physics=False`` neither does."""
     from cdtm_graph.graph import insert_state
-    from cdtm_graph.smoother import IncrementalSmoother
     from cdtm_graph.graph.log_graph import build_log_graph
+    from cdtm_graph.smoother import IncrementalSmoother
 
     _, geo = noiseless
     log = geo.log
@@ -221,8 +225,8 @@ def test_the_acquisitions_correction_stays_dead_reckoning_on_the_earth(noiseless
     127 m, 0.6 m/s and 5.5 deg misplaces a 5 s window 13.5 km from the origin by 2.7 cm
     against dead reckoning from the corrected state (8 cm at 39 km), far below the DTM
     cell acquisition searches on: its propagation needs no Earth model."""
-    from cdtm_graph.robust.acquisition.window import Correction
     from cdtm_graph.geometry import rotation_to_quat_wxyz, so3_exp
+    from cdtm_graph.robust.acquisition.window import Correction
 
     _, geo = noiseless
     log = geo.log

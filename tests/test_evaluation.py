@@ -12,13 +12,6 @@ import pytest
 
 from cdtm_graph.camera import PinholeCamera
 from cdtm_graph.errors import FlightLogError
-from cdtm_graph.verdict.evaluation import (
-    POSE_DOF,
-    POSITION_DOF,
-    anees_band,
-    free_vs_compensated,
-    trajectory_errors,
-)
 from cdtm_graph.flightlog import (
     CameraConfig,
     DtmConfig,
@@ -35,6 +28,13 @@ from cdtm_graph.imu import SampleHold, dead_reckoning
 from cdtm_graph.results import StateCovariances, TrajectoryEstimate
 from cdtm_graph.sim.imu import simulate_imu
 from cdtm_graph.sim.trajectory import STANDARD_GRAVITY_MPS2, FlightPlan, evaluate
+from cdtm_graph.verdict.evaluation import (
+    POSE_DOF,
+    POSITION_DOF,
+    anees_band,
+    free_vs_compensated,
+    trajectory_errors,
+)
 from tests.manifold import random_rotation
 
 NS_PER_S = 1_000_000_000

@@ -5,7 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cdtm_graph.robust.gating import chi2_2dof_quantile, innovation_covariance, innovation_mahalanobis
+from cdtm_graph.robust.gating import (
+    chi2_2dof_quantile,
+    innovation_covariance,
+    innovation_mahalanobis,
+)
 
 
 def test_innovation_distance_is_chi_square_2_for_a_linear_gaussian_model(rng):

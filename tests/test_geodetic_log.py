@@ -14,8 +14,6 @@ import yaml
 from cdtm_graph.dem import import_dem
 from cdtm_graph.errors import DtmError
 from cdtm_graph.flightlog import DtmConfig, FlightLog, States, read_flightlog, write_flightlog
-from cdtm_graph.run.prepare import load_log_and_dtm
-from cdtm_graph.run.prepare import dem_region_m
 from cdtm_graph.flightlog.writer import _FlightYamlDumper
 from cdtm_graph.geodesy import (
     GeodeticOrigin,
@@ -31,6 +29,7 @@ from cdtm_graph.outputs import (
     write_run,
 )
 from cdtm_graph.results import pose_covariance_in_world
+from cdtm_graph.run.prepare import dem_region_m, load_log_and_dtm
 from tests.test_flightlog import _expect_error, _make_log
 from tests.test_outputs import _synthetic_result
 

@@ -22,7 +22,6 @@ import yaml
 from cdtm_graph.cli import main
 from cdtm_graph.errors import FlightLogError, SensorDataError
 from cdtm_graph.flightlog import FlightLog, read_flightlog, write_tracks
-from cdtm_graph.run.prepare import load_log_and_dtm
 from cdtm_graph.flightlog.importers import (
     BagTopics,
     DtmSource,
@@ -37,6 +36,7 @@ from cdtm_graph.flightlog.importers import (
 )
 from cdtm_graph.frontend import track_log
 from cdtm_graph.geometry import invert_pose
+from cdtm_graph.run.prepare import load_log_and_dtm
 from cdtm_graph.smoother import smooth
 from tests.sensor_files import IMAGE_TOPIC, IMU_TOPIC, write_bag, write_euroc, write_kalibr
 

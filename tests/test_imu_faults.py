@@ -14,6 +14,12 @@ import pytest
 
 from cdtm_graph.graph import GraphSettings
 from cdtm_graph.imu import IMU_GAP_PERIODS, gap_after
+from cdtm_graph.results import BiasPrior
+from cdtm_graph.run import smooth_and_evaluate
+from cdtm_graph.sim.faults import with_imu_gap
+from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
+from cdtm_graph.smoother import SmootherMode, SmootherSettings
+from cdtm_graph.studies.robustness import BASE
 from cdtm_graph.verdict.imu_faults import (
     SATURATION_MIN_SAMPLES,
     STUCK_MIN_SAMPLES,
@@ -21,14 +27,8 @@ from cdtm_graph.verdict.imu_faults import (
     ImuFault,
     check_imu,
     finding_frames,
-    frame_flags,
+    finding_flags,
 )
-from cdtm_graph.results import BiasPrior
-from cdtm_graph.run import smooth_and_evaluate
-from cdtm_graph.sim.faults import with_imu_gap
-from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
-from cdtm_graph.smoother import SmootherMode, SmootherSettings
-from cdtm_graph.studies.robustness import BASE
 
 RATE_HZ = 200.0
 PERIOD_NS = 5_000_000
@@ -68,7 +68,7 @@ def test_an_imu_gap_is_named_with_its_samples_and_frames(flight):
     assert gap.frames(gappy.frames.t_ns) == (8, 13)
     d = gap.to_dict(gappy.frames.t_ns)
     assert (d["code"], d["first_frame"], d["last_frame"]) == ("imu_gap", 8, 13)
-    flags = frame_flags(findings, gappy.frames.t_ns)
+    flags = finding_flags(findings, gappy.frames.t_ns)
     assert np.flatnonzero(flags["imu_gap"]).tolist() == list(range(8, 14))
 
 

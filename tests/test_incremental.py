@@ -9,9 +9,9 @@ import pytest
 
 from cdtm_graph.errors import SolverError
 from cdtm_graph.flightlog import ImuSamples
-from cdtm_graph.robust.gating import chi2_2dof_quantile
 from cdtm_graph.graph import GraphSettings
 from cdtm_graph.results import Rejection
+from cdtm_graph.robust.gating import chi2_2dof_quantile
 from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
 from cdtm_graph.smoother import IncrementalSmoother, SmootherMode, SmootherSettings, smooth
@@ -222,11 +222,11 @@ def test_a_fixed_lag_too_short_for_the_fix_search_is_refused_or_said():
     and its retry included (a check of the wrong held frame raised there). Needed later
     (a long gap grew the covariance): the frame goes on unsearched and is flagged, the
     run completes. A dropped stretch of frames does not stand for the frame interval."""
+    from cdtm_graph.codes import Code
     from cdtm_graph.errors import CdtmError
     from cdtm_graph.flightlog import Frames, Tracks
     from cdtm_graph.smoother.batch import smooth
     from cdtm_graph.smoother.settings import SmootherMode, SmootherSettings
-    from cdtm_graph.codes import Code
     from cdtm_graph.verdict.rules import assess
 
     flight, dtm = simulate_flight(SimulationSettings(frames=14, n_features=60, seed=8))

@@ -19,7 +19,6 @@ from scipy.stats import chi2
 
 from cdtm_graph.cli import main
 from cdtm_graph.errors import FlightLogError
-from cdtm_graph.verdict.evaluation import trajectory_errors
 from cdtm_graph.flightlog import read_flightlog
 from cdtm_graph.results import pose_covariance_in_world
 from cdtm_graph.sim.faults import with_map_offset
@@ -27,6 +26,7 @@ from cdtm_graph.sim.simulate import simulate_flight, write_simulated_log
 from cdtm_graph.smoother import SmootherMode, SmootherSettings, smooth
 from cdtm_graph.smoother.incremental import IncrementalSmoother
 from cdtm_graph.studies.robustness import BASE
+from cdtm_graph.verdict.evaluation import trajectory_errors
 from cdtm_graph.verdict.rules import assess
 
 #: The robustness study's flight (1800 m, 150 m/s, ~150 features, 1 fps), shortened.

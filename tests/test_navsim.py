@@ -13,7 +13,6 @@ from cdtm_graph.cli import build_parser
 from cdtm_graph.cli import main as cdtm_main
 from cdtm_graph.cli.navsim import OUTPUT_FILES, settings_from_args
 from cdtm_graph.errors import CdtmError, SimulationError
-from cdtm_graph.verdict.evaluation import AXES
 from cdtm_graph.sim.simulate import simulate
 from cdtm_graph.studies.navsim import (
     PAPER_TABLE1_M,
@@ -26,6 +25,7 @@ from cdtm_graph.studies.navsim import (
     table_csv,
     table_markdown,
 )
+from cdtm_graph.verdict.evaluation import AXES
 from tests.conftest import TEST_SEED
 
 #: Compensated (either kind) must beat Free by at least this factor: on each horizontal

@@ -10,9 +10,9 @@ import pytest
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import NoConstraintError
 from cdtm_graph.flightlog import FlightLog, Tracks
-from cdtm_graph.verdict.preflight import check_constraints, dtm_coverage
 from cdtm_graph.sim.simulate import SimulationResult, SimulationSettings, simulate
 from cdtm_graph.smoother import SmootherSettings, smooth
+from cdtm_graph.verdict.preflight import check_constraints, dtm_coverage
 from tests.conftest import TEST_SEED
 
 

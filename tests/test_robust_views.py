@@ -11,6 +11,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from cdtm_graph.dtm import Dtm, grazing_hits
+from cdtm_graph.geometry import make_pose, so3_exp, triangulate
+from cdtm_graph.results import StateCovariances
 from cdtm_graph.robust.clutter import (
     MAX_SHARE,
     Clutter,
@@ -20,9 +23,7 @@ from cdtm_graph.robust.clutter import (
     fit_clutter,
     with_vertical_bias,
 )
-from cdtm_graph.dtm import Dtm, grazing_hits
 from cdtm_graph.robust.epipolar import EpipolarSettings, _sampson_kernel, _sampson_terms, check_pair
-from cdtm_graph.geometry import make_pose, so3_exp, triangulate
 from cdtm_graph.robust.mismatch import (
     MismatchSettings,
     TrackHeights,
@@ -32,7 +33,6 @@ from cdtm_graph.robust.mismatch import (
     untrusted,
 )
 from cdtm_graph.robust.neighbours import ball_sums, near_any
-from cdtm_graph.results import StateCovariances
 from cdtm_graph.tracks import first_sightings, frames_seen, track_groups
 
 SIGMA_PX = 0.5

@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 
 from cdtm_graph.cli import main
+from cdtm_graph.constants import NS_PER_S
 from cdtm_graph.dtm import Dtm, load_dtm, save_dtm_npz
 from cdtm_graph.flightlog import read_flightlog
-from cdtm_graph.constants import NS_PER_S
 from cdtm_graph.sim.imu import ideal_imu
 from cdtm_graph.sim.simulate import (
     DTM_FILENAME,

@@ -9,8 +9,8 @@ import numpy as np
 
 from cdtm_graph.dtm import save_dtm_npz
 from cdtm_graph.flightlog import write_flightlog
-from cdtm_graph.run.prepare import load_log_and_dtm
 from cdtm_graph.run import smooth_and_evaluate
+from cdtm_graph.run.prepare import load_log_and_dtm
 from cdtm_graph.sim.simulate import DTM_FILENAME, SimulationSettings, simulate
 from cdtm_graph.smoother import SmootherSettings
 

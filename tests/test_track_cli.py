@@ -17,8 +17,8 @@ import pytest
 from cdtm_graph.cli import main
 from cdtm_graph.cli.track import REPORT_FORMAT
 from cdtm_graph.flightlog import read_flightlog
-from cdtm_graph.run.prepare import load_log_and_dtm
 from cdtm_graph.run import smooth_and_evaluate
+from cdtm_graph.run.prepare import load_log_and_dtm
 from cdtm_graph.sim.render import RenderSettings, render_flight
 from cdtm_graph.sim.simulate import SimulationSettings, simulate
 from cdtm_graph.smoother import SmootherSettings

@@ -16,7 +16,6 @@ from scipy import integrate
 from scipy.stats import chi2
 
 from cdtm_graph.cli import main
-from cdtm_graph.verdict.evaluation import CovarianceVerdict, NeesConsistency
 from cdtm_graph.geometry import (
     make_pose,
     rigid_motion_to_tangent,
@@ -24,6 +23,7 @@ from cdtm_graph.geometry import (
     so3_exp,
 )
 from cdtm_graph.graph import cdtm_information, insert_state
+from cdtm_graph.graph.log_graph import build_log_graph
 from cdtm_graph.imu import initial_bias
 from cdtm_graph.parallel import ParallelSettings, map_tasks
 from cdtm_graph.results import (
@@ -38,8 +38,8 @@ from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.sim.faults import FlatGround, with_dtm_ending, with_imu_gap
 from cdtm_graph.sim.simulate import simulate_flight, write_simulated_log
 from cdtm_graph.smoother import SmootherMode, SmootherSettings
-from cdtm_graph.graph.log_graph import build_log_graph
 from cdtm_graph.studies.robustness import BASE, VerdictTask, judge
+from cdtm_graph.verdict.evaluation import CovarianceVerdict, NeesConsistency
 from cdtm_graph.verdict.imu_faults import imu_gaps
 from cdtm_graph.verdict.rules import (
     Status,

@@ -162,7 +162,7 @@ def fit_clutter(heights: TrackHeights, settings: ClutterSettings | None = None) 
     return Clutter(ids, posterior, p, H, float(np.sqrt(tau2)), b, ratio, True)
 
 
-def assess(heights: TrackHeights, sigma_h_m: float, mismatch: MismatchSettings,
+def judge_with_clutter(heights: TrackHeights, sigma_h_m: float, mismatch: MismatchSettings,
            clutter: ClutterSettings | None) -> tuple[TrackJudgement, Clutter]:
     """Every view of a set of tracks: each alone and with its neighbourhood
     (:func:`cdtm_graph.robust.mismatch.judge`), and all of them as ground and clutter (the

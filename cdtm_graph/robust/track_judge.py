@@ -15,7 +15,12 @@ import numpy as np
 
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.results import Rejection, Rejections
-from cdtm_graph.robust.clutter import Clutter, ClutterSettings, assess, considered_offsets
+from cdtm_graph.robust.clutter import (
+    Clutter,
+    ClutterSettings,
+    considered_offsets,
+    judge_with_clutter,
+)
 from cdtm_graph.robust.mismatch import (
     MismatchSettings,
     TrackHeights,
@@ -156,7 +161,7 @@ class TrackJudge:
             return none, none
         # each frame's own position uncertainty: where features went, the poses are weak
         sigma = np.array([position_sigma_of(int(j)) for j in np.unique(frame)])
-        judgement, self.clutter = assess(self._heights(tid, frame, q, pose_of, sigma),
+        judgement, self.clutter = judge_with_clutter(self._heights(tid, frame, q, pose_of, sigma),
                                          self.noise.sigma_h_m, self.mismatch,
                                          self.clutter_settings)
         self._found_off = np.union1d(self._found_off, judgement.off_map)

@@ -3,7 +3,8 @@ judged over the whole flight at a solution, their tracks taken out of the log's 
 
 The incremental smoothers judge the same tests frame by frame
 (:class:`~cdtm_graph.robust.track_judge.TrackJudge`); both call
-:func:`~cdtm_graph.robust.mismatch.heights_at` and :func:`~cdtm_graph.robust.clutter.assess`.
+:func:`~cdtm_graph.robust.mismatch.heights_at` and
+:func:`~cdtm_graph.robust.clutter.judge_with_clutter`.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from cdtm_graph.calibration.online import CALIBRATION_KEY, calibrated_cameras
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.graph.log_graph import LogGraph
 from cdtm_graph.results import Rejection
-from cdtm_graph.robust.clutter import Clutter, ClutterSettings, assess
+from cdtm_graph.robust.clutter import Clutter, ClutterSettings, judge_with_clutter
 from cdtm_graph.robust.mismatch import MismatchSettings, TrackJudgement, heights_at, untrusted
 from factors import FeatureNoise
 
@@ -52,7 +53,7 @@ class BatchTrackTests:
         if built.twists is not None:  # the cameras as calibrated
             pose, body_T_cam, ray = calibrated_cameras(
                 pose, body_T_cam, ray, built.twists, values.atVector(CALIBRATION_KEY))
-        judged, self.clutter = assess(
+        judged, self.clutter = judge_with_clutter(
             heights_at(track_id, frame, ray, pose, body_T_cam, self.dtm, self.noise),
             self.noise.sigma_h_m, self.mismatch, self.clutter_settings)
         return judged

@@ -26,7 +26,7 @@ what the estimator does about it:
   that come from elsewhere.
 
 The estimator does not drop stuck or saturated samples (it names them and the frames
-they touch); it models gaps. :func:`finding_frames` and :func:`frame_flags` map findings
+they touch); it models gaps. :func:`finding_frames` and :func:`finding_flags` map findings
 to frames: a fault over ``[first_t_ns, last_t_ns]`` touches frame k >= 1 when the IMU
 interval ``[t_k-1, t_k]`` that predicts it overlaps the fault.
 """
@@ -232,7 +232,7 @@ def finding_frames(first_t_ns: int, last_t_ns: int,
     return int(k[0]) + 1, int(k[-1]) + 1
 
 
-def frame_flags(findings: list[ImuFinding], frame_t_ns: np.ndarray) -> dict[str, np.ndarray]:
+def finding_flags(findings: list[ImuFinding], frame_t_ns: np.ndarray) -> dict[str, np.ndarray]:
     """Per code, which frames the findings touch: ``{"imu_gap": (K,) bool, ...}`` (codes
     without findings left out)."""
     k = np.asarray(frame_t_ns).shape[0]

@@ -36,9 +36,9 @@ then applies :attr:`AcquisitionResult.correction` to its first state.
 
 from cdtm_graph.robust.acquisition.search import (
     AcquisitionResult,
+    FixVerdict,
     Hypothesis,
     SearchRegion,
-    Verdict,
     acquire,
     needs_acquisition,
     separation_z,
@@ -59,7 +59,7 @@ __all__ = [
     "Hypothesis",
     "SearchPrior",
     "SearchRegion",
-    "Verdict",
+    "FixVerdict",
     "acquire",
     "dead_reckoned_window",
     "needs_acquisition",

@@ -26,7 +26,7 @@ from cdtm_graph.robust.acquisition.window import (
 )
 
 
-class Verdict(enum.Enum):
+class FixVerdict(enum.Enum):
     """What the search concluded."""
 
     ACQUIRED = "acquired"              # one fix, clearly better than every other
@@ -104,7 +104,7 @@ class AcquisitionResult:
             beat a typical one by (NaN if the search did not get that far).
     """
 
-    verdict: Verdict
+    verdict: FixVerdict
     hypotheses: tuple[Hypothesis, ...]
     reason: str
     searched: SearchRegion
@@ -114,7 +114,7 @@ class AcquisitionResult:
     @property
     def correction(self) -> Correction | None:
         """The fix to apply: the best hypothesis when ACQUIRED, else None."""
-        if self.verdict is Verdict.ACQUIRED:
+        if self.verdict is FixVerdict.ACQUIRED:
             return self.hypotheses[0].correction
         return None
 
@@ -366,14 +366,14 @@ def acquire(frames: Sequence[AcquisitionFrame], camera: CameraConfig, dtm: Dtm,
 
     z = float("nan")
 
-    def done(verdict: Verdict, reason: str, hypotheses: Sequence[Hypothesis] = ()
+    def done(verdict: FixVerdict, reason: str, hypotheses: Sequence[Hypothesis] = ()
              ) -> AcquisitionResult:
         return AcquisitionResult(verdict, tuple(hypotheses), reason, region,
                                  time.perf_counter() - start, z)
 
     n_points = int(clouds[best].valid.sum())
     if n_points < s.min_tracks:
-        return done(Verdict.NO_INFORMATION,
+        return done(FixVerdict.NO_INFORMATION,
                     f"{n_points} tracks triangulate (of {window.n_tracks} seen twice or more "
                     f"in {len(frames)} frames), expected at least {s.min_tracks}")
 
@@ -384,14 +384,14 @@ def acquire(frames: Sequence[AcquisitionFrame], camera: CameraConfig, dtm: Dtm,
     region = replace(region, n_offsets=n_offsets,
                      search_headings_deg=tuple(float(np.degrees(h)) for h in search_headings))
     if typical is None:
-        return done(Verdict.NO_INFORMATION,
+        return done(FixVerdict.NO_INFORMATION,
                     "no offset of the search region puts the window's points over the DTM")
 
     # 4. Does the terrain say anything? The best offset against a typical one.
     z = separation_z(track_costs(problem, modes[0].cloud, modes[0].offset_xy),
                      track_costs(problem, typical.cloud, typical.offset_xy))
     if z < s.information_z:
-        return done(Verdict.NO_INFORMATION,
+        return done(FixVerdict.NO_INFORMATION,
                     f"the best offset fits the DTM no better than a typical one ({z:.1f} < "
                     f"{s.information_z:g} standard errors): the terrain under the window is "
                     "too flat or too unlike the DTM")
@@ -404,15 +404,15 @@ def acquire(frames: Sequence[AcquisitionFrame], camera: CameraConfig, dtm: Dtm,
     if rivals:
         listed = "; ".join(f"{_describe(h)} (z {h.separation_z:.1f})"
                            for h in [hypotheses[0], *rivals])
-        return done(Verdict.AMBIGUOUS, f"{len(rivals) + 1} fixes fit about equally well "
+        return done(FixVerdict.AMBIGUOUS, f"{len(rivals) + 1} fixes fit about equally well "
                     f"(best first, offsets from the prior mean): {listed}", hypotheses)
     if hypotheses[0].prior_sigmas > s.n_sigma:
-        return done(Verdict.AT_EDGE,
+        return done(FixVerdict.AT_EDGE,
                     f"the best fix, {_describe(hypotheses[0])} from the prior mean, lies "
                     f"{hypotheses[0].prior_sigmas:.1f} sigmas out, past the {s.n_sigma:g}-sigma "
                     "region searched: the truth may lie outside the prior", hypotheses)
     runner_up = (f"the next fix is {hypotheses[1].separation_z:.1f} standard errors worse"
                  if len(hypotheses) > 1 else "no other mode")
-    return done(Verdict.ACQUIRED,
+    return done(FixVerdict.ACQUIRED,
                 f"fix at {_describe(hypotheses[0])} from the prior mean; {runner_up}",
                 hypotheses)
