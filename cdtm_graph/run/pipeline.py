@@ -17,7 +17,8 @@ from cdtm_graph.results import SmootherResult, TrajectoryEstimate
 from cdtm_graph.smoother import Progress, SmootherSettings, smooth
 from cdtm_graph.verdict.evaluation import ErrorReport, free_vs_compensated, trajectory_errors
 from cdtm_graph.verdict.imu_faults import check_imu, sample_noise
-from cdtm_graph.verdict.rules import Verdict, VerdictSettings, assess
+from cdtm_graph.verdict.outcome import Verdict
+from cdtm_graph.verdict.rules import VerdictSettings, assess
 
 logger = logging.getLogger(__name__)
 

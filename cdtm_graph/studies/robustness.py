@@ -34,7 +34,7 @@ from cdtm_graph.sim.faults import (
 )
 from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
 from cdtm_graph.smoother import SmootherMode, SmootherSettings
-from cdtm_graph.verdict.rules import Verdict
+from cdtm_graph.verdict.outcome import Verdict
 
 #: The issue's flight: 1 fps, 150 m/s at 1800 m, ~150 features, 640x480, FOV 60 deg.
 BASE = SimulationSettings(frames=90, fps=1.0, speed_mps=150.0, altitude_m=1800.0,

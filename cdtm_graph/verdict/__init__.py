@@ -9,7 +9,7 @@ degraded or failed, and why).
 - :mod:`~cdtm_graph.verdict.fix_geometry`: what each frame's window of C-DTM information
   says about the fix (the paper's section V.B weak geometries).
 - :mod:`~cdtm_graph.verdict.rules`: :func:`assess`, the rules that turn all of it into a
-  :class:`Verdict`.
+  :class:`Verdict` (:mod:`~cdtm_graph.verdict.outcome`: the verdict as data).
 
 The wing judges results; it never imports the smoothers (``tests/test_layout.py``).
 ``from cdtm_graph.verdict import assess`` loads the rules on first use only, so that the
@@ -21,13 +21,16 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from cdtm_graph.verdict.rules import Reason, Status, Verdict, VerdictSettings, assess
+    from cdtm_graph.verdict.outcome import Reason, Status, Verdict
+    from cdtm_graph.verdict.rules import VerdictSettings, assess
 
+_WHERE = {"Reason": "outcome", "Status": "outcome", "Verdict": "outcome",
+          "VerdictSettings": "rules", "assess": "rules"}
 __all__ = ["Reason", "Status", "Verdict", "VerdictSettings", "assess"]
 
 
 def __getattr__(name: str) -> Any:
-    if name in __all__:
-        from cdtm_graph.verdict import rules
-        return getattr(rules, name)
+    if name in _WHERE:
+        import importlib
+        return getattr(importlib.import_module(f"cdtm_graph.verdict.{_WHERE[name]}"), name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

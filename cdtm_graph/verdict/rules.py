@@ -58,7 +58,6 @@ docs/verdict.md):
 
 from __future__ import annotations
 
-import enum
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -69,11 +68,18 @@ import numpy as np
 
 from cdtm_graph.codes import FAILING, Code
 from cdtm_graph.constants import NS_PER_S, chi2_2dof_quantile, chi2_quantile
-from cdtm_graph.geometry import rigid_motion_transfer
 from cdtm_graph.results import Rejection, SmootherResult
 from cdtm_graph.robust.gating import OUTLIER_TEST_PROBABILITY
 from cdtm_graph.verdict.evaluation import CovarianceVerdict, ErrorReport
+from cdtm_graph.verdict.fix_geometry import (
+    fix_geometry,
+    unit_height_information,
+    window_half_width,
+    window_information,
+    window_sum,
+)
 from cdtm_graph.verdict.imu_faults import MeasuredImuNoise, imu_gaps
+from cdtm_graph.verdict.outcome import Reason, SelfChecks, Status, Verdict
 
 
 def truncated_chi2_2dof_mean(probability: float) -> float:
@@ -82,117 +88,6 @@ def truncated_chi2_2dof_mean(probability: float) -> float:
     test of :func:`cdtm_graph.robust.gating.residual_test`."""
     c = chi2_2dof_quantile(probability)
     return 2.0 - c * (1.0 - probability) / probability
-
-
-class Status(enum.Enum):
-    """How far a run's outputs can be trusted."""
-
-    TRUSTED = "trusted"    # no weak stretch, every self-check inside its bounds
-    DEGRADED = "degraded"  # outputs usable where not flagged; read the reasons
-    FAILED = "failed"      # outputs written but not a navigation result
-
-    @property
-    def exit_code(self) -> int:
-        """The CLI's: 0 trusted, 3 outputs written but degraded or failed."""
-        return 0 if self is Status.TRUSTED else 3
-
-
-@dataclass(frozen=True)
-class Reason:
-    """One reason a run is not trusted.
-
-    Attributes:
-        code: machine-readable (a frame flag, or a run-wide check such as
-            ``residual_chi2``).
-        message: what was seen and what it means, in words.
-        first_frame, last_frame: frame indices of frames.csv the reason covers (the whole
-            run for run-wide checks).
-        status: what it makes the run (DEGRADED or FAILED).
-        t_first_s, t_last_s: the same frames' times since the first frame (s).
-    """
-
-    code: str
-    message: str
-    first_frame: int
-    last_frame: int
-    status: Status
-    t_first_s: float = 0.0
-    t_last_s: float = 0.0
-
-    def line(self) -> str:
-        """One line for a terminal: ``degraded: flat_terrain, frames 31-56 (31.0-56.0
-        s): ...``."""
-        frames = (f"frame {self.first_frame}" if self.first_frame == self.last_frame else
-                  f"frames {self.first_frame}-{self.last_frame}")
-        return (f"{self.status.value}: {self.code}, {frames} ({self.t_first_s:.1f}-"
-                f"{self.t_last_s:.1f} s): {self.message}")
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"code": self.code, "message": self.message, "first_frame": self.first_frame,
-                "last_frame": self.last_frame, "status": self.status.value,
-                "t_first_s": self.t_first_s, "t_last_s": self.t_last_s}
-
-
-@dataclass(frozen=True)
-class SelfChecks:
-    """Checks of the solution against its own noise model (no ground truth needed).
-
-    Attributes:
-        residual_chi2: residual chi-square of the features within the test over its
-            expectation, whole run (~1 expected); NaN without features.
-        residual_chi2_per_window: (K,) the same over each frame's window.
-        outlier_fraction: share of features beyond the chi-square(2) 99.9% test.
-        innovation_nis_median, innovation_nis_mean: of the innovations the incremental
-            gate tested (NaN in batch runs).
-        passed: every check inside its bounds.
-    """
-
-    residual_chi2: float
-    residual_chi2_per_window: np.ndarray
-    outlier_fraction: float
-    innovation_nis_median: float
-    innovation_nis_mean: float
-    passed: bool
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"residual_chi2": _finite(self.residual_chi2),
-                "residual_chi2_per_window": [_finite(v) for v in self.residual_chi2_per_window],
-                "outlier_fraction": _finite(self.outlier_fraction),
-                "innovation_nis_median": _finite(self.innovation_nis_median),
-                "innovation_nis_mean": _finite(self.innovation_nis_mean),
-                "passed": self.passed}
-
-
-@dataclass(frozen=True)
-class Verdict:
-    """The verdict on a run.
-
-    Attributes:
-        status: TRUSTED, DEGRADED or FAILED (the worst of the reasons').
-        reasons: why it is not trusted, in frame order, run-wide checks first.
-        flags: frame index -> the flags of that frame (every flagged frame, also on
-            stretches too short to be a reason).
-        self_checks: the checks without ground truth.
-        notes: what the user should hear that is no reason to distrust the run (a noise
-            model larger than the data's scatter).
-    """
-
-    status: Status
-    reasons: tuple[Reason, ...]
-    flags: dict[int, list[str]]
-    self_checks: SelfChecks
-    notes: tuple[str, ...] = ()
-
-    def lines(self) -> list[str]:
-        """One line per reason, then per note (what the CLI prints on stderr)."""
-        return [r.line() for r in self.reasons] + [f"note: {n}" for n in self.notes]
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"verdict": self.status.value,
-                "reasons": [r.to_dict() for r in self.reasons],
-                "notes": list(self.notes),
-                "flags": {int(k): list(v) for k, v in self.flags.items()},
-                "self_checks": self.self_checks.to_dict()}
 
 
 @dataclass(frozen=True)
@@ -337,106 +232,11 @@ class FrameTest:
     run_wide: str | None = None
 
 
-def window_half_width(t_ns: np.ndarray, window_s: float) -> int:
-    """Frames on each side of a frame in its window: ``window_s / 2`` over the median
-    frame interval, at least 1."""
-    if t_ns.size < 2:
-        return 1
-    dt_s = float(np.median(np.diff(t_ns))) / NS_PER_S
-    return max(1, int(round(0.5 * window_s / dt_s))) if dt_s > 0 else 1
-
-
-def window_sum(values: np.ndarray, half: int) -> np.ndarray:
-    """(K, ...) -> (K, ...) sums over frames ``k - half .. k + half`` (clipped to the run)."""
-    values = np.asarray(values, dtype=float)
-    k = values.shape[0]
-    cumulative = np.concatenate([np.zeros((1,) + values.shape[1:]), np.cumsum(values, axis=0)])
-    lo = np.clip(np.arange(k) - half, 0, k)
-    hi = np.clip(np.arange(k) + half + 1, 0, k)
-    return cumulative[hi] - cumulative[lo]
-
-
-def window_information(information: np.ndarray, position_m: np.ndarray, half: int
-                       ) -> np.ndarray:
-    """(K, 6, 6) C-DTM fix information of each frame's window, about that frame.
-
-    Each frame's information (``SmootherResult.cdtm_information``: [rotation,
-    translation], world axes, about its own position) is moved to the window's frame
-    (:func:`~cdtm_graph.geometry.rigid_motion_transfer`) and summed.
-    """
-    k = information.shape[0]
-    out = np.zeros_like(information)
-    for offset in range(-half, half + 1):
-        frames = np.arange(k)
-        other = frames + offset
-        inside = (other >= 0) & (other < k)
-        A = rigid_motion_transfer(position_m[other[inside]], position_m[frames[inside]])
-        out[inside] += np.swapaxes(A, 1, 2) @ information[other[inside]] @ A
-    return out
-
-
-def unit_height_information(information: np.ndarray) -> np.ndarray:
-    """(K, 6, 6) each frame's information scaled to unit height information (zero where
-    it has none), so that every frame of a window counts alike: a window half over a
-    lake then reads as half flat, not as flat as the lake's many features make the sum."""
-    height = information[:, 5, 5]
-    scale = np.where(height > 0, 1.0 / np.where(height > 0, height, 1.0), 0.0)
-    return information * scale[:, None, None]
-
-
-@dataclass(frozen=True)
-class FixGeometry:
-    """What each frame's window of C-DTM information says about the fix (world axes).
-
-    Attributes:
-        horizontal: (K,) information of the weakest horizontal direction, attitude held
-            (1/m^2).
-        vertical: (K,) information of height, attitude held (1/m^2).
-        attitude_free_fraction: (K,) share of ``horizontal`` left once the attitude is
-            free (Schur complement), NaN where ``horizontal`` is zero.
-    """
-
-    horizontal: np.ndarray
-    vertical: np.ndarray
-    attitude_free_fraction: np.ndarray
-
-    @property
-    def flatness(self) -> np.ndarray:
-        """(K,) horizontal over vertical information: about the squared RMS slope."""
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(self.vertical > 0, self.horizontal / self.vertical, np.nan)
-
-
-def fix_geometry(window_info: np.ndarray) -> FixGeometry:
-    """The eigen-structure of (K, 6, 6) window information [rotation, translation]."""
-    translation = window_info[:, 3:, 3:]
-    horizontal = np.linalg.eigvalsh(translation[:, :2, :2])[:, 0]
-    vertical = translation[:, 2, 2]
-    rotation = window_info[:, :3, :3]
-    cross = window_info[:, 3:, :3]
-    k = window_info.shape[0]
-    free = np.full(k, np.nan)
-    # the rotation block is singular only without any feature in the window
-    ok = np.linalg.matrix_rank(rotation, hermitian=True) == 3
-    if ok.any():
-        schur = translation[ok] - cross[ok] @ np.linalg.solve(
-            rotation[ok], np.swapaxes(cross[ok], 1, 2))
-        weakest = np.linalg.eigvalsh(schur[:, :2, :2])[:, 0]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            free[ok] = np.where(horizontal[ok] > 0, weakest / horizontal[ok], np.nan)
-    return FixGeometry(np.clip(horizontal, 0.0, None), vertical, free)
-
-
 def _stretches(flagged: np.ndarray) -> list[tuple[int, int]]:
     """(first, last) frames of each run of True."""
     padded = np.concatenate([[False], np.asarray(flagged, dtype=bool), [False]])
     change = np.flatnonzero(np.diff(padded.astype(np.int8)))
     return [(int(a), int(b) - 1) for a, b in zip(change[::2], change[1::2])]
-
-
-def _finite(value: float) -> float | None:
-    value = float(value)
-    return value if math.isfinite(value) else None
 
 
 def _pct(x: float) -> str:
