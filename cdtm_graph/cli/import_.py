@@ -9,6 +9,7 @@ from pathlib import Path, PurePosixPath
 from tqdm import tqdm
 
 from cdtm_graph.atomic import read_manifest
+from cdtm_graph.camera import DistortionModel
 from cdtm_graph.cli.outdir import OUT_RULES, add_force_option, output_dir
 from cdtm_graph.errors import CdtmError, OutputError
 from cdtm_graph.flightlog import (
@@ -20,10 +21,16 @@ from cdtm_graph.flightlog import (
     FlightLog,
     write_tracks,
 )
+from cdtm_graph.flightlog.importers.recording import ImuNoiseSource
 from cdtm_graph.geodesy import GeodeticOrigin, VerticalDatum
 
 #: Who writes an imported log (the output manifest's writer names).
 WRITERS = {"euroc": "import euroc", "rosbag": "import rosbag"}
+
+#: The lens models in words (the summary line).
+LENS_WORDS = {DistortionModel.NONE: "pinhole lens without distortion",
+              DistortionModel.RADTAN: "pinhole lens with radial-tangential distortion",
+              DistortionModel.EQUIDISTANT: "fisheye lens (equidistant distortion)"}
 
 _NEXT_STEP = ("next: cdtm track {log}  (features from the images into tracks.csv), then "
               "cdtm smooth {log} --out RUN")
@@ -86,6 +93,12 @@ def _common_options(p: argparse.ArgumentParser, kalibr_required: bool) -> None:
                           + ("" if kalibr_required else "; default: imu0/sensor.yaml"))
     cal.add_argument("--pixel-sigma-px", type=float, default=0.5,
                      help="1-sigma of a tracked feature's position (default %(default)s px)")
+    cal.add_argument("--imu-noise", choices=[s.value for s in ImuNoiseSource],
+                     default=ImuNoiseSource.STATED.value,
+                     help="the IMU noise densities flight.yaml gets: the calibration's "
+                          "(stated, default), or what the samples scatter where that is "
+                          "larger (measured: vibration included); the import measures them "
+                          "either way and says when the stated ones are below")
     dtm = p.add_argument_group("terrain")
     dtm.add_argument("--dtm", type=Path, action="append", required=True, metavar="DEM",
                      help="the DTM under the flight (.npz, .asc, .tif in the world frame); "
@@ -96,6 +109,12 @@ def _common_options(p: argparse.ArgumentParser, kalibr_required: bool) -> None:
                           "where they are)")
     dtm.add_argument("--dtm-sigma-h-m", type=float, metavar="M",
                      help="the DTM's 1-sigma height error (default: 0.08 x grid spacing)")
+    dtm.add_argument("--dtm-offset-sigma", type=float, nargs=2, metavar=("H", "V"),
+                     help="1-sigma of the whole map's horizontal and vertical offset (m: its "
+                          "registration and datum, a DEM product's absolute accuracy; 0 0 "
+                          "for a map exactly registered), into flight.yaml's "
+                          "dtm.horizontal_offset_sigma_m and dtm.vertical_offset_sigma_m; "
+                          "default: undeclared (smoothing then notes map_offset_undeclared)")
     dtm.add_argument("--origin", type=float, nargs=3, metavar=("LAT", "LON", "H"),
                      help="WGS84 latitude, longitude (deg), ellipsoidal height (m) of the "
                           "world origin: the world is the ENU plane there")
@@ -143,7 +162,8 @@ def _settings(args: argparse.Namespace):
     origin = GeodeticOrigin(*args.origin) if args.origin is not None else None
     datum = VerticalDatum(args.vertical_datum) if args.vertical_datum is not None else None
     dtm = DtmSource(tuple(args.dtm), args.dtm_sigma_h_m, origin, datum, args.dtm_crs,
-                    args.copy_dtm)
+                    args.copy_dtm, tuple(args.dtm_offset_sigma) if args.dtm_offset_sigma
+                    else None)
     initial = InitialPrior(
         position_m=args.initial_position,
         geodetic=tuple(args.initial_geodetic) if args.initial_geodetic else None,
@@ -152,7 +172,8 @@ def _settings(args: argparse.Namespace):
         sigma_position_m=args.sigma_position_m, sigma_attitude_deg=args.sigma_attitude_deg,
         sigma_velocity_mps=args.sigma_velocity_mps, sigma_gyro_bias=args.sigma_gyro_bias,
         sigma_accel_bias=args.sigma_accel_bias)
-    return ImportSettings(dtm, args.pixel_sigma_px, args.gravity_mps2, initial)
+    return ImportSettings(dtm, args.pixel_sigma_px, args.gravity_mps2, initial,
+                          ImuNoiseSource(args.imu_noise))
 
 
 def _refuse_foreign_log_files(out: Path, writer: str) -> None:
@@ -270,6 +291,20 @@ def _track(log: FlightLog, staging: Path, quiet: bool, sources: dict[str, str]):
     return result
 
 
+def _noise_line(log: FlightLog) -> str:
+    """The IMU noise densities the log got, and what the samples showed."""
+    imported = log.config.extra.get("import", {})
+    imu = log.config.imu
+    line = (f"IMU noise {imported.get('imu_noise_source', 'stated')}: "
+            f"{imu.gyroscope_noise_density:.3g} rad/s/sqrt(Hz), "
+            f"{imu.accelerometer_noise_density:.3g} m/s^2/sqrt(Hz)")
+    measured = imported.get("imu_noise_measured")
+    if measured:
+        gyro, accel = measured["measured_over_stated"]
+        line += f" (the samples scatter {gyro:.1f}x and {accel:.1f}x the calibration's)"
+    return line
+
+
 def _summary(log: FlightLog, out: Path, contents, tracked) -> str:
     imu_t, frame_t = log.imu.t_ns, log.frames.t_ns
     span_s = (frame_t[-1] - frame_t[0]) / 1e9
@@ -278,8 +313,9 @@ def _summary(log: FlightLog, out: Path, contents, tracked) -> str:
     lines = [f"wrote {out}: {len(log.frames)} frames over {span_s:.1f} s (images in "
              f"{out / 'images'}), {len(log.imu)} IMU samples ({rate_hz:.0f} Hz), "
              f"{'ground truth' if log.groundtruth is not None else 'no ground truth'}",
-             f"camera {cam.camera.width}x{cam.camera.height} {cam.camera.model.value}, "
-             f"time offset {cam.time_offset_s * 1e3:g} ms (t_imu = t_cam + offset)"]
+             f"camera {cam.camera.width}x{cam.camera.height} px, "
+             f"{LENS_WORDS[cam.camera.model]}, time offset {cam.time_offset_s * 1e3:g} ms "
+             "(t_imu = t_cam + offset)", _noise_line(log)]
     outside = log.config.extra.get("import", {}).get("frames_outside_imu", 0)
     if outside:
         lines.append(f"left out {outside} frames outside the IMU's time span")

@@ -20,6 +20,7 @@ from cdtm_graph.flightlog.importers.euroc import import_euroc, read_euroc
 from cdtm_graph.flightlog.importers.recording import (
     DtmSource,
     ImportSettings,
+    ImuNoiseSource,
     InitialPrior,
     SensorRecording,
     assemble_flightlog,
@@ -30,7 +31,7 @@ from cdtm_graph.flightlog.importers.rosbag import BagTopics, StampSource, import
 
 __all__ = [
     "BagTopics", "CameraCalibration", "DtmSource", "ImportSettings", "ImuCalibration",
-    "InitialPrior", "SensorRecording", "StampSource", "assemble_flightlog", "import_euroc",
-    "import_rosbag", "read_bag", "read_euroc", "read_euroc_sensor", "read_groundtruth",
-    "read_kalibr_camchain", "read_kalibr_imu", "write_imported_log",
+    "ImuNoiseSource", "InitialPrior", "SensorRecording", "StampSource", "assemble_flightlog",
+    "import_euroc", "import_rosbag", "read_bag", "read_euroc", "read_euroc_sensor",
+    "read_groundtruth", "read_kalibr_camchain", "read_kalibr_imu", "write_imported_log",
 ]
