@@ -1,4 +1,4 @@
-"""``cdtm import euroc|rosbag``: sensor recordings into a ``cdtm-flightlog/1`` directory."""
+"""``cdtm import euroc|rosbag|px4``: sensor recordings into a ``cdtm-flightlog/1`` directory."""
 
 from __future__ import annotations
 
@@ -21,11 +21,12 @@ from cdtm_graph.flightlog import (
     FlightLog,
     write_tracks,
 )
+from cdtm_graph.flightlog.importers.px4 import GnssSource, ImuAxes, ImuTopics
 from cdtm_graph.flightlog.importers.recording import ImuNoiseSource
 from cdtm_graph.geodesy import GeodeticOrigin, VerticalDatum
 
 #: Who writes an imported log (the output manifest's writer names).
-WRITERS = {"euroc": "import euroc", "rosbag": "import rosbag"}
+WRITERS = {"euroc": "import euroc", "rosbag": "import rosbag", "px4": "import px4"}
 
 #: The lens models in words (the summary line).
 LENS_WORDS = {DistortionModel.NONE: "pinhole lens without distortion",
@@ -38,7 +39,7 @@ _NEXT_STEP = ("next: cdtm track {log}  (features from the images into tracks.csv
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
-        "import", help="turn a EuRoC folder or a ROS bag into a flight log",
+        "import", help="turn a EuRoC folder, a ROS bag or a PX4 log into a flight log",
         description="Write a cdtm-flightlog/1 directory from sensor recordings: the IMU "
                     "samples, the frame stamps and images (into images/), the calibration "
                     "(Kalibr or EuRoC files) and ground truth when there is some. The log "
@@ -76,6 +77,37 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                           "state_groundtruth_estimate0, or latitude/longitude columns")
     _common_options(bag, kalibr_required=True)
     bag.set_defaults(func=run)
+
+    px4 = sub.add_parser(
+        "px4", help="a PX4 flight log (.ulg: IMU, camera triggers, GNSS) and its images",
+        description="Import a PX4 ULog file (read with pyulog: pip install 'cdtm-graph[px4]'): "
+                    "the IMU from sensor_combined (PX4's FRD body axes, or --imu-axes flu), "
+                    "frame times from camera_capture (or camera_trigger) matched in order "
+                    "to the images of --images DIR, ground truth and the initial state from "
+                    "the GNSS track and vehicle_attitude. The log is geodetic: its origin "
+                    "is --origin or the first GNSS fix, its DTM DEM tiles with "
+                    "--vertical-datum. The calibration comes from Kalibr files.")
+    px4.add_argument("ulog", type=Path, metavar="LOG.ulg", help="the PX4 log")
+    px4.add_argument("--images", type=Path, required=True, metavar="DIR",
+                     help="the camera's images, one per trigger, in file-name order")
+    px4.add_argument("--camera", default="cam0",
+                     help="the camchain's camera (default %(default)s)")
+    px4.add_argument("--imu-axes", choices=[a.value for a in ImuAxes],
+                     default=ImuAxes.FRD.value,
+                     help="the log's body axes: frd, PX4's own (default), or flu (x forward, "
+                          "y left, z up: ROS base_link, as mavros publishes the IMU), the "
+                          "axes the Kalibr calibration was made in")
+    px4.add_argument("--imu-topics", choices=[t.value for t in ImuTopics],
+                     default=ImuTopics.SENSOR_COMBINED.value,
+                     help="sensor_combined (calibrated, default) or raw (sensor_gyro and "
+                          "sensor_accel)")
+    px4.add_argument("--gnss", choices=[g.value for g in GnssSource],
+                     default=GnssSource.GPS.value,
+                     help="the ground truth's track: gps (vehicle_gps_position or sensor_gps, "
+                          "default) or global_position (vehicle_global_position, the "
+                          "estimator's)")
+    _common_options(px4, kalibr_required=True)
+    px4.set_defaults(func=run)
 
 
 def _common_options(p: argparse.ArgumentParser, kalibr_required: bool) -> None:
@@ -217,12 +249,16 @@ class _LazyBar:
 def run(args: argparse.Namespace) -> int:
     from cdtm_graph.flightlog.importers import import_euroc
 
+    if args.source == "px4":
+        _px4_origin(args)
     settings = _settings(args)  # checked before any reading
     out = Path(args.out)
     _refuse_foreign_log_files(out, WRITERS[args.source])
-    source = args.mav0 if args.source == "euroc" else args.bag
+    source = {"euroc": getattr(args, "mav0", None), "rosbag": getattr(args, "bag", None),
+              "px4": getattr(args, "ulog", None)}[args.source]
     protected = [source, *args.dtm, *(p for p in (args.kalibr, args.kalibr_imu,
-                                                  getattr(args, "groundtruth", None)) if p)]
+                                                  getattr(args, "groundtruth", None),
+                                                  getattr(args, "images", None)) if p)]
     names = [FLIGHT_YAML, IMU_CSV, FRAMES_CSV, *([TRACKS_CSV] if args.track else []),
              *(p.name for p in args.dtm if args.copy_dtm)]
     progress = _LazyBar("msg" if args.source == "rosbag" else "image", args.quiet)
@@ -233,6 +269,8 @@ def run(args: argparse.Namespace) -> int:
             log = import_euroc(args.mav0, staging, out, settings, kalibr=args.kalibr,
                                kalibr_imu=args.kalibr_imu, camera=args.camera, imu=args.imu,
                                progress=progress)
+        elif args.source == "px4":
+            log = _import_px4(args, staging, out, settings, progress)
         else:
             log, contents = _import_bag(args, staging, out, settings, progress)
         progress.close()
@@ -262,6 +300,32 @@ def _import_bag(args, staging: Path, out: Path, settings, progress):
                          stamps=StampSource(args.stamps), progress=progress)
 
 
+def _px4_origin(args: argparse.Namespace) -> None:
+    """A PX4 log is geodetic: a DEM's vertical datum is required, and the origin defaults to
+    the log's first GNSS fix."""
+    from cdtm_graph.errors import SensorDataError
+    from cdtm_graph.flightlog.importers.px4 import gnss_origin
+
+    if args.vertical_datum is None:
+        raise SensorDataError("a PX4 log is in latitude and longitude; expected --dtm DEM "
+                              "tiles with --vertical-datum (SRTM and Copernicus: egm96)")
+    if args.origin is None:
+        origin = gnss_origin(args.ulog, GnssSource(args.gnss))
+        args.origin = [origin.latitude_deg, origin.longitude_deg, origin.height_m]
+
+
+def _import_px4(args, staging: Path, out: Path, settings, progress):
+    from cdtm_graph.flightlog.importers import read_kalibr_camchain, read_kalibr_imu
+    from cdtm_graph.flightlog.importers.px4 import Px4Options, import_px4
+
+    options = Px4Options(ImuAxes(args.imu_axes), ImuTopics(args.imu_topics),
+                         GnssSource(args.gnss))
+    return import_px4(args.ulog, args.images, staging, out, settings,
+                      camera=read_kalibr_camchain(args.kalibr, args.camera),
+                      imu=read_kalibr_imu(args.kalibr_imu), options=options,
+                      progress=progress)
+
+
 def _image_sources(args: argparse.Namespace, log: FlightLog) -> dict[str, str]:
     """What the user knows each imported image as: the EuRoC file it was copied from, or
     the bag it was decoded from (the staging copies vanish with a failed import)."""
@@ -270,6 +334,8 @@ def _image_sources(args: argparse.Namespace, log: FlightLog) -> dict[str, str]:
 
         data = find_mav0(args.mav0) / args.camera / "data"
         return {name: str(data / PurePosixPath(name).name) for name in log.frames.image}
+    if args.source == "px4":
+        return {name: str(args.images / PurePosixPath(name).name) for name in log.frames.image}
     return {name: f"{args.bag} (image {PurePosixPath(name).name} decoded from "
                   f"{args.image_topic or 'the image topic'})" for name in log.frames.image}
 

@@ -24,6 +24,7 @@ import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from cdtm_graph.errors import FlightLogError, SensorDataError
@@ -226,6 +227,34 @@ class ImportSettings:
     gravity_mps2: float | None = None
     initial: InitialPrior = field(default_factory=InitialPrior)
     imu_noise: ImuNoiseSource = ImuNoiseSource.STATED
+
+
+def image_size_px(image: Path) -> tuple[int, int]:
+    """(width, height) of an image file.
+
+    Raises:
+        SensorDataError: it cannot be read as an image.
+    """
+    pixels = cv2.imread(str(image), cv2.IMREAD_UNCHANGED)
+    if pixels is None:
+        raise SensorDataError(f"{image}: cannot be read as an image; expected a PNG or "
+                              "another format OpenCV reads")
+    height, width = pixels.shape[:2]
+    return width, height
+
+
+def check_image_size(image: Path, cam: CameraCalibration) -> None:
+    """An image has the calibration's resolution (else a wrong camera or camchain).
+
+    Raises:
+        SensorDataError: naming the image and both sizes.
+    """
+    width, height = image_size_px(image)
+    c = cam.camera
+    if (width, height) != (c.width, c.height):
+        raise SensorDataError(f"{image}: {width}x{height} px but the calibration says "
+                              f"{c.width}x{c.height}; expected images of the calibrated "
+                              "camera")
 
 
 def read_groundtruth(path: str | os.PathLike, origin: GeodeticOrigin | None
