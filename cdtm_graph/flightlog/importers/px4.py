@@ -56,7 +56,7 @@ from cdtm_graph.flightlog.importers.recording import (
 )
 from cdtm_graph.flightlog.model import FlightLog, ImuSamples, States
 from cdtm_graph.geodesy import GeodeticOrigin, LocalFrame, geoid_undulation_m, local_frame
-from cdtm_graph.geometry import rotation_to_quat_wxyz
+from cdtm_graph.geometry import quat_wxyz_to_rotation, rotation_to_quat_wxyz
 
 logger = logging.getLogger(__name__)
 
@@ -527,6 +527,34 @@ def read_px4(path: str | os.PathLike, images_dir: str | os.PathLike, origin: Geo
     return recording, chosen
 
 
+#: At the first frame the camera's optical axis must point at least this far below the
+#: horizon (deg): a downward camera. A calibration in the other body axes (FLU for FRD)
+#: turns the mount half a turn about x, and the camera then looks up.
+MIN_CAMERA_DEPRESSION_DEG = 0.0
+
+
+def _check_camera_looks_down(log: FlightLog, axes: ImuAxes, shown: str) -> None:
+    """The camera looks below the horizon at the first frame, at the initial attitude.
+
+    Raises:
+        SensorDataError: it looks up, naming the likely cause (the calibration's axes).
+    """
+    state = log.config.initial_state
+    world_R_body = quat_wxyz_to_rotation(state.quaternion_wxyz)
+    frame = log.config.local_frame
+    up = (frame.world_R_enu_at(state.position_m[None])[0][:, 2] if frame is not None
+          else np.array([0.0, 0.0, 1.0]))  # the local vertical in the world frame
+    optical_axis = world_R_body @ log.config.camera.body_T_cam[:3, 2]
+    elevation_deg = float(np.degrees(np.arcsin(np.clip(optical_axis @ up, -1.0, 1.0))))
+    if -elevation_deg < MIN_CAMERA_DEPRESSION_DEG:
+        other = ImuAxes.FLU if axes is ImuAxes.FRD else ImuAxes.FRD
+        raise SensorDataError(
+            f"{shown}: with --imu-axes {axes.value} the camera looks {elevation_deg:.0f} deg "
+            f"above the horizon at the first frame; expected a camera looking down: is the "
+            f"Kalibr calibration in {other.value.upper()} axes (--imu-axes {other.value}; "
+            "mavros publishes the IMU in FLU)?")
+
+
 def import_px4(path: str | os.PathLike, images_dir: str | os.PathLike,
                directory: str | os.PathLike, final_dir: str | os.PathLike,
                settings: ImportSettings, *, camera: CameraCalibration, imu: ImuCalibration,
@@ -554,6 +582,7 @@ def import_px4(path: str | os.PathLike, images_dir: str | os.PathLike,
     directory = Path(directory)
     source_of = {f"{IMAGE_DIR}/{source.name}": source for source in sources}
     log = assemble_flightlog(recording, tuple(source_of), settings)
+    _check_camera_looks_down(log, options.axes, str(path))
     (directory / IMAGE_DIR).mkdir(parents=True, exist_ok=True)
     for k, name in enumerate(log.frames.image):
         shutil.copyfile(source_of[name], directory / name)
