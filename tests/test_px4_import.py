@@ -54,13 +54,14 @@ SITL = PX4_DATA / "px4_sitl_gnss_31s.ulg"
 needs_real_logs = pytest.mark.skipif(not PX4_DATA.is_dir(), reason=f"{PX4_DATA} absent")
 #: The imported log smooths to within this factor of its native log's RMSE (issue 23).
 RMSE_FACTOR = 1.2
-#: float32 samples (sensor_combined) against the native float64 ones: 2^-24 relative.
+#: float32 samples (sensor_combined) against the native float64 ones: rounding to float32
+#: is within 2^-24 relative (measured 2026-11-27: 5.9e-8 = 2^-24.0).
 FLOAT32_REL = 2.0 ** -23
 #: Ground truth through float32 velocities and quaternions, double latitudes (measured
-#: 2026-11-27: 2.4e-9 m, 2.0e-5 m/s, 6.2e-8 rad).
-TRUTH_POSITION_TOL_M = 1e-6
-TRUTH_VELOCITY_TOL_MPS = 1e-4
-TRUTH_ROTATION_TOL_RAD = 1e-6
+#: 2026-11-27: 2.1e-8 m, 7.6e-6 m/s, 7.3e-8 rad).
+TRUTH_POSITION_TOL_M = 1e-7
+TRUTH_VELOCITY_TOL_MPS = 3e-5
+TRUTH_ROTATION_TOL_RAD = 3e-7
 
 
 # --------------------------------------------------------------------------- simulated
@@ -114,7 +115,8 @@ def test_a_simulated_px4_log_imports_to_its_samples_frames_and_truth(flight, imp
     native FLU samples at their own times; the frames at the trigger times; the GNSS +
     attitude ground truth as the native truth, in a world placed at the first fix.
     Catches: FRD not turned into FLU, the half-period shift missing or doubled (times off by
-    2.5 ms), microseconds taken as nanoseconds, NED velocity or attitude left unrotated."""
+    2.5 ms), microseconds taken as nanoseconds, NED velocity or attitude left unrotated,
+    the ground truth written in world metres instead of latitude and longitude."""
     native = read_flightlog(flight / "native")
     log = read_flightlog(imported, read_tracks=False)
     np.testing.assert_array_equal(log.imu.t_ns, native.imu.t_ns)
@@ -143,6 +145,10 @@ def test_a_simulated_px4_log_imports_to_its_samples_frames_and_truth(flight, imp
         quat_wxyz_to_rotation(theirs[3])
     angle = np.arccos(np.clip((np.trace(relative, axis1=1, axis2=2) - 1) / 2, -1, 1))
     assert angle.max() < TRUTH_ROTATION_TOL_RAD
+    # Written as GNSS gives them: latitude, longitude, height (the geodetic log format).
+    assert (imported / "groundtruth.csv").read_text().startswith(
+        "#t_ns,latitude_deg,longitude_deg,height_m,")
+    assert "  latitude_deg: " in (imported / "flight.yaml").read_text()
     imported_extra = log.config.extra["import"]
     assert imported_extra["format"] == "px4" and imported_extra["imu_axes"] == "flu"
     assert imported_extra["groundtruth"] == "vehicle_gps_position + vehicle_attitude"

@@ -568,7 +568,8 @@ def import_px4(path: str | os.PathLike, images_dir: str | os.PathLike,
             fix's) and a vertical datum: PX4 positions are latitude and longitude.
 
     Returns:
-        The log as written and read back.
+        The log as written and read back: its initial state and groundtruth.csv in
+        latitude, longitude and height, as GNSS gives them.
     """
     origin = settings.dtm.origin
     if origin is None:
@@ -588,7 +589,7 @@ def import_px4(path: str | os.PathLike, images_dir: str | os.PathLike,
         shutil.copyfile(source_of[name], directory / name)
         if progress is not None:
             progress(k + 1, len(log.frames))
-    return write_imported_log(log, settings, directory, final_dir)
+    return write_imported_log(log, settings, directory, final_dir, geodetic=True)
 
 
 __all__ = ["CameraTriggers", "GnssSource", "GnssTrack", "ImuAxes", "ImuTopics", "Px4Options",

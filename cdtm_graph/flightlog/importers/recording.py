@@ -50,6 +50,7 @@ from cdtm_graph.flightlog.tables import (
 )
 from cdtm_graph.flightlog.writer import write_flightlog_files
 from cdtm_graph.geodesy import GeodeticOrigin, VerticalDatum, local_frame, normal_gravity_mps2
+from cdtm_graph.geometry import quat_wxyz_to_rotation
 from cdtm_graph.imu_faults import ImuNoise, sample_noise
 
 logger = logging.getLogger(__name__)
@@ -533,7 +534,7 @@ def _initial_state(recording: SensorRecording, t0_ns: int, prior: InitialPrior,
 
 
 def write_imported_log(log: FlightLog, settings: ImportSettings, directory: str | os.PathLike,
-                       final_dir: str | os.PathLike) -> FlightLog:
+                       final_dir: str | os.PathLike, geodetic: bool = False) -> FlightLog:
     """Write an assembled log's files (and copy its DTM when asked) into ``directory``.
 
     The images must already be there (the importer writes them as it reads). The log is
@@ -545,6 +546,9 @@ def write_imported_log(log: FlightLog, settings: ImportSettings, directory: str 
         settings: as given to it (the DTM files to copy).
         directory: where to write now (a staging directory).
         final_dir: where the log will live (messages, relative DTM paths).
+        geodetic: the initial state and ground truth in latitude, longitude and height
+            (a log with a geodetic origin; they then read back to rounding, not bit for
+            bit: :data:`GEODETIC_ROUND_TRIP_TOL_M`).
 
     Returns:
         The log as read back (root ``directory``).
@@ -560,21 +564,40 @@ def write_imported_log(log: FlightLog, settings: ImportSettings, directory: str 
                 sidecar = source.with_suffix(suffix)
                 if sidecar.is_file() and sidecar != source:
                     shutil.copyfile(sidecar, directory / sidecar.name)
-    write_flightlog_files(log, directory, final_dir)
+    write_flightlog_files(log, directory, final_dir, geodetic=geodetic)
     try:
         back = read_flightlog(directory, read_tracks=False)
     except FlightLogError as exc:
         raise FlightLogError(str(exc).replace(str(directory), str(final_dir))) from None
     expected = dataclasses.replace(log, root=back.root, config=dataclasses.replace(
         log.config, dtm=back.config.dtm))
-    _check_round_trip(expected, back, Path(final_dir))
+    _check_round_trip(expected, back, Path(final_dir), geodetic)
     return back
 
 
-def _check_round_trip(expected: FlightLog, back: FlightLog, shown: Path) -> None:
-    """The written log reads back as assembled (``body_T_cam`` to float rounding)."""
+#: States written in latitude, longitude and height read back within this (m, and m/s
+#: and rad for velocities and attitudes): PROJ's round trip is ~1e-9 m.
+GEODETIC_ROUND_TRIP_TOL_M = 1e-6
+
+
+def _same_states(a: States | None, b: States | None, geodetic: bool) -> bool:
+    if a is None or b is None or not geodetic:
+        return a == b
+    tol = GEODETIC_ROUND_TRIP_TOL_M
+    rotation = np.einsum("nji,njk->nik", quat_wxyz_to_rotation(a.quaternion_wxyz),
+                         quat_wxyz_to_rotation(b.quaternion_wxyz))
+    return (np.array_equal(a.t_ns, b.t_ns)
+            and np.allclose(a.position_m, b.position_m, rtol=0.0, atol=tol)
+            and np.allclose(a.velocity_mps, b.velocity_mps, rtol=0.0, atol=tol)
+            and np.allclose(rotation, np.eye(3), rtol=0.0, atol=tol))
+
+
+def _check_round_trip(expected: FlightLog, back: FlightLog, shown: Path,
+                      geodetic: bool = False) -> None:
+    """The written log reads back as assembled (``body_T_cam`` to float rounding, states
+    written in latitude and longitude to :data:`GEODETIC_ROUND_TRIP_TOL_M`)."""
     same = (back.imu == expected.imu and back.frames == expected.frames
-            and back.groundtruth == expected.groundtruth
+            and _same_states(back.groundtruth, expected.groundtruth, geodetic)
             and back.config.camera.camera == expected.config.camera.camera
             and back.config.camera.time_offset_s == expected.config.camera.time_offset_s
             and np.allclose(back.config.camera.body_T_cam, expected.config.camera.body_T_cam,
