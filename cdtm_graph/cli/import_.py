@@ -1,4 +1,4 @@
-"""``cdtm import euroc|rosbag``: sensor recordings into a ``cdtm-flightlog/1`` directory."""
+"""``cdtm import euroc|rosbag|px4``: sensor recordings into a ``cdtm-flightlog/1`` directory."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ from pathlib import Path, PurePosixPath
 from tqdm import tqdm
 
 from cdtm_graph.atomic import read_manifest
+from cdtm_graph.camera import DistortionModel
 from cdtm_graph.cli.outdir import OUT_RULES, add_force_option, output_dir
 from cdtm_graph.errors import CdtmError, OutputError
 from cdtm_graph.flightlog import (
@@ -20,10 +21,17 @@ from cdtm_graph.flightlog import (
     FlightLog,
     write_tracks,
 )
+from cdtm_graph.flightlog.importers.px4 import GnssSource, ImuAxes, ImuTopics
+from cdtm_graph.flightlog.importers.recording import ImuNoiseSource
 from cdtm_graph.geodesy import GeodeticOrigin, VerticalDatum
 
 #: Who writes an imported log (the output manifest's writer names).
-WRITERS = {"euroc": "import euroc", "rosbag": "import rosbag"}
+WRITERS = {"euroc": "import euroc", "rosbag": "import rosbag", "px4": "import px4"}
+
+#: The lens models in words (the summary line).
+LENS_WORDS = {DistortionModel.NONE: "pinhole lens without distortion",
+              DistortionModel.RADTAN: "pinhole lens with radial-tangential distortion",
+              DistortionModel.EQUIDISTANT: "fisheye lens (equidistant distortion)"}
 
 _NEXT_STEP = ("next: cdtm track {log}  (features from the images into tracks.csv), then "
               "cdtm smooth {log} --out RUN")
@@ -31,7 +39,7 @@ _NEXT_STEP = ("next: cdtm track {log}  (features from the images into tracks.csv
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
-        "import", help="turn a EuRoC folder or a ROS bag into a flight log",
+        "import", help="turn a EuRoC folder, a ROS bag or a PX4 log into a flight log",
         description="Write a cdtm-flightlog/1 directory from sensor recordings: the IMU "
                     "samples, the frame stamps and images (into images/), the calibration "
                     "(Kalibr or EuRoC files) and ground truth when there is some. The log "
@@ -70,6 +78,37 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _common_options(bag, kalibr_required=True)
     bag.set_defaults(func=run)
 
+    px4 = sub.add_parser(
+        "px4", help="a PX4 flight log (.ulg: IMU, camera triggers, GNSS) and its images",
+        description="Import a PX4 ULog file (read with pyulog: pip install 'cdtm-graph[px4]'): "
+                    "the IMU from sensor_combined (PX4's FRD body axes, or --imu-axes flu), "
+                    "frame times from camera_capture (or camera_trigger) matched in order "
+                    "to the images of --images DIR, ground truth and the initial state from "
+                    "the GNSS track and vehicle_attitude. The log is geodetic: its origin "
+                    "is --origin or the first GNSS fix, its DTM DEM tiles with "
+                    "--vertical-datum. The calibration comes from Kalibr files.")
+    px4.add_argument("ulog", type=Path, metavar="LOG.ulg", help="the PX4 log")
+    px4.add_argument("--images", type=Path, required=True, metavar="DIR",
+                     help="the camera's images, one per trigger, in file-name order")
+    px4.add_argument("--camera", default="cam0",
+                     help="the camchain's camera (default %(default)s)")
+    px4.add_argument("--imu-axes", choices=[a.value for a in ImuAxes],
+                     default=ImuAxes.FRD.value,
+                     help="the log's body axes: frd, PX4's own (default), or flu (x forward, "
+                          "y left, z up: ROS base_link, as mavros publishes the IMU), the "
+                          "axes the Kalibr calibration was made in")
+    px4.add_argument("--imu-topics", choices=[t.value for t in ImuTopics],
+                     default=ImuTopics.SENSOR_COMBINED.value,
+                     help="sensor_combined (calibrated, default) or raw (sensor_gyro and "
+                          "sensor_accel)")
+    px4.add_argument("--gnss", choices=[g.value for g in GnssSource],
+                     default=GnssSource.GPS.value,
+                     help="the ground truth's track: gps (vehicle_gps_position or sensor_gps, "
+                          "default) or global_position (vehicle_global_position, the "
+                          "estimator's)")
+    _common_options(px4, kalibr_required=True)
+    px4.set_defaults(func=run)
+
 
 def _common_options(p: argparse.ArgumentParser, kalibr_required: bool) -> None:
     p.add_argument("--out", type=Path, required=True, metavar="LOG",
@@ -86,6 +125,12 @@ def _common_options(p: argparse.ArgumentParser, kalibr_required: bool) -> None:
                           + ("" if kalibr_required else "; default: imu0/sensor.yaml"))
     cal.add_argument("--pixel-sigma-px", type=float, default=0.5,
                      help="1-sigma of a tracked feature's position (default %(default)s px)")
+    cal.add_argument("--imu-noise", choices=[s.value for s in ImuNoiseSource],
+                     default=ImuNoiseSource.STATED.value,
+                     help="the IMU noise densities flight.yaml gets: the calibration's "
+                          "(stated, default), or what the samples scatter where that is "
+                          "larger (measured: vibration included); the import measures them "
+                          "either way and says when the stated ones are below")
     dtm = p.add_argument_group("terrain")
     dtm.add_argument("--dtm", type=Path, action="append", required=True, metavar="DEM",
                      help="the DTM under the flight (.npz, .asc, .tif in the world frame); "
@@ -96,6 +141,12 @@ def _common_options(p: argparse.ArgumentParser, kalibr_required: bool) -> None:
                           "where they are)")
     dtm.add_argument("--dtm-sigma-h-m", type=float, metavar="M",
                      help="the DTM's 1-sigma height error (default: 0.08 x grid spacing)")
+    dtm.add_argument("--dtm-offset-sigma", type=float, nargs=2, metavar=("H", "V"),
+                     help="1-sigma of the whole map's horizontal and vertical offset (m: its "
+                          "registration and datum, a DEM product's absolute accuracy; 0 0 "
+                          "for a map exactly registered), into flight.yaml's "
+                          "dtm.horizontal_offset_sigma_m and dtm.vertical_offset_sigma_m; "
+                          "default: undeclared (smoothing then notes map_offset_undeclared)")
     dtm.add_argument("--origin", type=float, nargs=3, metavar=("LAT", "LON", "H"),
                      help="WGS84 latitude, longitude (deg), ellipsoidal height (m) of the "
                           "world origin: the world is the ENU plane there")
@@ -143,7 +194,8 @@ def _settings(args: argparse.Namespace):
     origin = GeodeticOrigin(*args.origin) if args.origin is not None else None
     datum = VerticalDatum(args.vertical_datum) if args.vertical_datum is not None else None
     dtm = DtmSource(tuple(args.dtm), args.dtm_sigma_h_m, origin, datum, args.dtm_crs,
-                    args.copy_dtm)
+                    args.copy_dtm, tuple(args.dtm_offset_sigma) if args.dtm_offset_sigma
+                    else None)
     initial = InitialPrior(
         position_m=args.initial_position,
         geodetic=tuple(args.initial_geodetic) if args.initial_geodetic else None,
@@ -152,7 +204,8 @@ def _settings(args: argparse.Namespace):
         sigma_position_m=args.sigma_position_m, sigma_attitude_deg=args.sigma_attitude_deg,
         sigma_velocity_mps=args.sigma_velocity_mps, sigma_gyro_bias=args.sigma_gyro_bias,
         sigma_accel_bias=args.sigma_accel_bias)
-    return ImportSettings(dtm, args.pixel_sigma_px, args.gravity_mps2, initial)
+    return ImportSettings(dtm, args.pixel_sigma_px, args.gravity_mps2, initial,
+                          ImuNoiseSource(args.imu_noise))
 
 
 def _refuse_foreign_log_files(out: Path, writer: str) -> None:
@@ -196,12 +249,16 @@ class _LazyBar:
 def run(args: argparse.Namespace) -> int:
     from cdtm_graph.flightlog.importers import import_euroc
 
+    if args.source == "px4":
+        _px4_origin(args)
     settings = _settings(args)  # checked before any reading
     out = Path(args.out)
     _refuse_foreign_log_files(out, WRITERS[args.source])
-    source = args.mav0 if args.source == "euroc" else args.bag
+    source = {"euroc": getattr(args, "mav0", None), "rosbag": getattr(args, "bag", None),
+              "px4": getattr(args, "ulog", None)}[args.source]
     protected = [source, *args.dtm, *(p for p in (args.kalibr, args.kalibr_imu,
-                                                  getattr(args, "groundtruth", None)) if p)]
+                                                  getattr(args, "groundtruth", None),
+                                                  getattr(args, "images", None)) if p)]
     names = [FLIGHT_YAML, IMU_CSV, FRAMES_CSV, *([TRACKS_CSV] if args.track else []),
              *(p.name for p in args.dtm if args.copy_dtm)]
     progress = _LazyBar("msg" if args.source == "rosbag" else "image", args.quiet)
@@ -212,6 +269,8 @@ def run(args: argparse.Namespace) -> int:
             log = import_euroc(args.mav0, staging, out, settings, kalibr=args.kalibr,
                                kalibr_imu=args.kalibr_imu, camera=args.camera, imu=args.imu,
                                progress=progress)
+        elif args.source == "px4":
+            log = _import_px4(args, staging, out, settings, progress)
         else:
             log, contents = _import_bag(args, staging, out, settings, progress)
         progress.close()
@@ -241,6 +300,32 @@ def _import_bag(args, staging: Path, out: Path, settings, progress):
                          stamps=StampSource(args.stamps), progress=progress)
 
 
+def _px4_origin(args: argparse.Namespace) -> None:
+    """A PX4 log is geodetic: a DEM's vertical datum is required, and the origin defaults to
+    the log's first GNSS fix."""
+    from cdtm_graph.errors import SensorDataError
+    from cdtm_graph.flightlog.importers.px4 import gnss_origin
+
+    if args.vertical_datum is None:
+        raise SensorDataError("a PX4 log is in latitude and longitude; expected --dtm DEM "
+                              "tiles with --vertical-datum (SRTM and Copernicus: egm96)")
+    if args.origin is None:
+        origin = gnss_origin(args.ulog, GnssSource(args.gnss))
+        args.origin = [origin.latitude_deg, origin.longitude_deg, origin.height_m]
+
+
+def _import_px4(args, staging: Path, out: Path, settings, progress):
+    from cdtm_graph.flightlog.importers import read_kalibr_camchain, read_kalibr_imu
+    from cdtm_graph.flightlog.importers.px4 import Px4Options, import_px4
+
+    options = Px4Options(ImuAxes(args.imu_axes), ImuTopics(args.imu_topics),
+                         GnssSource(args.gnss))
+    return import_px4(args.ulog, args.images, staging, out, settings,
+                      camera=read_kalibr_camchain(args.kalibr, args.camera),
+                      imu=read_kalibr_imu(args.kalibr_imu), options=options,
+                      progress=progress)
+
+
 def _image_sources(args: argparse.Namespace, log: FlightLog) -> dict[str, str]:
     """What the user knows each imported image as: the EuRoC file it was copied from, or
     the bag it was decoded from (the staging copies vanish with a failed import)."""
@@ -249,6 +334,8 @@ def _image_sources(args: argparse.Namespace, log: FlightLog) -> dict[str, str]:
 
         data = find_mav0(args.mav0) / args.camera / "data"
         return {name: str(data / PurePosixPath(name).name) for name in log.frames.image}
+    if args.source == "px4":
+        return {name: str(args.images / PurePosixPath(name).name) for name in log.frames.image}
     return {name: f"{args.bag} (image {PurePosixPath(name).name} decoded from "
                   f"{args.image_topic or 'the image topic'})" for name in log.frames.image}
 
@@ -270,6 +357,20 @@ def _track(log: FlightLog, staging: Path, quiet: bool, sources: dict[str, str]):
     return result
 
 
+def _noise_line(log: FlightLog) -> str:
+    """The IMU noise densities the log got, and what the samples showed."""
+    imported = log.config.extra.get("import", {})
+    imu = log.config.imu
+    line = (f"IMU noise {imported.get('imu_noise_source', 'stated')}: "
+            f"{imu.gyroscope_noise_density:.3g} rad/s/sqrt(Hz), "
+            f"{imu.accelerometer_noise_density:.3g} m/s^2/sqrt(Hz)")
+    measured = imported.get("imu_noise_measured")
+    if measured:
+        gyro, accel = measured["measured_over_stated"]
+        line += f" (the samples scatter {gyro:.1f}x and {accel:.1f}x the calibration's)"
+    return line
+
+
 def _summary(log: FlightLog, out: Path, contents, tracked) -> str:
     imu_t, frame_t = log.imu.t_ns, log.frames.t_ns
     span_s = (frame_t[-1] - frame_t[0]) / 1e9
@@ -278,8 +379,9 @@ def _summary(log: FlightLog, out: Path, contents, tracked) -> str:
     lines = [f"wrote {out}: {len(log.frames)} frames over {span_s:.1f} s (images in "
              f"{out / 'images'}), {len(log.imu)} IMU samples ({rate_hz:.0f} Hz), "
              f"{'ground truth' if log.groundtruth is not None else 'no ground truth'}",
-             f"camera {cam.camera.width}x{cam.camera.height} {cam.camera.model.value}, "
-             f"time offset {cam.time_offset_s * 1e3:g} ms (t_imu = t_cam + offset)"]
+             f"camera {cam.camera.width}x{cam.camera.height} px, "
+             f"{LENS_WORDS[cam.camera.model]}, time offset {cam.time_offset_s * 1e3:g} ms "
+             "(t_imu = t_cam + offset)", _noise_line(log)]
     outside = log.config.extra.get("import", {}).get("frames_outside_imu", 0)
     if outside:
         lines.append(f"left out {outside} frames outside the IMU's time span")

@@ -5,8 +5,10 @@
   ``camera.time_offset_s``, ``update_rate`` as ``imu.rate_hz``).
 - :mod:`~cdtm_graph.flightlog.importers.recording`: what every importer shares: the DTM,
   the prior, assembling and writing the log.
-- :mod:`~cdtm_graph.flightlog.importers.euroc` and
-  :mod:`~cdtm_graph.flightlog.importers.rosbag` (needs the ``rosbag`` extra): the readers.
+- :mod:`~cdtm_graph.flightlog.importers.euroc`,
+  :mod:`~cdtm_graph.flightlog.importers.rosbag` (needs the ``rosbag`` extra) and
+  :mod:`~cdtm_graph.flightlog.importers.px4` (PX4 ULog files; the ``px4`` extra): the
+  readers.
 """
 
 from cdtm_graph.flightlog.importers.calibration import (
@@ -17,9 +19,18 @@ from cdtm_graph.flightlog.importers.calibration import (
     read_kalibr_imu,
 )
 from cdtm_graph.flightlog.importers.euroc import import_euroc, read_euroc
+from cdtm_graph.flightlog.importers.px4 import (
+    GnssSource,
+    ImuAxes,
+    ImuTopics,
+    Px4Options,
+    import_px4,
+    read_px4,
+)
 from cdtm_graph.flightlog.importers.recording import (
     DtmSource,
     ImportSettings,
+    ImuNoiseSource,
     InitialPrior,
     SensorRecording,
     assemble_flightlog,
@@ -29,8 +40,9 @@ from cdtm_graph.flightlog.importers.recording import (
 from cdtm_graph.flightlog.importers.rosbag import BagTopics, StampSource, import_rosbag, read_bag
 
 __all__ = [
+    "GnssSource", "ImuAxes", "ImuTopics", "Px4Options", "import_px4", "read_px4",
     "BagTopics", "CameraCalibration", "DtmSource", "ImportSettings", "ImuCalibration",
-    "InitialPrior", "SensorRecording", "StampSource", "assemble_flightlog", "import_euroc",
-    "import_rosbag", "read_bag", "read_euroc", "read_euroc_sensor", "read_groundtruth",
-    "read_kalibr_camchain", "read_kalibr_imu", "write_imported_log",
+    "ImuNoiseSource", "InitialPrior", "SensorRecording", "StampSource", "assemble_flightlog",
+    "import_euroc", "import_rosbag", "read_bag", "read_euroc", "read_euroc_sensor",
+    "read_groundtruth", "read_kalibr_camchain", "read_kalibr_imu", "write_imported_log",
 ]

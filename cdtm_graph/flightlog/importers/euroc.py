@@ -22,7 +22,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
-import cv2
 import numpy as np
 
 from cdtm_graph.errors import SensorDataError
@@ -38,6 +37,7 @@ from cdtm_graph.flightlog.importers.recording import (
     SensorRecording,
     assemble_flightlog,
     check_prior,
+    image_size_px,
     read_groundtruth,
     write_imported_log,
 )
@@ -213,13 +213,8 @@ def _image_files(folder: EurocFolder, names: tuple[str, ...], first_line: int) -
 
 def _check_image_size(image: Path, cam: CameraCalibration, shown: Path, line: int) -> None:
     """The first image has the calibration's resolution (a wrong camera or camchain)."""
-    pixels = cv2.imread(str(image), cv2.IMREAD_UNCHANGED)
-    if pixels is None:
-        raise SensorDataError(f"{image}: cannot be read as an image; expected a PNG or "
-                              "another format OpenCV reads")
-    height, width = pixels.shape[:2]
+    width, height = image_size_px(image)
     c = cam.camera
     if (width, height) != (c.width, c.height):
         _fail(str(shown), line, f"image {image.name} is {width}x{height} px but the "
               f"calibration says {c.width}x{c.height}", "images of the calibrated camera")
-

@@ -2,8 +2,12 @@
 
 An importer (EuRoC folder, ROS bag) reads a :class:`SensorRecording`: IMU samples, camera
 stamps on the camera's clock, the calibration, optionally ground truth. What the sensors do
-not know comes from :class:`ImportSettings`: the DTM (and a geodetic origin), the pixel
-noise, and the initial state where no ground truth covers the first frame.
+not know comes from :class:`ImportSettings`: the DTM (and a geodetic origin, and the map's
+own offset sigmas), the pixel noise, the initial state where no ground truth covers the
+first frame, and whether the IMU noise densities are the stated ones or what the samples
+show (:class:`ImuNoiseSource`; the samples' scatter is measured at every import, by
+:func:`cdtm_graph.verdict.imu_faults.sample_noise`, and a stated density below it is said then,
+not only after smoothing).
 :func:`assemble_flightlog` makes the :class:`~cdtm_graph.flightlog.FlightLog`;
 :func:`write_imported_log` writes it (and copies the DTM when asked) into a directory the
 caller publishes (:func:`cdtm_graph.atomic.atomic_output_dir`), then reads it back: what
@@ -13,12 +17,14 @@ was written is what the smoother will read.
 from __future__ import annotations
 
 import dataclasses
+import enum
 import logging
 import os
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from cdtm_graph.constants import STANDARD_GRAVITY_MPS2
@@ -45,7 +51,9 @@ from cdtm_graph.flightlog.tables import (
 )
 from cdtm_graph.flightlog.writer import write_flightlog_files
 from cdtm_graph.geodesy import GeodeticOrigin, VerticalDatum, local_frame, normal_gravity_mps2
+from cdtm_graph.geometry import quat_wxyz_to_rotation
 from cdtm_graph.run.prepare import load_flight_dtm
+from cdtm_graph.verdict.imu_faults import MeasuredImuNoise, sample_noise
 
 logger = logging.getLogger(__name__)
 
@@ -82,6 +90,18 @@ class SensorRecording:
     provenance: dict = field(default_factory=dict)
 
 
+class ImuNoiseSource(enum.Enum):
+    """Which white-noise densities an imported log's flight.yaml gets (``--imu-noise``)."""
+
+    #: The calibration's (Kalibr, EuRoC sensor.yaml): a datasheet or an Allan variance at
+    #: rest, without the vibration of flight.
+    STATED = "stated"
+    #: What the samples themselves scatter (:func:`cdtm_graph.verdict.imu_faults.sample_noise`,
+    #: vibration included), the noisiest axis, where that exceeds the stated density; an
+    #: IMU that filters its output reads low, so a stated density is never lowered.
+    MEASURED = "measured"
+
+
 @dataclass(frozen=True)
 class DtmSource:
     """The DTM of an imported log (flight.yaml ``dtm:``; docs/flightlog.md, DTM files).
@@ -94,6 +114,9 @@ class DtmSource:
         vertical_datum: what the DEM heights are above (required with an origin).
         crs: the CRS of DEM files that carry none.
         copy: copy the files into the log (else flight.yaml names them where they are).
+        offset_sigma_m: (horizontal, vertical) 1-sigma of the whole map's offset (flight.yaml
+            ``dtm.horizontal_offset_sigma_m``, ``dtm.vertical_offset_sigma_m``: a DEM
+            product's absolute accuracy); None: not declared (the verdict's note).
     """
 
     paths: tuple[Path, ...]
@@ -102,6 +125,7 @@ class DtmSource:
     vertical_datum: VerticalDatum | None = None
     crs: str | None = None
     copy: bool = False
+    offset_sigma_m: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "paths", tuple(normalized_path(Path(p)) for p in self.paths))
@@ -118,6 +142,16 @@ class DtmSource:
             if not path.is_file():
                 raise SensorDataError(f"{path}: DTM file does not exist; expected an existing "
                                       "DTM or DEM file")
+        if self.offset_sigma_m is not None:
+            sigmas = tuple(float(v) for v in self.offset_sigma_m)
+            if len(sigmas) != 2:
+                raise SensorDataError(f"DTM offset sigmas {self.offset_sigma_m!r}: expected "
+                                      "two numbers, horizontal then vertical (m)")
+            for key, value in zip(DtmConfig.OFFSET_SIGMA_KEYS, sigmas):
+                limit = RANGES[f"dtm.{key}"]
+                if not limit.lo <= value <= limit.hi:
+                    raise SensorDataError(f"DTM {key} {value!r}: expected {limit}")
+            object.__setattr__(self, "offset_sigma_m", sigmas)
 
 
 @dataclass(frozen=True, eq=False)
@@ -187,12 +221,42 @@ class ImportSettings:
             ``camera.pixel_sigma_px``).
         gravity_mps2: gravity; None: 9.80665 m/s^2, or WGS84 normal gravity at the origin.
         initial: the initial state where ground truth does not give it, and its sigmas.
+        imu_noise: the calibration's noise densities, or the samples' own where larger.
     """
 
     dtm: DtmSource
     pixel_sigma_px: float = 0.5
     gravity_mps2: float | None = None
     initial: InitialPrior = field(default_factory=InitialPrior)
+    imu_noise: ImuNoiseSource = ImuNoiseSource.STATED
+
+
+def image_size_px(image: Path) -> tuple[int, int]:
+    """(width, height) of an image file.
+
+    Raises:
+        SensorDataError: it cannot be read as an image.
+    """
+    pixels = cv2.imread(str(image), cv2.IMREAD_UNCHANGED)
+    if pixels is None:
+        raise SensorDataError(f"{image}: cannot be read as an image; expected a PNG or "
+                              "another format OpenCV reads")
+    height, width = pixels.shape[:2]
+    return width, height
+
+
+def check_image_size(image: Path, cam: CameraCalibration) -> None:
+    """An image has the calibration's resolution (else a wrong camera or camchain).
+
+    Raises:
+        SensorDataError: naming the image and both sizes.
+    """
+    width, height = image_size_px(image)
+    c = cam.camera
+    if (width, height) != (c.width, c.height):
+        raise SensorDataError(f"{image}: {width}x{height} px but the calibration says "
+                              f"{c.width}x{c.height}; expected images of the calibrated "
+                              "camera")
 
 
 def read_groundtruth(path: str | os.PathLike, origin: GeodeticOrigin | None
@@ -297,17 +361,69 @@ def assemble_flightlog(recording: SensorRecording, images: tuple[str, ...],
         raise SensorDataError(f"pixel sigma {settings.pixel_sigma_px!r} px: expected "
                               f"{RANGES['camera.pixel_sigma_px']}")
     names = [Path(p.name) for p in dtm.paths] if dtm.copy else list(dtm.paths)
+    offsets = dtm.offset_sigma_m or (None, None)
     dtm_config = DtmConfig(names[0], dtm.sigma_h_m, (0.0, 0.0, 0.0), tuple(names[1:]),
-                           dtm.vertical_datum, dtm.crs)
+                           dtm.vertical_datum, dtm.crs, horizontal_offset_sigma_m=offsets[0],
+                           vertical_offset_sigma_m=offsets[1])
     initial = _initial_state(recording, int(frames.t_ns[0]), settings.initial, origin)
+    imu_config, noise = imu_noise_config(recording, settings.imu_noise)
     extra = {"import": {"source": recording.source, **recording.provenance,
-                        "frames_outside_imu": len(images) - len(frames)}}
-    config = FlightConfig(gravity, dtm_config, camera_config, recording.imu_config, initial,
+                        "frames_outside_imu": len(images) - len(frames),
+                        "imu_noise_source": settings.imu_noise.value,
+                        "imu_noise_measured": noise.to_dict() if noise is not None else None}}
+    config = FlightConfig(gravity, dtm_config, camera_config, imu_config, initial,
                           extra, origin)
     log = FlightLog(Path("."), config, recording.imu, frames, None, None,
                     recording.groundtruth)
     _check_dtm(log, dtm)
     return log
+
+
+def imu_noise_config(recording: SensorRecording, source: ImuNoiseSource
+                     ) -> tuple[ImuConfig, MeasuredImuNoise | None]:
+    """The IMU configuration an imported log gets, and the samples' measured noise.
+
+    The samples' white noise is measured (:func:`cdtm_graph.verdict.imu_faults.sample_noise`, as
+    the verdict measures it after smoothing). With the stated densities, one found above
+    them by more than the verdict's ``max_imu_noise_ratio`` is said now (a warning naming
+    the measured values): smoothing would end ``degraded: imu_noise``. With
+    :attr:`ImuNoiseSource.MEASURED` each density becomes its noisiest axis's measured
+    value where that is larger than the stated one.
+
+    Returns:
+        The configuration, and the measurement (None: under 10 samples).
+    """
+    from cdtm_graph.verdict import VerdictSettings  # the threshold smoothing will apply
+
+    stated = recording.imu_config
+    imu = recording.imu
+    noise = sample_noise(imu.t_ns, imu.gyro_radps, imu.acc_mps2,
+                         stated.gyroscope_noise_density, stated.accelerometer_noise_density)
+    if noise is None:
+        return stated, None
+    gyro, accel = float(np.max(noise.gyro_density)), float(np.max(noise.accel_density))
+    if source is ImuNoiseSource.MEASURED:
+        config = dataclasses.replace(
+            stated, gyroscope_noise_density=max(gyro, stated.gyroscope_noise_density),
+            accelerometer_noise_density=max(accel, stated.accelerometer_noise_density))
+        for key in ("gyroscope_noise_density", "accelerometer_noise_density"):
+            limit = RANGES[f"imu.{key}"]
+            if not getattr(config, key) <= limit.hi:
+                raise SensorDataError(f"{recording.source}: the IMU samples scatter as a "
+                                      f"{key} of {getattr(config, key):.3g}; expected "
+                                      f"{limit} (a stuck clock, or values in other units)")
+        return config, noise
+    gyro_ratio, accel_ratio = noise.ratios
+    if max(gyro_ratio, accel_ratio) > VerdictSettings().max_imu_noise_ratio:
+        logger.warning(
+            "%s: the IMU samples scatter %.1fx (gyro) and %.1fx (accelerometer) the stated "
+            "noise densities: measured %.3g rad/s/sqrt(Hz) and %.3g m/s^2/sqrt(Hz) (median "
+            "axis; noisiest %.3g and %.3g) against %.3g and %.3g stated (vibration counts); "
+            "smoothing will say degraded: imu_noise; --imu-noise measured takes the "
+            "measured values", recording.source, gyro_ratio, accel_ratio,
+            float(np.median(noise.gyro_density)), float(np.median(noise.accel_density)),
+            gyro, accel, stated.gyroscope_noise_density, stated.accelerometer_noise_density)
+    return stated, noise
 
 
 def _check_dtm(log: FlightLog, dtm: DtmSource) -> None:
@@ -419,7 +535,7 @@ def _initial_state(recording: SensorRecording, t0_ns: int, prior: InitialPrior,
 
 
 def write_imported_log(log: FlightLog, settings: ImportSettings, directory: str | os.PathLike,
-                       final_dir: str | os.PathLike) -> FlightLog:
+                       final_dir: str | os.PathLike, geodetic: bool = False) -> FlightLog:
     """Write an assembled log's files (and copy its DTM when asked) into ``directory``.
 
     The images must already be there (the importer writes them as it reads). The log is
@@ -431,6 +547,9 @@ def write_imported_log(log: FlightLog, settings: ImportSettings, directory: str 
         settings: as given to it (the DTM files to copy).
         directory: where to write now (a staging directory).
         final_dir: where the log will live (messages, relative DTM paths).
+        geodetic: the initial state and ground truth in latitude, longitude and height
+            (a log with a geodetic origin; they then read back to rounding, not bit for
+            bit: :data:`GEODETIC_ROUND_TRIP_TOL_M`).
 
     Returns:
         The log as read back (root ``directory``).
@@ -446,21 +565,40 @@ def write_imported_log(log: FlightLog, settings: ImportSettings, directory: str 
                 sidecar = source.with_suffix(suffix)
                 if sidecar.is_file() and sidecar != source:
                     shutil.copyfile(sidecar, directory / sidecar.name)
-    write_flightlog_files(log, directory, final_dir)
+    write_flightlog_files(log, directory, final_dir, geodetic=geodetic)
     try:
         back = read_flightlog(directory, read_tracks=False)
     except FlightLogError as exc:
         raise FlightLogError(str(exc).replace(str(directory), str(final_dir))) from None
     expected = dataclasses.replace(log, root=back.root, config=dataclasses.replace(
         log.config, dtm=back.config.dtm))
-    _check_round_trip(expected, back, Path(final_dir))
+    _check_round_trip(expected, back, Path(final_dir), geodetic)
     return back
 
 
-def _check_round_trip(expected: FlightLog, back: FlightLog, shown: Path) -> None:
-    """The written log reads back as assembled (``body_T_cam`` to float rounding)."""
+#: States written in latitude, longitude and height read back within this (m, and m/s
+#: and rad for velocities and attitudes): PROJ's round trip is ~1e-9 m.
+GEODETIC_ROUND_TRIP_TOL_M = 1e-6
+
+
+def _same_states(a: States | None, b: States | None, geodetic: bool) -> bool:
+    if a is None or b is None or not geodetic:
+        return a == b
+    tol = GEODETIC_ROUND_TRIP_TOL_M
+    rotation = np.einsum("nji,njk->nik", quat_wxyz_to_rotation(a.quaternion_wxyz),
+                         quat_wxyz_to_rotation(b.quaternion_wxyz))
+    return (np.array_equal(a.t_ns, b.t_ns)
+            and np.allclose(a.position_m, b.position_m, rtol=0.0, atol=tol)
+            and np.allclose(a.velocity_mps, b.velocity_mps, rtol=0.0, atol=tol)
+            and np.allclose(rotation, np.eye(3), rtol=0.0, atol=tol))
+
+
+def _check_round_trip(expected: FlightLog, back: FlightLog, shown: Path,
+                      geodetic: bool = False) -> None:
+    """The written log reads back as assembled (``body_T_cam`` to float rounding, states
+    written in latitude and longitude to :data:`GEODETIC_ROUND_TRIP_TOL_M`)."""
     same = (back.imu == expected.imu and back.frames == expected.frames
-            and back.groundtruth == expected.groundtruth
+            and _same_states(back.groundtruth, expected.groundtruth, geodetic)
             and back.config.camera.camera == expected.config.camera.camera
             and back.config.camera.time_offset_s == expected.config.camera.time_offset_s
             and np.allclose(back.config.camera.body_T_cam, expected.config.camera.body_T_cam,
