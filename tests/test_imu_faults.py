@@ -26,8 +26,8 @@ from cdtm_graph.verdict.imu_faults import (
     ImuCheckSettings,
     ImuFault,
     check_imu,
-    finding_frames,
     finding_flags,
+    finding_frames,
 )
 
 RATE_HZ = 200.0

@@ -21,7 +21,7 @@ import pytest
 
 from cdtm_graph.cli import main
 from cdtm_graph.errors import SensorDataError
-from cdtm_graph.flightlog import load_log_and_dtm, read_flightlog
+from cdtm_graph.flightlog import read_flightlog
 from cdtm_graph.flightlog.importers.px4 import (
     ENU_R_NED,
     FLU_R_FRD,
@@ -40,6 +40,7 @@ from cdtm_graph.flightlog.importers.px4 import (
 from cdtm_graph.geodesy import GeodeticOrigin, local_frame
 from cdtm_graph.geometry import quat_wxyz_to_rotation
 from cdtm_graph.run import smooth_and_evaluate
+from cdtm_graph.run.prepare import load_log_and_dtm
 from cdtm_graph.sim.simulate import SimulationSettings, write_simulated_log
 from cdtm_graph.smoother import SmootherSettings
 from tests.sensor_files import write_kalibr
