@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 
 from cdtm_graph.cli import main
+from cdtm_graph.data import sample_flight_path
 from cdtm_graph.outputs import read_trajectory_cov, read_tum
 
-SAMPLE = Path(__file__).resolve().parents[1] / "data" / "sample_flight"
+SAMPLE = sample_flight_path()
 ROOT = Path(__file__).resolve().parents[1]
 
 

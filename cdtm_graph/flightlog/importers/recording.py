@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cdtm_graph.errors import FlightLogError, SensorDataError
+from cdtm_graph.errors import FlightLogError, SensorDataError, why_not_a_file
 from cdtm_graph.flightlog.config import RANGES
 from cdtm_graph.flightlog.importers.calibration import CameraCalibration
 from cdtm_graph.flightlog.model import (
@@ -115,8 +115,8 @@ class DtmSource:
                                   "expected both --origin and --vertical-datum, or neither")
         for path in self.paths:
             if not path.is_file():
-                raise SensorDataError(f"{path}: DTM file does not exist; expected an existing "
-                                      "DTM or DEM file")
+                raise SensorDataError(f"{path}: DTM file {why_not_a_file(path)}; expected an "
+                                      "existing DTM or DEM file")
 
 
 @dataclass(frozen=True, eq=False)
