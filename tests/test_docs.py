@@ -84,3 +84,25 @@ def test_what_the_format_page_calls_rejected_is_rejected_and_calibration_is_read
     _with_key(log, "camera.calibration", yaml.safe_load(example.group(1)))
     sigmas = read_flightlog(log).config.camera.calibration
     assert sigmas is not None and sigmas.time_offset_sigma_s == 0.03
+
+
+def _pages() -> list[Path]:
+    return [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+
+
+def test_no_page_holds_a_placeholder_or_an_empty_section():
+    """Catches a section left as a placeholder (a2fce1e: docs/verdict.md ended with
+    ``## Measurements`` and the single line ``MEASUREMENTS``) or with no text at all."""
+    for page in _pages():
+        text = re.sub(r"```.*?```", lambda m: "\n" * m.group(0).count("\n"),
+                      page.read_text(), flags=re.S)  # code is not prose (lines kept)
+        lines = [line.strip() for line in text.splitlines()]
+        for number, line in enumerate(lines, 1):
+            assert not re.fullmatch(r"[A-Z][A-Z_]{3,}|TODO.*|TBD.*|XXX.*", line), \
+                f"{page.name}:{number}: placeholder {line!r}"
+        sections = re.split(r"^#{1,6} .*$", text, flags=re.M)[1:]
+        headings = re.findall(r"^#{1,6} .*$", text, flags=re.M)
+        for heading, body, following in zip(headings, sections, [*headings[1:], None]):
+            nested = following is not None and following.count("#", 0, following.index(" ")) \
+                > heading.count("#", 0, heading.index(" "))
+            assert body.strip() or nested, f"{page.name}: {heading!r} has no text"
