@@ -587,8 +587,7 @@ def test_dtm_with_unknown_suffix(log: FlightLog) -> None:
 def _expect_path_error(path: Path, *words: str) -> str:
     """A problem with a path itself: named without a line number, one line."""
     with pytest.raises(FlightLogError) as info:
-        read_flightlog(path if path.name not in ("flight.yaml", "imu.csv", "frames.csv")
-                       else path.parent)
+        read_flightlog(path.parent if path.suffix in (".csv", ".yaml") else path)
     message = str(info.value)
     assert message.startswith(f"{path}: "), message
     assert ":1:" not in message and "\n" not in message and "; expected " in message, message
@@ -625,6 +624,18 @@ def test_missing_image_file_without_tracks(log: FlightLog) -> None:
         if k != 2:
             (log.root / f"{k}.png").write_bytes(b"")
     _expect_error(log.root, "frames.csv", _data_line(2), "'2.png'", "does not exist")
+
+
+@pytest.mark.parametrize("name", ["tracks.csv", "nav.csv", "groundtruth.csv"])
+def test_an_optional_file_that_is_a_folder_is_not_taken_for_absent(log: FlightLog,
+                                                                   name: str) -> None:
+    """Catches a folder in an optional file's place read as its absence (a2fce1e: a
+    tracks.csv folder read as 'frame 0 has no image and there is no tracks.csv', a
+    groundtruth.csv folder silently gave a run without ground truth)."""
+    if (log.root / name).exists():
+        (log.root / name).unlink()
+    (log.root / name).mkdir()
+    _expect_path_error(log.root / name, "is a directory, not a file")
 
 
 def test_not_a_directory(tmp_path: Path) -> None:

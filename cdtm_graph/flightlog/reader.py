@@ -75,6 +75,11 @@ def read_flightlog(path: str | os.PathLike, read_tracks: bool = True) -> FlightL
             _fail_path(shown(name), "required file is missing" if why == "does not exist"
                        else f"required file {why}",
                        f"{FLIGHT_YAML}, {IMU_CSV} and {FRAMES_CSV} in every flight log")
+    optional = (*((TRACKS_CSV,) if read_tracks else ()), NAV_CSV, GROUNDTRUTH_CSV)
+    for name in optional:  # a folder in their place is not their absence
+        if os.path.lexists(root / name) and not (root / name).is_file():
+            _fail_path(shown(name), why_not_a_file(root / name),
+                       f"the optional {name} as a file, or no such entry")
 
     config = _parse_flight_yaml(root / FLIGHT_YAML, shown(FLIGHT_YAML), root)
     imu = _read_imu(root / IMU_CSV, shown(IMU_CSV))
