@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from cdtm_graph.dtm import Dtm, gdal_quiet, gdal_reason, sigma_h_from_grid_spacing
-from cdtm_graph.errors import DtmError
+from cdtm_graph.errors import DtmError, why_not_a_file
 from cdtm_graph.geodesy import WGS84_A_M, WGS84_E2, LocalFrame, VerticalDatum
 
 logger = logging.getLogger(__name__)
@@ -196,7 +196,7 @@ def read_dem_sources(paths: Sequence[str | os.PathLike], vertical_datum: Vertica
             raise _fail(path, f"unknown DEM file type {path.suffix!r}",
                         f"one of {', '.join(DEM_SUFFIXES)}")
         if not path.is_file():
-            raise _fail(path, "no such file", "a DEM file")
+            raise _fail(path, why_not_a_file(path), "a DEM file")
         with gdal_quiet() as notes:  # GDAL's warnings on a damaged file: in the message
             try:
                 with rasterio.open(path) as src:

@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numba import njit
 
-from cdtm_graph.errors import DtmError
+from cdtm_graph.errors import DtmError, why_not_a_file
 
 if TYPE_CHECKING:  # trimesh is imported lazily: it is slow to import and only to_trimesh needs it
     import trimesh
@@ -893,7 +893,7 @@ def load_dtm(
     if suffix not in readers:
         raise DtmError(f"{path}: unknown DTM file type {suffix!r}, expected .npz, .asc or .tif")
     if not path.is_file():
-        raise DtmError(f"{path}: no such file, expected a DTM file")
+        raise DtmError(f"{path}: {why_not_a_file(path)}, expected a DTM file")
     try:
         elevation, x0, y0, dx, dy = readers[suffix](path)
         _refuse_degrees(path, elevation.shape, x0, y0, dx, dy)

@@ -6,9 +6,38 @@ anything else is a bug and keeps its traceback.
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 
 class CdtmError(Exception):
     """Base of every error a user can cause (bad input, unobservable problem)."""
+
+
+def why_not_a_file(path: str | os.PathLike) -> str:
+    """What stands at ``path`` where a file was expected, for a one-line message.
+
+    Returns:
+        ``"is a directory, not a file"``, ``"is not a regular file (...)"`` or
+        ``"does not exist"``.
+    """
+    path = Path(path)
+    if path.is_dir():
+        return "is a directory, not a file"
+    if os.path.lexists(path):
+        return "is not a regular file (a broken link, a FIFO, a device)"
+    return "does not exist"
+
+
+def why_not_a_directory(path: str | os.PathLike) -> str:
+    """What stands at ``path`` where a directory was expected: ``"is a file, not a
+    directory"``, ``"is not a directory"`` or ``"does not exist"``."""
+    path = Path(path)
+    if path.is_file():
+        return "is a file, not a directory"
+    if os.path.lexists(path):
+        return "is not a directory (a broken link, a FIFO, a device)"
+    return "does not exist"
 
 
 class DtmError(CdtmError):

@@ -15,7 +15,8 @@ the estimator stays metric in that frame; geodetic coordinates are converted at 
   eq. 2.140). It is gravity as an IMU at rest on the rotating Earth senses it (gravitation
   plus centrifugal): a mechanization in the Earth-fixed world frame adds only the Coriolis
   term ``-2 omega x v``.
-- The geoid is EGM96 from the 15' grid in ``data/geoid`` (read by PROJ, offline).
+- The geoid is EGM96 from the 15' grid the package ships, ``cdtm_graph/data/geoid``
+  (read by PROJ, offline).
 
 Array conventions: latitudes and longitudes in degrees, heights and positions in metres,
 ``(N,)`` or ``(N, 3)`` arrays; rotations ``a_R_b`` map frame-b vectors into frame a.
@@ -32,11 +33,11 @@ from pathlib import Path
 
 import numpy as np
 
+from cdtm_graph.data import egm96_grid_file
 from cdtm_graph.errors import CdtmError
 from cdtm_graph.geometry import quat_wxyz_to_rotation, rotation_to_quat_wxyz
 
 __all__ = [
-    "EGM96_GRID",
     "WGS84_A_M",
     "WGS84_B_M",
     "WGS84_E2",
@@ -74,10 +75,8 @@ _M = WGS84_OMEGA_RADPS**2 * WGS84_A_M**2 * WGS84_B_M / WGS84_GM_M3PS2
 #: metre of height (Groves eq. 2.140; checked against the normal potential's gradient).
 _NORTH_GRAVITY_PER_M = -8.08e-9
 
-#: The EGM96 15' grid, a GeoTIFF PROJ reads offline (data/geoid/README.md).
-EGM96_GRID = Path(__file__).resolve().parents[1] / "data" / "geoid" / "egm96_15.tif"
-#: Environment variable naming another copy of the grid (an installed package without
-#: the repository's data/ directory).
+#: Environment variable naming another copy of the EGM96 grid (the package ships one,
+#: :func:`cdtm_graph.data.egm96_grid_file`; cdtm_graph/data/geoid/README.md).
 EGM96_GRID_ENV = "CDTM_EGM96_GRID"
 
 
@@ -252,19 +251,20 @@ def _geoid_transformer(grid: str):
         return Transformer.from_pipeline(pipeline)
     except ProjError as exc:
         raise GeodesyError(f"{grid}: PROJ cannot use the EGM96 grid ({exc}); expected the "
-                           "GeoTIFF of data/geoid (see data/geoid/README.md)") from None
+                           "GeoTIFF cdtm_graph/data/geoid/egm96_15.tif (its README.md)") from None
 
 
 def egm96_grid_path() -> Path:
-    """The EGM96 grid file: ``$CDTM_EGM96_GRID`` if set, else the repository's data/geoid.
+    """The EGM96 grid file: ``$CDTM_EGM96_GRID`` if set, else the package's own copy.
 
     Raises:
         GeodesyError: the file does not exist.
     """
-    path = Path(os.environ.get(EGM96_GRID_ENV) or EGM96_GRID)
+    override = os.environ.get(EGM96_GRID_ENV)
+    path = Path(override) if override else egm96_grid_file()
     if not path.is_file():
-        raise GeodesyError(f"{path}: EGM96 geoid grid not found; expected data/geoid/"
-                           f"egm96_15.tif of the repository, or {EGM96_GRID_ENV} naming a "
+        raise GeodesyError(f"{path}: EGM96 geoid grid not found; expected the package's "
+                           f"cdtm_graph/data/geoid/egm96_15.tif, or {EGM96_GRID_ENV} naming a "
                            "copy (scripts/make_geoid_grid.py builds it)")
     return path
 

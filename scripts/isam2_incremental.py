@@ -12,15 +12,15 @@ Run: ``python scripts/isam2_incremental.py [LOG] [--lag-s 10]``
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 import numpy as np
 
+from cdtm_graph.data import sample_flight_path
 from cdtm_graph.replay import replay
 from cdtm_graph.run.prepare import load_log_and_dtm
 from cdtm_graph.smoother import IncrementalSmoother, SmootherSettings
 
-SAMPLE_LOG = Path(__file__).resolve().parents[1] / "data" / "sample_flight"
+SAMPLE_LOG = sample_flight_path()
 
 
 def main(argv: list[str] | None = None) -> dict:

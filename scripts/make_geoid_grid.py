@@ -1,4 +1,4 @@
-"""Build ``data/geoid/egm96_15.tif``, the offline EGM96 geoid grid, from PROJ's ``egm96_15.gtx``.
+"""Build ``cdtm_graph/data/geoid/egm96_15.tif``, the EGM96 grid, from PROJ's ``egm96_15.gtx``.
 
 Source: Debian's ``proj-data`` package (9.1.1-1) ships ``/usr/share/proj/egm96_15.gtx``, NGA's
 EGM96 15-minute geoid-height grid (WW15MGH) in PROJ's GTX format: 721 x 1440 big-endian
@@ -26,7 +26,7 @@ import numpy as np
 _GTX_HEADER_BYTES = 40
 #: Heights are stored as round(N * SCALE) in int16; |N| < 108 m fits (108 * 256 < 32767).
 SCALE = 256
-DEFAULT_OUT = Path(__file__).resolve().parents[1] / "data" / "geoid" / "egm96_15.tif"
+DEFAULT_OUT = Path(__file__).resolve().parents[1] / "cdtm_graph" / "data" / "geoid" / "egm96_15.tif"
 
 
 def read_gtx(path: Path) -> tuple[np.ndarray, tuple[float, float, float, float]]:

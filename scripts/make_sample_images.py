@@ -1,4 +1,4 @@
-"""Regenerate ``data/sample_images``: a tiny rendered flight for the README and the tests.
+"""Regenerate ``cdtm_graph/data/sample_images``: a tiny rendered flight (README, tests).
 
 Four frames of the paper's geometry (1000 m, 200 m/s, 60 deg FOV, 1 fps) at 320x240, the
 images rendered from the true terrain (which differs from the log's 30 m DTM), and no
@@ -6,7 +6,7 @@ tracks.csv: ``cdtm track`` (or ``cdtm_graph.frontend.track_log``) makes it. Dete
 
 Usage::
 
-    python scripts/make_sample_images.py [OUT]     # default: data/sample_images
+    python scripts/make_sample_images.py [OUT]     # default: cdtm_graph/data/sample_images
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from cdtm_graph.sim.render import RenderSettings, render_flight
 from cdtm_graph.sim.simulate import WRITER, SimulationSettings, simulate, write_simulation_files
 
 REPO = Path(__file__).resolve().parents[1]
-DEFAULT_OUT = REPO / "data" / "sample_images"
+DEFAULT_OUT = REPO / "cdtm_graph" / "data" / "sample_images"
 
 SAMPLE_SETTINGS = SimulationSettings(frames=4, resolution_px=(320, 240), n_features=60,
                                      groundtruth_rate_hz=10.0, seed=20261123)

@@ -1,4 +1,4 @@
-"""Regenerate ``data/sample_flight``: the small simulated flight log of ``cdtm demo`` and the tests.
+"""Regenerate ``cdtm_graph/data/sample_flight``: the small flight log of ``cdtm demo``, tests.
 
 The paper's section VI.A flight, shortened: 40 frames at 1 fps (39 s), 1000 m above a
 cloned 3x3 km fractal cell with 300 m of relief, 200 m/s, a 60 degree 400x400 camera,
@@ -8,7 +8,7 @@ keeps the log under 2 MB. Deterministic: the same seed gives the same log.
 
 Usage::
 
-    python scripts/make_sample_log.py [OUT]     # default: data/sample_flight
+    python scripts/make_sample_log.py [OUT]     # default: cdtm_graph/data/sample_flight
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from pathlib import Path
 from cdtm_graph.sim.simulate import SimulationSettings, write_simulated_log
 
 REPO = Path(__file__).resolve().parents[1]
-DEFAULT_OUT = REPO / "data" / "sample_flight"
+DEFAULT_OUT = REPO / "cdtm_graph" / "data" / "sample_flight"
 
 SAMPLE_SETTINGS = SimulationSettings(
     frames=40,

@@ -2,18 +2,25 @@
 
 from __future__ import annotations
 
+import argparse
 import json
+import os
+import re
 import runpy
 import shutil
+import subprocess
+import sys
+from importlib import metadata
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from cdtm_graph.cli import main
+from cdtm_graph.cli import COMMANDS, build_parser, main
+from cdtm_graph.data import sample_flight_path
 from cdtm_graph.outputs import read_trajectory_cov, read_tum
 
-SAMPLE = Path(__file__).resolve().parents[1] / "data" / "sample_flight"
+SAMPLE = sample_flight_path()
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -202,3 +209,107 @@ def test_gated_incremental_run_reports_rejections(tmp_path):
     gated = sum(counts["rejected_per_frame"]["gated"])
     fraction = gated / (gated + counts["n_cdtm_features"])
     assert 0.05 < fraction < 0.2, fraction
+
+
+# --------------------------------------------------------------------------- usage and help
+
+
+def test_version_prints_the_package_version(capsys):
+    """Catches ``cdtm --version`` missing (a2fce1e: exit 2, 'the following arguments are
+    required: COMMAND') or printing a version other than the installed package's."""
+    with pytest.raises(SystemExit) as exit_:
+        main(["--version"])
+    assert exit_.value.code == 0
+    assert capsys.readouterr().out.strip() == f"cdtm {metadata.version('cdtm-graph')}"
+
+
+@pytest.mark.parametrize("argv, usage", [
+    (["smooth", "LOG", "--out", "R", "--plost"], "usage: cdtm smooth "),
+    (["smooth", "LOG", "--plost"], "usage: cdtm smooth "),
+    (["demo", "--imagess"], "usage: cdtm demo "),
+    (["import", "euroc", "M", "--dtm", "D", "--out", "L", "--no-such"],
+     "usage: cdtm import euroc "),
+    (["nosuch"], "usage: cdtm [-h]"),
+])
+def test_a_usage_error_prints_its_commands_usage(capsys, argv, usage):
+    """Catches a mistyped option answered with the top-level usage (a2fce1e: ``cdtm smooth
+    LOG --out R --plost`` printed ``usage: cdtm [-h] [-v] COMMAND ...``)."""
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith(usage), err
+    assert err.count("usage:") == 1
+
+
+def _all_parsers(parser: argparse.ArgumentParser, name: str = "cdtm"):
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub_name, sub in action.choices.items():
+                yield f"{name} {sub_name}", sub
+                yield from _all_parsers(sub, f"{name} {sub_name}")
+
+
+def test_every_subcommand_has_a_summary_and_a_description():
+    """Catches a subcommand without a description (a2fce1e: ``cdtm demo --help`` had none)
+    or listed without its summary line."""
+    parsers = dict(_all_parsers(build_parser()))
+    assert {f"cdtm {name}" for name in COMMANDS} <= set(parsers)
+    for name, parser in parsers.items():
+        assert parser.description and len(parser.description) > 40, name
+    listed = build_parser(only=None).format_help()
+    for name, command in COMMANDS.items():
+        assert name in listed and command.summary[:30] in " ".join(listed.split()), name
+
+
+@pytest.mark.parametrize("argv", [["--version"], ["--help"], ["nosuch"], ["smooth", "--help"]])
+def test_version_help_and_usage_errors_import_no_numerics(argv):
+    """Catches the parser importing the estimator before it knows the command (a2fce1e:
+    every subcommand module, numpy, scipy, GTSAM and numba, ~2 s, for ``--version``)."""
+    probe = ("import sys\nfrom cdtm_graph.cli import main\n"
+             "try:\n    main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
+             "heavy = {'numpy', 'scipy', 'gtsam', 'numba', 'cv2'} & set(sys.modules)\n"
+             "print(sorted(heavy))\n")
+    done = subprocess.run([sys.executable, "-c", probe, *argv], capture_output=True, text=True,
+                          cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=60)
+    heavy = done.stdout.strip().splitlines()[-1]
+    if argv[0] == "smooth":  # the subcommand's own parser needs its module: it is loaded
+        assert heavy != "[]"
+    else:
+        assert heavy == "[]", (argv, heavy)
+
+
+@pytest.mark.parametrize("argv", [["smooth", "{missing}", "--out", "{out}"],
+                                  ["analyze", "{missing}", "--pair", "0", "1"]])
+def test_a_missing_log_folder_is_named_without_a_line(tmp_path, capsys, argv):
+    """Catches a line number on a folder (a2fce1e: ``no_such_log:1: not a directory``)."""
+    missing = tmp_path / "no_such_log"
+    argv = [a.format(missing=missing, out=tmp_path / "out") for a in argv]
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip()
+    assert f"{missing}: does not exist; expected a flight log directory" in err, err
+    assert ":1:" not in err
+
+
+#: Every exit status the command line returns: success/trusted, bad input, usage error
+#: (argparse), degraded or failed, interrupted.
+EXIT_CODES = {0, 1, 2, 3, 130}
+
+
+def test_readme_and_help_list_every_exit_code():
+    """Catches an exit status the README or ``cdtm --help`` leaves out (a2fce1e: 2, the
+    usage error, was in neither)."""
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    sentence = readme.split("**Exit status:", 1)[1].split("**", 1)[0]
+    assert {int(c) for c in re.findall(r"(\d+) [a-z]", sentence)} == EXIT_CODES, sentence
+    epilog = " ".join(build_parser(only=None).epilog.split())
+    listed = epilog.split("exit status:", 1)[1].split(".", 1)[0]
+    assert {int(c) for c in re.findall(r"(?:^ ?|; )(\d+) ", listed)} == EXIT_CODES, listed
+
+
+def test_readme_lists_every_command():
+    """Catches a subcommand missing from the README's command table (a2fce1e: navsim)."""
+    table = [line for line in (ROOT / "README.md").read_text().splitlines()
+             if line.startswith("| `cdtm ")]
+    for name in COMMANDS:
+        assert any(line.startswith(f"| `cdtm {name}") for line in table), name

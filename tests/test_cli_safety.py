@@ -21,6 +21,7 @@ import pytest
 
 from cdtm_graph.atomic import MANIFEST_NAME, STAGING_TAG, read_manifest
 from cdtm_graph.cli import main
+from cdtm_graph.data import sample_flight_path
 from cdtm_graph.flightlog import read_flightlog
 from cdtm_graph.flightlog.tables import IMAGE_BORDER_MARGIN_PX
 from cdtm_graph.outputs import RUN_FILES, read_tum
@@ -221,7 +222,7 @@ def test_absurd_magnitudes_in_the_csv_files_name_the_line(log, tmp_path, capsys,
     _one_line(err, f"{file}:{line}: {name} is 1e+300", "expected |")
 
 
-_DTM = ROOT / "data" / "sample_flight" / "dtm.npz"
+_DTM = sample_flight_path() / "dtm.npz"
 
 
 @pytest.mark.parametrize("argv, words", [

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from scipy.interpolate import RegularGridInterpolator
 
+from cdtm_graph.data import sample_flight_path
 from cdtm_graph.dtm import (
     Dtm,
     RayHits,
@@ -702,7 +703,7 @@ def test_npz_malformed_files_raise_with_file(tmp_path, writer, fragment):
 
 def test_load_dtm_rejects_missing_file_bad_suffix_and_origin(tmp_path):
     for path, fragment in [
-        (tmp_path / "none.npz", "no such file"),
+        (tmp_path / "none.npz", "does not exist"),
         (tmp_path / "dtm.xyz", "unknown DTM file type"),
     ]:
         with pytest.raises(DtmError) as info:
@@ -844,7 +845,7 @@ def test_every_command_reading_a_truncated_npz_says_one_line_and_writes_nothing(
     from cdtm_graph.cli import main
 
     log = tmp_path / "log"
-    shutil.copytree(Path(__file__).resolve().parents[1] / "data" / "sample_flight", log)
+    shutil.copytree(sample_flight_path(), log)
     data = (log / "dtm.npz").read_bytes()
     (log / "dtm.npz").write_bytes(data[: len(data) // 2])
     commands = {

@@ -562,6 +562,17 @@ def test_missing_dtm_file(log: FlightLog) -> None:
     _expect_error(log.root, "flight.yaml", line, "dtm.path", "does not exist")
 
 
+def test_dtm_path_naming_a_folder_says_so(log: FlightLog) -> None:
+    """Catches a folder where the DTM file belongs reported as missing (a2fce1e: "does not
+    exist", while the user sees it right there)."""
+    (log.root / "dtm.npz").unlink()
+    (log.root / "dtm.npz").mkdir()
+    line = _line_of(log.root / "flight.yaml", "path:")
+    message = _expect_error(log.root, "flight.yaml", line, "dtm.path",
+                            "is a directory, not a file")
+    assert "does not exist" not in message
+
+
 def test_dtm_with_unknown_suffix(log: FlightLog) -> None:
     path = log.root / "flight.yaml"
     line = _line_of(path, "path:")
@@ -573,10 +584,31 @@ def test_dtm_with_unknown_suffix(log: FlightLog) -> None:
 # --------------------------------------------------------------------------- missing files
 
 
+def _expect_path_error(path: Path, *words: str) -> str:
+    """A problem with a path itself: named without a line number, one line."""
+    with pytest.raises(FlightLogError) as info:
+        read_flightlog(path.parent if path.suffix in (".csv", ".yaml") else path)
+    message = str(info.value)
+    assert message.startswith(f"{path}: "), message
+    assert ":1:" not in message and "\n" not in message and "; expected " in message, message
+    for word in words:
+        assert word in message, message
+    return message
+
+
 @pytest.mark.parametrize("name", ["flight.yaml", "imu.csv", "frames.csv"])
 def test_missing_required_file(log: FlightLog, name: str) -> None:
+    """Catches a line number on a file that is not there (a2fce1e: ``imu.csv:1:``)."""
     (log.root / name).unlink()
-    _expect_error(log.root, name, 1, "missing")
+    _expect_path_error(log.root / name, "required file is missing")
+
+
+@pytest.mark.parametrize("name", ["flight.yaml", "imu.csv"])
+def test_required_file_that_is_a_folder_says_so(log: FlightLog, name: str) -> None:
+    """Catches a folder in a required file's place reported as missing."""
+    (log.root / name).unlink()
+    (log.root / name).mkdir()
+    _expect_path_error(log.root / name, "is a directory, not a file")
 
 
 def test_missing_tracks_when_frames_have_no_images(log: FlightLog) -> None:
@@ -594,9 +626,24 @@ def test_missing_image_file_without_tracks(log: FlightLog) -> None:
     _expect_error(log.root, "frames.csv", _data_line(2), "'2.png'", "does not exist")
 
 
+@pytest.mark.parametrize("name", ["tracks.csv", "nav.csv", "groundtruth.csv"])
+def test_an_optional_file_that_is_a_folder_is_not_taken_for_absent(log: FlightLog,
+                                                                   name: str) -> None:
+    """Catches a folder in an optional file's place read as its absence (a2fce1e: a
+    tracks.csv folder read as 'frame 0 has no image and there is no tracks.csv', a
+    groundtruth.csv folder silently gave a run without ground truth)."""
+    if (log.root / name).exists():
+        (log.root / name).unlink()
+    (log.root / name).mkdir()
+    _expect_path_error(log.root / name, "is a directory, not a file")
+
+
 def test_not_a_directory(tmp_path: Path) -> None:
-    with pytest.raises(FlightLogError, match="not a directory"):
-        read_flightlog(tmp_path / "nowhere")
+    """Catches a line number on a folder (a2fce1e: ``nowhere:1: not a directory``) and a
+    missing folder and a file in its place told apart."""
+    _expect_path_error(tmp_path / "nowhere", "does not exist", "flight log directory")
+    (tmp_path / "a_file").write_text("x")
+    _expect_path_error(tmp_path / "a_file", "is a file, not a directory")
 
 
 # --------------------------------------------------------------------------- CSV errors

@@ -1,8 +1,8 @@
 """Importers: a EuRoC folder (with or without Kalibr files) and ROS1/ROS2 bags written from
 the rendered sample log read back as that log, and smooth to its result.
 
-The native log is ``data/sample_images`` (4 rendered frames, 200 Hz IMU, ground truth). The
-tests write its sensor files as EuRoC, Kalibr and ``rosbags`` write them
+The native log is ``cdtm_graph/data/sample_images`` (4 rendered frames, 200 Hz IMU, ground
+truth). The tests write its sensor files as EuRoC, Kalibr and ``rosbags`` write them
 (:mod:`tests.sensor_files`), import them, and compare: IMU samples and frame times bit for
 bit, images pixel for pixel, the calibration, and the smoothed trajectory after tracking.
 """
@@ -20,6 +20,7 @@ import pytest
 import yaml
 
 from cdtm_graph.cli import main
+from cdtm_graph.data import egm96_grid_file, sample_images_path
 from cdtm_graph.errors import FlightLogError, SensorDataError
 from cdtm_graph.flightlog import FlightLog, read_flightlog, write_tracks
 from cdtm_graph.flightlog.importers import (
@@ -41,7 +42,7 @@ from cdtm_graph.smoother import smooth
 from tests.sensor_files import IMAGE_TOPIC, IMU_TOPIC, write_bag, write_euroc, write_kalibr
 
 ROOT = Path(__file__).resolve().parents[1]
-NATIVE = ROOT / "data" / "sample_images"
+NATIVE = sample_images_path()
 #: body_T_cam goes through Kalibr's T_cam_imu (inverted twice) or EuRoC's 16 numbers.
 MOUNT_TOL = 1e-15
 #: The smoothed poses of an imported log against the native log's: the logs differ only in
@@ -365,7 +366,7 @@ def test_a_geodetic_import_places_the_prior_by_latitude_and_longitude(native, fi
     from cdtm_graph.geodesy import GeodeticOrigin, VerticalDatum, local_frame, normal_gravity_mps2
 
     origin = GeodeticOrigin(36.5, 127.25, 120.0)
-    dem = ROOT / "data" / "geoid" / "egm96_15.tif"  # any EPSG:4326 GeoTIFF will do here
+    dem = egm96_grid_file()  # any EPSG:4326 GeoTIFF will do here
     start = (36.501, 127.249, 1100.0)
     quat_enu = np.array([0.9914448613738104, 0.0, 0.0, -0.13052619222005157])
     prior = InitialPrior(geodetic=start, quaternion_wxyz=quat_enu,

@@ -1,4 +1,4 @@
-"""README's python blocks run exactly as written, from the repository root."""
+"""README's python blocks run exactly as written, from a directory outside the checkout."""
 
 from __future__ import annotations
 
@@ -15,10 +15,12 @@ def _python_blocks() -> list[str]:
     return re.findall(r"```python\n(.*?)```", (ROOT / "README.md").read_text(), re.S)
 
 
-def test_readme_library_example_runs_as_written(monkeypatch):
+def test_readme_library_example_runs_as_written(monkeypatch, tmp_path):
+    """Catches an example that reads a path relative to the checkout (it ran only from the
+    repository root before the sample flight became package data)."""
     blocks = _python_blocks()
     assert blocks, "README has no python block"
-    monkeypatch.chdir(ROOT)
+    monkeypatch.chdir(tmp_path)  # not the checkout: the example must not depend on it
     namespace: dict = {"__name__": "__readme__"}
     for block in blocks:
         exec(compile(block, "README.md", "exec"), namespace)  # noqa: S102

@@ -9,12 +9,13 @@ import pytest
 import trimesh
 
 from cdtm_graph.cli import main
+from cdtm_graph.data import sample_flight_path
 from cdtm_graph.outputs import read_trajectory_cov
 from cdtm_graph.plots.scene import FOOTPRINT_LIFT_M, MAX_TERRAIN_SIDE, WORLD_TO_GLTF, scene_frames
 from cdtm_graph.run.prepare import load_log_and_dtm
 
 ROOT = Path(__file__).resolve().parents[1]
-SAMPLE = ROOT / "data" / "sample_flight"
+SAMPLE = sample_flight_path()
 #: glTF stores float32: within 10 km of the offset, a few millimetres.
 FLOAT32_TOL_M = 5e-3
 

@@ -18,6 +18,7 @@ import pytest
 
 from cdtm_graph.cli import main
 from cdtm_graph.constants import NS_PER_S
+from cdtm_graph.data import sample_flight_path
 from cdtm_graph.dtm import Dtm, load_dtm, save_dtm_npz
 from cdtm_graph.flightlog import read_flightlog
 from cdtm_graph.sim.imu import ideal_imu
@@ -38,7 +39,7 @@ from cdtm_graph.sim.trajectory import evaluate
 from tests.conftest import TEST_SEED
 
 REPO = Path(__file__).resolve().parents[1]
-SAMPLE_LOG = REPO / "data" / "sample_flight"
+SAMPLE_LOG = sample_flight_path()
 SAMPLE_SCRIPT = REPO / "scripts" / "make_sample_log.py"
 
 #: Noiseless: a pixel cast back from the true camera meets the ground point to round-off

@@ -3,11 +3,13 @@ flight in latitude and longitude over an EPSG:4326 DEM with EGM96 heights, end t
 
 from __future__ import annotations
 
+import json
 import re
 import shlex
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from cdtm_graph.cli import GEODETIC_EXAMPLE, main
 from cdtm_graph.flightlog import read_flightlog
@@ -56,3 +58,43 @@ def test_the_worked_example_runs_end_to_end(tmp_path, monkeypatch):
     for error, sigma in ((north, table[:, 11]), (east, table[:, 12]), (up, table[:, 13])):
         assert np.all(np.abs(error) < 4.0 * sigma + 0.05), (error, sigma)
         assert np.abs(error).max() < 5.0
+
+
+#: How the README and docs/flightlog.md quote the run: RMSE per axis, IMU-only drift.
+QUOTED = {
+    "README.md": r"RMSE x/y/z ([\d.]+)/([\d.]+)/([\d.]+) m where the IMU alone drifts up to "
+                 r"(\d+) m",
+    "docs/flightlog.md": r"RMSE x/y/z ([\d.]+)/([\d.]+)/([\d.]+) m, IMU alone up to (\d+) m",
+}
+#: The quotes have two decimals; a run on another machine (BLAS, GTSAM build) may differ
+#: in the last digit.
+RMSE_TOL_M = 0.015
+DRIFT_TOL_M = 2.0
+
+
+def _quoted(page: str) -> tuple[np.ndarray, float]:
+    text = " ".join((ROOT / page).read_text().split())
+    found = re.findall(QUOTED[page], text)
+    assert len(found) == 1, (page, found)
+    *rmse, drift = found[0]
+    return np.array([float(v) for v in rmse]), float(drift)
+
+
+@pytest.mark.slow
+def test_the_quoted_figures_are_what_the_commands_give(tmp_path, monkeypatch):
+    """Catches figures quoted in the README or docs/flightlog.md that the documented
+    commands no longer give (a2fce1e quoted RMSE 0.78/0.71/0.47 m and 567 m where a run
+    gave 0.73/0.66/0.47 m and 566 m). Runs the commands as written (60 frames, ~25 s),
+    less --plots, which changes no figure."""
+    monkeypatch.chdir(tmp_path)
+    simulate, smooth = (shlex.split(c)[1:] for c in COMMANDS)
+    assert main(simulate) == 0
+    assert main([a for a in smooth if a != "--plots"] + ["--quiet"]) == 0  # (no figure from plots)
+    report = json.loads((tmp_path / "my_run" / "report.json").read_text())
+    compensated, free = report["evaluation"]["compensated"], report["evaluation"]["free"]
+    rmse = np.array([compensated["rmse_position_m"][axis] for axis in "xyz"])
+    drift = max(free["max_abs_position_error_m"].values())
+    for page in QUOTED:
+        quoted_rmse, quoted_drift = _quoted(page)
+        np.testing.assert_allclose(rmse, quoted_rmse, atol=RMSE_TOL_M, rtol=0, err_msg=page)
+        assert abs(drift - quoted_drift) <= DRIFT_TOL_M, (page, drift, quoted_drift)

@@ -1,13 +1,16 @@
 """The ``cdtm`` command line: one module per subcommand, one catch point for errors.
 
-Each subcommand module defines ``register(subparsers)``, which adds its parser and sets
-``func`` to a ``run(args) -> int``. User mistakes (:class:`CdtmError`, missing files)
-and the system's refusals (disk full, I/O errors) become one line on stderr and exit code
-1; anything else is a bug and keeps its traceback. A smoothing run that wrote its
-outputs exits 0 when its verdict is trusted and 3 when degraded or failed
-(:mod:`cdtm_graph.verdict.rules`), each reason one line on stderr. SIGTERM is handled as SIGINT: a
-``KeyboardInterrupt`` unwinds (staging directories are removed, outputs stay as they
-were) and the exit code is 130.
+Each subcommand module defines ``register(subparsers)``, which adds its parser (its
+one-line summary from :data:`COMMANDS`, and a description) and sets ``func`` to a
+``run(args) -> int``. Only the module of the command given is imported: ``cdtm --version``,
+``cdtm --help`` and a mistyped command name answer without loading the numerics. A usage
+error (exit 2) prints the usage of the (sub)command it belongs to. User mistakes
+(:class:`CdtmError`, missing files) and the system's refusals (disk full, I/O errors)
+become one line on stderr and exit code 1; anything else is a bug and keeps its
+traceback. A smoothing run that wrote its outputs exits 0 when its verdict is trusted
+and 3 when degraded or failed (:mod:`cdtm_graph.verdict`), each reason one line on
+stderr. SIGTERM is handled as SIGINT: a ``KeyboardInterrupt`` unwinds (staging
+directories are removed, outputs stay as they were) and the exit code is 130.
 """
 
 from __future__ import annotations
@@ -21,12 +24,38 @@ import signal
 import sys
 import threading
 from collections.abc import Iterator
+from typing import NamedTuple
 
+from cdtm_graph import __version__
 from cdtm_graph.errors import CdtmError
 
-#: Subcommand modules, in the order ``cdtm --help`` lists them.
-SUBCOMMANDS = ("demo", "smooth", "import_", "track", "simulate", "analyze", "study", "navsim",
-               "accuracy_map")
+
+class Command(NamedTuple):
+    """A subcommand: the module under ``cdtm_graph.cli`` that registers it, and the one
+    line ``cdtm --help`` lists it with."""
+
+    module: str
+    summary: str
+
+
+#: The subcommands, in the order ``cdtm --help`` lists them.
+COMMANDS: dict[str, Command] = {
+    "demo": Command("demo", "smooth the bundled sample log into ./cdtm-demo-out "
+                            "(--images: render, track and smooth a flight)"),
+    "smooth": Command("smooth", "smooth a flight log (IMU + C-DTM factors)"),
+    "import": Command("import_", "turn a EuRoC folder or a ROS bag into a flight log"),
+    "track": Command("track", "track features through the log's images into tracks.csv"),
+    "simulate": Command("simulate", "write a simulated flight log: terrain, IMU, ray-cast "
+                                    "feature tracks (and images)"),
+    "analyze": Command("analyze", "closed-form C-DTM error analysis of a frame pair "
+                                  "(eqs. 9-32)"),
+    "study": Command("study", "sweep one parameter as in the paper's Figs. 2-9 (predicted vs "
+                              "achieved accuracy)"),
+    "navsim": Command("navsim", "the paper's navigation simulation: Free vs Compensated max "
+                                "errors (Tables 1-2)"),
+    "accuracy-map": Command("accuracy_map", "map the predicted camera-2 accuracy (closed "
+                                            "form) over a DTM"),
+}
 
 
 #: The worked example ``cdtm --help`` ends with (README and docs/flightlog.md tell it whole;
@@ -34,7 +63,8 @@ SUBCOMMANDS = ("demo", "smooth", "import_", "track", "simulate", "analyze", "stu
 GEODETIC_EXAMPLE = """\
 exit status: 0 success (cdtm smooth, cdtm demo: the run's verdict is trusted); 3 outputs
 written but the verdict is degraded or failed (each reason one line on stderr); 1 bad
-input or nothing written (one line on stderr); 130 interrupted.
+input or nothing written (one line on stderr); 2 usage error (a mistyped option or
+command: the command's usage on stderr); 130 interrupted.
 
 worked example: a flight in latitude/longitude over an EPSG:4326 DEM with EGM96 heights
 (as SRTM and Copernicus GLO-30 tiles come), end to end:
@@ -56,23 +86,56 @@ from sensor recordings:
 """
 
 
-def build_parser() -> argparse.ArgumentParser:
+#: ``build_parser(only=ALL)``: every subcommand's parser (for tests and documentation).
+ALL = "*"
+
+
+def build_parser(only: str | None = ALL) -> argparse.ArgumentParser:
+    """The ``cdtm`` parser. ``only``: the one subcommand whose module is imported and
+    registered in full (the others are listed by name and summary; None: none is);
+    ``ALL``: every one."""
     parser = argparse.ArgumentParser(
         prog="cdtm",
         description="C-DTM navigation: smooth flight logs from camera, IMU and a DTM; "
                     "analyse and predict accuracy (Kupervasser et al.).",
         epilog=GEODETIC_EXAMPLE, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for name in SUBCOMMANDS:
-        try:
-            module = importlib.import_module(f"cdtm_graph.cli.{name}")
-        except ModuleNotFoundError as exc:
-            if exc.name != f"cdtm_graph.cli.{name}":
-                raise
-            continue  # subcommand not built yet
-        module.register(sub)
+    for name, command in COMMANDS.items():
+        if only is ALL or name == only:
+            importlib.import_module(f"cdtm_graph.cli.{command.module}").register(sub)
+        else:
+            sub.add_parser(name, help=command.summary, add_help=False)
     return parser
+
+
+def _command_named(argv: list[str]) -> str | None:
+    """The subcommand ``argv`` names (its first word that is not an option), if any."""
+    word = next((a for a in argv if not a.startswith("-")), None)
+    return word if word in COMMANDS else None
+
+
+def _innermost_parser(parser: argparse.ArgumentParser,
+                      args: argparse.Namespace) -> argparse.ArgumentParser:
+    """The parser of the (sub)subcommand ``args`` were parsed into (``cdtm import euroc``)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            chosen = action.choices.get(getattr(args, action.dest, None) or "")
+            if chosen is not None:
+                return _innermost_parser(chosen, args)
+    return parser
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """``argv`` parsed; a usage error exits 2 with the usage of the command it is in
+    (argparse itself reports an unknown option with the top-level usage)."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(only=_command_named(argv))
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:
+        _innermost_parser(parser, args).error(f"unrecognized arguments: {' '.join(unknown)}")
+    return args
 
 
 def _interrupt(signum: int, frame: object) -> None:
@@ -109,8 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     command = "cdtm"
     try:
         with _sigterm_as_interrupt():  # from the start: the imports take a second or two
-            parser = build_parser()
-            args = parser.parse_args(argv)
+            args = parse_args(argv)
             command = f"cdtm {args.command}"
             logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                                 format="%(levelname)s %(name)s: %(message)s")

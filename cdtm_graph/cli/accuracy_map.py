@@ -30,6 +30,7 @@ from cdtm_graph.analysis.accuracy_map import (
     accuracy_map,
 )
 from cdtm_graph.atomic import atomic_output_file
+from cdtm_graph.cli import COMMANDS
 from cdtm_graph.cli.outdir import add_out_option, output_dir
 from cdtm_graph.dtm import load_dtm
 from cdtm_graph.parallel import ParallelSettings
@@ -43,7 +44,7 @@ OUTPUT_FILES = ("accuracy_map.npz", "accuracy_map.png")
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "accuracy-map",
-        help="map the predicted camera-2 accuracy (closed form) over a DTM",
+        help=COMMANDS["accuracy-map"].summary,
         description="Place the two-frame C-DTM geometry at every node of a grid over the DTM "
                     "and predict the camera-2 pose 1-sigma in closed form (weighted eq. 13, "
                     "Sigma_C2), with noiseless features at the true geometry. Degenerate "

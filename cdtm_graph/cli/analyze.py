@@ -9,12 +9,13 @@ import numpy as np
 
 from cdtm_graph.analysis.closed_form import C2_NAMES, THETA_NAMES
 from cdtm_graph.analysis.two_frame import LogPairAnalysis, analyze_log_pair
+from cdtm_graph.cli import COMMANDS
 from cdtm_graph.run.prepare import load_log_and_dtm
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "analyze", help="closed-form C-DTM error analysis of a frame pair (eqs. 9-32)",
+        "analyze", help=COMMANDS["analyze"].summary,
         description="Linearize the C-DTM problem of frames A and B of a flight log at known "
                     "poses and print the paper's closed-form covariance (eq. 13, printed and "
                     "weighted), GTSAM's marginal mapped to the same parameters, Sigma_C2, the "

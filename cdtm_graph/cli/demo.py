@@ -16,11 +16,11 @@ from pathlib import Path
 from tqdm import tqdm
 
 from cdtm_graph.atomic import read_manifest
+from cdtm_graph.cli import COMMANDS
 from cdtm_graph.cli.outdir import add_force_option
 from cdtm_graph.cli.smooth import VERDICT_HELP, print_verdict, smooth_log_to_dir, summary
+from cdtm_graph.data import sample_flight_path
 from cdtm_graph.outputs import RUN_WRITER
-
-SAMPLE_LOG = Path(__file__).resolve().parents[2] / "data" / "sample_flight"
 
 #: The rendered demo flight: the paper's geometry (1000 m, 200 m/s, 60 deg), 1 fps.
 IMAGE_DEMO_FRAMES = 30
@@ -29,9 +29,19 @@ IMAGE_DEMO_RESOLUTION_PX = (640, 480)
 RAYCAST_TRACKS = "tracks_raycast.csv"
 
 
+#: What ``cdtm demo --help`` says it does.
+DESCRIPTION = """\
+Smooth the sample flight log that comes with the package (40 simulated frames over
+fractal terrain, 200 Hz IMU, ground truth) as `cdtm smooth --plots` does, into --out, and
+print its errors beside IMU-only navigation.
+With --images: simulate a small flight, render its images, track them into tracks.csv and
+smooth the tracks, beside the same flight smoothed from its ideal ray-cast tracks.
+"""
+
+
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("demo", help="smooth the bundled sample log into ./cdtm-demo-out "
-                                    "(--images: render, track and smooth a flight)",
+    p = sub.add_parser("demo", help=COMMANDS["demo"].summary,
+                       description=DESCRIPTION,
                        epilog=VERDICT_HELP,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=None, metavar="DIR",
@@ -48,8 +58,9 @@ def run(args: argparse.Namespace) -> int:
     if args.images:
         return run_images(Path(args.out or "cdtm-demo-images-out"), args)
     out_dir = Path(args.out or "cdtm-demo-out")
-    out = smooth_log_to_dir(str(SAMPLE_LOG), out_dir, args)
-    print(f"sample log: {SAMPLE_LOG}")
+    sample_log = sample_flight_path()
+    out = smooth_log_to_dir(str(sample_log), out_dir, args)
+    print(f"sample log: {sample_log}")
     print(summary(out, out_dir))
     written = sorted(n for n, w in (read_manifest(out_dir) or {}).items() if w == RUN_WRITER)
     print(f"wrote {', '.join(written)}")

@@ -10,6 +10,7 @@ from tqdm import tqdm
 
 from cdtm_graph.atomic import read_manifest
 from cdtm_graph.camera import DistortionModel
+from cdtm_graph.cli import COMMANDS
 from cdtm_graph.cli.outdir import OUT_RULES, add_force_option, output_dir
 from cdtm_graph.errors import CdtmError, OutputError
 from cdtm_graph.flightlog import (
@@ -39,7 +40,7 @@ _NEXT_STEP = ("next: cdtm track {log}  (features from the images into tracks.csv
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
-        "import", help="turn a EuRoC folder, a ROS bag or a PX4 log into a flight log",
+        "import", help=COMMANDS["import"].summary,
         description="Write a cdtm-flightlog/1 directory from sensor recordings: the IMU "
                     "samples, the frame stamps and images (into images/), the calibration "
                     "(Kalibr or EuRoC files) and ground truth when there is some. The log "

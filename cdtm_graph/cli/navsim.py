@@ -13,6 +13,7 @@ import dataclasses
 import sys
 from pathlib import Path
 
+from cdtm_graph.cli import COMMANDS
 from cdtm_graph.cli.outdir import add_out_option, output_dir
 from cdtm_graph.errors import CdtmError
 from cdtm_graph.studies.navsim import (
@@ -35,7 +36,7 @@ WRITER = "navsim"
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "navsim",
-        help="the paper's navigation simulation: Free vs Compensated max errors (Tables 1-2)",
+        help=COMMANDS["navsim"].summary,
         description="Simulate the paper's section VI.A flights (200 m/s, 60 deg FOV, ~110 "
                     "features per frame pair, tactical IMU) at each altitude (Table 1) and "
                     "image resolution (Table 2); report the maximum position error per axis "

@@ -9,6 +9,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from cdtm_graph.camera import DistortionModel
+from cdtm_graph.cli import COMMANDS
 from cdtm_graph.cli.outdir import OUT_RULES, add_force_option, output_dir
 from cdtm_graph.errors import CdtmError
 from cdtm_graph.geodesy import GeodeticOrigin, VerticalDatum
@@ -28,7 +29,7 @@ _RENDER_DEFAULTS = RenderSettings()
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "simulate",
-        help="write a simulated flight log: terrain, IMU, ray-cast feature tracks (and images)",
+        help=COMMANDS["simulate"].summary,
         description="Simulate a flight over terrain (the paper's section VI.A: a cloned 3x3 km "
                     "fractal cell, or a DTM file) with an IMU and a downward camera, and write "
                     "it as a cdtm-flightlog/1 directory holding its DTM (dtm.npz). With "

@@ -8,6 +8,7 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+from cdtm_graph.cli import COMMANDS
 from cdtm_graph.cli.outdir import add_out_option, output_dir
 from cdtm_graph.errors import CdtmError
 from cdtm_graph.graph import GraphSettings
@@ -91,12 +92,12 @@ flags per frame, self_checks). Each reason is printed as one line on stderr: wha
 frames (indices of frames.csv) and why, e.g.
   cdtm smooth: degraded: flat_terrain, frames 31-56 (31.0-56.0 s): flat terrain: ...
 exit status: 0 trusted; 3 outputs written but degraded or failed; 1 bad input or nothing
-written (one line on stderr); 130 interrupted.
+written (one line on stderr); 2 usage error (this usage on stderr); 130 interrupted.
 """
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("smooth", help="smooth a flight log (IMU + C-DTM factors)",
+    p = sub.add_parser("smooth", help=COMMANDS["smooth"].summary,
                        description="Smooth a cdtm-flightlog/1 directory and write "
                                    "trajectory.tum, trajectory_cov.txt, states.csv, "
                                    "covariances.npz and report.json into --out.",

@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 from cdtm_graph.atomic import atomic_output_file
+from cdtm_graph.cli import COMMANDS
 from cdtm_graph.cli.outdir import add_out_option, output_dir
 from cdtm_graph.parallel import ParallelSettings
 from cdtm_graph.studies.sweeps import (
@@ -34,7 +35,7 @@ FIGURE_DPI = 100
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "study",
-        help="sweep one parameter as in the paper's Figs. 2-9 (predicted vs achieved accuracy)",
+        help=COMMANDS["study"].summary,
         description="Monte Carlo sensitivity study of the two-frame C-DTM solve: for each "
                     "value of PARAM (others nominal), TRIALS random frame pairs are solved; "
                     "the closed-form 1-sigma and the achieved RMS error are reported for the "

@@ -28,6 +28,7 @@ import numpy as np
 from tqdm import tqdm
 
 from cdtm_graph.atomic import fsync_path, signals_deferred, temporary_beside
+from cdtm_graph.cli import COMMANDS
 from cdtm_graph.errors import CdtmError, OutputError
 from cdtm_graph.flightlog import (
     FRAMES_CSV,
@@ -63,7 +64,7 @@ REPORT_HELP = (
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
-        "track", help="track features through the log's images into tracks.csv",
+        "track", help=COMMANDS["track"].summary,
         description="Read the images named in frames.csv, track features through them "
                     "(Lucas-Kanade with IMU-predicted rotation, forward-backward check, "
                     "epipolar RANSAC, bucketed corners) and write LOG/tracks.csv. A run "

@@ -19,7 +19,7 @@ import numpy as np
 import yaml
 
 from cdtm_graph.camera import DISTORTION_LENGTHS, DistortionModel, PinholeCamera
-from cdtm_graph.errors import CdtmError
+from cdtm_graph.errors import CdtmError, why_not_a_file
 from cdtm_graph.flightlog.model import (
     DTM_SUFFIXES,
     FORMAT,
@@ -310,7 +310,7 @@ def _dtm_file(y: _Yaml, node: yaml.Node, name: str, root: Path,
         y.fail(node, f"{name} {_show(text)} has suffix {_show(resolved.suffix)}",
                f"a {', '.join(suffixes[:-1])} or {suffixes[-1]} file")
     if not resolved.is_file():
-        y.fail(node, f"{name} {_show(text)} does not exist ({resolved})",
+        y.fail(node, f"{name} {_show(text)} {why_not_a_file(resolved)} ({resolved})",
                "an existing DTM file, relative to the log directory or absolute")
     return resolved
 

@@ -1,4 +1,5 @@
-"""One-line problem reports of the flight-log readers: ``<file>:<line>: <what>; expected <what>``.
+"""One-line problem reports of the flight-log readers: ``<file>:<line>: <what>; expected <what>``
+(``<path>: <what>; expected <what>`` for a path that is missing or of the wrong kind).
 
 When a file has several problems, the one on the earliest line is reported.
 """
@@ -14,6 +15,11 @@ from cdtm_graph.errors import FlightLogError
 
 def _fail(file: str, line: int, what: str, expected: str) -> NoReturn:
     raise FlightLogError(_one_line(f"{file}:{line}: {what}; expected {expected}"))
+
+
+def _fail_path(path: str, what: str, expected: str) -> NoReturn:
+    """A problem with a path itself (missing, a folder where a file belongs): no line."""
+    raise FlightLogError(_one_line(f"{path}: {what}; expected {expected}"))
 
 
 def _one_line(text: str) -> str:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cdtm_graph.errors import why_not_a_directory, why_not_a_file
 from cdtm_graph.flightlog.config import _parse_flight_yaml
 from cdtm_graph.flightlog.model import (
     FLIGHT_YAML,
@@ -23,7 +24,7 @@ from cdtm_graph.flightlog.model import (
     States,
     normalized_path,
 )
-from cdtm_graph.flightlog.problems import _fail, _show
+from cdtm_graph.flightlog.problems import _fail, _fail_path, _show
 from cdtm_graph.flightlog.tables import (
     _GEODETIC_STATE_COLUMNS,
     _GROUNDTRUTH_SPEC,
@@ -65,11 +66,19 @@ def read_flightlog(path: str | os.PathLike, read_tracks: bool = True) -> FlightL
         return str(given / name)
 
     if not root.is_dir():
-        _fail(str(given), 1, "not a directory", f"a flight log directory holding {FLIGHT_YAML}")
+        _fail_path(str(given), why_not_a_directory(root),
+                   f"a flight log directory holding {FLIGHT_YAML}")
     for name in (FLIGHT_YAML, IMU_CSV, FRAMES_CSV):
         if not (root / name).is_file():
-            _fail(shown(name), 1, "required file is missing",
-                  f"{FLIGHT_YAML}, {IMU_CSV} and {FRAMES_CSV} in every flight log")
+            why = why_not_a_file(root / name)
+            _fail_path(shown(name), "required file is missing" if why == "does not exist"
+                       else f"required file {why}",
+                       f"{FLIGHT_YAML}, {IMU_CSV} and {FRAMES_CSV} in every flight log")
+    optional = (*((TRACKS_CSV,) if read_tracks else ()), NAV_CSV, GROUNDTRUTH_CSV)
+    for name in optional:  # a folder in their place is not their absence
+        if os.path.lexists(root / name) and not (root / name).is_file():
+            _fail_path(shown(name), why_not_a_file(root / name),
+                       f"the optional {name} as a file, or no such entry")
 
     config = _parse_flight_yaml(root / FLIGHT_YAML, shown(FLIGHT_YAML), root)
     imu = _read_imu(root / IMU_CSV, shown(IMU_CSV))
@@ -92,7 +101,7 @@ def read_flightlog(path: str | os.PathLike, read_tracks: bool = True) -> FlightL
                       f"an image path for every frame{alternative}")
             if not (root / image).is_file():
                 _fail(shown(FRAMES_CSV), frames_first_line + k,
-                      f"image {_show(image)} does not exist",
+                      f"image {_show(image)} {why_not_a_file(root / image)}",
                       f"an image file relative to the log directory{alternative}")
 
     nav = None

@@ -30,7 +30,7 @@ from cdtm_graph.flightlog.model import (
     Tracks,
     normalized_path,
 )
-from cdtm_graph.flightlog.problems import _fail
+from cdtm_graph.flightlog.problems import _fail_path
 from cdtm_graph.flightlog.tables import _GEODETIC_STATE_COLUMNS, _STATE_COLUMNS
 from cdtm_graph.geodesy import LocalFrame
 from cdtm_graph.geometry import quat_wxyz_to_rotation, rotation_to_quat_wxyz
@@ -253,7 +253,7 @@ def write_flightlog(log: FlightLog, path: str | os.PathLike, geodetic: bool = Fa
     """
     target = normalized_path(Path(path))
     if target.exists() and not target.is_dir():
-        _fail(str(path), 1, "exists and is not a directory", "a directory for the flight log")
+        _fail_path(str(path), "exists and is not a directory", "a directory for the flight log")
     if geodetic and log.config.origin is None:
         raise ValueError("geodetic=True needs a log with a geodetic origin")
     files = _render(log, target, geodetic)  # everything rendered before the disk is touched

@@ -19,7 +19,7 @@ import cv2
 import gtsam
 import numpy as np
 
-from cdtm_graph.errors import CdtmError, FlightLogError, ImageError, SolverError
+from cdtm_graph.errors import CdtmError, FlightLogError, ImageError, SolverError, why_not_a_file
 from cdtm_graph.flightlog import FRAMES_CSV, FlightLog, Tracks
 from cdtm_graph.frontend.tracker import FeatureTracker, FrameTracks, MatchStatus, TrackerSettings
 from cdtm_graph.imu import ImuIntervals, SampleHold, initial_bias
@@ -37,7 +37,7 @@ def load_image(path: Path) -> np.ndarray:
         ImageError: the file is missing or not an image OpenCV can read.
     """
     if not path.is_file():
-        raise ImageError(f"{path}: image file does not exist")
+        raise ImageError(f"{path}: image file {why_not_a_file(path)}")
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise ImageError(f"{path}: cannot be read as an image, expected a PNG, JPEG, TIFF "

@@ -29,9 +29,10 @@ import numpy as np
 import yaml
 
 from cdtm_graph.camera import DISTORTION_LENGTHS, DistortionModel, PinholeCamera
+from cdtm_graph.errors import why_not_a_file
 from cdtm_graph.flightlog.config import RANGES, _Yaml
 from cdtm_graph.flightlog.model import ImuConfig
-from cdtm_graph.flightlog.problems import _fail, _show
+from cdtm_graph.flightlog.problems import _fail, _fail_path, _show
 from cdtm_graph.geometry import invert_pose, make_pose
 
 #: A transform's rotation may be this far from orthonormal (max |R^T R - I|): printed
@@ -128,7 +129,7 @@ def _open(path: str | os.PathLike) -> tuple[_SensorYaml, yaml.Node]:
     path = Path(path)
     shown = str(path)
     if not path.is_file():
-        _fail(shown, 1, "file does not exist", "a YAML calibration file")
+        _fail_path(shown, why_not_a_file(path), "a YAML calibration file")
     try:
         text = path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError:

@@ -24,7 +24,7 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from cdtm_graph.errors import SensorDataError
+from cdtm_graph.errors import SensorDataError, why_not_a_file
 from cdtm_graph.flightlog.importers.calibration import (
     CameraCalibration,
     read_euroc_sensor,
@@ -119,8 +119,8 @@ def read_euroc(path: str | os.PathLike, *, kalibr: str | os.PathLike | None = No
     folder = EurocFolder(find_mav0(path), camera, imu)
     for required in (folder.imu_csv, folder.frames_csv):
         if not required.is_file():
-            raise SensorDataError(f"{required}: missing; expected a EuRoC folder with "
-                                  f"{imu}/data.csv and {camera}/data.csv")
+            raise SensorDataError(f"{required}: {why_not_a_file(required)}; expected a EuRoC "
+                                  f"folder with {imu}/data.csv and {camera}/data.csv")
     imu_samples = _read_imu(folder.imu_csv, str(folder.imu_csv))
     stamps, first_line = _read_frames(folder.frames_csv, str(folder.frames_csv))
     images = _image_files(folder, stamps.image, first_line)
@@ -205,7 +205,7 @@ def _image_files(folder: EurocFolder, names: tuple[str, ...], first_line: int) -
                   f"a file name in {folder.image_dir}")
         path = folder.image_dir / name
         if not path.is_file():
-            _fail(shown, first_line + k, f"image {_show(name)} does not exist in "
+            _fail(shown, first_line + k, f"image {_show(name)} {why_not_a_file(path)} in "
                   f"{folder.image_dir}", "an image file for every row")
         files.append(path)
     return files

@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 from cdtm_graph.constants import STANDARD_GRAVITY_MPS2
-from cdtm_graph.errors import FlightLogError, SensorDataError
+from cdtm_graph.errors import FlightLogError, SensorDataError, why_not_a_file
 from cdtm_graph.flightlog.config import RANGES
 from cdtm_graph.flightlog.importers.calibration import CameraCalibration
 from cdtm_graph.flightlog.model import (
@@ -140,8 +140,8 @@ class DtmSource:
                                   "expected both --origin and --vertical-datum, or neither")
         for path in self.paths:
             if not path.is_file():
-                raise SensorDataError(f"{path}: DTM file does not exist; expected an existing "
-                                      "DTM or DEM file")
+                raise SensorDataError(f"{path}: DTM file {why_not_a_file(path)}; expected an "
+                                      "existing DTM or DEM file")
         if self.offset_sigma_m is not None:
             sigmas = tuple(float(v) for v in self.offset_sigma_m)
             if len(sigmas) != 2:
