@@ -221,15 +221,18 @@ class Rejections:
 
     def __init__(self) -> None:
         self._counts: dict[Rejection, dict[int, int]] = {r: {} for r in Rejection}
+        self._totals = dict.fromkeys(Rejection, 0)  # (a stage's count: before and after)
 
     def add(self, reason: Rejection, frame: int, n: int) -> None:
         if n:
             per_frame = self._counts[reason]
             per_frame[frame] = per_frame.get(frame, 0) + int(n)
+            self._totals[reason] += int(n)
 
     def total(self, reason: Rejection | None = None) -> int:
-        reasons = list(Rejection) if reason is None else [reason]
-        return sum(sum(self._counts[r].values()) for r in reasons)
+        if reason is not None:
+            return self._totals[reason]
+        return sum(self._totals.values())
 
     def per_frame(self, n_frames: int) -> dict[str, np.ndarray]:
         """Reason value -> (K,) counts, every reason present."""

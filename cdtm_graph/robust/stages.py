@@ -122,11 +122,14 @@ class Stage(Protocol):
 
 
 class Stages:
-    """An ordered list of stages, each timed (seconds over the run)."""
+    """An ordered list of stages, each timed (seconds over the run) and its features left
+    out counted (by reason, in the run's ``rejections``)."""
 
-    def __init__(self, stages: Sequence[Stage]):
+    def __init__(self, stages: Sequence[Stage], rejections: Rejections):
         self.stages = tuple(stages)
+        self.rejections = rejections
         self.time_s = dict.fromkeys((s.name for s in self.stages), 0.0)
+        self.rejected = {s.name: dict.fromkeys(s.rejects, 0) for s in self.stages}
 
     def run(self, work: FrameWork, solver: SolverView, start: str | None = None,
             stop: str | None = None) -> FrameWork:
@@ -138,16 +141,20 @@ class Stages:
             if not started:
                 continue
             t0 = time.perf_counter()
+            before = [self.rejections.total(r) for r in stage.rejects]
             stage.run(work, solver)
+            counts = self.rejected[stage.name]
+            for r, n in zip(stage.rejects, before):
+                counts[r] += self.rejections.total(r) - n
             self.time_s[stage.name] += time.perf_counter() - t0
             if stage.name == stop:
                 break
         return work
 
-    def summary(self, rejections: Rejections) -> list[dict]:
-        """Each stage: its name, settings, what it rejects (features, by reason), time."""
+    def summary(self) -> list[dict]:
+        """Each stage: its name, settings, the features it left out (by reason), time."""
         return [{"name": s.name, "settings": _plain(s.settings),
-                 "rejects": {r.value: rejections.total(r) for r in s.rejects},
+                 "rejected": {r.value: n for r, n in self.rejected[s.name].items()},
                  "time_s": self.time_s[s.name]} for s in self.stages]
 
 
@@ -342,7 +349,7 @@ def incremental_stages(pairing: SightingPairs, build: BuildFactors,
     stages += [build, GateInnovations(gate, gate_probability)]
     if judge is not None:
         stages.append(JudgeNewTracks(judge))
-    return Stages(stages)
+    return Stages(stages, build.rejections)
 
 
 def batch_stages(pairing: SightingPairs, build: BuildFactors, unfixed_frames: np.ndarray |
@@ -351,4 +358,4 @@ def batch_stages(pairing: SightingPairs, build: BuildFactors, unfixed_frames: np
     tracks the incremental pass (its robust start) found without a fix or off the map."""
     left_out = np.zeros(0, np.int64) if off_map is None else off_map
     return Stages([HoldUnfixed(unfixed_frames, rejections), PairSightings(pairing),
-                   KeepOutTracks(lambda: left_out, rejections), build])
+                   KeepOutTracks(lambda: left_out, rejections), build], rejections)

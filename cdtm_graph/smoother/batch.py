@@ -168,7 +168,7 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
                      rejected_per_frame=built.rejections.per_frame(K))
     settings_dict = {**settings.to_dict(), "initial_values": guess.source,
                      "acquisitions": guess.acquisitions,
-                     "stages": built.stages.summary(built.rejections) if built.stages else []}
+                     "stages": built.stages.summary() if built.stages else []}
     # the factors as the poses alone see them (held at an estimated calibration)
     result = assemble_result(flight.config, estimate, covariances, stats, counts, settings_dict,
                              guess.frame_flags, built.at_calibration(values), clutter,

@@ -465,7 +465,7 @@ class IncrementalSmoother:
             float(np.median(nis)) if nis.size else float("nan"),
             float(np.mean(nis)) if nis.size else float("nan"))
         settings = {**self.settings.to_dict(), "acquisitions": self.acquisitions,
-                    "stages": self.stages.summary(self.rejections)}
+                    "stages": self.stages.summary()}
         clutter_settings = self.settings.graph.clutter
         clutter = None if self._judge is None or clutter_settings is None else ClutterOutcome(
             self._judge.clutter, self._judge.considered(K), clutter_settings)
