@@ -3,14 +3,17 @@ flight in latitude and longitude over an EPSG:4326 DEM with EGM96 heights, end t
 
 from __future__ import annotations
 
+import json
 import re
 import shlex
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from cdtm_graph.cli import GEODETIC_EXAMPLE, main
 from cdtm_graph.flightlog import read_flightlog
+from cdtm_graph.outputs import read_tum
 
 ROOT = Path(__file__).resolve().parents[1]
 COMMANDS = ["cdtm simulate my_flight --origin 36.5 127.25 120",
@@ -56,3 +59,42 @@ def test_the_worked_example_runs_end_to_end(tmp_path, monkeypatch):
     for error, sigma in ((north, table[:, 11]), (east, table[:, 12]), (up, table[:, 13])):
         assert np.all(np.abs(error) < 4.0 * sigma + 0.05), (error, sigma)
         assert np.abs(error).max() < 5.0
+    _check_evo_reads_the_run(run, flight)
+
+
+#: The position RMSE evo reports against report.json's (the issue asks for 1 mm).
+APE_TOL_M = 1e-3
+
+
+def _check_evo_reads_the_run(run: Path, flight) -> None:
+    """``evo_ape tum my_run/groundtruth.tum my_run/trajectory.tum`` (README's recipe) gives
+    report.json's position RMSE: the APE computed as evo does (translation part, no
+    alignment, poses associated by time) from the two files read back, and by evo itself
+    when it is installed. groundtruth_geodetic.csv reads back as the log's ground truth.
+
+    Catches: no groundtruth.tum (evo on groundtruth.csv read degrees as metres: 6676 m),
+    ground truth in another frame or at other times than trajectory.tum."""
+    report = json.loads((run / "report.json").read_text())
+    rmse = report["evaluation"]["compensated"]["rmse_position_3d_m"]
+    t_gt, T_gt = read_tum(run / "groundtruth.tum")
+    t_est, T_est = read_tum(run / "trajectory.tum")
+    np.testing.assert_array_equal(t_gt, t_est)  # every frame is inside the simulated truth
+    ape = np.linalg.norm(T_est[:, :3, 3] - T_gt[:, :3, 3], axis=1)
+    assert float(np.sqrt(np.mean(ape**2))) == pytest.approx(rmse, abs=APE_TOL_M)
+    geodetic = np.loadtxt(run / "groundtruth_geodetic.csv", delimiter=",", skiprows=1)
+    truth = flight.groundtruth.interpolate(t_gt)
+    lat, lon, h = flight.config.local_frame.world_to_geodetic(truth.position_m)
+    np.testing.assert_allclose(geodetic[:, 1:4], np.column_stack([lat, lon, h]), rtol=0,
+                               atol=1e-9)
+    try:
+        from evo.core import metrics, sync
+        from evo.tools import file_interface
+    except ImportError:
+        return  # evo is optional; the computation above is evo's
+    reference = file_interface.read_tum_trajectory_file(str(run / "groundtruth.tum"))
+    estimate = file_interface.read_tum_trajectory_file(str(run / "trajectory.tum"))
+    reference, estimate = sync.associate_trajectories(reference, estimate)
+    ape_metric = metrics.APE(metrics.PoseRelation.translation_part)
+    ape_metric.process_data((reference, estimate))
+    assert ape_metric.get_statistic(metrics.StatisticsType.rmse) == pytest.approx(
+        rmse, abs=APE_TOL_M)

@@ -12,7 +12,7 @@ from cdtm_graph.cli.outdir import add_out_option, output_dir
 from cdtm_graph.errors import CdtmError
 from cdtm_graph.flightlog import load_log_and_dtm
 from cdtm_graph.graph import GraphSettings
-from cdtm_graph.outputs import GEODETIC_RUN_FILES, RUN_FILES, RUN_WRITER, write_run_files
+from cdtm_graph.outputs import ALL_RUN_FILES, RUN_WRITER, write_run_files
 from cdtm_graph.results import pose_covariance_in_world
 from cdtm_graph.run import RunOutput, smooth_and_evaluate
 from cdtm_graph.smoother import SmootherMode, SmootherSettings
@@ -231,7 +231,7 @@ def smooth_log_to_dir(log_dir: str, out_dir: Path, args: argparse.Namespace) -> 
     settings = settings_from_args(args)
     # (the geodetic files only come with an origin; unknown before the log is read)
     scene = bool(getattr(args, "scene", False))
-    names = [*RUN_FILES, *GEODETIC_RUN_FILES, *(PLOT_FILES if args.plots else ()),
+    names = [*ALL_RUN_FILES, *(PLOT_FILES if args.plots else ()),
              *((SCENE_FILE,) if scene else ())]
     with output_dir(args, out_dir, RUN_WRITER, protected=[log_dir], names=names) as staging:
         flight, dtm = load_log_and_dtm(log_dir)
@@ -240,7 +240,7 @@ def smooth_log_to_dir(log_dir: str, out_dir: Path, args: argparse.Namespace) -> 
         if scene:
             extras.append(scene_writer(out, dtm, flight, args.scene_every))
         write_run_files(staging, out.result, out.report, extras,
-                        frame=flight.config.local_frame)
+                        frame=flight.config.local_frame, groundtruth=flight.groundtruth)
     return out
 
 
