@@ -21,7 +21,7 @@ from factors import PlaneMode, RobustKernel
 #: Runs with at least this many frames show a progress bar (unless --quiet).
 PROGRESS_MIN_FRAMES = 100
 #: The plots ``--plots`` may write (errors.png only with ground truth).
-PLOT_FILES = ("trajectory.png", "errors.png", "trajectory_dem.png")
+PLOT_FILES = ("trajectory.png", "errors.png", "trajectory_dem.png", "verdict.png")
 #: The 3-D scene ``--scene`` writes.
 SCENE_FILE = "scene.glb"
 
@@ -51,9 +51,11 @@ def add_smoothing_options(p: argparse.ArgumentParser) -> None:
                         "focal scale (batch; priors from flight.yaml's camera.calibration, else "
                         "30 ms, 1 deg, 2%%); held: as exact, unchecked")
     p.add_argument("--plots", action="store_true",
-                   help="also write trajectory.png (over the DTM, 3-sigma ellipses), "
-                        "errors.png (errors inside +-3 sigma) and, for a geodetic log, "
-                        "trajectory_dem.png (over the DEM in its own coordinates)")
+                   help="also write trajectory.png (over the DTM: estimate, ground truth, "
+                        "IMU-only dead reckoning, 3-sigma ellipses), errors.png (errors "
+                        "inside +-3 sigma), verdict.png (the verdict's flags and reasons "
+                        "along the flight) and, for a geodetic log, trajectory_dem.png "
+                        "(over the DEM in its own coordinates)")
     p.add_argument("--scene", action="store_true",
                    help="also write scene.glb, a 3-D scene for any glTF viewer: the terrain "
                         "under the flight (hillshaded), the estimated (and true) trajectory, "
@@ -148,11 +150,14 @@ def progress_bar(quiet: bool):
 
 def plot_writers(out: RunOutput, dtm, flight) -> list:
     from cdtm_graph.plots.trajectory import plot_errors, plot_trajectory_over_dtm
+    from cdtm_graph.plots.verdict import plot_verdict
 
     est = out.result.estimate
     _, pos_cov = pose_covariance_in_world(est.world_T_body, out.result.covariances.pose)
     writers = [("trajectory.png",
-                lambda p: plot_trajectory_over_dtm(p, dtm, est, pos_cov, flight.groundtruth))]
+                lambda p: plot_trajectory_over_dtm(p, dtm, est, pos_cov, flight.groundtruth,
+                                                   free=out.free)),
+               ("verdict.png", lambda p: plot_verdict(p, out.verdict, len(est)))]
     frame, cfg = flight.config.local_frame, flight.config.dtm
     if frame is not None:
         from cdtm_graph.dem import read_dem_window
@@ -162,7 +167,7 @@ def plot_writers(out: RunOutput, dtm, flight) -> list:
         window = read_dem_window(cfg.paths, frame, dem_region_m(flight), cfg.vertical_datum,
                                  cfg.crs)
         writers.append(("trajectory_dem.png", lambda p: plot_trajectory_over_dem(
-            p, window, frame, est, pos_cov, flight.groundtruth)))
+            p, window, frame, est, pos_cov, flight.groundtruth, free=out.free)))
     e = out.errors
     if e is not None and e.position_sigma_world_m is not None:
         sigma = e.position_sigma_world_m
