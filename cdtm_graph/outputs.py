@@ -615,3 +615,84 @@ def read_trajectory_cov(path: str | os.PathLike
             cov[:, i, j] = cov[:, j, i] = block[:, col]
         covs.append(cov)
     return t_ns, T, covs[0], covs[1]
+
+
+# --------------------------------------------------------------------------- a whole run
+
+#: What a run directory must hold to be read back by :func:`read_run`.
+RUN_EXPECTED = (f"a run directory of cdtm smooth ({REPORT_JSON}, {TRAJECTORY_TUM}, "
+                f"{COVARIANCES_NPZ}, and {GROUNDTRUTH_TUM} for a log with ground truth)")
+
+
+@dataclasses.dataclass(frozen=True)
+class RunFiles:
+    """A run directory read back: what ``cdtm evaluate`` compares.
+
+    Attributes:
+        directory: where it was read.
+        report: report.json's content.
+        t_ns: (K,) frame times. world_T_body: (K, 4, 4) the estimate.
+        pose_covariance: (K, 6, 6) GTSAM tangent order [rot, trans], body frame.
+        groundtruth_t_ns: (M,) the ground truth's times (frames of ``t_ns``), or None
+            without ground truth. groundtruth_world_T_body: (M, 4, 4), or None.
+    """
+
+    directory: Path
+    report: dict[str, Any]
+    t_ns: np.ndarray
+    world_T_body: np.ndarray
+    pose_covariance: np.ndarray
+    groundtruth_t_ns: np.ndarray | None
+    groundtruth_world_T_body: np.ndarray | None
+
+
+def read_run(directory: str | os.PathLike, require_groundtruth: bool = False) -> RunFiles:
+    """Read a run directory back (report.json, trajectory.tum, covariances.npz, and
+    groundtruth.tum when there).
+
+    Raises:
+        CdtmError: not a directory, not a run directory, no ground truth (when required),
+            or a file that does not read; the message names the directory or file.
+    """
+    path = Path(directory)
+    if not path.is_dir():
+        what = "does not exist" if not path.exists() else "is not a directory"
+        raise CdtmError(f"{path}: {what}; expected {RUN_EXPECTED}")
+    missing = [n for n in (REPORT_JSON, TRAJECTORY_TUM, COVARIANCES_NPZ)
+               if not (path / n).is_file()]
+    if missing:
+        inside = sorted(p.name for p in path.iterdir() if (p / REPORT_JSON).is_file())
+        hint = (f" (it holds run directories: {', '.join(inside[:3])}"
+                f"{', ...' if len(inside) > 3 else ''}; name them)" if inside else "")
+        raise CdtmError(f"{path}: not a run directory (no {missing[0]}){hint}; expected "
+                        f"{RUN_EXPECTED}")
+    has_truth = (path / GROUNDTRUTH_TUM).is_file()
+    if require_groundtruth and not has_truth:
+        raise CdtmError(f"{path}: no ground truth (no {GROUNDTRUTH_TUM}: its log has no "
+                        "groundtruth.csv, or it was smoothed before cdtm wrote one); "
+                        "expected runs of logs with ground truth")
+    try:
+        report = json.loads((path / REPORT_JSON).read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise CdtmError(f"{path / REPORT_JSON}: cannot read: {exc}; expected the JSON "
+                        "report cdtm smooth writes") from None
+    if not isinstance(report, dict):
+        raise CdtmError(f"{path / REPORT_JSON}: not a JSON object; expected the report "
+                        "cdtm smooth writes")
+    t_ns, world_T_body = read_tum(path / TRAJECTORY_TUM)
+    try:
+        with np.load(path / COVARIANCES_NPZ, allow_pickle=False) as npz:
+            pose_cov, cov_t_ns = np.asarray(npz["pose"], float), np.asarray(npz["t_ns"])
+    except (OSError, KeyError, ValueError) as exc:
+        raise CdtmError(f"{path / COVARIANCES_NPZ}: cannot read: {exc}; expected the "
+                        "covariances cdtm smooth writes") from None
+    if pose_cov.shape != (len(t_ns), 6, 6) or not np.array_equal(cov_t_ns, t_ns):
+        raise CdtmError(f"{path / COVARIANCES_NPZ}: {pose_cov.shape[0]} frames that are not "
+                        f"the {len(t_ns)} of {TRAJECTORY_TUM}; expected the files of one run")
+    gt_t = gt_T = None
+    if has_truth:
+        gt_t, gt_T = read_tum(path / GROUNDTRUTH_TUM)
+        if not np.isin(gt_t, t_ns).all():
+            raise CdtmError(f"{path / GROUNDTRUTH_TUM}: times that are no frame of "
+                            f"{TRAJECTORY_TUM}; expected the files of one run")
+    return RunFiles(path, report, t_ns, world_T_body, pose_cov, gt_t, gt_T)

@@ -25,8 +25,8 @@ from collections.abc import Iterator
 from cdtm_graph.errors import CdtmError
 
 #: Subcommand modules, in the order ``cdtm --help`` lists them.
-SUBCOMMANDS = ("demo", "smooth", "import_", "track", "simulate", "analyze", "study", "navsim",
-               "accuracy_map")
+SUBCOMMANDS = ("demo", "smooth", "smooth_many", "evaluate", "import_", "track", "simulate",
+               "analyze", "study", "navsim", "accuracy_map")
 
 
 #: The worked example ``cdtm --help`` ends with (README and docs/flightlog.md tell it whole;
