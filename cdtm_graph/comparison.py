@@ -157,7 +157,6 @@ def run_row(name: str, files: RunFiles) -> RunRow:
     c = _compensated(files)
     consistency = c.get("position_consistency") or {}
     percentiles = consistency.get("nees_percentiles") or {}
-    xyz = ("x", "y", "z")
     reasons = tuple(
         f"{r.get('code')} frames {r.get('first_frame')}-{r.get('last_frame')}"
         for r in report.get("reasons") or [] if isinstance(r, dict))
@@ -165,10 +164,9 @@ def run_row(name: str, files: RunFiles) -> RunRow:
         name=name, log=str(report.get("input", "")),
         mode=mode_words(report.get("settings") or {}),
         n_frames=int(c.get("n_frames_evaluated") or 0),
-        rmse_position_m=tuple(_number(c["rmse_position_m"].get(a)) for a in xyz),  # type: ignore[arg-type]
+        rmse_position_m=_xyz(c.get("rmse_position_m")),
         rmse_position_3d_m=_number(c.get("rmse_position_3d_m")),
-        max_abs_position_error_m=tuple(  # type: ignore[arg-type]
-            _number(c["max_abs_position_error_m"].get(a)) for a in xyz),
+        max_abs_position_error_m=_xyz(c.get("max_abs_position_error_m")),
         anees_position=c.get("anees_position"), anees_pose=c.get("anees_pose"),
         nees_percentiles={p: percentiles.get(f"p{p:g}") for p in NEES_PERCENTILES},
         inside_fraction=consistency.get("inside_fraction"),
@@ -178,6 +176,12 @@ def run_row(name: str, files: RunFiles) -> RunRow:
 
 def _number(value: Any) -> float:
     return math.nan if value is None else float(value)
+
+
+def _xyz(per_axis: Any) -> tuple[float, float, float]:
+    """report.json's ``{"x": .., "y": .., "z": ..}`` (None where not finite) as floats."""
+    d = per_axis if isinstance(per_axis, dict) else {}
+    return _number(d.get("x")), _number(d.get("y")), _number(d.get("z"))
 
 
 def _g(value: float | None, digits: int = 3) -> str:
