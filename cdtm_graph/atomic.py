@@ -9,12 +9,14 @@ Every command that writes (``smooth``, ``demo``, ``simulate``, ``navsim``, ``stu
   overwritten, with or without ``force``; a name clash with such a file is an error.
 * **Where a directory may be written.** A new path (parents are created); an empty
   directory; an earlier cdtm output directory (it has a manifest): the writer's files of
-  the earlier run are replaced and those it no longer writes removed, everything else
-  (notes the user added, other writers' files) is kept. A non-empty directory without a
+  the earlier run are replaced and those it no longer writes removed (and named to the
+  caller, ``on_removed``, so the user hears of them), everything else (notes the user
+  added, other writers' files) is kept. A non-empty directory without a
   manifest only with ``force``, and then only beside the files already there. Never an
   existing file, nor a path in, equal to or around a protected input (the input flight
   log, a terrain file).
-* **Checked before the work.** On entry the rules are checked and a staging directory is
+* **Checked before the work.** On entry the rules are checked (:func:`check_output_dir`
+  checks them alone, for a command writing several directories) and a staging directory is
   created where the files will be published (inside the target if it exists, else beside
   it): an unwritable place (read-only file system, a path through a file, no
   permission) fails at once, before minutes of smoothing.
