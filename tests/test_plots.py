@@ -178,5 +178,9 @@ def test_verdict_figure_marks_each_flagged_frame_and_shades_each_reason(tmp_path
              if c.get_label() in ("flat_terrain", "few_features")}
     np.testing.assert_array_equal(marks["flat_terrain"], np.arange(10, 20))
     np.testing.assert_array_equal(marks["few_features"], [25])
+    from matplotlib.collections import LineCollection
+
+    (bar,) = [c for c in ax.collections if isinstance(c, LineCollection)]  # the reason's
+    np.testing.assert_allclose(bar.get_segments()[0][:, 0], [9.6, 19.4])
     assert "frame" in ax.get_xlabel() and "flat_terrain, frames 10-19" in ax.get_xlabel()
     assert ax.get_xlim() == (-0.5, 39.5)

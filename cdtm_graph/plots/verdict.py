@@ -2,7 +2,8 @@
 
 ``verdict.png`` (``cdtm smooth --plots``): frames of frames.csv on the x axis; one row
 per flag code with a mark at every flagged frame; each reason shaded over its frames in
-the colour of what it makes the run (degraded, failed), its code written on it; the
+the colour of what it makes the run (degraded, failed), its code written on it and a bar
+on its code's row (a reason such as ``overconfident`` flags no single frame); the
 reasons' lines (what the CLI prints) under the axes.
 """
 
@@ -56,6 +57,11 @@ def plot_verdict(path: str | os.PathLike, verdict: Verdict, n_frames: int) -> Fi
                    alpha=0.15, lw=0, zorder=0)
         ax.text((reason.first_frame + reason.last_frame) / 2, rows - 0.45, reason.code,
                 ha="center", va="top", fontsize=7, color=colour, clip_on=True)
+    for reason in verdict.reasons:  # a bar on its code's row over its frames
+        if reason.code in codes:
+            ax.hlines(codes.index(reason.code), reason.first_frame - 0.4,
+                      reason.last_frame + 0.4, color=STATUS_COLOURS[reason.status], lw=7,
+                      alpha=0.45, zorder=1)
     for row, code in enumerate(codes):
         frames = np.array(sorted(k for k, names in verdict.flags.items() if code in names))
         ax.scatter(frames, np.full(frames.shape, row), marker="s", s=14, color="tab:purple",
