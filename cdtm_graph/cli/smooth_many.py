@@ -4,6 +4,10 @@ Each log is smoothed exactly as ``cdtm smooth LOG --out DIR/<log's name>`` would
 function, the same files and manifest), on local processes (all cores) or on the workers
 of a Dask cluster (``--scheduler``: they must see the logs and DIR at the same paths);
 then ``cdtm evaluate`` writes the table and figures of all the runs into DIR.
+
+Every output directory (DIR and each run's) is checked before any work. A log that turns
+out bad while smoothing stops the command with its one line (exit 1): the runs finished
+by then stay, each complete under its own manifest; the evaluation is not written.
 """
 
 from __future__ import annotations
