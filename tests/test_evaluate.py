@@ -247,3 +247,20 @@ def test_smooth_many_bad_input_is_one_line_before_any_work(logs, tmp_path, capsy
     assert main(["smooth-many", str(logs[1]), "--out", str(mine)]) == 1
     _one_line(capsys.readouterr().err, "notes.md", "not written by cdtm")
     assert [p.name for p in mine.iterdir()] == ["notes.md"]
+
+
+def test_smooth_many_rerun_keeps_what_it_did_not_write(logs, tmp_path, capsys):
+    """A rerun into the same DIR replaces its runs and evaluation and keeps a user's notes
+    beside them (in DIR and in a run's directory).
+
+    Catches: DIR refused on the rerun (its runs are not in DIR's manifest), or the user's
+    files replaced or deleted."""
+    out = tmp_path / "many"
+    argv = ["smooth-many", str(logs[0]), "--out", str(out), "--workers", "1", "--quiet"]
+    assert main(argv) in WROTE_OUTPUTS
+    (out / "notes.md").write_text("mine")
+    (out / logs[0].name / "seen.txt").write_text("mine too")
+    assert main(argv) in WROTE_OUTPUTS
+    assert (out / "notes.md").read_text() == "mine"
+    assert (out / logs[0].name / "seen.txt").read_text() == "mine too"
+    assert set(read_manifest(out)) == set(EVALUATE_FILES)
