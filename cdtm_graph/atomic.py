@@ -9,12 +9,14 @@ Every command that writes (``smooth``, ``demo``, ``simulate``, ``navsim``, ``stu
   overwritten, with or without ``force``; a name clash with such a file is an error.
 * **Where a directory may be written.** A new path (parents are created); an empty
   directory; an earlier cdtm output directory (it has a manifest): the writer's files of
-  the earlier run are replaced and those it no longer writes removed, everything else
-  (notes the user added, other writers' files) is kept. A non-empty directory without a
+  the earlier run are replaced and those it no longer writes removed (and named to the
+  caller, ``on_removed``, so the user hears of them), everything else (notes the user
+  added, other writers' files) is kept. A non-empty directory without a
   manifest only with ``force``, and then only beside the files already there. Never an
   existing file, nor a path in, equal to or around a protected input (the input flight
   log, a terrain file).
-* **Checked before the work.** On entry the rules are checked and a staging directory is
+* **Checked before the work.** On entry the rules are checked (:func:`check_output_dir`
+  checks them alone, for a command writing several directories) and a staging directory is
   created where the files will be published (inside the target if it exists, else beside
   it): an unwritable place (read-only file system, a path through a file, no
   permission) fails at once, before minutes of smoothing.
@@ -46,7 +48,7 @@ import signal
 import tempfile
 import threading
 import time
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
 
 from cdtm_graph.errors import OutputError
@@ -450,8 +452,13 @@ def _check_foreign(path: Path, ours: Mapping[str, str] | None, force: bool, show
 
 
 def _publish_into(target: Path, staging: _Staging, writer: str, names: list[str],
-                  force: bool, shown: str) -> None:
-    """Rename each staged file over its old version, the manifest updated first and last."""
+                  force: bool, shown: str) -> list[str]:
+    """Rename each staged file over its old version, the manifest updated first and last.
+
+    Returns:
+        The files of an earlier run of the same writer that this one no longer writes,
+        removed.
+    """
     with _directory_lock(target):
         manifest = read_manifest(target)
         _check_foreign(target, manifest, force, shown, names)  # again: may have changed
@@ -480,12 +487,14 @@ def _publish_into(target: Path, staging: _Staging, writer: str, names: list[str]
         _write_manifest(target, {**kept, **{n: writer for n in names}}, complete=True,
                         scratch=staging.path)
         fsync_path(target)
+    return stale
 
 
 @contextlib.contextmanager
 def atomic_output_dir(target: str | os.PathLike, *, writer: str, force: bool = False,
                       protected: Iterable[str | os.PathLike] = (),
-                      names: Iterable[str] = (), label: str = "output directory"
+                      names: Iterable[str] = (), label: str = "output directory",
+                      on_removed: Callable[[list[str]], None] | None = None
                       ) -> Iterator[Path]:
     """Check ``target`` and yield a staging directory whose files are published there on success.
 
@@ -504,6 +513,9 @@ def atomic_output_dir(target: str | os.PathLike, *, writer: str, force: bool = F
         names: the files the caller will write, if known: a clash with a file cdtm did
             not write is then refused on entry rather than after the work.
         label: how messages name the target (``"--out"``).
+        on_removed: called after publishing with the files of an earlier run of the same
+            writer that this run no longer wrote and removed (only when there were any),
+            so the user hears of them.
 
     Raises:
         OutputError: the target breaks a rule or is not writable (on entry), or a file
@@ -513,20 +525,11 @@ def atomic_output_dir(target: str | os.PathLike, *, writer: str, force: bool = F
     given = os.fspath(target)
     shown = f"{label} {given}"
     path = Path(os.path.normpath(os.path.abspath(given)))
-    _check_protected(os.path.realpath(path), protected, shown)
     names = list(names)
     created: list[Path] = []
-    if os.path.lexists(path):
-        if not path.exists():
-            raise OutputError(f"{shown}: is a broken symbolic link; expected {_EXPECTED_DIR}")
-        if not path.is_dir():
-            raise OutputError(f"{shown}: exists and is not a directory; expected "
-                              f"{_EXPECTED_DIR}")
-        ours = read_manifest(path)
-        _check_foreign(path, ours, force, shown, names)
-        clashes = _clashes(path, names, ours or {})
-        if clashes:
-            raise _clash_error(shown, clashes)
+    exists = check_output_dir(target, force=force, protected=protected, names=names,
+                              label=label)
+    if exists:
         remove_stale_staging(path, STAGING_TAG)
         remove_stale_staging(path.parent, f".{path.name}{STAGING_TAG}")
         try:
@@ -545,6 +548,7 @@ def atomic_output_dir(target: str | os.PathLike, *, writer: str, force: bool = F
         into = False
 
     published = False
+    removed: list[str] = []
     try:
         yield staging.path
         with signals_deferred():
@@ -554,7 +558,7 @@ def atomic_output_dir(target: str | os.PathLike, *, writer: str, force: bool = F
             if not into:
                 published = _rename_into_place(staging, path, writer, payload)
             if not published:
-                _publish_into(path, staging, writer, payload, force, shown)
+                removed = _publish_into(path, staging, writer, payload, force, shown)
                 published = True
                 staging.remove()
     except BaseException:
@@ -563,6 +567,43 @@ def atomic_output_dir(target: str | os.PathLike, *, writer: str, force: bool = F
                 staging.remove()
                 _remove_created(created)
         raise
+    if removed and on_removed is not None:
+        on_removed(removed)
+
+
+def check_output_dir(target: str | os.PathLike, *, force: bool = False,
+                     protected: Iterable[str | os.PathLike] = (), names: Iterable[str] = (),
+                     label: str = "output directory") -> bool:
+    """Check the rules of :func:`atomic_output_dir` for ``target`` without writing anything.
+
+    For a command that writes several output directories (one per run, and a summary
+    beside them) and checks them all before any work.
+
+    Returns:
+        Whether ``target`` exists (as a directory).
+
+    Raises:
+        OutputError: ``target`` breaks a rule (the same messages as on entry to
+            :func:`atomic_output_dir`).
+    """
+    given = os.fspath(target)
+    shown = f"{label} {given}"
+    path = Path(os.path.normpath(os.path.abspath(given)))
+    _check_protected(os.path.realpath(path), protected, shown)
+    if not os.path.lexists(path):
+        return False
+    if not path.exists():
+        raise OutputError(f"{shown}: is a broken symbolic link; expected {_EXPECTED_DIR}")
+    if not path.is_dir():
+        raise OutputError(f"{shown}: exists and is not a directory; expected "
+                          f"{_EXPECTED_DIR}")
+    names = list(names)
+    ours = read_manifest(path)
+    _check_foreign(path, ours, force, shown, names)
+    clashes = _clashes(path, names, ours or {})
+    if clashes:
+        raise _clash_error(shown, clashes)
+    return True
 
 
 def _rename_into_place(staging: _Staging, path: Path, writer: str, payload: list[str]) -> bool:

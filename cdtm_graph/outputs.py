@@ -11,6 +11,11 @@ A run directory holds::
                           ellipsoidal height, attitude and velocity in the local ENU,
                           1-sigma north/east/up
     trajectory.geojson    (logs with a geodetic origin) the track for GIS tools
+    groundtruth.tum       (logs with ground truth) the true poses at the frames of
+                          trajectory.tum it covers, same format and world frame:
+                          ``evo_ape tum groundtruth.tum trajectory.tum`` reads both
+    groundtruth_geodetic.csv  (ground truth and a geodetic origin) the same in
+                          trajectory_geodetic.csv's first eleven columns
     <extra files>         e.g. PNG plots, written by caller-supplied functions
 
 Conventions of the files:
@@ -53,9 +58,11 @@ import numpy as np
 from cdtm_graph.atomic import atomic_output_dir
 from cdtm_graph.constants import NS_PER_S
 from cdtm_graph.errors import CdtmError
+from cdtm_graph.flightlog import States
 from cdtm_graph.geodesy import LocalFrame
 from cdtm_graph.geometry import quat_wxyz_to_rotation, rotation_to_quat_wxyz
 from cdtm_graph.results import SmootherResult, pose_covariance_in_world
+from cdtm_graph.verdict.evaluation import groundtruth_at_frames
 
 TRAJECTORY_TUM = "trajectory.tum"
 TRAJECTORY_COV = "trajectory_cov.txt"
@@ -64,10 +71,16 @@ COVARIANCES_NPZ = "covariances.npz"
 REPORT_JSON = "report.json"
 TRAJECTORY_GEODETIC_CSV = "trajectory_geodetic.csv"
 TRAJECTORY_GEOJSON = "trajectory.geojson"
+GROUNDTRUTH_TUM = "groundtruth.tum"
+GROUNDTRUTH_GEODETIC_CSV = "groundtruth_geodetic.csv"
 #: The files ``write_run`` always writes, and those it adds for a log with a geodetic
 #: origin; extra files may take none of these names.
 RUN_FILES = (TRAJECTORY_TUM, TRAJECTORY_COV, STATES_CSV, COVARIANCES_NPZ, REPORT_JSON)
 GEODETIC_RUN_FILES = (TRAJECTORY_GEODETIC_CSV, TRAJECTORY_GEOJSON)
+#: The ground truth at the frames, for a log that has it (the second with a geodetic origin).
+GROUNDTRUTH_RUN_FILES = (GROUNDTRUTH_TUM, GROUNDTRUTH_GEODETIC_CSV)
+#: Every name ``write_run`` may write itself.
+ALL_RUN_FILES = RUN_FILES + GEODETIC_RUN_FILES + GROUNDTRUTH_RUN_FILES
 
 #: Columns of trajectory_geodetic.csv. Its first eleven are those of a geodetic nav.csv or
 #: groundtruth.csv, so the file can be given back as either.
@@ -251,15 +264,16 @@ def _tum_values(world_T_body: np.ndarray) -> np.ndarray:
 
 
 def write_trajectory_tum(path: str | os.PathLike, t_ns: np.ndarray,
-                         world_T_body: np.ndarray) -> None:
+                         world_T_body: np.ndarray, what: str = "world_T_body") -> None:
     """Write a TUM trajectory ``t_s tx ty tz qx qy qz qw`` (one '#' header line).
 
     Args:
         path: file to write (not atomic by itself; ``write_run`` makes it so).
         t_ns: (K,) int64 times.
         world_T_body: (K, 4, 4) body poses in world.
+        what: what the poses are, for the header line.
     """
-    header = "# " + " ".join(TUM_COLUMNS) + "  (world_T_body; world = local ENU, m)\n"
+    header = "# " + " ".join(TUM_COLUMNS) + f"  ({what}; world = local ENU, m)\n"
     text = _rows_text(np.asarray(t_ns, dtype=np.int64), _tum_values(world_T_body))
     Path(path).write_text(header + text)
 
@@ -368,18 +382,42 @@ def write_trajectory_geojson(path: str | os.PathLike, result: SmootherResult,
     Path(path).write_text(json.dumps(to_json_safe(document), allow_nan=False) + "\n")
 
 
+def write_groundtruth_geodetic_csv(path: str | os.PathLike, truth: States,
+                                   frame: LocalFrame) -> None:
+    """Write ``groundtruth_geodetic.csv``: the true states in the first eleven columns of
+    ``GEODETIC_COLUMNS`` (those of a geodetic groundtruth.csv), floats in shortest
+    round-trip form."""
+    lat, lon, h, quat, vel = frame.states_to_geodetic(
+        truth.position_m, truth.world_T_body[:, :3, :3], truth.velocity_mps)
+    values = np.column_stack([lat, lon, h, quat, vel])
+    text = _rows_text(truth.t_ns, values, sep=",", t_format=str)
+    Path(path).write_text(",".join(GEODETIC_COLUMNS[:11]) + "\n" + text)
+
+
+def groundtruth_run_files(result: SmootherResult, groundtruth: States | None,
+                          frame: LocalFrame | None) -> tuple[str, ...]:
+    """The ground-truth files ``write_run`` writes for this result (none without ground
+    truth or when no frame lies inside its time range)."""
+    if groundtruth is None:
+        return ()
+    inside, _ = groundtruth_at_frames(result.estimate.t_ns, groundtruth)
+    if not inside.any():
+        return ()
+    return GROUNDTRUTH_RUN_FILES if frame is not None else (GROUNDTRUTH_TUM,)
+
+
 def _check_extra_name(name: str) -> None:
     pure = PurePath(name)
     if (not name or pure.name != name or name in (".", "..") or "\\" in name
-            or name in RUN_FILES + GEODETIC_RUN_FILES):
+            or name in ALL_RUN_FILES):
         raise ValueError(f"extra file name {name!r} must be a plain file name other than "
-                         f"{', '.join(RUN_FILES + GEODETIC_RUN_FILES)}")
+                         f"{', '.join(ALL_RUN_FILES)}")
 
 
 def write_run(out_dir: str | os.PathLike, result: SmootherResult, report: Mapping[str, Any],
               extra_files: Sequence[tuple[str, ExtraFileWriter]] = (), *, force: bool = False,
               protected: Sequence[str | os.PathLike] = (),
-              frame: LocalFrame | None = None) -> None:
+              frame: LocalFrame | None = None, groundtruth: States | None = None) -> None:
     """Write a whole run directory, atomically, never over a file cdtm did not write.
 
     The files are written into a staging directory and published into ``out_dir`` only
@@ -401,6 +439,9 @@ def write_run(out_dir: str | os.PathLike, result: SmootherResult, report: Mappin
         frame: the log's geodetic frame (``FlightConfig.local_frame``); when given, also
             ``trajectory_geodetic.csv`` and ``trajectory.geojson``, and the origin in
             report.json.
+        groundtruth: the log's ground truth (world frame), or None; when given, also
+            ``groundtruth.tum`` at the frames it covers (as ``trajectory_errors`` takes
+            the errors there) and, with ``frame``, ``groundtruth_geodetic.csv``.
 
     Raises:
         ValueError: inconsistent shapes, a bad or duplicate extra file name, or report
@@ -409,10 +450,11 @@ def write_run(out_dir: str | os.PathLike, result: SmootherResult, report: Mappin
     """
     check_run(result, report, extra_files)
     names = [*RUN_FILES, *(GEODETIC_RUN_FILES if frame is not None else ()),
+             *groundtruth_run_files(result, groundtruth, frame),
              *(name for name, _ in extra_files)]
     with atomic_output_dir(out_dir, writer=RUN_WRITER, force=force, protected=protected,
                            names=names) as tmp:
-        write_run_files(tmp, result, report, extra_files, frame)
+        write_run_files(tmp, result, report, extra_files, frame, groundtruth)
 
 
 def check_run(result: SmootherResult, report: Mapping[str, Any],
@@ -430,7 +472,8 @@ def check_run(result: SmootherResult, report: Mapping[str, Any],
 def write_run_files(directory: str | os.PathLike, result: SmootherResult,
                     report: Mapping[str, Any],
                     extra_files: Sequence[tuple[str, ExtraFileWriter]] = (),
-                    frame: LocalFrame | None = None) -> None:
+                    frame: LocalFrame | None = None,
+                    groundtruth: States | None = None) -> None:
     """Write the files of a run into ``directory`` (not atomic by itself).
 
     For a caller holding an :func:`~cdtm_graph.atomic.atomic_output_dir` open (the CLI
@@ -461,6 +504,12 @@ def write_run_files(directory: str | os.PathLike, result: SmootherResult,
     if frame is not None:
         write_trajectory_geodetic_csv(directory / TRAJECTORY_GEODETIC_CSV, result, frame)
         write_trajectory_geojson(directory / TRAJECTORY_GEOJSON, result, frame)
+    if groundtruth is not None and groundtruth_run_files(result, groundtruth, frame):
+        _, truth = groundtruth_at_frames(t_ns, groundtruth)
+        write_trajectory_tum(directory / GROUNDTRUTH_TUM, truth.t_ns, truth.world_T_body,
+                             "ground truth world_T_body at the frames of trajectory.tum")
+        if frame is not None:
+            write_groundtruth_geodetic_csv(directory / GROUNDTRUTH_GEODETIC_CSV, truth, frame)
     for name, writer in extra_files:
         writer(directory / name)
 
@@ -565,3 +614,84 @@ def read_trajectory_cov(path: str | os.PathLike
             cov[:, i, j] = cov[:, j, i] = block[:, col]
         covs.append(cov)
     return t_ns, T, covs[0], covs[1]
+
+
+# --------------------------------------------------------------------------- a whole run
+
+#: What a run directory must hold to be read back by :func:`read_run`.
+RUN_EXPECTED = (f"a run directory of cdtm smooth ({REPORT_JSON}, {TRAJECTORY_TUM}, "
+                f"{COVARIANCES_NPZ}, and {GROUNDTRUTH_TUM} for a log with ground truth)")
+
+
+@dataclasses.dataclass(frozen=True)
+class RunFiles:
+    """A run directory read back: what ``cdtm evaluate`` compares.
+
+    Attributes:
+        directory: where it was read.
+        report: report.json's content.
+        t_ns: (K,) frame times. world_T_body: (K, 4, 4) the estimate.
+        pose_covariance: (K, 6, 6) GTSAM tangent order [rot, trans], body frame.
+        groundtruth_t_ns: (M,) the ground truth's times (frames of ``t_ns``), or None
+            without ground truth. groundtruth_world_T_body: (M, 4, 4), or None.
+    """
+
+    directory: Path
+    report: dict[str, Any]
+    t_ns: np.ndarray
+    world_T_body: np.ndarray
+    pose_covariance: np.ndarray
+    groundtruth_t_ns: np.ndarray | None
+    groundtruth_world_T_body: np.ndarray | None
+
+
+def read_run(directory: str | os.PathLike, require_groundtruth: bool = False) -> RunFiles:
+    """Read a run directory back (report.json, trajectory.tum, covariances.npz, and
+    groundtruth.tum when there).
+
+    Raises:
+        CdtmError: not a directory, not a run directory, no ground truth (when required),
+            or a file that does not read; the message names the directory or file.
+    """
+    path = Path(directory)
+    if not path.is_dir():
+        what = "does not exist" if not path.exists() else "is not a directory"
+        raise CdtmError(f"{path}: {what}; expected {RUN_EXPECTED}")
+    missing = [n for n in (REPORT_JSON, TRAJECTORY_TUM, COVARIANCES_NPZ)
+               if not (path / n).is_file()]
+    if missing:
+        inside = sorted(p.name for p in path.iterdir() if (p / REPORT_JSON).is_file())
+        hint = (f" (it holds run directories: {', '.join(inside[:3])}"
+                f"{', ...' if len(inside) > 3 else ''}; name them)" if inside else "")
+        raise CdtmError(f"{path}: not a run directory (no {missing[0]}){hint}; expected "
+                        f"{RUN_EXPECTED}")
+    has_truth = (path / GROUNDTRUTH_TUM).is_file()
+    if require_groundtruth and not has_truth:
+        raise CdtmError(f"{path}: no ground truth (no {GROUNDTRUTH_TUM}: its log has no "
+                        "groundtruth.csv, or it was smoothed before cdtm wrote one); "
+                        "expected runs of logs with ground truth")
+    try:
+        report = json.loads((path / REPORT_JSON).read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise CdtmError(f"{path / REPORT_JSON}: cannot read: {exc}; expected the JSON "
+                        "report cdtm smooth writes") from None
+    if not isinstance(report, dict):
+        raise CdtmError(f"{path / REPORT_JSON}: not a JSON object; expected the report "
+                        "cdtm smooth writes")
+    t_ns, world_T_body = read_tum(path / TRAJECTORY_TUM)
+    try:
+        with np.load(path / COVARIANCES_NPZ, allow_pickle=False) as npz:
+            pose_cov, cov_t_ns = np.asarray(npz["pose"], float), np.asarray(npz["t_ns"])
+    except (OSError, KeyError, ValueError) as exc:
+        raise CdtmError(f"{path / COVARIANCES_NPZ}: cannot read: {exc}; expected the "
+                        "covariances cdtm smooth writes") from None
+    if pose_cov.shape != (len(t_ns), 6, 6) or not np.array_equal(cov_t_ns, t_ns):
+        raise CdtmError(f"{path / COVARIANCES_NPZ}: {pose_cov.shape[0]} frames that are not "
+                        f"the {len(t_ns)} of {TRAJECTORY_TUM}; expected the files of one run")
+    gt_t = gt_T = None
+    if has_truth:
+        gt_t, gt_T = read_tum(path / GROUNDTRUTH_TUM)
+        if not np.isin(gt_t, t_ns).all():
+            raise CdtmError(f"{path / GROUNDTRUTH_TUM}: times that are no frame of "
+                            f"{TRAJECTORY_TUM}; expected the files of one run")
+    return RunFiles(path, report, t_ns, world_T_body, pose_cov, gt_t, gt_T)

@@ -337,3 +337,43 @@ def test_files_in_subdirectories_are_published_and_their_folder_is_ours(tmp_path
             (staging / "images").mkdir()
             (staging / "images" / "0.png").write_text("0")
     assert (other / "images").read_text() == "a file where the folder goes"
+
+
+def test_a_rerun_tells_which_earlier_files_it_removed(tmp_path: Path):
+    """on_removed hears the same writer's files a rerun no longer wrote, and only those.
+
+    Catches: stale files removed without a word (issue 23: `--plots` left out), or a
+    user's file or another writer's named as removed."""
+    out = tmp_path / "run"
+    with atomic_output_dir(out, writer="smooth") as staging:
+        _write(staging, **{"a.txt": "1", "plot.png": "2"})
+    with atomic_output_dir(out, writer="evaluate") as staging:
+        _write(staging, **{"table.csv": "3"})
+    (out / "notes.md").write_text("mine")
+    heard: list[list[str]] = []
+    with atomic_output_dir(out, writer="smooth", on_removed=heard.append) as staging:
+        _write(staging, **{"a.txt": "1"})
+    assert heard == [["plot.png"]]
+    assert sorted(p.name for p in out.iterdir()) == [MANIFEST_NAME, "a.txt", "notes.md",
+                                                      "table.csv"]
+    with atomic_output_dir(out, writer="smooth", on_removed=heard.append) as staging:
+        _write(staging, **{"a.txt": "1"})
+    assert heard == [["plot.png"]]  # nothing removed: not called
+
+
+def test_check_output_dir_applies_the_rules_and_writes_nothing(tmp_path: Path):
+    """check_output_dir refuses what atomic_output_dir refuses, and creates nothing.
+
+    Catches: a multi-directory command (smooth-many) working for minutes before a
+    refused --out, or a check that leaves directories behind."""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.md").write_text("mine")
+    with pytest.raises(OutputError, match="not written by cdtm"):
+        atomic.check_output_dir(mine)
+    assert atomic.check_output_dir(mine, force=True) is True
+    with pytest.raises(OutputError, match="'notes.md' exists"):
+        atomic.check_output_dir(mine, force=True, names=["notes.md"])
+    assert atomic.check_output_dir(tmp_path / "new" / "run") is False
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mine"]
+    assert [p.name for p in mine.iterdir()] == ["notes.md"]

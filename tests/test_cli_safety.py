@@ -269,7 +269,7 @@ def test_force_writes_beside_the_users_files_never_over_them(log, tmp_path, caps
     (mine / "notes.txt").write_text("my notes")
     assert _smooth(capsys, log, mine, "--force")[0] in WROTE_OUTPUTS
     assert (mine / "notes.txt").read_text() == "my notes"
-    assert set(read_manifest(mine)) == set(RUN_FILES)
+    assert set(read_manifest(mine)) == {*RUN_FILES, "groundtruth.tum"}
     (tmp_path / "clash").mkdir()
     (tmp_path / "clash" / "states.csv").write_text("my states")
     code, err = _smooth(capsys, log, tmp_path / "clash", "--force")
@@ -313,10 +313,16 @@ def test_rerun_replaces_the_run_and_keeps_notes_added_to_it(log, tmp_path, capsy
     assert _smooth(capsys, log, out, "--plots")[0] in WROTE_OUTPUTS
     assert {"trajectory.png", "errors.png"} <= set(read_manifest(out))
     (out / "notes.md").write_text("what I saw")
-    assert _smooth(capsys, log, out)[0] in WROTE_OUTPUTS
+    code, err = _smooth(capsys, log, out)
+    assert code in WROTE_OUTPUTS
     names = sorted(p.name for p in out.iterdir())
-    assert names == sorted([*RUN_FILES, MANIFEST_NAME, "notes.md"])  # stale plots gone
+    assert names == sorted([*RUN_FILES, "groundtruth.tum", MANIFEST_NAME, "notes.md"])
     assert (out / "notes.md").read_text() == "what I saw"
+    # The stale plots are gone, and the rerun says so in one line (issue 23: silently).
+    (removed,) = [line for line in err.splitlines() if "removed" in line]
+    assert removed.startswith("cdtm smooth: removed 3 earlier output(s)")
+    assert all(name in removed for name in ("trajectory.png", "errors.png", "verdict.png"))
+    assert "notes.md" not in removed
 
 
 def test_out_through_a_file_fails_before_reading_the_log(log, tmp_path, capsys):

@@ -360,3 +360,55 @@ def test_the_dem_plot_draws_in_the_dems_own_coordinates(tmp_path: Path, rng):
         np.testing.assert_allclose(line.get_xdata(), x, rtol=1e-12)
         np.testing.assert_allclose(line.get_ydata(), y, rtol=1e-12)
         assert (tmp_path / "dem.png").stat().st_size > 0
+
+
+#: An ellipse narrower than this on screen cannot be seen (issue 23: about 1 px at true size).
+MIN_ELLIPSE_PX = 8.0
+
+
+def test_the_dem_plots_ellipses_are_visible_and_the_truth_is_drawn_over_the_estimate(
+        tmp_path: Path):
+    """trajectory_dem.png: 1 m ellipses on a 4 km track are magnified until they measure
+    at least MIN_ELLIPSE_PX on screen, the factor in the legend; the ground truth's line is
+    drawn above the estimate's; the IMU-only track is there.
+
+    Catches: true-size ellipses (about 1 px: issue 23), the truth under the estimate
+    (zorder 2 < 3 before), no IMU-only track."""
+    from cdtm_graph.dem import read_dem_window
+    from cdtm_graph.flightlog import States
+    from cdtm_graph.plots.dem import plot_trajectory_over_dem
+    from cdtm_graph.results import TrajectoryEstimate
+    from cdtm_graph.sim.geodetic import write_dem_tile
+    from tests.test_dem import _smooth_native
+
+    frame = LocalFrame(ORIGIN)
+    k = 12
+    position = np.column_stack([np.linspace(26500, 29500, k), np.linspace(16500, 18500, k),
+                                np.full(k, 1500.0)])
+    T = np.tile(np.eye(4), (k, 1, 1))
+    T[:, :3, 3] = position
+    zeros = np.zeros((k, 3))
+    estimate = TrajectoryEstimate(np.arange(k, dtype=np.int64), T, zeros, zeros, zeros)
+    free = TrajectoryEstimate(np.arange(k, dtype=np.int64), T.copy(),
+                              zeros, zeros, zeros)
+    free.world_T_body[:, 0, 3] += np.linspace(0.0, 300.0, k)
+    truth = States(estimate.t_ns, position + [2.0, -1.0, 0.0], np.tile([1.0, 0, 0, 0], (k, 1)),
+                   zeros)
+    cov = np.tile(np.diag([1.0, 0.5, 1.0]), (k, 1, 1))  # 3 m at 3 sigma
+    tile = write_dem_tile(_smooth_native(), frame, tmp_path / "dem.tif", "EPSG:4326", 1 / 3600)
+    window = read_dem_window([tile], frame, (26000.0, 30000.0, 16000.0, 19000.0),
+                             VerticalDatum.ELLIPSOID)
+    fig = plot_trajectory_over_dem(tmp_path / "dem.png", window, frame, estimate, cov, truth,
+                                   free=free)
+    ax = fig.axes[0]
+    lines = {ln.get_label(): ln for ln in ax.lines}
+    assert lines["ground truth"].get_zorder() > lines["estimate"].get_zorder()
+    assert any(label.startswith("IMU only") for label in lines)
+    (legend,) = [label for label in lines if label.startswith("3σ horizontal")]
+    assert "magnified ×" in legend
+    outlines = [ln for ln in ax.lines if ln.get_label().startswith("_") and
+                ln.get_color() == "tab:blue"]
+    assert len(outlines) == k
+    for outline in outlines:
+        px = ax.transData.transform(outline.get_xydata())
+        assert np.ptp(px, axis=0).min() >= MIN_ELLIPSE_PX

@@ -352,3 +352,50 @@ def test_read_trajectory_cov_rejects_a_tum_file(tmp_path: Path):
 def test_missing_file_is_a_cdtm_error(tmp_path: Path):
     with pytest.raises(CdtmError, match="cannot read"):
         read_tum(tmp_path / "absent.tum")
+
+
+# --------------------------------------------------------------------------- ground truth
+
+
+def test_groundtruth_tum_holds_the_truth_at_the_frames_it_covers(tmp_path: Path, result):
+    """groundtruth.tum: the true poses at exactly the frame times of trajectory.tum that the
+    ground truth covers, world frame, so evo associates them one to one.
+
+    Catches: writing the ground truth at its own (IMU) rate or at frames outside its
+    range (evo would match other pairs), or not writing it (issue 23's evo finding)."""
+    from cdtm_graph.flightlog import States
+    from cdtm_graph.verdict.evaluation import trajectory_errors
+
+    est = result.estimate
+    # Truth at twice the frame rate, starting after frame 3 and ending before the last.
+    frames = est.t_ns[3:-1]
+    t_truth = np.sort(np.r_[frames, frames[:-1] + FRAME_DT_NS // 2])
+    offset = np.array([1.0, -2.0, 0.5])
+    truth_xyz = np.interp(t_truth, est.t_ns, est.position_m[:, 0])
+    position = np.column_stack([truth_xyz, np.interp(t_truth, est.t_ns, est.position_m[:, 1]),
+                                np.interp(t_truth, est.t_ns, est.position_m[:, 2])]) + offset
+    quat = np.tile([1.0, 0.0, 0.0, 0.0], (len(t_truth), 1))
+    truth = States(t_truth, position, quat, np.zeros((len(t_truth), 3)))
+    write_run(tmp_path / "run", result, {}, groundtruth=truth)
+    t_gt, T_gt = read_tum(tmp_path / "run" / "groundtruth.tum")
+    np.testing.assert_array_equal(t_gt, est.t_ns[3:-1])
+    assert read_manifest(tmp_path / "run")["groundtruth.tum"] == "smooth"
+    assert not (tmp_path / "run" / "groundtruth_geodetic.csv").exists()  # no origin
+    # APE as evo computes it (translation part, no alignment) equals the run's 3-D RMSE.
+    t_est, T_est = read_tum(tmp_path / "run" / "trajectory.tum")
+    pick = np.isin(t_est, t_gt)
+    ape = np.linalg.norm(T_est[pick, :3, 3] - T_gt[:, :3, 3], axis=1)
+    errors = trajectory_errors(est, None, truth)
+    assert math.sqrt(np.mean(ape**2)) == pytest.approx(errors.rmse_position_3d_m, abs=1e-9)
+
+
+def test_no_groundtruth_file_without_a_frame_inside_the_truth(tmp_path: Path, result):
+    """A ground truth that covers no frame gives no (empty) groundtruth.tum.
+
+    Catches: an empty groundtruth.tum, which evo refuses with a traceback."""
+    from cdtm_graph.flightlog import States
+
+    t = np.array([0, 1], dtype=np.int64)  # long before the first frame
+    truth = States(t, np.zeros((2, 3)), np.tile([1.0, 0, 0, 0], (2, 1)), np.zeros((2, 3)))
+    write_run(tmp_path / "run", result, {}, groundtruth=truth)
+    assert not (tmp_path / "run" / "groundtruth.tum").exists()

@@ -134,3 +134,53 @@ def test_plots_work_as_extra_files_of_a_run(tmp_path, rng):
     ])
     assert _is_png(tmp_path / "run" / "trajectory.png")
     assert _is_png(tmp_path / "run" / "errors.png")
+
+
+def test_truth_is_drawn_over_the_estimate_beside_the_imu_only_track(tmp_path, rng):
+    """trajectory.png: the ground truth's line above the estimate's (it was hidden under
+    it), and the IMU-only track the summary compares against, named as leaving the view
+    when it does.
+
+    Catches: truth under the estimate (zorder 2 < 3 before), no IMU-only track."""
+    est = _track(200)
+    cov = _covariances(rng, 200, sigma_m=2.0)
+    gt = States(est.t_ns, est.position_m + 1.0, np.tile([1.0, 0, 0, 0], (200, 1)),
+                np.zeros((200, 3)))
+    free = _track(200)
+    free.world_T_body[:, 1, 3] += np.linspace(0.0, 5000.0, 200)  # drifts out of the view
+    fig = plot_trajectory_over_dtm(tmp_path / "t.png", _hilly_dtm(), est, cov,
+                                   groundtruth=gt, free=free)
+    lines = {ln.get_label(): ln for ln in fig.axes[0].lines}
+    assert lines["ground truth"].get_zorder() > lines["estimate"].get_zorder()
+    (imu_only,) = [label for label in lines if label.startswith("IMU only")]
+    assert "leaves the view" in imu_only
+    np.testing.assert_allclose(lines[imu_only].get_ydata(), free.position_m[:, 1])
+
+
+def test_verdict_figure_marks_each_flagged_frame_and_shades_each_reason(tmp_path):
+    """verdict.png: one row per flag code with a mark at each flagged frame (frames on
+    the x axis), each reason's frames shaded, its line under the axes.
+
+    Catches: no such figure (issue 23), flags drawn at the wrong frames."""
+    from cdtm_graph.plots.verdict import plot_verdict
+    from cdtm_graph.verdict import Reason, SelfChecks, Status, Verdict
+
+    flags = {k: ["flat_terrain"] for k in range(10, 20)} | {25: ["few_features"]}
+    reason = Reason("flat_terrain", "flat terrain: the fix is weak", 10, 19, Status.DEGRADED,
+                    10.0, 19.0)
+    checks = SelfChecks(1.0, np.ones(40), 0.0, float("nan"), float("nan"), True)
+    verdict = Verdict(Status.DEGRADED, (reason,), flags, checks)
+    path = tmp_path / "verdict.png"
+    fig = plot_verdict(path, verdict, 40)
+    assert _is_png(path)
+    ax = fig.axes[0]
+    marks = {c.get_label(): c.get_offsets()[:, 0] for c in ax.collections
+             if c.get_label() in ("flat_terrain", "few_features")}
+    np.testing.assert_array_equal(marks["flat_terrain"], np.arange(10, 20))
+    np.testing.assert_array_equal(marks["few_features"], [25])
+    from matplotlib.collections import LineCollection
+
+    (bar,) = [c for c in ax.collections if isinstance(c, LineCollection)]  # the reason's
+    np.testing.assert_allclose(bar.get_segments()[0][:, 0], [9.6, 19.4])
+    assert "frame" in ax.get_xlabel() and "flat_terrain, frames 10-19" in ax.get_xlabel()
+    assert ax.get_xlim() == (-0.5, 39.5)

@@ -43,6 +43,9 @@ COMMANDS: dict[str, Command] = {
     "demo": Command("demo", "smooth the bundled sample log into ./cdtm-demo-out "
                             "(--images: render, track and smooth a flight)"),
     "smooth": Command("smooth", "smooth a flight log (IMU + C-DTM factors)"),
+    "smooth-many": Command("smooth_many", "smooth many logs in parallel and evaluate them "
+                                          "together"),
+    "evaluate": Command("evaluate", "compare run directories: one table and figures"),
     "import": Command("import_", "turn a EuRoC folder or a ROS bag into a flight log"),
     "track": Command("track", "track features through the log's images into tracks.csv"),
     "simulate": Command("simulate", "write a simulated flight log: terrain, IMU, ray-cast "
@@ -78,6 +81,8 @@ worked example: a flight in latitude/longitude over an EPSG:4326 DEM with EGM96 
   nav.csv, groundtruth.csv: #t_ns,latitude_deg,longitude_deg,height_m,qw,qx,qy,qz,ve,vn,vu
   my_run/trajectory_geodetic.csv (lat, lon, ellipsoidal height, 1-sigma north/east/up),
   my_run/trajectory.geojson, my_run/trajectory_dem.png (over the DEM in its own CRS);
+  my_run/groundtruth.tum beside my_run/trajectory.tum (same frames, same world frame):
+    evo_ape tum my_run/groundtruth.tum my_run/trajectory.tum
   cdtm smooth ... --scene adds my_run/scene.glb (3-D, any glTF viewer)
 from sensor recordings:
   cdtm import euroc MH_01/mav0 --dtm DEM --out my_log [--kalibr camchain-imucam.yaml]

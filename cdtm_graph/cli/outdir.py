@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import sys
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
@@ -42,8 +43,20 @@ def add_force_option(parser: argparse.ArgumentParser) -> None:
 def output_dir(args: argparse.Namespace, target: str | os.PathLike, writer: str, *,
                protected: Iterable[str | os.PathLike] = (), names: Iterable[str] = (),
                label: str = "--out") -> Iterator[Path]:
-    """:func:`~cdtm_graph.atomic.atomic_output_dir` with the command's ``--force``."""
+    """:func:`~cdtm_graph.atomic.atomic_output_dir` with the command's ``--force``; the
+    earlier outputs a rerun removed (``--plots`` left out, say) are named in one line on
+    stderr."""
     with atomic_output_dir(target, writer=writer, force=bool(getattr(args, "force", False)),
                            protected=[p for p in protected if p is not None], names=names,
-                           label=label) as staging:
+                           label=label,
+                           on_removed=lambda removed: say_removed(args, target, removed)
+                           ) as staging:
         yield staging
+
+
+def say_removed(args: argparse.Namespace, target: str | os.PathLike,
+                removed: list[str]) -> None:
+    """One line on stderr naming the earlier outputs a rerun removed from ``target``."""
+    command = f"cdtm {args.command}" if getattr(args, "command", None) else "cdtm"
+    print(f"{command}: removed {len(removed)} earlier output(s) of this command in {target} "
+          f"that this run does not write: {', '.join(removed)}", file=sys.stderr)

@@ -12,7 +12,7 @@ from cdtm_graph.cli import COMMANDS
 from cdtm_graph.cli.outdir import add_out_option, output_dir
 from cdtm_graph.errors import CdtmError
 from cdtm_graph.graph import GraphSettings
-from cdtm_graph.outputs import GEODETIC_RUN_FILES, RUN_FILES, RUN_WRITER, write_run_files
+from cdtm_graph.outputs import ALL_RUN_FILES, RUN_WRITER, write_run_files
 from cdtm_graph.results import pose_covariance_in_world
 from cdtm_graph.run import RunOutput, smooth_and_evaluate
 from cdtm_graph.run.prepare import load_log_and_dtm
@@ -22,7 +22,7 @@ from factors import PlaneMode, RobustKernel
 #: Runs with at least this many frames show a progress bar (unless --quiet).
 PROGRESS_MIN_FRAMES = 100
 #: The plots ``--plots`` may write (errors.png only with ground truth).
-PLOT_FILES = ("trajectory.png", "errors.png", "trajectory_dem.png")
+PLOT_FILES = ("trajectory.png", "errors.png", "trajectory_dem.png", "verdict.png")
 #: The 3-D scene ``--scene`` writes.
 SCENE_FILE = "scene.glb"
 
@@ -52,9 +52,11 @@ def add_smoothing_options(p: argparse.ArgumentParser) -> None:
                         "focal scale (batch; priors from flight.yaml's camera.calibration, else "
                         "30 ms, 1 deg, 2%%); held: as exact, unchecked")
     p.add_argument("--plots", action="store_true",
-                   help="also write trajectory.png (over the DTM, 3-sigma ellipses), "
-                        "errors.png (errors inside +-3 sigma) and, for a geodetic log, "
-                        "trajectory_dem.png (over the DEM in its own coordinates)")
+                   help="also write trajectory.png (over the DTM: estimate, ground truth, "
+                        "IMU-only dead reckoning, 3-sigma ellipses), errors.png (errors "
+                        "inside +-3 sigma), verdict.png (the verdict's flags and reasons "
+                        "along the flight) and, for a geodetic log, trajectory_dem.png "
+                        "(over the DEM in its own coordinates)")
     p.add_argument("--scene", action="store_true",
                    help="also write scene.glb, a 3-D scene for any glTF viewer: the terrain "
                         "under the flight (hillshaded), the estimated (and true) trajectory, "
@@ -149,11 +151,14 @@ def progress_bar(quiet: bool):
 
 def plot_writers(out: RunOutput, dtm, flight) -> list:
     from cdtm_graph.plots.trajectory import plot_errors, plot_trajectory_over_dtm
+    from cdtm_graph.plots.verdict import plot_verdict
 
     est = out.result.estimate
     _, pos_cov = pose_covariance_in_world(est.world_T_body, out.result.covariances.pose)
     writers = [("trajectory.png",
-                lambda p: plot_trajectory_over_dtm(p, dtm, est, pos_cov, flight.groundtruth))]
+                lambda p: plot_trajectory_over_dtm(p, dtm, est, pos_cov, flight.groundtruth,
+                                                   free=out.free)),
+               ("verdict.png", lambda p: plot_verdict(p, out.verdict, len(est)))]
     frame, cfg = flight.config.local_frame, flight.config.dtm
     if frame is not None:
         from cdtm_graph.dem import read_dem_window
@@ -163,7 +168,7 @@ def plot_writers(out: RunOutput, dtm, flight) -> list:
         window = read_dem_window(cfg.paths, frame, dem_region_m(flight), cfg.vertical_datum,
                                  cfg.crs)
         writers.append(("trajectory_dem.png", lambda p: plot_trajectory_over_dem(
-            p, window, frame, est, pos_cov, flight.groundtruth)))
+            p, window, frame, est, pos_cov, flight.groundtruth, free=out.free)))
     e = out.errors
     if e is not None and e.position_sigma_world_m is not None:
         sigma = e.position_sigma_world_m
@@ -232,7 +237,7 @@ def smooth_log_to_dir(log_dir: str, out_dir: Path, args: argparse.Namespace) -> 
     settings = settings_from_args(args)
     # (the geodetic files only come with an origin; unknown before the log is read)
     scene = bool(getattr(args, "scene", False))
-    names = [*RUN_FILES, *GEODETIC_RUN_FILES, *(PLOT_FILES if args.plots else ()),
+    names = [*ALL_RUN_FILES, *(PLOT_FILES if args.plots else ()),
              *((SCENE_FILE,) if scene else ())]
     with output_dir(args, out_dir, RUN_WRITER, protected=[log_dir], names=names) as staging:
         flight, dtm = load_log_and_dtm(log_dir)
@@ -241,7 +246,7 @@ def smooth_log_to_dir(log_dir: str, out_dir: Path, args: argparse.Namespace) -> 
         if scene:
             extras.append(scene_writer(out, dtm, flight, args.scene_every))
         write_run_files(staging, out.result, out.report, extras,
-                        frame=flight.config.local_frame)
+                        frame=flight.config.local_frame, groundtruth=flight.groundtruth)
     return out
 
 

@@ -32,6 +32,53 @@ VIEW_MARGIN = 0.08
 #: PNG has fewer pixels than that anyway).
 MAX_HILLSHADE_CELLS = 1200
 DPI = 110
+#: How each track is drawn. The ground truth goes over the estimate (dashed, thinner), so
+#: both show where they coincide; IMU-only dead reckoning underneath both.
+ESTIMATE_STYLE = dict(color="tab:red", lw=2.2, zorder=3, label="estimate")
+TRUTH_STYLE = dict(color="black", lw=1.1, ls=(0, (4, 2)), zorder=5, label="ground truth")
+FREE_STYLE = dict(color="tab:orange", lw=1.2, ls=":", zorder=2)
+FREE_LABEL = "IMU only (dead reckoning)"
+ELLIPSE_ZORDER = 4
+
+
+def ellipse_scale_factor(largest_axis_m: float, extent_m: float,
+                          requested: float | None = None) -> float:
+    """The factor ellipses are drawn at: ``requested`` (>= 1), or the smallest of 1, 2, 5,
+    10, ... that makes the largest ellipse's major axis about ``ELLIPSE_TARGET_FRACTION``
+    of the plotted extent.
+
+    Raises:
+        ValueError: ``requested`` below 1.
+    """
+    if requested is not None:
+        if not requested >= 1.0:
+            raise ValueError(f"ellipse_magnification must be >= 1, got {requested}")
+        return float(requested)
+    if not largest_axis_m > 0:
+        return 1.0
+    return _nice_factor(ELLIPSE_TARGET_FRACTION * extent_m / largest_axis_m)
+
+
+def ellipse_label(every: int, magnification: float) -> str:
+    """The legend entry of the ellipses, with their scale."""
+    scale = "true size" if magnification == 1.0 else f"magnified ×{magnification:g}"
+    return f"{N_SIGMA:g}σ horizontal, {scale} (every {every} frames)"
+
+
+def plot_tracks(ax, estimate_xy: np.ndarray, truth_xy: np.ndarray,
+                free_xy: np.ndarray | None) -> None:
+    """The estimate, the ground truth over it, IMU-only dead reckoning under both; the
+    IMU-only label says when its track leaves the view (the view is the estimate's)."""
+    if free_xy is not None and free_xy.size:
+        x0, x1 = ax.get_xlim()
+        y0, y1 = ax.get_ylim()
+        outside = np.any((free_xy[:, 0] < min(x0, x1)) | (free_xy[:, 0] > max(x0, x1))
+                         | (free_xy[:, 1] < min(y0, y1)) | (free_xy[:, 1] > max(y0, y1)))
+        ax.plot(free_xy[:, 0], free_xy[:, 1], **FREE_STYLE,
+                label=FREE_LABEL + ("; leaves the view" if outside else ""))
+    ax.plot(estimate_xy[:, 0], estimate_xy[:, 1], **ESTIMATE_STYLE)
+    if truth_xy.size:
+        ax.plot(truth_xy[:, 0], truth_xy[:, 1], **TRUTH_STYLE)
 
 
 def _nice_factor(x: float) -> float:
@@ -106,8 +153,10 @@ def plot_trajectory_over_dtm(
     ellipse_every: int | None = None,
     ellipse_magnification: float | None = None,
     vert_exag: float = 1.0,
+    free: TrajectoryEstimate | None = None,
 ) -> Figure:
-    """Plan view: DTM hillshade, estimated track, ground truth, 3σ horizontal ellipses.
+    """Plan view: DTM hillshade, estimated track, ground truth over it, IMU-only dead
+    reckoning, 3σ horizontal ellipses.
 
     Args:
         path: PNG to write.
@@ -121,6 +170,9 @@ def plot_trajectory_over_dtm(
             smallest of 1, 2, 5, 10, ... that makes them visible. Any factor other than 1
             is stated in the title.
         vert_exag: vertical exaggeration of the hillshade.
+        free: the IMU-only (dead-reckoning) trajectory the summary compares against, or
+            None. The view is the estimate's and the truth's; the label says when the
+            IMU-only track leaves it.
 
     Returns:
         The figure (already saved).
@@ -140,10 +192,10 @@ def plot_trajectory_over_dtm(
                  layout="constrained")
     ax = fig.add_subplot()
     _hillshade(ax, dtm, view, vert_exag)
-    if xy_true.size:
-        ax.plot(xy_true[:, 0], xy_true[:, 1], color="tab:green", lw=1.5, label="ground truth",
-                zorder=2)
-    ax.plot(xy_est[:, 0], xy_est[:, 1], color="tab:red", lw=1.2, label="estimate", zorder=3)
+    ax.set_xlim(view[0], view[1])
+    ax.set_ylim(view[2], view[3])
+    plot_tracks(ax, xy_est, xy_true,
+                np.asarray(free.position_m)[:, :2] if free is not None else None)
 
     every = ellipse_every or max(1, k // DEFAULT_ELLIPSE_COUNT)
     pick = np.arange(0, k, every)
@@ -156,21 +208,14 @@ def plot_trajectory_over_dtm(
         semi = N_SIGMA * np.sqrt(np.clip(eigval, 0.0, None))  # (n, 2) minor, major
         extent = max(view[1] - view[0], view[3] - view[2])
         largest = float(np.max(semi[:, 1])) * 2
-        if ellipse_magnification is not None:
-            if not ellipse_magnification >= 1.0:
-                raise ValueError(f"ellipse_magnification must be >= 1, got "
-                                 f"{ellipse_magnification}")
-            magnification = float(ellipse_magnification)
-        elif largest > 0:
-            magnification = _nice_factor(ELLIPSE_TARGET_FRACTION * extent / largest)
+        magnification = ellipse_scale_factor(largest, extent, ellipse_magnification)
         angle_deg = np.degrees(np.arctan2(eigvec[:, 1, 1], eigvec[:, 0, 1]))
         ax.add_collection(EllipseCollection(
             widths=2 * semi[:, 1] * magnification, heights=2 * semi[:, 0] * magnification,
             angles=angle_deg, units="xy", offsets=xy_est[pick],
             offset_transform=ax.transData, facecolors="none", edgecolors="tab:blue",
-            linewidths=1.0, zorder=4))
-        ax.plot([], [], color="tab:blue", lw=1.0,
-                label=f"{N_SIGMA:g}σ horizontal (every {every} frames)")
+            linewidths=1.0, zorder=ELLIPSE_ZORDER))
+        ax.plot([], [], color="tab:blue", lw=1.0, label=ellipse_label(every, magnification))
 
     scale = ("true scale" if magnification == 1.0
              else f"magnified ×{magnification:g}")

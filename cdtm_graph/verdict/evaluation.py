@@ -118,7 +118,7 @@ class NeesConsistency:
         values = values[np.isfinite(values)]
         if values.size == 0:
             return None
-        bound = float(chi2_quantile(NEES_BOUND_PROBABILITY, dof))
+        bound = nees_bound(dof)
         inside = float(np.mean(values <= bound))
         median = float(np.median(values))
         if inside < bounds.min_inside_fraction:
@@ -163,6 +163,12 @@ class NeesConsistency:
                             "varies much more than independent frames' would: a hint, not "
                             "a test"),
         }
+
+
+def nees_bound(dof: int, probability: float = NEES_BOUND_PROBABILITY) -> float:
+    """The per-frame NEES bound: chi-square(dof) quantile at ``probability`` (7.81 for 3
+    dof at 95%); an honest covariance keeps ~``probability`` of the frames inside it."""
+    return float(chi2_quantile(probability, dof))
 
 
 def anees_band(n_frames: int, dof: int, confidence: float = ANEES_CONFIDENCE
@@ -338,6 +344,32 @@ def _nees(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
     return out
 
 
+def groundtruth_at_frames(t_ns: np.ndarray, groundtruth: States) -> tuple[np.ndarray, States]:
+    """Ground truth at the frame times it covers: the frames every error is taken at.
+
+    Linear in position and velocity, slerp in attitude (``States.interpolate``; a time
+    equal to a sample gives that sample); frames outside the ground truth's time range
+    are left out, not extrapolated.
+
+    Args:
+        t_ns: (K,) frame times.
+        groundtruth: true body states at any rate.
+
+    Returns:
+        (K,) bool, the frames inside the ground truth's time range, and the true states
+        at those M frames (M may be 0).
+    """
+    t_all = np.asarray(t_ns, dtype=np.int64)
+    if len(groundtruth):
+        inside = (t_all >= groundtruth.t_ns[0]) & (t_all <= groundtruth.t_ns[-1])
+    else:
+        inside = np.zeros(t_all.shape[0], dtype=bool)
+    if inside.any():
+        return inside, groundtruth.interpolate(t_all[inside])
+    return inside, States(np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 4)),
+                          np.zeros((0, 3)))
+
+
 def trajectory_errors(estimate: TrajectoryEstimate, covariances: StateCovariances | None,
                       groundtruth: States) -> ErrorReport:
     """Errors, RMSE/max per axis and NEES of an estimate against ground truth.
@@ -362,18 +394,11 @@ def trajectory_errors(estimate: TrajectoryEstimate, covariances: StateCovariance
     if covariances is not None and np.shape(covariances.pose) != (k, 6, 6):
         raise ValueError(f"covariances.pose has shape {np.shape(covariances.pose)}, expected "
                          f"({k}, 6, 6) for {k} frames")
-    if len(groundtruth):
-        inside = (t_all >= groundtruth.t_ns[0]) & (t_all <= groundtruth.t_ns[-1])
-    else:
-        inside = np.zeros(k, dtype=bool)
+    inside, truth = groundtruth_at_frames(t_all, groundtruth)
     idx = np.flatnonzero(inside)
     m = idx.size
     T_est = estimate.world_T_body[idx]
-    if m:
-        truth = groundtruth.interpolate(t_all[idx])
-        T_true, v_true = truth.world_T_body, truth.velocity_mps
-    else:
-        T_true, v_true = np.zeros((0, 4, 4)), np.zeros((0, 3))
+    T_true, v_true = truth.world_T_body, truth.velocity_mps
 
     p_err = T_est[:, :3, 3] - T_true[:, :3, 3]
     v_err = estimate.velocity_mps[idx] - v_true
