@@ -21,12 +21,12 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from cdtm_graph.verdict.outcome import Reason, Status, Verdict
+    from cdtm_graph.verdict.outcome import Reason, SelfChecks, Status, Verdict
     from cdtm_graph.verdict.rules import VerdictSettings, assess
 
-_WHERE = {"Reason": "outcome", "Status": "outcome", "Verdict": "outcome",
+_WHERE = {"Reason": "outcome", "SelfChecks": "outcome", "Status": "outcome", "Verdict": "outcome",
           "VerdictSettings": "rules", "assess": "rules"}
-__all__ = ["Reason", "Status", "Verdict", "VerdictSettings", "assess"]
+__all__ = ["Reason", "SelfChecks", "Status", "Verdict", "VerdictSettings", "assess"]
 
 
 def __getattr__(name: str) -> Any:
