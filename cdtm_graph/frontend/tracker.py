@@ -21,7 +21,11 @@ tracks seen in it (``track_id``, pixel). Per image:
    RANSAC: the translation direction given the IMU rotation
    (:func:`~cdtm_graph.frontend.two_view.fit_translation_given_rotation`), or the
    five-point essential matrix without one or when the IMU's rotation explains too few
-   matches. Matches off their epipolar plane by more than ``epipolar_threshold_px`` end.
+   matches (:func:`~cdtm_graph.frontend.two_view.fit_essential`: judged on the fitted
+   matrix, so a focal length known only roughly and a near-planar scene far away keep
+   their matches). Matches off their epipolar geometry by more than
+   ``epipolar_threshold_px`` (over the focal length: an angle) end. docs/frontend.md
+   says how each check depends on the intrinsics.
 5. **Replenishment** with spatial bucketing: the image is divided into a grid of cells,
    each with a share of ``max_features``; Shi-Tomasi corners
    (``cv2.goodFeaturesToTrack``) are added, strongest first, to the cells below their
