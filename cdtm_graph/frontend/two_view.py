@@ -19,9 +19,11 @@ Two robust fits, both RANSAC:
 
 Residuals are angles (radians); multiplied by the focal length they are pixels. With the
 rotation given, the larger of the two rays' angular distances from the epipolar plane of
-the fitted pose (:func:`epipolar_residual_rad`); with the five-point fit, the Sampson
-distance from the fitted matrix (:func:`sampson_distance_rad`), which holds when the rays
-are calibrated only roughly.
+the fitted pose (:func:`epipolar_residual_rad`); with the five-point fit, sqrt(2) times
+the Sampson distance from the fitted matrix (:func:`sampson_distance_rad`), which holds
+when the rays are calibrated only roughly. Both are, to first order, the distance of a
+match from its epipolar line in one image when the other image's point is exact: one
+bound means the same in both fits.
 """
 
 from __future__ import annotations
@@ -245,10 +247,12 @@ def fit_essential(rays_a: np.ndarray, rays_b: np.ndarray, threshold_rad: float,
                   confidence: float = 0.999, max_iterations: int = 1000) -> EpipolarFit:
     """Five-point RANSAC on the essential matrix (OpenCV's USAC), then the pose it holds.
 
-    **Inliers are judged on the matrix OpenCV fitted**, by :func:`sampson_distance_rad`,
-    not on the pose decomposed from it: USAC's final least-squares polish leaves the
-    matrix slightly off the essential manifold when the rays are not exactly calibrated
-    (a focal length known to a factor of two), and the nearest pose then moved the
+    **Inliers are judged on the matrix OpenCV fitted**, by sqrt(2) times
+    :func:`sampson_distance_rad` (to first order the distance from the epipolar line in
+    one image, as :func:`epipolar_residual_rad`), not on the pose decomposed from it:
+    USAC's final least-squares polish leaves the matrix slightly off the essential
+    manifold when the rays are not exactly calibrated (a focal length known to a factor
+    of two), and the nearest pose then moved the
     matches by up to 2 px (at 4400 px for a ~2200 px camera it kept 131 of 188 matches
     the matrix fits). Nor is a match dropped for triangulating behind a camera: over a
     narrow field of view with a baseline of ~1 % of the depth the translation direction
@@ -261,15 +265,15 @@ def fit_essential(rays_a: np.ndarray, rays_b: np.ndarray, threshold_rad: float,
 
     Args:
         rays_a, rays_b: (N, 3) matched rays with ``z > 0`` (others are outliers).
-        threshold_rad: inlier bound on :func:`sampson_distance_rad` (RANSAC's too): a
-            pixel bound over the focal length.
+        threshold_rad: inlier bound on ``sqrt(2)`` times :func:`sampson_distance_rad`
+            (RANSAC's too): a pixel bound over the focal length.
         confidence: RANSAC confidence.
         max_iterations: RANSAC iteration cap.
 
     Returns:
         The fit (``method`` ESSENTIAL, or NONE when there are too few matches or OpenCV
-        finds no model); ``residual_rad`` holds the Sampson distances (NaN: behind the
-        image plane).
+        finds no model); ``residual_rad`` holds sqrt(2) x the Sampson distances (NaN:
+        behind the image plane).
     """
     fa = np.asarray(rays_a, dtype=float)
     fb = np.asarray(rays_b, dtype=float)
@@ -279,13 +283,14 @@ def fit_essential(rays_a: np.ndarray, rays_b: np.ndarray, threshold_rad: float,
         return _nothing_fitted(n_matches, np.eye(3))
     pa = np.ascontiguousarray(fa[front, :2] / fa[front, 2:])
     pb = np.ascontiguousarray(fb[front, :2] / fb[front, 2:])
+    sampson_bound = threshold_rad / math.sqrt(2.0)  # (OpenCV's error is the Sampson distance)
     E, mask = cv2.findEssentialMat(pa, pb, np.eye(3), cv2.USAC_ACCURATE, confidence,
-                                   threshold_rad, max_iterations)
+                                   sampson_bound, max_iterations)
     if E is None or E.shape[0] < 3 or mask is None:
         return _nothing_fitted(n_matches, np.eye(3))
     E = E[:3]
     residual = np.full(n_matches, np.nan)
-    residual[front] = sampson_distance_rad(E, pa, pb)
+    residual[front] = math.sqrt(2.0) * sampson_distance_rad(E, pa, pb)
     inliers = residual <= threshold_rad  # (NaN: False)
     a_R_b, a_t_b = _pose_in_front(E, fa[inliers], fb[inliers], threshold_rad)
     return EpipolarFit(a_R_b, a_t_b, inliers, residual, FitMethod.ESSENTIAL)
