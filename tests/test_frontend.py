@@ -13,6 +13,7 @@ from cdtm_graph.frontend import (
     ImageError,
     MatchStatus,
     TrackerSettings,
+    TrackingReport,
     camera_rotations_from_imu,
     track_log,
 )
@@ -341,3 +342,34 @@ def test_tracking_is_reproducible(flight, tracked):
     again = track_log(flight[0].log, images=flight[1])
     np.testing.assert_array_equal(again.tracks.track_id, tracked.tracks.track_id)
     np.testing.assert_array_equal(again.tracks.uv_px, tracked.tracks.uv_px)
+
+
+def _report(pairs: list[int], epipolar: list[int]) -> TrackingReport:
+    k = len(pairs) + 1
+    zeros = np.zeros(k - 1, np.int64)
+    return TrackingReport(
+        n_frames=k, n_tracks=0, n_single_sightings=0, features_per_frame=np.zeros(k, np.int64),
+        pairs_per_frame=np.array(pairs), track_lengths=np.zeros(0, np.int64), rejected={},
+        fits={}, imu_rotations=0, seconds_per_frame=0.0,
+        ended_per_pair={"lost": zeros + 1, "forward_backward": zeros, "left_image": zeros,
+                        "epipolar": np.array(epipolar)},
+        weak_pair_features=50)
+
+
+def test_weak_pairs_warning_is_one_line_naming_the_first_and_counting_the_rest():
+    """12 weak pairs of 14: the first 8 named with their main reason, 4 more counted, one
+    line; none weak: no warning. Catches a line per pair, an off-by-one at the bound
+    (exactly 50 is not weak), a reason taken from the wrong pair."""
+    pairs = [10, 50, 49] + [0] * 10 + [120]
+    epipolar = [5, 0, 30] + [40 + i for i in range(10)] + [0]
+    report = _report(pairs, epipolar)
+    np.testing.assert_array_equal(report.weak_pairs(), [0] + list(range(2, 13)))
+    line = report.weak_pairs_warning()
+    assert line is not None and "\n" not in line
+    assert line.startswith("12 of 14 frame pairs keep fewer than 50 features: 0-1 (10 kept, "
+                           "5 ended epipolar), 2-3 (49 kept, 30 ended epipolar), 3-4 (0 kept, "
+                           "40 ended epipolar)")
+    assert "8-9 (0 kept, 45 ended epipolar) and 4 more; expected at least 50" in line
+    assert "1-2" not in line and "9-10" not in line
+    assert _report([50, 200], [0, 0]).weak_pairs_warning() is None
+    assert report.to_dict()["weak_pairs"]["pairs"][:2] == [[0, 1], [2, 3]]

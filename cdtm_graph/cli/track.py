@@ -11,6 +11,10 @@ Outputs follow :mod:`cdtm_graph.atomic`'s rules, for two single files:
   files are written to their temporary files first, then renamed into place, the report
   first: if tracks.csv cannot be renamed, the report is put back as it was. On any
   failure the temporary files are removed and both paths are as they were.
+
+Frame pairs keeping fewer than a quarter of ``--max-features`` are named in one warning
+line on stderr (:meth:`~cdtm_graph.frontend.track_log.TrackingReport.weak_pairs_warning`);
+the report gives every pair's count and the reasons its features ended.
 """
 
 from __future__ import annotations
@@ -80,7 +84,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="do not use the gyro's rotation to predict and verify matches "
                              "(the five-point essential matrix verifies them)")
     parser.add_argument("--report", metavar="FILE", help=REPORT_HELP)
-    parser.add_argument("--quiet", action="store_true", help="no progress bar, no report")
+    parser.add_argument("--quiet", action="store_true",
+                        help="no progress bar, no report (the weak-pairs warning stays)")
     parser.set_defaults(func=run)
 
 
@@ -290,4 +295,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.quiet:
         print(f"wrote {target}" + (f" and {given}" if given is not None else ""))
         print(result.report.summary())
+    warning = result.report.weak_pairs_warning()
+    if warning is not None:  # a finding, shown with --quiet too
+        print(f"cdtm track: warning: {warning}", file=sys.stderr)
     return 0
