@@ -22,6 +22,7 @@ class Kind(enum.Enum):
     FRAME = "frame"  # a per-frame flag (a stretch of them may become a reason)
     RUN = "run"      # a run-wide reason
     NOTE = "note"    # a note: no reason to distrust the run
+    FINDING = "finding"  # what the IMU check found in the samples (report.json imu_findings)
 
 
 class Code(enum.StrEnum):
@@ -65,6 +66,12 @@ class Code(enum.StrEnum):
                          "without camera constraints), but the fixed lag is shorter than the "
                          "fix search's window: the frames went on without a search for the "
                          "fix (a longer --lag-s searches)")
+    # -- IMU findings (the samples themselves; an imu_gap also flags its frames) -------
+    IMU_RATE_MISMATCH = ("imu_rate_mismatch", Kind.FINDING,
+                         "the samples' median spacing is not 1 / imu.rate_hz")
+    IMU_STUCK = ("imu_stuck", Kind.FINDING, "all six values repeated: a frozen sensor")
+    IMU_SATURATED = ("imu_saturated", Kind.FINDING, "a channel held at its extreme value")
+    IMU_TIME_ORDER = ("imu_time_order", Kind.FINDING, "a sample not after the one before")
     # -- run-wide reasons ---------------------------------------------------------------
     NOT_CONVERGED = ("not_converged", Kind.RUN, "the solver did not converge")
     MISFIT = ("misfit", Kind.RUN, "the solution does not fit its data")

@@ -215,6 +215,7 @@ def run_report(result: SmootherResult, report: Mapping[str, Any]) -> dict[str, A
         "counts": result.counts,
         "solver": result.stats,
         "settings": result.settings,
+        "stages": result.stages,
         "flags": result.flags,
         "terrain": result.terrain,
         "calibration": result.calibration,

@@ -343,6 +343,10 @@ class SmootherResult:
             ``covariances``.
         bias_prior: flight.yaml's IMU bias prior, which the verdict holds the bias
             estimates against (``None``: not checked).
+        stages: what each defence left out (features, by reason) and its time: the
+            per-frame stages in order, then the work charged apart (the track tests'
+            rounds, the fix search's verdicts); they add up to ``counts.rejected_per_frame``
+            (:meth:`cdtm_graph.robust.stages.Stages.summary`).
     """
 
     estimate: TrajectoryEstimate
@@ -357,6 +361,7 @@ class SmootherResult:
     calibration_check: CalibrationCheck | None = None
     map_offset: MapOffset = field(default_factory=MapOffset)
     bias_prior: BiasPrior | None = None
+    stages: tuple[dict, ...] = ()
 
 
 def frame_flags(counts: GraphCounts, extra: dict[int, list[str]] | None = None

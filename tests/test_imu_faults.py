@@ -12,6 +12,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from cdtm_graph.codes import Code
 from cdtm_graph.graph import GraphSettings
 from cdtm_graph.imu import IMU_GAP_PERIODS, gap_after
 from cdtm_graph.results import BiasPrior
@@ -24,7 +25,6 @@ from cdtm_graph.verdict.imu_faults import (
     SATURATION_MIN_SAMPLES,
     STUCK_MIN_SAMPLES,
     ImuCheckSettings,
-    ImuFault,
     check_imu,
     finding_flags,
     finding_frames,
@@ -141,7 +141,7 @@ def test_backward_and_repeated_times_are_named():
     t[70] = t[68]  # backward
     z = np.random.default_rng(2).normal(size=(t.size, 3))
     findings = _check(t, z, z + 9.8)
-    order = [f for f in findings if f.code is ImuFault.TIME_ORDER]
+    order = [f for f in findings if f.code is Code.IMU_TIME_ORDER]
     assert [(f.first_t_ns, f.last_t_ns) for f in order] == [(t[49], t[50]), (t[69], t[70])]
 
 

@@ -265,7 +265,7 @@ def test_a_fixed_lag_too_short_for_the_fix_search_is_refused_or_said():
                                        frame_interval_s=dt_s)
         assert smoother._search is not None
         needed = smoother._search.needed
-        smoother._search.needed = lambda pose, cov, n=smoother: len(n._t_ns) == 7 or needed(
+        smoother._search.needed = lambda pose, cov, n=smoother: len(n._window.t_ns) == 7 or needed(
             pose, cov)
         results[name] = smoother.run(flight)
         flags[name] = results[name].flags

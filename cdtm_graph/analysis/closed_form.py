@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from cdtm_graph.codes import Code
 from factors import cdtm_math
 from factors.cdtm_factor import FeatureNoise
 
@@ -255,8 +256,8 @@ def geometric_degeneracy(
     details: dict = {}
     n = q_a.shape[0]
     if n < settings.min_features:
-        reasons.append("few_features")
-        details["few_features"] = f"{n} features, need >= {settings.min_features}"
+        reasons.append(Code.FEW_FEATURES)
+        details[Code.FEW_FEATURES] = f"{n} features, need >= {settings.min_features}"
     if n >= 2:
         rays = q_a / np.linalg.norm(q_a, axis=1, keepdims=True)
         centre = rays.mean(axis=0)
@@ -264,8 +265,8 @@ def geometric_degeneracy(
         spread_deg = 2 * np.degrees(np.arccos(np.clip(rays @ centre, -1, 1)).max())
         details["feature_spread_deg"] = spread_deg
         if spread_deg < settings.min_fov_deg:
-            reasons.append("narrow_fov")
-            details["narrow_fov"] = (f"features span {spread_deg:.2f} deg, need >= "
+            reasons.append(Code.NARROW_FOV)
+            details[Code.NARROW_FOV] = (f"features span {spread_deg:.2f} deg, need >= "
                                      f"{settings.min_fov_deg:g} deg")
     depth = np.linalg.norm(G_E - world_T_cam_a[:3, 3], axis=1).mean() if n else np.inf
     baseline = np.linalg.norm(world_T_cam_a[:3, 3] - world_T_cam_b[:3, 3])
@@ -279,8 +280,8 @@ def geometric_degeneracy(
         relief = np.linalg.svd(centred, compute_uv=False)[-1] / np.sqrt(n)
         details["relief_rms_m"] = relief
         if relief < max(settings.flat_relief_sigma * sigma_h_m, 0.5):
-            reasons.append("flat_terrain")
-            details["flat_terrain"] = (f"hit points within {relief:.2f} m RMS of a plane "
+            reasons.append(Code.FLAT_TERRAIN)
+            details[Code.FLAT_TERRAIN] = (f"hit points within {relief:.2f} m RMS of a plane "
                                        f"(DTM sigma {sigma_h_m:.2f} m)")
     return Degeneracy(tuple(reasons), details)
 

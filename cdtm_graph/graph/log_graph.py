@@ -8,7 +8,7 @@ out of it between solves.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import gtsam
@@ -140,7 +140,7 @@ def build_log_graph(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
                          settings, rejections,
                          None if twists is None else (CALIBRATION_KEY, twists))
     stages = batch_stages(pairing, build, unfixed_frames, off_map, rejections)
-    view = _InitialGuess(checked.__getitem__, poses)
+    view = _BeforeSolving(checked.__getitem__, poses)
     factors: list[CdtmPairFactor] = []
     track_ids: list[np.ndarray] = []
     per_frame = np.zeros(K, dtype=int)
@@ -158,15 +158,23 @@ def build_log_graph(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
                     twists=twists, stages=stages)
 
 
-class _InitialGuess:
+class _BeforeSolving:
     """The :class:`~cdtm_graph.robust.stages.SolverView` of a graph built from an initial
     guess: no solver runs yet, nothing has left it, nothing is judged."""
 
-    settled, lagged, converging = 0, False, False
-
     def __init__(self, pose_guess: Callable[[int], np.ndarray], poses: list[np.ndarray]):
-        self.pose_guess = pose_guess
-        self.poses: Mapping[int, np.ndarray] | Sequence[np.ndarray] = poses
+        self._pose_guess, self._poses = pose_guess, poses
+
+    settled = property(lambda self: 0)
+    lagged = property(lambda self: False)
+    converging = property(lambda self: False)
+
+    @property
+    def poses(self) -> Sequence[np.ndarray]:
+        return self._poses
+
+    def pose_guess(self, j: int) -> np.ndarray:
+        return self._pose_guess(j)
 
     def pair_prior(self) -> None:
         return None
@@ -176,9 +184,3 @@ class _InitialGuess:
 
     def forget_tracks(self, track_ids: np.ndarray, reason: Rejection) -> None:
         raise AssertionError("a graph built from an initial guess judges no tracks")
-
-    def needs_fix(self, k: int) -> bool:
-        return False
-
-    def lag_holds_search(self) -> bool:
-        return True

@@ -9,7 +9,8 @@
 - :mod:`~cdtm_graph.robust.mismatch`: terrain the DTM lacks, seen by tracks and their
   neighbours; :mod:`~cdtm_graph.robust.neighbours`: the spatial views' one search.
 - :mod:`~cdtm_graph.robust.clutter`: clutter over a region (forest, town): a mixture fit.
-- :mod:`~cdtm_graph.robust.track_judge`: the incremental smoother's judge of tracks.
+- :mod:`~cdtm_graph.robust.track_judge`: the incremental smoother's judge of tracks;
+  :mod:`~cdtm_graph.robust.track_tests`: the batch's rounds of the same tests.
 - :mod:`~cdtm_graph.robust.fix_search` and :mod:`~cdtm_graph.robust.acquisition`: finding
   the fix when the prior is wider than the smoothers pull in.
 

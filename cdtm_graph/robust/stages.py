@@ -4,8 +4,10 @@ Both smoothers run an ordered :class:`Stages` list over each frame: the sighting
 ids and pixels) become pairs with their tracks' earlier sightings, the pairs become C-DTM
 factors, the factors lose the features that fail a test. Each stage has its settings,
 names the :class:`~cdtm_graph.results.Rejection` reasons it counts (into
-``counts.rejected_per_frame`` of report.json) and is timed; ``Stages.summary()`` goes into
-report.json's ``settings.stages``.
+``counts.rejected_per_frame`` of report.json) and is timed. What the defences leave out
+outside a frame's pass (the fix search's late verdicts, the track tests' rounds over many
+frames) is charged to its own entry (:meth:`Stages.charged`), so that report.json's
+``stages`` (:meth:`Stages.summary`) adds up to ``counts.rejected_per_frame``.
 
 The order (:func:`incremental_stages`; the batch, :func:`batch_stages`, runs the stages
 that need no running solver, with what the incremental pass learned):
@@ -21,18 +23,15 @@ that need no running solver, with what the incremental pass learned):
 6. :class:`JudgeNewTracks` (``map_mismatch``, ``wrong_match``): the frame's tracks
    triangulated against the DTM; the ones off it leave the solver.
 
-Adding a defence: a class with ``name``, ``rejects`` and ``run(work, solver)`` here, a
-:class:`~cdtm_graph.results.Rejection` member for what it leaves out (and a rule in
-:mod:`cdtm_graph.verdict.rules` if a frame should be flagged for it), and one line in
-:func:`incremental_stages` (and :func:`batch_stages` if it needs no running solver);
-docs/design.md, "Adding a stage".
+Adding a defence: docs/design.md, "Adding a stage".
 """
 
 from __future__ import annotations
 
+import contextlib
 import time
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field, is_dataclass
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
@@ -74,23 +73,29 @@ class FrameWork:
 
 
 class SolverView(Protocol):
-    """What a stage may ask of the smoother running it.
+    """What a stage may ask of the smoother running it (the incremental smoother; the
+    batch's graph builder, which has an initial guess and no solver yet)."""
 
-    Attributes:
-        settled: frames before this one have left the solver (a fixed lag's window).
-        lagged: a fixed lag (tables of old sightings may be forgotten).
-        converging: the solution still converges from a loose prior: judge nothing.
-        poses: every frame's current pose guess (frame -> (4, 4)), as the factors are
-            built at.
-    """
+    @property
+    def settled(self) -> int:
+        """Frames before this one have left the solver (a fixed lag's window)."""
 
-    settled: int
-    lagged: bool
-    converging: bool
-    poses: Mapping[int, np.ndarray] | Sequence[np.ndarray]
+    @property
+    def lagged(self) -> bool:
+        """A fixed lag: tables of old sightings may be forgotten."""
+
+    @property
+    def converging(self) -> bool:
+        """The solution still converges from a loose prior: judge nothing."""
+
+    @property
+    def poses(self) -> Mapping[int, np.ndarray] | Sequence[np.ndarray]:
+        """Frame -> the (4, 4) pose guess the factors are built at."""
 
     def pose_guess(self, j: int) -> np.ndarray:
-        """Frame j's pose as the solver has it now (the newest frame: its prediction)."""
+        """Frame j's pose as the epipolar check and the tests see it: the solver's now
+        (the newest frame: its prediction); the batch's initial guess (its rotations
+        chained from the IMU when the guess is a nav.csv)."""
 
     def pair_prior(self) -> Callable[[int], np.ndarray] | None:
         """Earlier frame a -> the (12, 12) prior covariance of ``(X(a), X(k))`` before
@@ -101,13 +106,6 @@ class SolverView(Protocol):
 
     def forget_tracks(self, track_ids: np.ndarray, reason: Rejection) -> None:
         """Keep these tracks out from now on, their earlier features out of the solver."""
-
-    def needs_fix(self, k: int) -> bool:
-        """Whether frame k starts a search for the fix (the prior, or the covariance after
-        a long gap, reaches farther than the smoothers pull in)."""
-
-    def lag_holds_search(self) -> bool:
-        """Whether the solver's window holds the frames a fix search needs."""
 
 
 class Stage(Protocol):
@@ -129,57 +127,74 @@ class Stages:
         self.stages = tuple(stages)
         self.rejections = rejections
         self.time_s = dict.fromkeys((s.name for s in self.stages), 0.0)
-        self.rejected = {s.name: dict.fromkeys(s.rejects, 0) for s in self.stages}
+        self.rejected: dict[str, dict[Rejection, int]] = {
+            s.name: dict.fromkeys(s.rejects, 0) for s in self.stages}
 
     def run(self, work: FrameWork, solver: SolverView, start: str | None = None,
             stop: str | None = None) -> FrameWork:
         """Every stage in order over ``work`` (from the one named ``start``, through the
         one named ``stop``)."""
+        names = [s.name for s in self.stages]
+        if not {start, stop} - {None} <= set(names):
+            raise ValueError(f"stages {start!r}..{stop!r}: expected names of {names}")
         started = start is None
         for stage in self.stages:
             started = started or stage.name == start
             if not started:
                 continue
-            t0 = time.perf_counter()
-            before = [self.rejections.total(r) for r in stage.rejects]
-            stage.run(work, solver)
-            counts = self.rejected[stage.name]
-            for r, n in zip(stage.rejects, before):
-                counts[r] += self.rejections.total(r) - n
-            self.time_s[stage.name] += time.perf_counter() - t0
+            with self.charged(stage.name, stage.rejects):
+                stage.run(work, solver)
             if stage.name == stop:
                 break
         return work
 
+    @contextlib.contextmanager
+    def charged(self, name: str, rejects: tuple[Rejection, ...]) -> Iterator[None]:
+        """Charge what is left out (for ``rejects``) and the time spent inside the block to
+        the entry ``name``: a stage, or a defence's work outside a frame's pass (the track
+        tests' rounds, the fix search's verdict on held frames)."""
+        before = [self.rejections.total(r) for r in rejects]
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            counts = self.rejected.setdefault(name, {})
+            for r, n in zip(rejects, before):
+                counts[r] = counts.get(r, 0) + self.rejections.total(r) - n
+            self.time_s[name] = self.time_s.get(name, 0.0) + time.perf_counter() - t0
+
     def summary(self) -> list[dict]:
-        """Each stage: its name, settings, the features it left out (by reason), time."""
-        return [{"name": s.name, "settings": _plain(s.settings),
-                 "rejected": {r.value: n for r, n in self.rejected[s.name].items()},
-                 "time_s": self.time_s[s.name]} for s in self.stages]
-
-
-def _plain(settings: Any) -> Any:
-    if is_dataclass(settings) and not isinstance(settings, type):
-        return {k: (v.value if hasattr(v, "value") else v) for k, v in asdict(settings).items()}
-    return settings
+        """Each entry (the stages in order, then the work charged apart): its name, the
+        features it left out by reason, its time (report.json's ``stages``)."""
+        return [{"name": name, "rejected": {r.value: n for r, n in counts.items()},
+                 "time_s": self.time_s[name]} for name, counts in self.rejected.items()]
 
 
 class HoldForFix:
     """While the fix is not acquired, the frame's sightings wait (``no_fix``) for a search
-    over the newest frames (:class:`~cdtm_graph.robust.fix_search.FixSearch`)."""
+    over the newest frames (:class:`~cdtm_graph.robust.fix_search.FixSearch`).
+
+    Args:
+        search: the held sightings and the searches over them.
+        needs_fix: frame k -> whether it starts a search (the prior, or the covariance
+            after a long gap, reaches farther than the smoothers pull in).
+        lag_holds_search: whether the solver's window holds the frames a search needs.
+    """
 
     name: str = "hold_for_fix"
     rejects: tuple[Rejection, ...] = (Rejection.NO_FIX,)
 
-    def __init__(self, search: FixSearch):
+    def __init__(self, search: FixSearch, needs_fix: Callable[[int], bool],
+                 lag_holds_search: Callable[[], bool]):
         self.search = search
         self.settings = search.settings
+        self.needs_fix, self.lag_holds_search = needs_fix, lag_holds_search
 
     def run(self, work: FrameWork, solver: SolverView) -> None:
         k = work.k
-        if not (self.search.active or solver.needs_fix(k)):
+        if not (self.search.active or self.needs_fix(k)):
             return
-        if not self.search.active and k and not solver.lag_holds_search():
+        if not self.search.active and k and not self.lag_holds_search():
             # the covariance outgrew what the smoothers pull in (a long gap), but the
             # lag cannot hold the frames a search needs: on unsearched, and said so
             work.flags.append(Code.SEARCH_BEYOND_LAG)
@@ -335,13 +350,13 @@ BUILD = BuildFactors.name
 
 
 def incremental_stages(pairing: SightingPairs, build: BuildFactors,
-                       search: FixSearch | None, gate: InnovationGate, gate_probability:
+                       hold: HoldForFix | None, gate: InnovationGate, gate_probability:
                        float | None, judge: TrackJudge | None) -> Stages:
     """The incremental smoothers' list (the defences switched off in the settings are
     left out)."""
     stages: list[Stage] = []
-    if search is not None:
-        stages.append(HoldForFix(search))
+    if hold is not None:
+        stages.append(hold)
     forget = () if judge is None else (judge.observations.forget_before,)
     stages.append(PairSightings(pairing, forget))
     if judge is not None:

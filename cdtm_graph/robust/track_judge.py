@@ -28,7 +28,7 @@ from cdtm_graph.robust.mismatch import (
     judge,
     untrusted,
 )
-from cdtm_graph.tracks import FramePairObservations, TrackObservations, pairs_without
+from cdtm_graph.tracks import TrackObservations
 from factors import CdtmPairFactor, FeatureNoise
 
 #: Frame index -> the solver's pose of that frame now (4x4 world_T_body).
@@ -97,10 +97,9 @@ class TrackJudge:
                                   np.repeat([_frame(f.key_a), k], ids.size),
                                   np.concatenate((f.features.q_a, f.features.q_b)))
 
-    def keep_out(self, k: int, pairs: list[FramePairObservations]
-                 ) -> list[FramePairObservations]:
-        """Frame k's new pairs without the tracks already left out (counted)."""
-        return pairs_without(pairs, self.left_out, k, Rejection.MAP_MISMATCH, self.rejections)
+    def leave_out(self, track_ids: np.ndarray) -> None:
+        """Keep these tracks out from now on (off the map, or holding a wrong match)."""
+        self.left_out = np.union1d(self.left_out, track_ids)
 
     def judge_new(self, k: int, factors: list[CdtmPairFactor], track_ids: list[np.ndarray],
                   pose_of: PoseOf, position_sigma_m: float

@@ -14,6 +14,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from cdtm_graph.calibration.online import CalibrationEstimate
 from cdtm_graph.flightlog import FlightConfig
 from cdtm_graph.graph import cdtm_information
 from cdtm_graph.results import (
@@ -51,7 +52,8 @@ def assemble_result(config: FlightConfig, estimate: TrajectoryEstimate,
                     covariances: StateCovariances, stats: SolverStats, counts: GraphCounts,
                     settings: dict, flags: dict[int, list[str]],
                     factors: Sequence[CdtmPairFactor], clutter: ClutterOutcome | None,
-                    calibration=None) -> SmootherResult:
+                    calibration: CalibrationEstimate | None = None,
+                    stages: Sequence[dict] = ()) -> SmootherResult:
     """A run's result from its estimate and what it solved with.
 
     Args:
@@ -64,6 +66,7 @@ def assemble_result(config: FlightConfig, estimate: TrajectoryEstimate,
             calibration).
         clutter: the clutter view's outcome, or None (no clutter view).
         calibration: the online calibration's estimate, when it was estimated.
+        stages: what each defence left out, and its time (``Stages.summary``).
     """
     K = len(estimate)
     residuals = residual_test(factors, estimate.world_T_body, K)
@@ -82,4 +85,4 @@ def assemble_result(config: FlightConfig, estimate: TrajectoryEstimate,
                           stats, counts, settings, frame_flags(counts, flags),
                           cdtm_information(factors, estimate.world_T_body.__getitem__, K),
                           terrain, calibration, map_offset=map_offset,
-                          bias_prior=BiasPrior.of(config))
+                          bias_prior=BiasPrior.of(config), stages=tuple(stages))

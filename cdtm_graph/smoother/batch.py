@@ -8,6 +8,7 @@ values, which makes an iteration quadratic in the flight length.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import dataclass, replace
 
@@ -27,7 +28,13 @@ from cdtm_graph.graph import feature_noise, insert_state
 from cdtm_graph.graph.log_graph import LogGraph, build_log_graph
 from cdtm_graph.imu import initial_bias
 from cdtm_graph.optimizer import LinearSolver, key_marginals, levenberg_marquardt, marginals
-from cdtm_graph.results import SmootherResult, SolverStats, StateCovariances, TrajectoryEstimate
+from cdtm_graph.results import (
+    Rejection,
+    SmootherResult,
+    SolverStats,
+    StateCovariances,
+    TrajectoryEstimate,
+)
 from cdtm_graph.robust.clutter import considered_offsets
 from cdtm_graph.robust.track_tests import BatchTrackTests
 from cdtm_graph.smoother.assembly import ClutterOutcome, assemble_result
@@ -167,12 +174,11 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
                      n_cdtm_factors=len(built.cdtm), features_per_frame=per_frame,
                      rejected_per_frame=built.rejections.per_frame(K))
     settings_dict = {**settings.to_dict(), "initial_values": guess.source,
-                     "acquisitions": guess.acquisitions,
-                     "stages": built.stages.summary() if built.stages else []}
+                     "acquisitions": guess.acquisitions}
     # the factors as the poses alone see them (held at an estimated calibration)
     result = assemble_result(flight.config, estimate, covariances, stats, counts, settings_dict,
                              guess.frame_flags, built.at_calibration(values), clutter,
-                             calibrated)
+                             calibrated, stages=built.stages.summary() if built.stages else [])
     if calibrated is not None:
         return result
     found_off = np.zeros(0, np.int64) if tests is None else tests.found_off
@@ -197,7 +203,8 @@ def _solve(built: LogGraph, initial: gtsam.Values, settings: SmootherSettings,
     # noise share one solve (a clean log then needs two solves, not three).
     rounds = MISMATCH_ROUNDS if tests is not None else 0
     if tests is not None:
-        tests.drop_mismatched(built, values)
+        with _charged(built):
+            tests.drop_mismatched(built, values)
         rounds -= 1
     # The C-DTM noise (eqs. 19-26) was linearized at the initial guess; evaluate it at the
     # estimate and finish there, so the solution does not depend on the initial guess.
@@ -209,7 +216,9 @@ def _solve(built: LogGraph, initial: gtsam.Values, settings: SmootherSettings,
     assessed = False  # the latest clutter fit is of the final values
     for _ in range(rounds):
         assert tests is not None
-        if not tests.drop_mismatched(built, values):
+        with _charged(built):
+            dropped = tests.drop_mismatched(built, values)
+        if not dropped:
             assessed = True
             break
         graph = built.graph
@@ -220,6 +229,16 @@ def _solve(built: LogGraph, initial: gtsam.Values, settings: SmootherSettings,
     stats = SolverStats(stats.solver, iterations, first.initial_error, stats.final_error,
                         stats.converged, first.time_s + stats.time_s, 0.0)
     return values, graph, stats, assessed
+
+
+def _charged(built: LogGraph) -> contextlib.AbstractContextManager:
+    """The track tests' rounds, charged to their own entry of report.json's ``stages``."""
+    assert built.stages is not None
+    return built.stages.charged(TRACK_TESTS, (Rejection.WRONG_MATCH, Rejection.MAP_MISMATCH))
+
+
+#: The batch's track-test rounds between solves, charged apart from the frames' stages.
+TRACK_TESTS = "track_tests"
 
 
 def _online_calibration(flight: FlightLog, settings: SmootherSettings

@@ -42,6 +42,7 @@ from cdtm_graph.robust.stages import (
     BUILD,
     BuildFactors,
     FrameWork,
+    HoldForFix,
     PairSightings,
     incremental_stages,
 )
@@ -77,6 +78,10 @@ class FrameUpdate:
     n_features: int
     update_time_s: float
     imu_time_s: float = 0.0
+
+
+#: The track tests' rounds over many frames, charged apart from the frames' stages.
+TRACK_ROUNDS = "track_rounds"
 
 
 class IncrementalSmoother:
@@ -130,16 +135,20 @@ class IncrementalSmoother:
         # sightings are held back until a search over the newest frames finds the fix
         self._search = (None if settings.acquisition is None else
                         FixSearch(settings.acquisition, config, dtm, self.rejections))
+        self._frame_interval_s = frame_interval_s
+        self._window = w = SolverWindow(settings.lag_s, frame_interval_s,
+                                        settings.keep_exit_covariances)
+        search = self._search
         self.stages = incremental_stages(
             self._pairing, BuildFactors(camera.body_T_cam, dtm, noise, graph, self.rejections),
-            self._search, self._gate, settings.innovation_gate, self._judge)
-        self._frame_interval_s = frame_interval_s
-        if frame_interval_s is not None and self._search is not None \
-                and self._search.needed_at_start() and not _lag_holds(settings, frame_interval_s):
+            None if search is None else HoldForFix(
+                search, lambda k: w.needs_fix(search, k),
+                lambda: w.holds_search(search, self._frame_interval_s)),
+            self._gate, settings.innovation_gate, self._judge)
+        if frame_interval_s is not None and search is not None \
+                and search.needed_at_start() and not w.holds_search(search, frame_interval_s):
             raise _lag_too_short(settings, frame_interval_s)
         self._frame_flags: dict[int, list[str]] = {}
-        self._window = SolverWindow(settings.lag_s, frame_interval_s,
-                                    settings.keep_exit_covariances)
         self._map_offset = MapOffset.of(config.dtm)  # in what it reports, not what it uses
         self._pair_prior_of: Callable[[], Callable[[int], np.ndarray]] | None = None
         # Warm-up: from a loose prior (or an acquired fix) every update moves its frame far
@@ -215,6 +224,7 @@ class IncrementalSmoother:
         self._pair_prior_of = (None if pim is None else
                                lambda: w.pair_prior(k, link, values))
         work = self.stages.run(FrameWork(k, *(seen or (None, None))), self)
+        self._pair_prior_of = None  # (this frame's: no later stage run may use it)
         if work.flags:
             self._frame_flags.setdefault(k, []).extend(work.flags)
         new = work.factors
@@ -233,7 +243,8 @@ class IncrementalSmoother:
             w.fetch(k)
         w.state_cov = w.backend.joint_marginal(list(frame_keys(k)))
         if self._search is not None and self._search.active:
-            self._try_acquisition(k)
+            with self.stages.charged(HoldForFix.name, HoldForFix.rejects):
+                self._try_acquisition(k)
         self._imu.start(int(t_ns), w.biases[k])
         pose_cov = self._map_offset.added_to_pose(w.state_cov[:6, :6], w.poses[k])
         elapsed = time.perf_counter() - start
@@ -244,9 +255,17 @@ class IncrementalSmoother:
 
     # -- what the stages ask (robust.stages.SolverView) --------------------------------
 
-    settled = property(lambda self: self._window.settled)
-    lagged = property(lambda self: self.settings.lag_s is not None)
-    poses = property(lambda self: self._window.poses)
+    @property
+    def settled(self) -> int:
+        return self._window.settled
+
+    @property
+    def lagged(self) -> bool:
+        return self.settings.lag_s is not None
+
+    @property
+    def poses(self) -> dict[int, np.ndarray]:
+        return self._window.poses
 
     def pose_guess(self, j: int) -> np.ndarray:
         return self._window.pose_guess(j)
@@ -261,22 +280,8 @@ class IncrementalSmoother:
         """Keep these tracks out from now on, and take their features that entered
         earlier out of the solver (those still in it), counted for ``reason``."""
         assert self._judge is not None
-        self._judge.left_out = np.union1d(self._judge.left_out, track_ids)
+        self._judge.leave_out(track_ids)
         self._window.take_out(track_ids, reason, self.rejections)
-
-    def needs_fix(self, k: int) -> bool:
-        """Whether frame k starts a search for the fix: the prior (frame 0) or, after a
-        long stretch without camera constraints, the newest covariance reaches farther than
-        the smoothers pull in."""
-        assert self._search is not None
-        if k == 0:
-            return self._search.needed_at_start()
-        return self._search.needed(self._window.poses[k - 1], self._window.state_cov)
-
-    def lag_holds_search(self) -> bool:
-        t_ns = self._window.t_ns
-        return _lag_holds(self.settings, self._frame_interval_s
-                          or float(np.median(np.diff(t_ns))) * 1e-9)
 
     # -- the solver side of the defences ---------------------------------------------------
 
@@ -332,6 +337,11 @@ class IncrementalSmoother:
         many."""
         if self._judge is None:
             return 0
+        with self.stages.charged(TRACK_ROUNDS, (Rejection.MAP_MISMATCH, Rejection.WRONG_MATCH)):
+            return self._judged_round(k, since_frame)
+
+    def _judged_round(self, k: int, since_frame: int) -> int:
+        assert self._judge is not None
         w = self._window
         off, wrong = self._judge.round(since_frame, w.pose_guess, w.frame_position_sigma_m)
         if off.size:
@@ -447,7 +457,8 @@ class IncrementalSmoother:
                 progress(frame.k + 1, K)
         self.finalize()
         if self._search is not None:  # the log ended before a fix was found
-            self._search.give_up()
+            with self.stages.charged(HoldForFix.name, HoldForFix.rejects):
+                self._search.give_up()
         elapsed = time.perf_counter() - start
         t0 = time.perf_counter()
         covariances = self.covariances()
@@ -464,13 +475,13 @@ class IncrementalSmoother:
             time.perf_counter() - t0, tuple(self.update_times_s), tuple(self.imu_times_s),
             float(np.median(nis)) if nis.size else float("nan"),
             float(np.mean(nis)) if nis.size else float("nan"))
-        settings = {**self.settings.to_dict(), "acquisitions": self.acquisitions,
-                    "stages": self.stages.summary()}
+        settings = {**self.settings.to_dict(), "acquisitions": self.acquisitions}
         clutter_settings = self.settings.graph.clutter
         clutter = None if self._judge is None or clutter_settings is None else ClutterOutcome(
             self._judge.clutter, self._judge.considered(K), clutter_settings)
         return assemble_result(self.config, estimate, covariances, stats, counts, settings,
-                               self._frame_flags, self._window.live_factors(), clutter)
+                               self._frame_flags, self._window.live_factors(), clutter,
+                               stages=self.stages.summary())
 
 
 def _lag_too_short(settings: SmootherSettings, frame_interval_s: float) -> CdtmError:
@@ -482,12 +493,3 @@ def _lag_too_short(settings: SmootherSettings, frame_interval_s: float) -> CdtmE
         f"({frames} frames, {need_s:g} s at {1 / frame_interval_s:.3g} frames/s): expected "
         f"a lag of at least {need_s:g} s, or no fix search (SmootherSettings.acquisition="
         "None)")
-
-
-def _lag_holds(settings: SmootherSettings, frame_interval_s: float) -> bool:
-    """Whether the fixed lag holds the fix search's frames: the fix is applied to the
-    oldest of them, and a frame that left the window cannot be moved (frames leave one
-    interval before the lag, :meth:`SolverWindow.leave_window`)."""
-    assert settings.acquisition is not None
-    return (settings.lag_s is None
-            or settings.lag_s >= settings.acquisition.window_frames * frame_interval_s)

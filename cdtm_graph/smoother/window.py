@@ -18,11 +18,13 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import V, X
 
+from cdtm_graph.constants import NS_PER_S
 from cdtm_graph.geometry import largest_eigenvalue_sym3
 from cdtm_graph.graph import insert_state
 from cdtm_graph.imu import propagate_covariance
 from cdtm_graph.results import Rejection, Rejections, StateCovariances, TrajectoryEstimate
 from cdtm_graph.robust.acquisition import SearchPrior
+from cdtm_graph.robust.fix_search import FixSearch
 from cdtm_graph.smoother.backends import Backend, FixedLag, FullHistory, frame_keys
 from factors import CdtmPairFactor
 
@@ -70,7 +72,7 @@ class SolverWindow:
     def update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, k: int,
                relinearize: bool = False) -> list[int]:
         """One solver update with frame k's new factors and states; fetches frame k."""
-        t_s = self.t_ns[k] * 1e-9
+        t_s = self.t_ns[k] * 1e-9  # (as the backends time every key: not / NS_PER_S, 1 ulp off)
         slots = self.backend.update(graph, values, {key: t_s for key in frame_keys(k)},
                                     relinearize)
         self.fetch(k)  # only the newest state: a full estimate grows with the flight
@@ -113,7 +115,7 @@ class SolverWindow:
         if self.lag_s is None:
             return
         margin_ns = self.t_ns[k] - self.t_ns[k - 1]
-        horizon = self.t_ns[k] - self.lag_s * 1e9 + margin_ns
+        horizon = self.t_ns[k] - self.lag_s * NS_PER_S + margin_ns
         if converging and self.settled < k and self.t_ns[self.settled] < horizon:
             # A state is marginalized at its linearization point: not while the solution
             # still converges (from a loose prior), or that point is frozen where it was.
@@ -215,6 +217,23 @@ class SolverWindow:
             return cache[a]
 
         return prior
+
+    def needs_fix(self, search: FixSearch, k: int) -> bool:
+        """Whether frame k starts a search for the fix: the prior (frame 0) or, after a
+        long stretch without camera constraints, the newest covariance reaches farther than
+        the smoothers pull in."""
+        if k == 0:
+            return search.needed_at_start()
+        return search.needed(self.poses[k - 1], self.state_cov)
+
+    def holds_search(self, search: FixSearch, frame_interval_s: float | None) -> bool:
+        """Whether the fixed lag holds the fix search's frames (at the given interval, or
+        the frames' median): the fix is applied to the oldest of them, and a frame that left
+        the window cannot be moved (frames leave one interval before the lag)."""
+        if self.lag_s is None:
+            return True
+        dt_s = frame_interval_s or float(np.median(np.diff(self.t_ns))) * 1e-9
+        return self.lag_s >= search.settings.window_frames * dt_s
 
     def search_prior(self, j: int, gravity_mps2: float) -> SearchPrior:
         """Where frame j may be, for a fix search: its marginals now."""

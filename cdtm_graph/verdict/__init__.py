@@ -5,7 +5,8 @@ degraded or failed, and why).
   constraint is refused before any work.
 - :mod:`~cdtm_graph.verdict.imu_faults`: IMU gaps, a wrong rate, stuck and saturated
   values, samples noisier than flight.yaml says.
-- :mod:`~cdtm_graph.verdict.evaluation`: errors against ground truth, NEES.
+- :mod:`~cdtm_graph.verdict.evaluation`: errors against ground truth, NEES;
+  :mod:`~cdtm_graph.verdict.comparison`: many runs side by side (``cdtm evaluate``).
 - :mod:`~cdtm_graph.verdict.fix_geometry`: what each frame's window of C-DTM information
   says about the fix (the paper's section V.B weak geometries).
 - :mod:`~cdtm_graph.verdict.rules`: :func:`assess`, the rules that turn all of it into a

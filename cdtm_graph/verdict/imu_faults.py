@@ -33,11 +33,11 @@ interval ``[t_k-1, t_k]`` that predicts it overlaps the fault.
 
 from __future__ import annotations
 
-import enum
 from dataclasses import dataclass
 
 import numpy as np
 
+from cdtm_graph.codes import Code
 from cdtm_graph.constants import NS_PER_S
 from cdtm_graph.imu import IMU_GAP_PERIODS, gap_threshold_ns
 
@@ -53,14 +53,9 @@ SATURATION_MIN_SAMPLES = 3
 MAX_FINDINGS_PER_CODE = 20
 
 
-class ImuFault(enum.Enum):
-    """What a finding is about (its ``code`` in report.json)."""
-
-    GAP = "imu_gap"
-    RATE_MISMATCH = "imu_rate_mismatch"
-    STUCK = "imu_stuck"
-    SATURATED = "imu_saturated"
-    TIME_ORDER = "imu_time_order"
+#: What a finding is about (its ``code`` in report.json), in the order findings are listed.
+IMU_FAULTS = (Code.IMU_GAP, Code.IMU_RATE_MISMATCH, Code.IMU_STUCK, Code.IMU_SATURATED,
+              Code.IMU_TIME_ORDER)
 
 
 @dataclass(frozen=True)
@@ -74,7 +69,7 @@ class ImuFinding:
             gap the last sample before it and the first after it.
     """
 
-    code: ImuFault
+    code: Code  # one of IMU_FAULTS
     message: str
     first_t_ns: int
     last_t_ns: int
@@ -257,7 +252,7 @@ def check_imu(t_ns: np.ndarray, gyro_radps: np.ndarray, acc_mps2: np.ndarray, ra
         settings: thresholds.
 
     Returns:
-        The findings, by code in :class:`ImuFault` order, then by time.
+        The findings, by code in :data:`IMU_FAULTS` order, then by time.
     """
     settings = settings or ImuCheckSettings()
     t = np.asarray(t_ns, dtype=np.int64)
@@ -274,13 +269,13 @@ def check_imu(t_ns: np.ndarray, gyro_radps: np.ndarray, acc_mps2: np.ndarray, ra
     findings += _rate(t, dt, rate_hz, settings.rate_tolerance)
     stuck = _stuck_samples(values, settings.stuck_min_samples)
     findings += _cap([ImuFinding(
-        ImuFault.STUCK, f"IMU: all six values repeat unchanged over {b - a + 1} samples "
+        Code.IMU_STUCK, f"IMU: all six values repeat unchanged over {b - a + 1} samples "
         f"from t = {t[a]} ns to {t[b]} ns ({(t[b] - t[a]) / 1e6:.1f} ms); expected a "
         "sensor's values to vary from sample to sample (a frozen sensor or a driver "
         "re-sending its last message)", int(t[a]), int(t[b])) for a, b in _runs(stuck)])
     findings += _saturated(t, values, stuck, settings)
     findings += _cap([ImuFinding(
-        ImuFault.TIME_ORDER, f"IMU: t_ns {t[i + 1]} is not after the previous sample's "
+        Code.IMU_TIME_ORDER, f"IMU: t_ns {t[i + 1]} is not after the previous sample's "
         f"{t[i]}; expected strictly increasing times", int(t[i]), int(t[i + 1]))
         for i in np.flatnonzero(dt <= 0)])
     return findings
@@ -323,7 +318,7 @@ def _gaps(t: np.ndarray, dt: np.ndarray, rate_hz: float, periods: float) -> list
                    f"{n} spacings of {dt[a:b + 1].min() / 1e6:.1f}-{dt[a:b + 1].max() / 1e6:.1f}"
                    " ms")
         out.append(ImuFinding(
-            ImuFault.GAP, f"IMU gap: {missing:.3f} s from t = {t[a]} ns to {t[b + 1]} ns "
+            Code.IMU_GAP, f"IMU gap: {missing:.3f} s from t = {t[a]} ns to {t[b + 1]} ns "
             f"({spacing}); expected samples every {1e3 / rate_hz:.3g} ms (imu.rate_hz "
             f"{rate_hz:g}), at most {periods:g} periods apart: the motion there is modelled "
             "as unknown within a maneuver's bounds", int(t[a]), int(t[b + 1])))
@@ -338,7 +333,7 @@ def _rate(t: np.ndarray, dt: np.ndarray, rate_hz: float, tolerance: float) -> li
     if abs(measured_hz / rate_hz - 1.0) <= tolerance:
         return []
     return [ImuFinding(
-        ImuFault.RATE_MISMATCH, f"IMU: samples come at {measured_hz:.4g} Hz (median spacing "
+        Code.IMU_RATE_MISMATCH, f"IMU: samples come at {measured_hz:.4g} Hz (median spacing "
         f"{1e3 / measured_hz:.4g} ms); flight.yaml says imu.rate_hz {rate_hz:g}: expected "
         f"them within {100 * tolerance:g}% (a wrong rate, or times in another unit)",
         int(t[0]), int(t[-1]))]
@@ -375,7 +370,7 @@ def _saturated(t: np.ndarray, values: np.ndarray, stuck: np.ndarray,
                      if ranges[c] is not None and abs(v[a]) >= ranges[c] else
                      "at its extreme value over the stream")
             out.append(ImuFinding(
-                ImuFault.SATURATED, f"IMU {_CHANNELS[c]} is {v[a]:.6g} {_UNITS[c]}, {limit}, "
+                Code.IMU_SATURATED, f"IMU {_CHANNELS[c]} is {v[a]:.6g} {_UNITS[c]}, {limit}, "
                 f"over {b - a + 1} samples from t = {t[a]} ns to {t[b]} ns; expected a "
                 "signal inside the sensor's range (a clipped value says too little)",
                 int(t[a]), int(t[b])))
