@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import os
 import re
@@ -313,3 +314,61 @@ def test_readme_lists_every_command():
              if line.startswith("| `cdtm ")]
     for name in COMMANDS:
         assert any(line.startswith(f"| `cdtm {name}") for line in table), name
+
+
+class _Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_the_first_runs_compilation_is_announced_on_a_terminal():
+    """A kernel compiled inside a command is announced on a terminal's stderr, once, and
+    its cost said at the end; a cached load, a log file (not a terminal) or --quiet get no
+    line.
+
+    Catches: a2fce1e's silent minute of compilation on the first run after an install
+    (the README's first command printed "batch smoothing in 62.50 s", all of it numba)."""
+    from numba import njit
+
+    from cdtm_graph.cli.compiling import announced
+
+    terminal = _Terminal()
+    with announced("cdtm smooth", stream=terminal) as counter:
+        @njit
+        def twice(x):
+            return 2.0 * x
+
+        twice(1.0), twice(2.0)  # compiled once
+    lines = terminal.getvalue().splitlines()
+    assert counter is not None and counter.compiled == 1
+    assert len(lines) == 2 and lines[0].startswith("cdtm smooth: compiling the numerical")
+    assert lines[1].startswith("cdtm smooth: compiled 1 kernels in ")
+    for stream, quiet in ((io.StringIO(), False), (_Terminal(), True)):
+        with announced("cdtm smooth", quiet=quiet, stream=stream):
+            @njit
+            def thrice(x):
+                return 3.0 * x
+
+            thrice(1.0)
+        assert stream.getvalue() == ""
+
+
+def test_every_computing_command_runs_inside_the_announcement(monkeypatch, tmp_path):
+    """``main`` runs a command inside :func:`announced` (with the command's --quiet).
+
+    Catches: the announcement set up but not wrapped around the command."""
+    import contextlib
+
+    from cdtm_graph.cli import compiling
+
+    seen = []
+
+    @contextlib.contextmanager
+    def recorder(command, quiet=False, stream=None):
+        seen.append((command, quiet))
+        yield None
+
+    monkeypatch.setattr(compiling, "announced", recorder)
+    assert main(["smooth", str(tmp_path / "no_such_log"), "--out", str(tmp_path / "r"),
+                 "--quiet"]) == 1
+    assert seen == [("cdtm smooth", True)]

@@ -173,6 +173,10 @@ def _caused_by_interrupt(exc: BaseException) -> bool:
     return False
 
 
+#: Commands that compile no numerical kernel (no announcement to set up).
+QUICK = frozenset({"evaluate"})
+
+
 def main(argv: list[str] | None = None) -> int:
     command = "cdtm"
     try:
@@ -181,7 +185,12 @@ def main(argv: list[str] | None = None) -> int:
             command = f"cdtm {args.command}"
             logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                                 format="%(levelname)s %(name)s: %(message)s")
-            return int(args.func(args) or 0)
+            if args.command in QUICK:
+                return int(args.func(args) or 0)
+            from cdtm_graph.cli.compiling import announced
+
+            with announced(command, quiet=getattr(args, "quiet", False)):
+                return int(args.func(args) or 0)
     except CdtmError as exc:
         print(f"{command}: error: {exc}", file=sys.stderr)
         return 1
