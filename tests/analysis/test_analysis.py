@@ -9,13 +9,6 @@ from cdtm_graph.analysis import closed_form as analysis
 from cdtm_graph.analysis.two_frame import TwoFrameSettings, solve_two_frame
 from cdtm_graph.geometry import make_pose
 from factors import FeatureNoise, cdtm_math
-from tests.manifold import (
-    WavyTerrain,
-    downward_body_T_cam,
-    numerical_jacobian,
-    numerical_pose_jacobian,
-    random_rotation,
-)
 
 #: Exact derivatives vs central differences (step 1e-6).
 DERIVATIVE_RTOL = 1e-6
@@ -24,28 +17,37 @@ MARGINAL_RTOL = 1e-6
 NOISE = FeatureNoise(sigma_q_xy=(0.5 / 346.4, 0.5 / 346.4), sigma_h_m=2.4)
 
 
-def nominal_pair(rng, n=170, altitude_m=500.0, half_fov=0.5):
-    """A noiseless pair over 300 m relief: 40 m baseline, ~10 deg rotation, ~60 deg FOV."""
-    terrain = WavyTerrain(amplitude_m=150.0, wavelength_m=1100.0, base_m=0.0)
-    body_T_cam = downward_body_T_cam(rng)
-    Ta = make_pose(random_rotation(rng, 0.1), np.r_[rng.uniform(-300, 300, 2), altitude_m + 150])
-    axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
-    from cdtm_graph.geometry import so3_exp
+@pytest.fixture
+def nominal_pair(manifold):
+    """Factory: A noiseless pair over 300 m relief: 40 m baseline, ~10 deg rotation, ~60 deg FOV."""
+    def make(rng, n=170, altitude_m=500.0, half_fov=0.5):
+        """A noiseless pair over 300 m relief: 40 m baseline, ~10 deg rotation, ~60 deg FOV."""
+        terrain = manifold.WavyTerrain(amplitude_m=150.0, wavelength_m=1100.0, base_m=0.0)
+        body_T_cam = manifold.downward_body_T_cam(rng)
+        Ta = make_pose(
+            manifold.random_rotation(rng, 0.1), np.r_[rng.uniform(-300, 300, 2), altitude_m + 150]
+        )
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        from cdtm_graph.geometry import so3_exp
 
-    step_dir = rng.normal(size=3) * np.r_[1, 1, 0.2]
-    Tb = Ta @ make_pose(so3_exp(axis * np.radians(10)), 40 * step_dir / np.linalg.norm(step_dir))
-    wTc_a, wTc_b = Ta @ body_T_cam, Tb @ body_T_cam
-    q_a = np.c_[rng.uniform(-half_fov, half_fov, (n, 2)), np.ones(n)]
-    ray = q_a @ wTc_a[:3, :3].T
-    G, N, valid = terrain.raycast(np.broadcast_to(wTc_a[:3, 3], ray.shape), ray)
-    g_b = (G - wTc_b[:3, 3]) @ wTc_b[:3, :3]
-    q_b = g_b / g_b[:, 2:3]
-    keep = valid & (np.abs(q_b[:, :2]) < 0.6).all(axis=1)
-    return terrain, body_T_cam, Ta, Tb, q_a[keep], q_b[keep], G[keep], N[keep]
+        step_dir = rng.normal(size=3) * np.r_[1, 1, 0.2]
+        Tb = Ta @ make_pose(
+            so3_exp(axis * np.radians(10)), 40 * step_dir / np.linalg.norm(step_dir)
+        )
+        wTc_a, wTc_b = Ta @ body_T_cam, Tb @ body_T_cam
+        q_a = np.c_[rng.uniform(-half_fov, half_fov, (n, 2)), np.ones(n)]
+        ray = q_a @ wTc_a[:3, :3].T
+        G, N, valid = terrain.raycast(np.broadcast_to(wTc_a[:3, 3], ray.shape), ray)
+        g_b = (G - wTc_b[:3, 3]) @ wTc_b[:3, :3]
+        q_b = g_b / g_b[:, 2:3]
+        keep = valid & (np.abs(q_b[:, :2]) < 0.6).all(axis=1)
+        return terrain, body_T_cam, Ta, Tb, q_a[keep], q_b[keep], G[keep], N[keep]
+
+    return make
 
 
-def test_euler_convention_round_trip_and_derivatives(rng):
+def test_euler_convention_round_trip_and_derivatives(manifold, rng):
     for _ in range(50):
         angles = rng.uniform(-1.2, 1.2, 3)
         R = analysis.rotation_from_euler(angles)
@@ -53,11 +55,11 @@ def test_euler_convention_round_trip_and_derivatives(rng):
         # R^T = Rz(psi) Ry(theta) Rx(phi): eq. 30 reads theta = asin(-R13)
         np.testing.assert_allclose(np.arcsin(-R[0, 2]), angles[1], atol=1e-12)
         dR = analysis.rotation_euler_derivatives(angles)
-        num = numerical_jacobian(lambda a: analysis.rotation_from_euler(a).ravel(), angles)
+        num = manifold.numerical_jacobian(lambda a: analysis.rotation_from_euler(a).ravel(), angles)
         np.testing.assert_allclose(dR.reshape(3, 9).T, num, atol=DERIVATIVE_RTOL)
 
 
-def test_theta_round_trip_and_c2_jacobian(rng):
+def test_theta_round_trip_and_c2_jacobian(manifold, rng):
     for _ in range(50):
         theta = np.r_[rng.normal(0, 100, 3), rng.uniform(-1, 1, 3), rng.normal(0, 30, 3),
                       rng.uniform(-0.3, 0.3, 3)]
@@ -68,27 +70,27 @@ def test_theta_round_trip_and_c2_jacobian(rng):
             _, T2 = analysis.cameras_from_theta(th)
             return np.r_[T2[:3, 3], analysis.euler_from_rotation(T2[:3, :3])]
 
-        num = numerical_jacobian(c2, theta)
+        num = manifold.numerical_jacobian(c2, theta)
         J = analysis.jacobian_c2(theta)
         assert np.abs(J - num).max() < DERIVATIVE_RTOL * np.abs(num).max()
 
 
-def test_theta_jacobian_wrt_body_tangents(rng):
+def test_theta_jacobian_wrt_body_tangents(manifold, rng):
     for _ in range(50):
-        body_T_cam = downward_body_T_cam(rng)
-        Ta = make_pose(random_rotation(rng, 0.5), rng.normal(0, 100, 3))
-        Tb = Ta @ make_pose(random_rotation(rng, 0.3), rng.normal(0, 30, 3))
+        body_T_cam = manifold.downward_body_T_cam(rng)
+        Ta = make_pose(manifold.random_rotation(rng, 0.5), rng.normal(0, 100, 3))
+        Tb = Ta @ make_pose(manifold.random_rotation(rng, 0.3), rng.normal(0, 30, 3))
         H = analysis.theta_jacobian_wrt_body_tangents(Ta, Tb, body_T_cam)
 
         def theta_of(A, B):
             return analysis.theta_from_cameras(A @ body_T_cam, B @ body_T_cam)
 
-        num = np.c_[numerical_pose_jacobian(lambda A: theta_of(A, Tb), Ta),
-                    numerical_pose_jacobian(lambda B: theta_of(Ta, B), Tb)]
+        num = np.c_[manifold.numerical_pose_jacobian(lambda A: theta_of(A, Tb), Ta),
+                    manifold.numerical_pose_jacobian(lambda B: theta_of(Ta, B), Tb)]
         assert np.abs(H - num).max() < DERIVATIVE_RTOL * np.abs(num).max()
 
 
-def test_jacobian_theta_eqs_15_to_18_match_central_differences(rng):
+def test_jacobian_theta_eqs_15_to_18_match_central_differences(nominal_pair, manifold, rng):
     _, body_T_cam, Ta, Tb, q_a, q_b, G, N = nominal_pair(rng, n=20)
     q_b = q_b + np.c_[rng.normal(0, 3e-3, (len(q_b), 2)), np.zeros(len(q_b))]
     theta = analysis.theta_from_cameras(Ta @ body_T_cam, Tb @ body_T_cam)
@@ -99,11 +101,11 @@ def test_jacobian_theta_eqs_15_to_18_match_central_differences(rng):
         return cdtm_math.paper_residual(A[:3, :3], A[:3, 3], B[:3, :3], B[:3, 3],
                                         q_a, q_b, G, N)[0].ravel()
 
-    num = numerical_jacobian(F, theta)
+    num = manifold.numerical_jacobian(F, theta)
     assert np.abs(J - num).max() < DERIVATIVE_RTOL * np.abs(num).max()
 
 
-def test_gtsam_marginal_equals_weighted_eq13_and_unweighted_is_larger(rng):
+def test_gtsam_marginal_equals_weighted_eq13_and_unweighted_is_larger(nominal_pair, rng):
     for _ in range(5):
         terrain, body_T_cam, Ta, Tb, q_a, q_b, G, N = nominal_pair(rng)
         result = solve_two_frame(q_a, q_b, terrain.raycast, Ta, Tb, body_T_cam, NOISE)
@@ -122,7 +124,7 @@ def test_gtsam_marginal_equals_weighted_eq13_and_unweighted_is_larger(rng):
 
 
 @pytest.mark.parametrize("case", ["few_features", "narrow_fov", "short_baseline", "flat_terrain"])
-def test_each_degeneracy_is_detected_and_named(rng, case):
+def test_each_degeneracy_is_detected_and_named(nominal_pair, rng, case):
     half_fov = np.tan(np.radians(2.5)) if case == "narrow_fov" else 0.5
     terrain, body_T_cam, Ta, Tb, q_a, q_b, G, N = nominal_pair(rng, half_fov=half_fov)
     settings = analysis.DegeneracySettings()
@@ -142,21 +144,21 @@ def test_each_degeneracy_is_detected_and_named(rng, case):
     assert case in verdict.message()
 
 
-def test_nominal_geometry_is_not_degenerate(rng):
+def test_nominal_geometry_is_not_degenerate(nominal_pair, rng):
     terrain, body_T_cam, Ta, Tb, q_a, q_b, G, N = nominal_pair(rng)
     a = analysis.analyze_pair(Ta @ body_T_cam, Tb @ body_T_cam, q_a, q_b, G, N, NOISE)
     assert not a.degeneracy.degenerate, a.degeneracy.message()
     assert np.isfinite(a.condition_number)
 
 
-def test_solve_raises_on_degenerate_geometry_and_flags_when_asked(rng):
+def test_solve_raises_on_degenerate_geometry_and_flags_when_asked(nominal_pair, manifold, rng):
     from cdtm_graph.errors import DegenerateGeometryError
 
     terrain, body_T_cam, Ta, Tb, q_a, q_b, G, N = nominal_pair(rng)
     with pytest.raises(DegenerateGeometryError) as err:
         solve_two_frame(q_a[:5], q_b[:5], terrain.raycast, Ta, Tb, body_T_cam, NOISE)
     assert err.value.reasons == ("few_features",)
-    flat = WavyTerrain(amplitude_m=0.0)
+    flat = manifold.WavyTerrain(amplitude_m=0.0)
     ray = q_a @ (Ta @ body_T_cam)[:3, :3].T
     Gf, _, _ = flat.raycast(np.broadcast_to((Ta @ body_T_cam)[:3, 3], ray.shape), ray)
     g_b = (Gf - (Tb @ body_T_cam)[:3, 3]) @ (Tb @ body_T_cam)[:3, :3]

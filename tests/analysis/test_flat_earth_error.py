@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
 flat_earth_error = pytest.importorskip("flat_earth_error")
 
 from cdtm_graph.geodesy import GeodeticOrigin, LocalFrame  # noqa: E402

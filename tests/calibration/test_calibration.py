@@ -17,13 +17,9 @@ from cdtm_graph.sim.faults import with_calibration_error
 from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
 from cdtm_graph.smoother import SmootherMode, SmootherSettings, calibration_check
 from cdtm_graph.smoother.calibration_check import thinned
-from cdtm_graph.studies.robustness import BASE, SCENARIOS
+from cdtm_graph.studies.robustness import BASE, SCENARIOS, Mode
 from factors import CdtmPairFactor, PlaneMode, RobustKernel
 from factors.calibration import CALIBRATION_DIM, CalibrationLink
-from tests.manifold import WavyTerrain, numerical_jacobian, numerical_pose_jacobian
-from tests.test_cdtm_factor import random_pair
-from tests.test_flightlog import _expect_error, _insert_line, _line_of, _write_dtm
-from tests.test_flightlog import log as log  # noqa: F401 (the fixture)
 
 N_CONFIGURATIONS = 30
 #: Central differences with a 1e-6 step agree with the exact derivatives to ~2e-7
@@ -44,13 +40,15 @@ def _link(rng, key=None, value=None) -> CalibrationLink:
 
 
 @pytest.mark.parametrize("mode", [PlaneMode.FIXED, PlaneMode.REINTERSECT])
-def test_calibration_and_pose_jacobians_match_central_differences(rng, mode):
+def test_calibration_and_pose_jacobians_match_central_differences(manifold, rng, mode):
     """Every column, the focal scale's (analytic, the planes held where REINTERSECT casts
     them again) among them."""
     worst = worst_calibration = 0.0
     for _ in range(N_CONFIGURATIONS):
-        terrain = WavyTerrain(amplitude_m=rng.uniform(10, 60), wavelength_m=rng.uniform(300, 900))
-        body_T_cam, Ta, Tb, feats = random_pair(rng, terrain)
+        terrain = manifold.WavyTerrain(
+            amplitude_m=rng.uniform(10, 60), wavelength_m=rng.uniform(300, 900)
+        )
+        body_T_cam, Ta, Tb, feats = manifold.random_pair(rng, terrain)
         fac = CdtmPairFactor(X(0), X(1), feats, body_T_cam, mode, raycast=terrain.raycast,
                              calibration=_link(rng, gtsam.symbol("C", 0)))
         c = _random_calibration(rng)
@@ -59,9 +57,9 @@ def test_calibration_and_pose_jacobians_match_central_differences(rng, mode):
             return fac.evaluate_calibrated(Ta, Tb, c, want_jacobians=False)[0].ravel()
 
         _, Ha, Hb, Hc = fac.evaluate_calibrated(Ta, Tb, c)
-        num_a = numerical_pose_jacobian(lambda T: residual(Ta=T), Ta)
-        num_b = numerical_pose_jacobian(lambda T: residual(Tb=T), Tb)
-        num_c = numerical_jacobian(lambda x: residual(c=x), c)
+        num_a = manifold.numerical_pose_jacobian(lambda T: residual(Ta=T), Ta)
+        num_b = manifold.numerical_pose_jacobian(lambda T: residual(Tb=T), Tb)
+        num_c = manifold.numerical_jacobian(lambda x: residual(c=x), c)
         for exact, num in ((Ha.reshape(-1, 6), num_a), (Hb.reshape(-1, 6), num_b),
                            (Hc.reshape(-1, CALIBRATION_DIM), num_c)):
             # each column on its own scale (seconds, radians and a scale factor differ)
@@ -74,11 +72,11 @@ def test_calibration_and_pose_jacobians_match_central_differences(rng, mode):
     assert worst_calibration < CALIBRATION_JACOBIAN_RTOL
 
 
-def test_zero_calibration_leaves_the_factor_unchanged(rng):
+def test_zero_calibration_leaves_the_factor_unchanged(manifold, rng):
     """At the nominal (zero) calibration the residual and pose Jacobians are the
     factor's without a calibration."""
-    terrain = WavyTerrain(amplitude_m=40.0, wavelength_m=600.0)
-    body_T_cam, Ta, Tb, feats = random_pair(rng, terrain)
+    terrain = manifold.WavyTerrain(amplitude_m=40.0, wavelength_m=600.0)
+    body_T_cam, Ta, Tb, feats = manifold.random_pair(rng, terrain)
     plain = CdtmPairFactor(X(0), X(1), feats, body_T_cam, PlaneMode.REINTERSECT,
                            raycast=terrain.raycast, robust=RobustKernel.CAUCHY)
     linked = plain.with_calibration(_link(rng, gtsam.symbol("C", 0)))
@@ -89,11 +87,11 @@ def test_zero_calibration_leaves_the_factor_unchanged(rng):
     np.testing.assert_allclose(Hb1, Hb0, rtol=1e-12, atol=1e-12)
 
 
-def test_robust_rows_weigh_the_calibration_columns_alike(rng):
+def test_robust_rows_weigh_the_calibration_columns_alike(manifold, rng):
     """With a kernel, every Jacobian row is the plain one times the feature's sqrt
     weight (GTSAM's robust linearization), the calibration's included."""
-    terrain = WavyTerrain(amplitude_m=40.0, wavelength_m=600.0)
-    body_T_cam, Ta, Tb, feats = random_pair(rng, terrain, pixel_noise=2e-2)
+    terrain = manifold.WavyTerrain(amplitude_m=40.0, wavelength_m=600.0)
+    body_T_cam, Ta, Tb, feats = manifold.random_pair(rng, terrain, pixel_noise=2e-2)
     link = _link(rng, gtsam.symbol("C", 0))
     c = _random_calibration(rng)
     robust = CdtmPairFactor(X(0), X(1), feats, body_T_cam, PlaneMode.FIXED,
@@ -107,11 +105,11 @@ def test_robust_rows_weigh_the_calibration_columns_alike(rng):
 
 
 @pytest.mark.parametrize("n", [4, 40])
-def test_gtsam_linearization_holds_the_calibration_block(rng, n):
+def test_gtsam_linearization_holds_the_calibration_block(manifold, rng, n):
     """Short pairs give GTSAM the raw rows, tall ones a triangle with the same Hessian
     and gradient over [X(a), X(b), C(0)]."""
-    terrain = WavyTerrain(amplitude_m=40.0, wavelength_m=600.0)
-    body_T_cam, Ta, Tb, feats = random_pair(rng, terrain, n=n)
+    terrain = manifold.WavyTerrain(amplitude_m=40.0, wavelength_m=600.0)
+    body_T_cam, Ta, Tb, feats = manifold.random_pair(rng, terrain, n=n)
     key = gtsam.symbol("C", 0)
     fac = CdtmPairFactor(X(0), X(1), feats, body_T_cam, PlaneMode.FIXED,
                          calibration=_link(rng, key))
@@ -135,19 +133,26 @@ def test_gtsam_linearization_holds_the_calibration_block(rng, n):
 _SIGMAS = "    time_offset_sigma_s: 0.03\n    mount_sigma_deg: 1.0\n    focal_scale_sigma: 0.02"
 
 
-def _with_calibration_block(root, block: str) -> int:
-    path = root / "flight.yaml"
-    line = _line_of(path, "pixel_sigma_px:") + 1
-    _insert_line(path, line, "  calibration:\n" + block)
-    return line
+@pytest.fixture
+def with_calibration_block(flightlog_files):
+    """Factory: _with_calibration_block"""
+    def make(root, block: str) -> int:
+        path = root / "flight.yaml"
+        line = flightlog_files.line_of(path, "pixel_sigma_px:") + 1
+        flightlog_files.insert_line(path, line, "  calibration:\n" + block)
+        return line
+
+    return make
 
 
-def test_calibration_sigmas_read_and_written_back(log, tmp_path):
-    _with_calibration_block(log.root, _SIGMAS)
-    back = read_flightlog(log.root)
+def test_calibration_sigmas_read_and_written_back(
+    with_calibration_block, flightlog_files, small_log, tmp_path
+):
+    with_calibration_block(small_log.root, _SIGMAS)
+    back = read_flightlog(small_log.root)
     assert back.config.camera.calibration == CalibrationSigmas(0.03, 1.0, 0.02)
     write_flightlog(back, tmp_path / "again")
-    _write_dtm(tmp_path / "again" / "dtm.npz")
+    flightlog_files.write_dtm(tmp_path / "again" / "dtm.npz")
     assert read_flightlog(tmp_path / "again").config.camera.calibration == \
         back.config.camera.calibration
 
@@ -158,17 +163,23 @@ def test_calibration_sigmas_read_and_written_back(log, tmp_path):
     (_SIGMAS.replace("0.02", "-0.01"), ("camera.calibration.focal_scale_sigma", "[1e-06, 0.5]")),
     (_SIGMAS.replace("0.02", "wide"), ("camera.calibration.focal_scale_sigma",)),
 ])
-def test_calibration_sigma_beyond_sense_is_one_line_naming_the_key(log, block, words):
-    line = _with_calibration_block(log.root, block)
+def test_calibration_sigma_beyond_sense_is_one_line_naming_the_key(
+    with_calibration_block, flightlog_files, small_log, block, words
+):
+    line = with_calibration_block(small_log.root, block)
     # the offending value's line: the block's first key is on the line after "calibration:"
     index = next(i for i, text in enumerate(block.split("\n")) if words[0].split(".")[-1] in text)
-    _expect_error(log.root, "flight.yaml", line + 1 + index, *words)
+    flightlog_files.expect_error(small_log.root, "flight.yaml", line + 1 + index, *words)
 
 
-def test_calibration_with_a_missing_or_unknown_key_is_refused(log):
-    line = _with_calibration_block(log.root, _SIGMAS.replace("    focal_scale_sigma: 0.02",
+def test_calibration_with_a_missing_or_unknown_key_is_refused(
+    with_calibration_block, flightlog_files, small_log
+):
+    line = with_calibration_block(small_log.root, _SIGMAS.replace("    focal_scale_sigma: 0.02",
                                                              "    focal_sigma: 0.02"))
-    _expect_error(log.root, "flight.yaml", line + 3, "unknown key 'camera.calibration.focal_sigma'")
+    flightlog_files.expect_error(
+        small_log.root, "flight.yaml", line + 3, "unknown key 'camera.calibration.focal_sigma'"
+    )
 
 
 # --------------------------------------------------------------------------- simulated faults
@@ -198,12 +209,12 @@ def _estimated(c, part: str):
 
 
 @pytest.fixture(scope="module")
-def noiseless_flight():
+def noiseless_flight(seed):
     """A noiseless flight that says so: its yaml's pixel noise 0.01 px. (At the nominal
     0.5 px the batch takes out the bias that noise would leave, ``cdtm_graph.noise_bias``:
     a step that scales with the stated variance, ~2e-3 of focal scale here.)"""
     log, dtm = simulate_flight(SimulationSettings(frames=30, altitude_m=1000.0, relief_m=300.0,
-                                                  seed=1, noiseless=True))
+                                                  seed=seed, noiseless=True))
     camera = dataclasses.replace(log.config.camera, pixel_sigma_px=0.01)
     return dataclasses.replace(log, config=dataclasses.replace(log.config, camera=camera)), dtm
 
@@ -223,7 +234,7 @@ def test_noiseless_flight_recovers_the_calibration_truth(noiseless_flight, fault
 
 #: The issue's flight (1 fps, 150 m/s at 1800 m), 60 frames. Done-when of issue 10: each
 #: calibration error with online calibration within 1.5 times the clean RMSE, ANEES <= 6.
-FLIGHT = dataclasses.replace(BASE, frames=60, seed=1)
+FLIGHT = dataclasses.replace(BASE, frames=60)  # BASE's seed: the study's flight
 RMSE_RATIO_MAX = 1.5
 ANEES_MAX = 6.0
 
@@ -326,12 +337,10 @@ MAX_MEAN_Z = 1.0
 
 
 @pytest.fixture(scope="module")
-def clean_seeds():
-    runs = []
-    for seed in CLEAN_SEEDS:
-        flight, dtm = SCENARIOS["clean"].flight(dataclasses.replace(CLEAN_FLIGHT, seed=seed))
-        runs.append(smooth_and_evaluate(flight, dtm, SmootherSettings()))
-    return runs
+def clean_seeds(clean_flights):
+    """The clean flights smoothed with default settings (batch), shared with the verdict
+    and consistency tests."""
+    return clean_flights.runs_of(CLEAN_SEEDS, CLEAN_FLIGHT.frames)
 
 
 def test_clean_flights_stay_trusted_with_the_calibration_checked(clean_seeds):
@@ -351,6 +360,8 @@ def test_a_short_flight_cannot_tell_its_calibration_and_says_so():
     scale 5.5% along its valley with the height, the positions far from the run's. The
     check does not believe a side solve that tells the calibration poorly: a note, no
     reason of its own."""
+    # Seed-sensitive (2026-11-27): at TEST_SEED the side solve is not significant at all
+    # (no note to check); the flight measured is kept, its literal seed the point.
     flight, dtm = simulate_flight(SimulationSettings(frames=12, seed=2))
     out = smooth_and_evaluate(flight, dtm, SmootherSettings())
     check = out.result.calibration_check
@@ -359,11 +370,11 @@ def test_a_short_flight_cannot_tell_its_calibration_and_says_so():
     assert any(n.startswith("calibration_unresolved: ") for n in out.verdict.notes)
 
 
-def test_a_mount_yaw_on_a_straight_flight_is_unobservable_and_noted():
+def test_a_mount_yaw_on_a_straight_flight_is_unobservable_and_noted(seed):
     """Eight frames before the first turn: the mount's yaw barely moves the features
     (only a turn tells it from the heading); said in a note, not hidden."""
     flight, dtm = simulate_flight(SimulationSettings(frames=8, altitude_m=1000.0, relief_m=300.0,
-                                                  seed=1))
+                                                  seed=seed))
     out = smooth_and_evaluate(flight, dtm, ONLINE)
     c = out.result.calibration
     assert "mount" in c.unobservable and "focal_scale" not in c.unobservable
@@ -371,9 +382,10 @@ def test_a_mount_yaw_on_a_straight_flight_is_unobservable_and_noted():
                for n in out.verdict.notes)
 
 
-def test_an_incremental_run_on_a_clean_flight_is_checked_and_trusted():
-    flight, dtm = SCENARIOS["clean"].flight(CLEAN_FLIGHT)
-    out = smooth_and_evaluate(flight, dtm, SmootherSettings(mode=SmootherMode.INCREMENTAL))
+def test_an_incremental_run_on_a_clean_flight_is_checked_and_trusted(clean_flights):
+    flight, dtm = clean_flights.flight(CLEAN_FLIGHT.seed, CLEAN_FLIGHT.frames)
+    # Mode.ISAM2's settings are SmootherSettings(mode=SmootherMode.INCREMENTAL)
+    out = clean_flights.run(CLEAN_FLIGHT.seed, CLEAN_FLIGHT.frames, Mode.ISAM2)
     assert out.result.calibration is None
     check = out.result.calibration_check
     assert not check.suspect and not check.significant

@@ -20,14 +20,6 @@ from factors import (
     cdtm_math,
 )
 from factors.calibration import CalibrationLink
-from tests.manifold import (
-    WavyTerrain,
-    downward_body_T_cam,
-    numerical_jacobian,
-    numerical_pose_jacobian,
-    random_rotation,
-)
-from tests.test_cdtm_factor import random_pair
 
 #: Features of one simulated pair, in twins whose noise draws are opposite.
 N_TWINS = 8_000
@@ -35,36 +27,41 @@ SIGMA_Q = 2e-3
 SIGMA_H_M = 3.0
 
 
-def _noisy_pair(rng, calibrated: bool) -> tuple[CdtmPairFactor, np.ndarray, np.ndarray]:
-    body_T_cam = downward_body_T_cam(rng)
-    Ta = make_pose(random_rotation(rng, 0.1), [0.0, 0.0, 600.0])
-    Tb = Ta @ make_pose(random_rotation(rng, 0.05), [150.0, 20.0, -10.0])
-    wTc_a, wTc_b = Ta @ body_T_cam, Tb @ body_T_cam
-    n = 2 * N_TWINS
-    q_a = np.repeat(np.c_[rng.uniform(-0.45, 0.45, (N_TWINS, 2)), np.ones(N_TWINS)], 2, axis=0)
-    ray = q_a @ wTc_a[:3, :3].T
-    slope = np.array([0.15, -0.1])  # a tilted plane z = 0.15 x - 0.1 y
-    N = np.tile(np.r_[-slope, 1.0], (n, 1))
-    lam = -(N @ wTc_a[:3, 3]) / np.einsum("ni,ni->n", N, ray)
-    G = wTc_a[:3, 3] + lam[:, None] * ray
-    g_b = (G - wTc_b[:3, 3]) @ wTc_b[:3, :3]
-    q_b = g_b / g_b[:, 2:3]
-    noise = FeatureNoise((SIGMA_Q, SIGMA_Q), SIGMA_H_M)
-    exact = PairFeatures.build(wTc_a, wTc_b, q_a, q_b, G, N, noise)
-    # the data as measured: both pixels and the DTM height noisy, the twins' draws
-    # opposite; the whitening is the exact data's (held, as the factor holds its own)
-    twin = np.tile([1.0, -1.0], N_TWINS)[:, None]
-    q_a[:, :2] += twin * np.repeat(rng.normal(0, SIGMA_Q, (N_TWINS, 2)), 2, axis=0)
-    q_b[:, :2] += twin * np.repeat(rng.normal(0, SIGMA_Q, (N_TWINS, 2)), 2, axis=0)
-    G[:, 2] += twin[:, 0] * np.repeat(rng.normal(0, SIGMA_H_M, N_TWINS), 2)
-    features = dataclasses.replace(exact, q_a=q_a, q_b=q_b, G_E=G,
-                                   basis_b=cdtm_math.orthonormal_complement(q_b))
-    link = None
-    if calibrated:
-        twist = lambda: np.r_[rng.normal(0, 0.05, 3), rng.normal(0, 100, 3)]  # noqa: E731
-        link = CalibrationLink(gtsam.symbol("c", 0), twist(), twist())
-    return CdtmPairFactor(X(0), X(1), features, body_T_cam, PlaneMode.FIXED,
-                          calibration=link), Ta, Tb
+@pytest.fixture
+def noisy_pair(manifold):
+    """Factory: _noisy_pair"""
+    def make(rng, calibrated: bool) -> tuple[CdtmPairFactor, np.ndarray, np.ndarray]:
+        body_T_cam = manifold.downward_body_T_cam(rng)
+        Ta = make_pose(manifold.random_rotation(rng, 0.1), [0.0, 0.0, 600.0])
+        Tb = Ta @ make_pose(manifold.random_rotation(rng, 0.05), [150.0, 20.0, -10.0])
+        wTc_a, wTc_b = Ta @ body_T_cam, Tb @ body_T_cam
+        n = 2 * N_TWINS
+        q_a = np.repeat(np.c_[rng.uniform(-0.45, 0.45, (N_TWINS, 2)), np.ones(N_TWINS)], 2, axis=0)
+        ray = q_a @ wTc_a[:3, :3].T
+        slope = np.array([0.15, -0.1])  # a tilted plane z = 0.15 x - 0.1 y
+        N = np.tile(np.r_[-slope, 1.0], (n, 1))
+        lam = -(N @ wTc_a[:3, 3]) / np.einsum("ni,ni->n", N, ray)
+        G = wTc_a[:3, 3] + lam[:, None] * ray
+        g_b = (G - wTc_b[:3, 3]) @ wTc_b[:3, :3]
+        q_b = g_b / g_b[:, 2:3]
+        noise = FeatureNoise((SIGMA_Q, SIGMA_Q), SIGMA_H_M)
+        exact = PairFeatures.build(wTc_a, wTc_b, q_a, q_b, G, N, noise)
+        # the data as measured: both pixels and the DTM height noisy, the twins' draws
+        # opposite; the whitening is the exact data's (held, as the factor holds its own)
+        twin = np.tile([1.0, -1.0], N_TWINS)[:, None]
+        q_a[:, :2] += twin * np.repeat(rng.normal(0, SIGMA_Q, (N_TWINS, 2)), 2, axis=0)
+        q_b[:, :2] += twin * np.repeat(rng.normal(0, SIGMA_Q, (N_TWINS, 2)), 2, axis=0)
+        G[:, 2] += twin[:, 0] * np.repeat(rng.normal(0, SIGMA_H_M, N_TWINS), 2)
+        features = dataclasses.replace(exact, q_a=q_a, q_b=q_b, G_E=G,
+                                       basis_b=cdtm_math.orthonormal_complement(q_b))
+        link = None
+        if calibrated:
+            twist = lambda: np.r_[rng.normal(0, 0.05, 3), rng.normal(0, 100, 3)]  # noqa: E731
+            link = CalibrationLink(gtsam.symbol("c", 0), twist(), twist())
+        return CdtmPairFactor(X(0), X(1), features, body_T_cam, PlaneMode.FIXED,
+                              calibration=link), Ta, Tb
+
+    return make
 
 
 def _linear_noise_cost(fac: CdtmPairFactor, Ta: np.ndarray, Tb: np.ndarray,
@@ -89,11 +86,13 @@ GRADIENT_TOL = 0.05
 
 
 @pytest.mark.parametrize("calibrated", [False, True])
-def test_noise_cost_gradient_is_the_gradient_of_the_noise_expected_cost(rng, calibrated):
+def test_noise_cost_gradient_is_the_gradient_of_the_noise_expected_cost(
+    noisy_pair, rng, calibrated
+):
     """The expected cost the data noise leaves (both pixels, the DTM) changes with the
     poses and the calibration as the factor predicts; the Monte Carlo sees the same
     draws at every pose, so its differences are nearly free of sampling noise."""
-    fac, Ta, Tb = _noisy_pair(rng, calibrated)
+    fac, Ta, Tb = noisy_pair(rng, calibrated)
     c0 = np.zeros(5) if calibrated else None
     predicted = fac.noise_cost_gradient(Ta, Tb, c0)
     measured = np.zeros_like(predicted)
@@ -135,13 +134,13 @@ EXACT_GRADIENT_RTOL = 1e-6
 
 
 @pytest.mark.parametrize("calibrated", [False, True])
-def test_noise_cost_gradient_is_the_exact_gradient_of_its_cost(rng, calibrated):
+def test_noise_cost_gradient_is_the_exact_gradient_of_its_cost(manifold, rng, calibrated):
     """The gradient (the moved data's Jacobians) equals central differences of the cost
     it differentiates, with its planes (cast by the factor, REINTERSECT) and robust
     weights (a Cauchy kernel, some features far out) held, every variable, the
     calibration's at a non-zero value."""
-    terrain = WavyTerrain(amplitude_m=40.0, wavelength_m=500.0)
-    body_T_cam, Ta, Tb, feats = random_pair(rng, terrain, n=20, pixel_noise=2e-2)
+    terrain = manifold.WavyTerrain(amplitude_m=40.0, wavelength_m=500.0)
+    body_T_cam, Ta, Tb, feats = manifold.random_pair(rng, terrain, n=20, pixel_noise=2e-2)
     feats = dataclasses.replace(feats, noise=FeatureNoise((2e-3, 2e-3), 3.0))
     link = None
     if calibrated:
@@ -153,10 +152,12 @@ def test_noise_cost_gradient_is_the_exact_gradient_of_its_cost(rng, calibrated):
     gradient = fac.noise_cost_gradient(Ta, Tb, c)
     moved, weight, c_used = fac.noise_moved(Ta, Tb, c)
     assert weight.min() < 0.9  # the kernel weighs some features down
-    numeric = [numerical_pose_jacobian(lambda T: _moved_cost(moved, weight, T, Tb, c_used), Ta),
-               numerical_pose_jacobian(lambda T: _moved_cost(moved, weight, Ta, T, c_used), Tb)]
+    numeric = [
+        manifold.numerical_pose_jacobian(lambda T: _moved_cost(moved, weight, T, Tb, c_used), Ta),
+        manifold.numerical_pose_jacobian(lambda T: _moved_cost(moved, weight, Ta, T, c_used), Tb),
+    ]
     if calibrated:
-        numeric.append(numerical_jacobian(lambda x: _moved_cost(moved, weight, Ta, Tb, x),
+        numeric.append(manifold.numerical_jacobian(lambda x: _moved_cost(moved, weight, Ta, Tb, x),
                                           c_used))
     numeric_gradient = np.concatenate(numeric, axis=1)[0]
     assert gradient.shape == numeric_gradient.shape == (17 if calibrated else 12,)
@@ -165,9 +166,9 @@ def test_noise_cost_gradient_is_the_exact_gradient_of_its_cost(rng, calibrated):
 
 
 @pytest.mark.parametrize("calibrated", [False, True])
-def test_a_factor_without_features_has_no_noise_cost_gradient(rng, calibrated):
+def test_a_factor_without_features_has_no_noise_cost_gradient(noisy_pair, rng, calibrated):
     """Every feature taken out: the gradient is zero, of the variables' size."""
-    fac, Ta, Tb = _noisy_pair(rng, calibrated)
+    fac, Ta, Tb = noisy_pair(rng, calibrated)
     empty = fac.with_features(np.zeros(fac.features.n, dtype=bool))
     gradient = empty.noise_cost_gradient(Ta, Tb, np.zeros(5) if calibrated else None)
     np.testing.assert_array_equal(gradient, np.zeros(17 if calibrated else 12))

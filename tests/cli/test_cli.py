@@ -13,8 +13,8 @@ import pytest
 from cdtm_graph.cli import main
 from cdtm_graph.outputs import read_trajectory_cov, read_tum
 
-SAMPLE = Path(__file__).resolve().parents[1] / "data" / "sample_flight"
-ROOT = Path(__file__).resolve().parents[1]
+SAMPLE = Path(__file__).resolve().parents[2] / "data" / "sample_flight"
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")

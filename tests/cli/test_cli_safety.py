@@ -25,9 +25,8 @@ from cdtm_graph.flightlog import read_flightlog
 from cdtm_graph.flightlog.tables import IMAGE_BORDER_MARGIN_PX
 from cdtm_graph.outputs import RUN_FILES, read_tum
 from cdtm_graph.sim.simulate import SimulationSettings, write_simulated_log
-from tests.conftest import TEST_SEED
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 #: Exit statuses of a smoothing run that wrote its outputs: 0 trusted, 3 degraded or failed
 #: (the verdict, cdtm_graph.verdict: this 6-frame log's is not what these tests are about).
 WROTE_OUTPUTS = (0, 3)
@@ -37,8 +36,8 @@ CHILD_READY_TIMEOUT_S = 120.0
 
 
 @pytest.fixture(scope="module")
-def base_log(tmp_path_factory) -> Path:
-    settings = SimulationSettings(frames=6, n_features=40, seed=TEST_SEED % 1000,
+def base_log(seed, tmp_path_factory) -> Path:
+    settings = SimulationSettings(frames=6, n_features=40, seed=seed % 1000,
                                   resolution_px=(640, 480))
     return write_simulated_log(settings, tmp_path_factory.mktemp("base") / "log")
 

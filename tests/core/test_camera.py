@@ -33,11 +33,6 @@ NARROW_EQUIDISTANT = PinholeCamera(400, 300, 346.4, 345.0, 201.3, 148.9,
                                    (0.02, -0.004, 0.0, 0.0), "equidistant")
 
 
-@pytest.fixture
-def rng() -> np.random.Generator:
-    return np.random.default_rng(20240611)
-
-
 def _grid_over_image(cam: PinholeCamera, n_u: int = 121, n_v: int = 97) -> np.ndarray:
     """(N, 2) pixels covering the whole image, outer pixel edges and corners included."""
     u, v = np.meshgrid(np.linspace(-0.5, cam.width - 0.5, n_u),

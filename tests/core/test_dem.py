@@ -66,17 +66,6 @@ def _nodes(dtm: Dtm) -> np.ndarray:
     return p[np.isfinite(p[:, 2])]
 
 
-def _smooth_native() -> Dtm:
-    """A smooth world terrain 25-30 km from the origin (where the ground has dropped ~90 m
-    below the tangent plane and the vertical leans by 0.3 deg)."""
-    x = 25000.0 + np.arange(201) * 30.0
-    y = 15000.0 + np.arange(171) * 30.0
-    gx, gy = np.meshgrid(x, y)
-    z = (400.0 + 150.0 * np.sin(2 * np.pi * gx / 6000.0) * np.cos(2 * np.pi * gy / 4500.0)
-         - (gx**2 + gy**2) / (2 * 6.37e6))
-    return Dtm(z, x[0], y[0], 30.0, 30.0)
-
-
 REGION = (26000.0, 30000.0, 16000.0, 19000.0)
 
 
@@ -112,9 +101,9 @@ def test_heights_come_back_exactly_with_the_curvature_of_the_earth(tmp_path, dat
     np.testing.assert_allclose(drop, distance**2 / (2 * 6.37e6), rtol=0.01)
 
 
-def test_epsg4326_utm_and_the_native_grid_agree(tmp_path):
+def test_epsg4326_utm_and_the_native_grid_agree(synthetic, tmp_path):
     frame = _frame()
-    native = _smooth_native()
+    native = synthetic.smooth_native_dtm()
     geographic = write_dem_tile(native, frame, tmp_path / "g.tif", "EPSG:4326", ARCSEC,
                                 VerticalDatum.EGM96)
     utm = write_dem_tile(native, frame, tmp_path / "u.tif", UTM_52N, 30.0,
@@ -133,25 +122,26 @@ def test_epsg4326_utm_and_the_native_grid_agree(tmp_path):
     assert np.nanmin(wrong.elevation - from_utm.elevation) > 20.0
 
 
-def test_default_grid_is_half_the_dem_pixel_and_sigma_h_follows_the_dem(tmp_path):
+def test_default_grid_is_half_the_dem_pixel_and_sigma_h_follows_the_dem(synthetic, tmp_path):
     from cdtm_graph.dtm import sigma_h_from_grid_spacing
 
     frame = _frame()
-    utm = write_dem_tile(_smooth_native(), frame, tmp_path / "u.tif", UTM_52N, 30.0)
+    utm = write_dem_tile(synthetic.smooth_native_dtm(), frame, tmp_path / "u.tif", UTM_52N, 30.0)
     dtm = import_dem([utm], frame, REGION, VerticalDatum.ELLIPSOID)
     assert dtm.dx == 15.0
     # The Fig. 6 model at the DEM's 30 m (not the grid's 15 m), plus a tiny resampling error.
     assert sigma_h_from_grid_spacing(30.0) <= dtm.sigma_h() < sigma_h_from_grid_spacing(30.0) + 0.01
-    geographic = write_dem_tile(_smooth_native(), frame, tmp_path / "g.tif", "EPSG:4326",
-                                ARCSEC)
+    geographic = write_dem_tile(
+        synthetic.smooth_native_dtm(), frame, tmp_path / "g.tif", "EPSG:4326", ARCSEC
+    )
     spacing = import_dem([geographic], frame, REGION, VerticalDatum.ELLIPSOID).dx
     # Half of 1" of longitude at 36.7 deg N (the east-west pixel is the finer one).
     assert spacing == pytest.approx(0.5 * 30.92 * math.cos(math.radians(36.7)), rel=0.01)
 
 
-def test_sigma_h_counts_the_resampling_error(tmp_path, rng):
+def test_sigma_h_counts_the_resampling_error(synthetic, tmp_path, rng):
     frame = _frame()
-    native = _smooth_native()
+    native = synthetic.smooth_native_dtm()
     utm = write_dem_tile(native, frame, tmp_path / "u.tif", UTM_52N, 30.0)
     fine = import_dem([utm], frame, REGION, VerticalDatum.ELLIPSOID, spacing_m=15.0,
                       sigma_h_m=0.1)
@@ -187,10 +177,11 @@ def _split(tmp_path, whole, overlap: int):
 
 
 @pytest.mark.parametrize("overlap", [0, 1])
-def test_a_mosaic_of_tiles_is_the_whole_tile(tmp_path, overlap):
+def test_a_mosaic_of_tiles_is_the_whole_tile(synthetic, tmp_path, overlap):
     frame = _frame()
-    whole = write_dem_tile(_smooth_native(), frame, tmp_path / "whole.tif", "EPSG:4326",
-                           ARCSEC)
+    whole = write_dem_tile(
+        synthetic.smooth_native_dtm(), frame, tmp_path / "whole.tif", "EPSG:4326", ARCSEC
+    )
     single = import_dem([whole], frame, REGION, VerticalDatum.ELLIPSOID)
     tiles = import_dem(_split(tmp_path, whole, overlap), frame, REGION,
                        VerticalDatum.ELLIPSOID)
@@ -207,9 +198,9 @@ def test_tiles_off_the_pixel_grid_are_refused(tmp_path):
                    VerticalDatum.ELLIPSOID)
 
 
-def test_tiles_in_different_crss_fill_each_other(tmp_path):
+def test_tiles_in_different_crss_fill_each_other(synthetic, tmp_path):
     frame = _frame()
-    native = _smooth_native()
+    native = synthetic.smooth_native_dtm()
     geographic = write_dem_tile(native, frame, tmp_path / "g.tif", "EPSG:4326", ARCSEC)
     with rasterio.open(geographic) as src:
         data, t = src.read(1), src.transform
@@ -225,11 +216,11 @@ def test_tiles_in_different_crss_fill_each_other(tmp_path):
 # --------------------------------------------------------------------------- formats
 
 
-def test_ascii_grid_with_prj_reads_like_the_geotiff(tmp_path):
+def test_ascii_grid_with_prj_reads_like_the_geotiff(synthetic, tmp_path):
     from pyproj import CRS
 
     frame = _frame()
-    tif = write_dem_tile(_smooth_native(), frame, tmp_path / "u.tif", UTM_52N, 30.0)
+    tif = write_dem_tile(synthetic.smooth_native_dtm(), frame, tmp_path / "u.tif", UTM_52N, 30.0)
     with rasterio.open(tif) as src:
         data, t = src.read(1).astype(float), src.transform
     rows, cols = data.shape
@@ -332,7 +323,7 @@ def test_a_3601_tile_costs_only_the_window_under_the_flight(tmp_path, rng):
 SAME_SMOOTHING_MAHALANOBIS = 0.1
 
 
-def test_a_flat_flight_smooths_the_same_over_npz_and_over_a_georeferenced_tile(tmp_path):
+def test_a_flat_flight_smooths_the_same_over_npz_and_over_a_georeferenced_tile(seed, tmp_path):
     import dataclasses
 
     from cdtm_graph.dtm import save_dtm_npz
@@ -350,7 +341,7 @@ def test_a_flat_flight_smooths_the_same_over_npz_and_over_a_georeferenced_tile(t
     z = (300.0 + 150.0 * np.sin(2 * np.pi * gx / 3000.0) * np.cos(2 * np.pi * gy / 2500.0)
          - (gx**2 + gy**2) / (2 * 6.37e6))
     save_dtm_npz(Dtm(z, x[0], y[0], 10.0, 10.0), tmp_path / "terrain.npz")
-    sim = simulate(SimulationSettings(terrain=tmp_path / "terrain.npz", frames=12, seed=5,
+    sim = simulate(SimulationSettings(terrain=tmp_path / "terrain.npz", frames=12, seed=seed,
                                       altitude_m=800.0))
     cfg = sim.log.config
     flat_cfg = dataclasses.replace(cfg, dtm=dataclasses.replace(cfg.dtm, sigma_h_m=1.0))
@@ -365,7 +356,7 @@ def test_a_flat_flight_smooths_the_same_over_npz_and_over_a_georeferenced_tile(t
     write_flightlog(dataclasses.replace(sim.log, config=geo_cfg), tmp_path / "geo")
 
     # The same samples on both sides: the flat IMU model for the log placed on the Earth
-    # too (its simulated IMU senses no Earth: tests/test_earth_imu.py has the Earth's).
+    # too (its simulated IMU senses no Earth: tests/smoother/test_earth_imu.py has the Earth's).
     flat_imu = SmootherSettings(graph=GraphSettings(earth_physics=False))
     results = [smooth(*load_log_and_dtm(tmp_path / name), flat_imu) for name in ("flat", "geo")]
     flat, geo = (r.estimate.position_m for r in results)
@@ -380,8 +371,8 @@ def test_a_flat_flight_smooths_the_same_over_npz_and_over_a_georeferenced_tile(t
 # --------------------------------------------------------------------------- hostile input
 
 
-def test_a_world_grid_beyond_the_node_cap_is_refused_before_it_is_allocated(tmp_path):
-    utm = write_dem_tile(_smooth_native(), _frame(), tmp_path / "u.tif", UTM_52N, 30.0)
+def test_a_world_grid_beyond_the_node_cap_is_refused_before_it_is_allocated(synthetic, tmp_path):
+    utm = write_dem_tile(synthetic.smooth_native_dtm(), _frame(), tmp_path / "u.tif", UTM_52N, 30.0)
     # 1 cm over the 4 x 3 km region: 1.2e11 nodes, 960 GB of heights
     with pytest.raises(DtmError) as info:
         import_dem([utm], _frame(), REGION, VerticalDatum.ELLIPSOID, spacing_m=0.01)
@@ -392,11 +383,11 @@ def test_a_world_grid_beyond_the_node_cap_is_refused_before_it_is_allocated(tmp_
         in message and "\n" not in message
 
 
-def test_a_truncated_dem_tile_is_one_line_without_gdal_warnings(tmp_path, caplog):
+def test_a_truncated_dem_tile_is_one_line_without_gdal_warnings(synthetic, tmp_path, caplog):
     import logging
     import warnings
 
-    utm = write_dem_tile(_smooth_native(), _frame(), tmp_path / "u.tif", UTM_52N, 30.0)
+    utm = write_dem_tile(synthetic.smooth_native_dtm(), _frame(), tmp_path / "u.tif", UTM_52N, 30.0)
     utm.write_bytes(utm.read_bytes()[:100])
     with caplog.at_level(logging.DEBUG), warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

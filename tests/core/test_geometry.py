@@ -81,8 +81,7 @@ def test_log_is_accurate_for_tiny_angles(angle):
     np.testing.assert_allclose(so3_log(so3_exp(w)), w, rtol=1e-6)
 
 
-def test_rays_in_world_are_each_cameras_rotation_and_centre():
-    rng = np.random.default_rng(4)
+def test_rays_in_world_are_each_cameras_rotation_and_centre(rng):
     cams = np.stack([make_pose(so3_exp(rng.normal(size=3)), rng.normal(0, 100, 3))
                      for _ in range(5)])
     camera = rng.integers(0, 5, 40)

@@ -13,12 +13,11 @@ from cdtm_graph.tracks import FramePairObservations
 from factors import CdtmPairFactor, FeatureNoise, PlaneMode
 
 
-def test_features_with_nan_rays_are_dropped_and_counted():
+def test_features_with_nan_rays_are_dropped_and_counted(rng):
     """A pixel the distortion model cannot invert has a NaN ray: no factor row, counted."""
     x = np.arange(0.0, 2000.0, 50.0)
     elevation = 30.0 * np.sin(x / 300.0)[None, :] * np.cos(x / 400.0)[:, None]
     dtm = Dtm(elevation, 0.0, 0.0, 50.0, 50.0, sigma_h_m=2.0)
-    rng = np.random.default_rng(5)
     q_a = np.c_[rng.uniform(-0.3, 0.3, (10, 2)), np.ones(10)]
     q_b = q_a.copy()
     q_a[3, 0] = np.nan
@@ -33,14 +32,13 @@ def test_features_with_nan_rays_are_dropped_and_counted():
     assert np.isfinite(e).all()
 
 
-def test_a_factor_evaluated_where_it_was_built_casts_no_planes_and_equals_one_that_does():
+def test_a_factor_evaluated_where_it_was_built_casts_no_planes_and_equals_one_that_does(rng):
     """The planes a pair's features were cast at are the factor's cast at that camera-a
     pose: an innovation test there (the gate's, at the pose guess the pair was built at)
     casts nothing and gives what a factor casting its own gives; elsewhere it casts."""
     x = np.arange(0.0, 2000.0, 50.0)
     elevation = 30.0 * np.sin(x / 300.0)[None, :] * np.cos(x / 400.0)[:, None]
     dtm = Dtm(elevation, 0.0, 0.0, 50.0, 50.0, sigma_h_m=2.0)
-    rng = np.random.default_rng(11)
     q_a = np.c_[rng.uniform(-0.3, 0.3, (12, 2)), np.ones(12)]
     q_b = q_a + rng.normal(0.0, 1e-3, q_a.shape) * [1.0, 1.0, 0.0]
     q_a[4, 0] = np.nan  # a feature left out: the planes kept are the features' own

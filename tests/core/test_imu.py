@@ -96,11 +96,6 @@ MC_RTOL = 0.03
 COV_RTOL = 0.02
 
 
-@pytest.fixture
-def rng() -> np.random.Generator:
-    return np.random.default_rng(20240611)
-
-
 def _sample_times_ns(t0_s: float, t1_s: float, rate_hz: float,
                      offset_ns: int = SAMPLE_OFFSET_NS) -> np.ndarray:
     """A uniform grid of IMU times covering [t0 - 1 s, t1 + 1 s], shifted by offset_ns."""
@@ -136,6 +131,7 @@ def _preintegration_errors(plan, interval_s, rate_hz, hold, gyro_bias=(0.0, 0.0,
                            offset_ns=SAMPLE_OFFSET_NS):
     """Noiseless samples -> integrate_interval -> predict from truth; errors at the end."""
     t = _sample_times_ns(*interval_s, rate_hz, offset_ns)
+    # noiseless (noise None): the generator is never drawn from, its seed is moot
     imu = simulate_imu(plan, t, G_MPS2, None, np.random.default_rng(0), gyro_bias, accel_bias)
     t0, t1 = (round(x * NS_PER_S) for x in interval_s)
     bias = gtsam.imuBias.ConstantBias(np.array(accel_bias), np.array(gyro_bias))
@@ -207,10 +203,10 @@ def test_bias_random_walk_steps_have_sigma_rw_sqrt_dt(rng):
     np.testing.assert_allclose(np.mean(residual, axis=0), 0.0, atol=5e-4)
 
 
-def test_simulation_is_reproducible_from_the_seed():
+def test_simulation_is_reproducible_from_the_seed(seed):
     t = _sample_times_ns(0.0, 1.0, RATE_HZ)
-    a = simulate_imu(PLAN, t, G_MPS2, ImuNoise(), np.random.default_rng(7))
-    b = simulate_imu(PLAN, t, G_MPS2, ImuNoise(), np.random.default_rng(7))
+    a = simulate_imu(PLAN, t, G_MPS2, ImuNoise(), np.random.default_rng(seed))
+    b = simulate_imu(PLAN, t, G_MPS2, ImuNoise(), np.random.default_rng(seed))
     np.testing.assert_array_equal(a.acc_mps2, b.acc_mps2)
     np.testing.assert_array_equal(a.gyro_bias, b.gyro_bias)
 
@@ -396,6 +392,7 @@ def test_error_converges_at_the_order_of_the_hold(hold, ratio):
 def _compose_vs_single(hold, tm_ns, pim_class):
     """(position, velocity, rotation) gap between [t0, tm] + [tm, t1] and [t0, t1]."""
     plan, t = PLAN, _sample_times_ns(*RAMP_S, RATE_HZ)
+    # noiseless (noise None): the generator is never drawn from, its seed is moot
     imu = simulate_imu(plan, t, G_MPS2, None, np.random.default_rng(0))
     t0, t1 = (round(x * NS_PER_S) for x in RAMP_S)
     x0, bias = _nav_state(plan, t0), gtsam.imuBias.ConstantBias()
@@ -463,10 +460,10 @@ def _pim_state(pim):
 
 
 @pytest.mark.parametrize("hold", list(SampleHold))
-def test_imu_stream_gives_the_interval_preintegration_exactly(hold, rng):
+def test_imu_stream_gives_the_interval_preintegration_exactly(seed, hold, rng):
     """Samples fed in random chunks, integrated as far as they fix the holds, give the
     same preintegration as the whole interval at once, also when they ran past the frame."""
-    flight, _ = simulate_flight(SimulationSettings(frames=4, n_features=10, seed=3))
+    flight, _ = simulate_flight(SimulationSettings(frames=4, n_features=10, seed=seed))
     imu, t_frames = flight.imu, flight.frames.t_ns
     reference = ImuIntervals(flight.config, imu, hold)
     bias = gtsam.imuBias.ConstantBias(np.array([0.01, -0.02, 0.03]), np.array([1e-3, 0, -2e-3]))
@@ -498,10 +495,10 @@ GAP_COV_RTOL = 0.02
 
 
 @pytest.fixture(scope="module")
-def gap_flight():
+def gap_flight(seed):
     """6 s at 1 fps (a straight leg and the roll into a turn) and the same with the IMU
     samples of [1.3 s, 2.3 s) missing: a spacing of 1.005 s from 1.295 s to 2.3 s."""
-    flight, _ = simulate_flight(SimulationSettings(frames=7, n_features=10, seed=3))
+    flight, _ = simulate_flight(SimulationSettings(frames=7, n_features=10, seed=seed))
     return flight, with_imu_gap(flight, 1.3, 1.0)
 
 

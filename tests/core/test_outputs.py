@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import gtsam
@@ -29,18 +28,12 @@ from cdtm_graph.outputs import (
     write_run,
 )
 from cdtm_graph.results import (
-    GraphCounts,
     SmootherResult,
-    Solver,
-    SolverStats,
     StateCovariances,
     TrajectoryEstimate,
 )
-from tests.manifold import numerical_pose_jacobian, random_rotation
 
-K = 40
 T0_NS = 1_403_636_579_758_555_392  # an epoch in ns: float64 seconds cannot hold it to 1 ns
-FRAME_DT_NS = 100_000_123
 POSE_TOL = 1e-9
 #: Relative tolerance of covariances read back (written in shortest round-trip form, so
 #: only the rotation's round-off remains).
@@ -49,45 +42,9 @@ COV_REL_TOL = 1e-12
 NUMERICAL_COV_REL_TOL = 1e-6
 
 
-def _random_spd(rng: np.random.Generator, n: int, k: int, scale: np.ndarray) -> np.ndarray:
-    """(k, n, n) random SPD matrices with standard deviations around ``scale`` (n,)."""
-    a = rng.normal(size=(k, n, n))
-    c = a @ np.swapaxes(a, 1, 2) / n + 0.1 * np.eye(n)
-    return scale[:, None] * c * scale[None, :]
-
-
-def _synthetic_result(rng: np.random.Generator, k: int = K) -> SmootherResult:
-    poses = np.stack([make_pose(random_rotation(rng, math.pi * 0.95),
-                                rng.uniform(-5000, 5000, 3) + [0, 0, 1000]) for _ in range(k)])
-    estimate = TrajectoryEstimate(
-        t_ns=T0_NS + FRAME_DT_NS * np.arange(k, dtype=np.int64),
-        world_T_body=poses,
-        velocity_mps=rng.normal(scale=50.0, size=(k, 3)),
-        gyro_bias=rng.normal(scale=1e-4, size=(k, 3)),
-        accel_bias=rng.normal(scale=1e-2, size=(k, 3)))
-    # Tiny rotation variances (1e-10 rad^2 and below) must survive the text format.
-    covariances = StateCovariances(
-        pose=_random_spd(rng, 6, k, np.array([1e-5, 2e-5, 3e-5, 5.0, 7.0, 11.0])),
-        velocity=_random_spd(rng, 3, k, np.array([0.1, 0.2, 0.3])),
-        # [accel, gyro]: very different scales, so a swap shows.
-        bias=_random_spd(rng, 6, k, np.array([1e-2, 1e-2, 1e-2, 1e-5, 1e-5, 1e-5])))
-    return SmootherResult(
-        estimate=estimate, covariances=covariances,
-        stats=SolverStats(solver=Solver.LEVENBERG_MARQUARDT, iterations=4, initial_error=1.5e6,
-                          final_error=float("nan"), converged=True, time_s=0.25,
-                          update_times_s=(0.1, float("inf"))),
-        counts=GraphCounts(n_frames=k, n_tracks=12, n_observations=300, n_feature_pairs=250,
-                           n_cdtm_features=240, n_cdtm_factors=k - 1,
-                           n_imu_factors=k - 1,
-                           features_per_frame=np.arange(k, dtype=np.int64),
-                           rejected_per_frame={"missed_dtm": np.full(k, 2)}),
-        settings={"plane_mode": "fixed", "huber_k": np.float64(1.345)},
-        flags={np.int64(3): ["no_features"], 7: ["degenerate"]})
-
-
 @pytest.fixture
-def result(rng: np.random.Generator) -> SmootherResult:
-    return _synthetic_result(rng)
+def result(synthetic, rng: np.random.Generator) -> SmootherResult:
+    return synthetic.synthetic_result(rng)
 
 
 @pytest.fixture
@@ -129,7 +86,7 @@ def test_run_directory_has_exactly_the_run_files(run_dir: Path):
     assert read_manifest(run_dir) == dict.fromkeys(files, "smooth")
 
 
-def test_tum_round_trip(run_dir: Path, result: SmootherResult):
+def test_tum_round_trip(synthetic, run_dir: Path, result: SmootherResult):
     t_ns, T = read_tum(run_dir / TRAJECTORY_TUM)
     np.testing.assert_array_equal(t_ns, result.estimate.t_ns)
     for T_read, T_written in zip(T, result.estimate.world_T_body, strict=True):
@@ -137,7 +94,7 @@ def test_tum_round_trip(run_dir: Path, result: SmootherResult):
         assert np.max(np.abs(delta)) < POSE_TOL
     # What evo does: numpy's loader with '#' comments, 8 float columns.
     table = np.loadtxt(run_dir / TRAJECTORY_TUM, comments="#")
-    assert table.shape == (K, 8)
+    assert table.shape == (synthetic.FRAMES, 8)
     np.testing.assert_allclose(table[:, 1:4], result.estimate.position_m, rtol=0, atol=1e-9)
 
 
@@ -148,20 +105,21 @@ def test_tum_quaternion_is_xyzw_and_rotates_body_to_world(run_dir: Path, result:
     np.testing.assert_allclose(R, result.estimate.world_T_body[0, :3, :3], atol=1e-12)
 
 
-def test_trajectory_cov_has_20_columns_and_a_world_frame_header(run_dir: Path):
+def test_trajectory_cov_has_20_columns_and_a_world_frame_header(synthetic, run_dir: Path):
     text = (run_dir / TRAJECTORY_COV).read_text()
     header = text.splitlines()[0]
     assert header.startswith("#") and "world frame" in header
     assert header.split()[1:21] == list(COV_COLUMNS)
     rows = _data_lines(run_dir / TRAJECTORY_COV)
-    assert len(rows) == K and {len(r) for r in rows} == {20}
+    assert len(rows) == synthetic.FRAMES and {len(r) for r in rows} == {20}
 
 
 def test_trajectory_cov_round_trip_matches_an_independent_world_frame_computation(
-        run_dir: Path, result: SmootherResult):
+    manifold, synthetic, run_dir: Path, result: SmootherResult
+):
     t_ns, T, ori_cov, pos_cov = read_trajectory_cov(run_dir / TRAJECTORY_COV)
     np.testing.assert_array_equal(t_ns, result.estimate.t_ns)
-    for k in range(K):
+    for k in range(synthetic.FRAMES):
         T0 = result.estimate.world_T_body[k]
         assert np.max(np.abs(gtsam.Pose3(T0).localCoordinates(gtsam.Pose3(T[k])))) < POSE_TOL
         R0, p0 = T0[:3, :3], T0[:3, 3]
@@ -171,7 +129,7 @@ def test_trajectory_cov_round_trip_matches_an_independent_world_frame_computatio
         def world_error(T_pert, R0=R0, p0=p0):
             return np.concatenate([so3_log(T_pert[:3, :3] @ R0.T), T_pert[:3, 3] - p0])
 
-        J = numerical_pose_jacobian(world_error, T0)
+        J = manifold.numerical_pose_jacobian(world_error, T0)
         expected = J @ result.covariances.pose[k] @ J.T
         np.testing.assert_allclose(ori_cov[k], expected[:3, :3], rtol=NUMERICAL_COV_REL_TOL,
                                    atol=NUMERICAL_COV_REL_TOL * np.abs(expected[:3, :3]).max())
@@ -182,8 +140,10 @@ def test_trajectory_cov_round_trip_matches_an_independent_world_frame_computatio
         assert np.all(np.linalg.eigvalsh(cov) > 0)
 
 
-def test_quarter_turn_swaps_the_x_and_y_variances(tmp_path: Path, rng: np.random.Generator):
-    base = _synthetic_result(rng, k=1)
+def test_quarter_turn_swaps_the_x_and_y_variances(
+    synthetic, tmp_path: Path, rng: np.random.Generator
+):
+    base = synthetic.synthetic_result(rng, k=1)
     Rz90 = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     pose_cov = np.diag([1e-6, 2e-6, 3e-6, 1.0, 4.0, 9.0])[None]
     result = SmootherResult(
@@ -199,11 +159,11 @@ def test_quarter_turn_swaps_the_x_and_y_variances(tmp_path: Path, rng: np.random
     np.testing.assert_allclose(pos_cov[0], np.diag([4.0, 1.0, 9.0]), rtol=1e-12, atol=1e-15)
 
 
-def test_states_csv_columns_and_sigmas(run_dir: Path, result: SmootherResult):
+def test_states_csv_columns_and_sigmas(synthetic, run_dir: Path, result: SmootherResult):
     lines = (run_dir / STATES_CSV).read_text().splitlines()
     assert lines[0].split(",") == list(STATES_COLUMNS)
     rows = [line.split(",") for line in lines[1:]]
-    assert len(rows) == K
+    assert len(rows) == synthetic.FRAMES
     t_ns = np.array([int(r[0]) for r in rows], dtype=np.int64)
     np.testing.assert_array_equal(t_ns, result.estimate.t_ns)
     table = np.array([[float(x) for x in r[1:]] for r in rows])
@@ -247,12 +207,12 @@ def _reject_constant(token: str):
     raise AssertionError(f"report.json contains the non-JSON token {token}")
 
 
-def test_report_json_is_strict_json_with_counts_stats_and_the_callers_report(
+def test_report_json_is_strict_json_with_counts_stats_and_the_callers_report(synthetic,
         run_dir: Path, result: SmootherResult):
     text = (run_dir / REPORT_JSON).read_text()
     report = json.loads(text, parse_constant=_reject_constant)
-    assert report["counts"]["n_frames"] == K
-    assert report["counts"]["features_per_frame"] == list(range(K))
+    assert report["counts"]["n_frames"] == synthetic.FRAMES
+    assert report["counts"]["features_per_frame"] == list(range(synthetic.FRAMES))
     assert report["solver"]["iterations"] == 4
     assert report["solver"]["final_error"] is None  # NaN
     assert report["solver"]["update_times_s"] == [0.1, None]  # inf
@@ -291,7 +251,7 @@ def test_failing_extra_writer_leaves_no_directory(tmp_path: Path, result):
     assert _siblings(tmp_path) == []  # neither the run nor a temporary directory
 
 
-def test_failing_extra_writer_keeps_the_old_run(tmp_path: Path, result, rng):
+def test_failing_extra_writer_keeps_the_old_run(synthetic, tmp_path: Path, result, rng):
     out = tmp_path / "run"
     write_run(out, result, {"attempt": 1})
     before = {p.name: p.read_bytes() for p in out.iterdir()}
@@ -300,7 +260,9 @@ def test_failing_extra_writer_keeps_the_old_run(tmp_path: Path, result, rng):
         raise RuntimeError("disk full")
 
     with pytest.raises(RuntimeError):
-        write_run(out, _synthetic_result(rng), {"attempt": 2}, extra_files=[("a.png", boom)])
+        write_run(
+            out, synthetic.synthetic_result(rng), {"attempt": 2}, extra_files=[("a.png", boom)]
+        )
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
     assert _siblings(tmp_path) == ["run"]
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 
@@ -12,11 +13,15 @@ from cdtm_graph import parallel
 from cdtm_graph.errors import CdtmError
 from cdtm_graph.parallel import ParallelBackend, ParallelSettings, map_tasks
 from cdtm_graph.studies.sweeps import StudyParameter, StudySettings, run_study
-from tests.conftest import TEST_SEED
 
 #: A small study: two values, trials on two terrains, several tasks per worker.
 SMALL = StudySettings(StudyParameter.BASELINE, values=(20.0, 60.0), trials=6,
-                      trials_per_terrain=3, seed=TEST_SEED)
+                      trials_per_terrain=3)
+
+
+@pytest.fixture(scope="module")
+def small(seed: int) -> StudySettings:
+    return dataclasses.replace(SMALL, seed=seed)
 
 
 def _numbers(result) -> np.ndarray:
@@ -26,8 +31,8 @@ def _numbers(result) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def serial_numbers() -> np.ndarray:
-    return _numbers(run_study(SMALL, ParallelSettings(workers=1)))
+def serial_numbers(small) -> np.ndarray:
+    return _numbers(run_study(small, ParallelSettings(workers=1)))
 
 
 def test_results_come_back_in_task_order():
@@ -55,17 +60,17 @@ def test_a_task_error_reaches_the_caller():
         map_tasks(math.sqrt, [4.0, -1.0, 9.0], ParallelSettings(workers=2))
 
 
-def test_two_workers_give_the_same_numbers_as_one(serial_numbers):
-    numbers = _numbers(run_study(SMALL, ParallelSettings(workers=2)))
+def test_two_workers_give_the_same_numbers_as_one(small, serial_numbers):
+    numbers = _numbers(run_study(small, ParallelSettings(workers=2)))
     np.testing.assert_array_equal(numbers, serial_numbers)
     assert np.isfinite(serial_numbers).all()  # the comparison compared real numbers
 
 
-def test_dask_cluster_gives_the_same_numbers(serial_numbers):
+def test_dask_cluster_gives_the_same_numbers(small, serial_numbers):
     distributed = pytest.importorskip("dask.distributed")
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                   host="127.0.0.1", dashboard_address=None) as cluster:
-        result = run_study(SMALL, ParallelSettings(scheduler_address=cluster.scheduler_address))
+        result = run_study(small, ParallelSettings(scheduler_address=cluster.scheduler_address))
     np.testing.assert_array_equal(_numbers(result), serial_numbers)
 
 

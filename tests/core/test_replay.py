@@ -18,16 +18,16 @@ import pytest
 from cdtm_graph.flightlog import FlightLog, Frames, ImuSamples, read_flightlog
 from cdtm_graph.replay import FrameInput, replay
 from cdtm_graph.sim.simulate import SimulationSettings, write_simulated_log
-from tests.conftest import TEST_SEED
 
 #: A small flight: 6 frames at 1 fps, IMU at 50 Hz (a 20 ms period).
-SETTINGS = SimulationSettings(frames=6, n_features=25, imu_rate_hz=50.0, seed=TEST_SEED)
+SETTINGS = SimulationSettings(frames=6, n_features=25, imu_rate_hz=50.0)
 PERIOD_NS = 20_000_000
 
 
 @pytest.fixture(scope="module")
-def log_dir(tmp_path_factory) -> Path:
-    return write_simulated_log(SETTINGS, tmp_path_factory.mktemp("replay") / "log")
+def log_dir(tmp_path_factory, seed: int) -> Path:
+    return write_simulated_log(dataclasses.replace(SETTINGS, seed=seed),
+                               tmp_path_factory.mktemp("replay") / "log")
 
 
 def _tracks_csv(log_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -111,8 +111,7 @@ def test_a_returning_track_id_counts_once():
     assert table.n_tracks == 3
 
 
-def test_pairs_without_leaves_out_and_counts_the_sightings_of_given_tracks():
-    rng = np.random.default_rng(3)
+def test_pairs_without_leaves_out_and_counts_the_sightings_of_given_tracks(rng):
 
     def pair(a, ids):
         q = np.c_[rng.normal(size=(len(ids), 2)), np.ones(len(ids))]

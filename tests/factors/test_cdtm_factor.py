@@ -18,13 +18,6 @@ from factors import (
     make_feature_factors,
 )
 from factors.kernel import _gram_triangle, _householder_triangle, triangularize
-from tests.manifold import (
-    WavyTerrain,
-    downward_body_T_cam,
-    numerical_jacobian,
-    numerical_pose_jacobian,
-    random_rotation,
-)
 
 N_CONFIGURATIONS = 100
 #: Central differences with a 1e-6 step agree with exact derivatives to ~1e-9 relative.
@@ -34,52 +27,34 @@ LINEARIZATION_RTOL = 1e-9
 #: Monte Carlo of the innovation spread: 4000 draws give ~2% relative error (4 sigma: 0.1).
 N_PRIOR_DRAWS = 4000
 SPREAD_TOL = 0.1
-NOISE = FeatureNoise(sigma_q_xy=(0.5 / 350, 0.5 / 340), sigma_h_m=2.4, sigma_qa_xy=(1.4e-3, 1.5e-3))
-
-
-def random_pair(rng, terrain: WavyTerrain | None = None, n: int = 12, pixel_noise: float = 2e-3):
-    """Two body poses ~40 m apart over terrain, a non-identity mounting and n features."""
-    body_T_cam = downward_body_T_cam(rng)
-    wTb_a = make_pose(random_rotation(rng, 0.2),
-                      np.r_[rng.uniform(-200, 200, 2), 500 + rng.uniform(-50, 50)])
-    step = make_pose(random_rotation(rng, 0.17), np.r_[40.0, 0, 0] + rng.normal(0, 5, 3))
-    wTb_b = wTb_a @ step
-    wTc_a, wTc_b = wTb_a @ body_T_cam, wTb_b @ body_T_cam
-    q_a = np.c_[rng.uniform(-0.4, 0.4, (n, 2)), np.ones(n)]
-    ray = q_a @ wTc_a[:3, :3].T
-    if terrain is None:
-        G = wTc_a[:3, 3] + rng.uniform(300, 700, n)[:, None] * ray
-        N = np.c_[rng.uniform(-0.6, 0.6, (n, 2)), np.ones(n)]
-    else:
-        G, N, valid = terrain.raycast(np.broadcast_to(wTc_a[:3, 3], ray.shape), ray)
-        assert valid.all()
-    g_b = (G - wTc_b[:3, 3]) @ wTc_b[:3, :3]
-    q_b = g_b / g_b[:, 2:3]
-    q_b[:, :2] += rng.normal(0, pixel_noise, (n, 2))  # non-zero residuals exercise every term
-    feats = PairFeatures.build(wTc_a, wTc_b, q_a, q_b, G, N, NOISE)
-    return body_T_cam, wTb_a, wTb_b, feats
 
 
 @pytest.mark.parametrize("mode", [PlaneMode.FIXED, PlaneMode.REINTERSECT])
-def test_pose_jacobians_match_central_differences(rng, mode):
+def test_pose_jacobians_match_central_differences(manifold, rng, mode):
     worst = 0.0
     for _ in range(N_CONFIGURATIONS):
-        terrain = WavyTerrain(amplitude_m=rng.uniform(10, 60), wavelength_m=rng.uniform(300, 900))
-        body_T_cam, Ta, Tb, feats = random_pair(rng, terrain)
+        terrain = manifold.WavyTerrain(
+            amplitude_m=rng.uniform(10, 60), wavelength_m=rng.uniform(300, 900)
+        )
+        body_T_cam, Ta, Tb, feats = manifold.random_pair(rng, terrain)
         fac = CdtmPairFactor(X(0), X(1), feats, body_T_cam, mode, raycast=terrain.raycast)
         _, Ha, Hb = (a.copy() for a in fac.evaluate(Ta, Tb))
-        num_a = numerical_pose_jacobian(lambda T: fac.evaluate(T, Tb)[0].ravel().copy(), Ta)
-        num_b = numerical_pose_jacobian(lambda T: fac.evaluate(Ta, T)[0].ravel().copy(), Tb)
+        num_a = manifold.numerical_pose_jacobian(
+            lambda T: fac.evaluate(T, Tb)[0].ravel().copy(), Ta
+        )
+        num_b = manifold.numerical_pose_jacobian(
+            lambda T: fac.evaluate(Ta, T)[0].ravel().copy(), Tb
+        )
         scale = max(np.abs(num_a).max(), np.abs(num_b).max())
         err = max(np.abs(Ha.reshape(-1, 6) - num_a).max(), np.abs(Hb.reshape(-1, 6) - num_b).max())
         worst = max(worst, err / scale)
     assert worst < JACOBIAN_RTOL
 
 
-def test_reintersect_uses_the_plane_at_the_new_hit(rng):
+def test_reintersect_uses_the_plane_at_the_new_hit(manifold, rng):
     """Away from the construction pose, REINTERSECT equals a FIXED factor built on the new hits."""
-    terrain = WavyTerrain(amplitude_m=60.0, wavelength_m=400.0)
-    body_T_cam, Ta, Tb, feats = random_pair(rng, terrain)
+    terrain = manifold.WavyTerrain(amplitude_m=60.0, wavelength_m=400.0)
+    body_T_cam, Ta, Tb, feats = manifold.random_pair(rng, terrain)
     moved = Ta @ make_pose(np.eye(3), [30.0, -20.0, 5.0])
     wTc_moved = moved @ body_T_cam
     ray = feats.q_a @ wTc_moved[:3, :3].T
@@ -95,12 +70,12 @@ def test_reintersect_uses_the_plane_at_the_new_hit(rng):
     np.testing.assert_allclose(fixed.evaluate(Ta, Tb)[0], reint.evaluate(Ta, Tb)[0], atol=1e-9)
 
 
-def test_a_derived_factor_keeps_the_planes_cast_at_the_same_pose(rng):
+def test_a_derived_factor_keeps_the_planes_cast_at_the_same_pose(manifold, rng):
     """``with_features``, ``with_robust_scale`` and ``refreshed`` hand on the planes the
     factor cast last: evaluated at that pose, the derived factor casts nothing and equals
     one that cast its own; at another pose it casts anew."""
-    terrain = WavyTerrain(amplitude_m=60.0, wavelength_m=400.0)
-    body_T_cam, Ta, Tb, feats = random_pair(rng, terrain)
+    terrain = manifold.WavyTerrain(amplitude_m=60.0, wavelength_m=400.0)
+    body_T_cam, Ta, Tb, feats = manifold.random_pair(rng, terrain)
     casts = []
 
     def raycast(origin, ray):
@@ -127,12 +102,12 @@ def test_a_derived_factor_keeps_the_planes_cast_at_the_same_pose(rng):
 
 
 @pytest.mark.parametrize("robust", [RobustKernel.NONE, RobustKernel.CAUCHY])
-def test_an_error_then_a_linearization_at_the_same_poses_are_what_each_gives_alone(rng,
+def test_an_error_then_a_linearization_at_the_same_poses_are_what_each_gives_alone(manifold, rng,
                                                                                    robust):
     """The factor keeps what it made at the last poses (the Jacobians too, at an error
     evaluation): the next call there, with or without Jacobians, and calls at other poses
     give what a fresh factor gives."""
-    body_T_cam, Ta, Tb, feats = random_pair(rng, n=40, pixel_noise=8e-3)
+    body_T_cam, Ta, Tb, feats = manifold.random_pair(rng, n=40, pixel_noise=8e-3)
     moved = Ta @ make_pose(np.eye(3), [3.0, -2.0, 1.0])
 
     def fresh(Tx, want):
@@ -152,11 +127,11 @@ def test_an_error_then_a_linearization_at_the_same_poses_are_what_each_gives_alo
         assert np.abs(fresh(moved, True)[0] - fresh(moved, False)[0]).max() > 1e-3
 
 
-def test_data_jacobians_match_central_differences(rng):
+def test_data_jacobians_match_central_differences(manifold, rng):
     """Eq. 19 (q_b), eq. 20 (G_E) and the q_a Jacobian, feature by feature."""
     worst = 0.0
     for _ in range(N_CONFIGURATIONS):
-        body_T_cam, Ta, Tb, feats = random_pair(rng, n=3, pixel_noise=5e-3)
+        body_T_cam, Ta, Tb, feats = manifold.random_pair(rng, n=3, pixel_noise=5e-3)
         wTc_a, wTc_b = Ta @ body_T_cam, Tb @ body_T_cam
         args = (wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3])
         J_qb, J_G, J_qa = cdtm_math.paper_data_jacobians(
@@ -169,18 +144,18 @@ def test_data_jacobians_match_central_differences(rng):
                 return cdtm_math.paper_residual(*args, qa, qb, G, N)[0][0]
 
             checks = [
-                (J_qb[i], numerical_jacobian(lambda x: f_of(qb=x[None]), qb[0])),
-                (J_G[i], numerical_jacobian(lambda x: f_of(G=x[None]), G[0], step=1e-4)),
-                (J_qa[i], numerical_jacobian(lambda x: f_of(qa=x[None]), qa[0])),
+                (J_qb[i], manifold.numerical_jacobian(lambda x: f_of(qb=x[None]), qb[0])),
+                (J_G[i], manifold.numerical_jacobian(lambda x: f_of(G=x[None]), G[0], step=1e-4)),
+                (J_qa[i], manifold.numerical_jacobian(lambda x: f_of(qa=x[None]), qa[0])),
             ]
             for analytic, numeric in checks:
                 worst = max(worst, np.abs(analytic - numeric).max() / np.abs(numeric).max())
     assert worst < JACOBIAN_RTOL
 
 
-def test_factor_residual_is_paper_residual_in_the_basis(rng):
+def test_factor_residual_is_paper_residual_in_the_basis(manifold, rng):
     """e = B^T f: the factor's 2-vector carries the paper's eq. 7 residual."""
-    body_T_cam, Ta, Tb, feats = random_pair(rng, pixel_noise=5e-3)
+    body_T_cam, Ta, Tb, feats = manifold.random_pair(rng, pixel_noise=5e-3)
     wTc_a, wTc_b = Ta @ body_T_cam, Tb @ body_T_cam
     f, _ = cdtm_math.paper_residual(wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3],
                                     feats.q_a, feats.q_b, feats.G_E, feats.N)
@@ -204,11 +179,11 @@ def _linear_system(factors, Ta, Tb):
 
 @pytest.mark.parametrize("robust", list(RobustKernel))
 @pytest.mark.parametrize("mode", [PlaneMode.FIXED, PlaneMode.REINTERSECT])
-def test_batched_and_per_feature_factors_linearize_identically(rng, robust, mode):
-    terrain = WavyTerrain()
+def test_batched_and_per_feature_factors_linearize_identically(manifold, rng, robust, mode):
+    terrain = manifold.WavyTerrain()
     for _ in range(5):
         # Large pixel noise so that many features sit beyond the robust thresholds.
-        body_T_cam, Ta, Tb, feats = random_pair(rng, terrain, n=40, pixel_noise=8e-3)
+        body_T_cam, Ta, Tb, feats = manifold.random_pair(rng, terrain, n=40, pixel_noise=8e-3)
         moved = Ta @ make_pose(np.eye(3), [3.0, -2.0, 1.0])  # off the construction pose
         batched = CdtmPairFactor(X(0), X(1), feats, body_T_cam, mode, terrain.raycast, robust)
         single = make_feature_factors(X(0), X(1), feats, body_T_cam, mode, terrain.raycast, robust)
@@ -224,14 +199,14 @@ def test_batched_and_per_feature_factors_linearize_identically(rng, robust, mode
 
 
 @pytest.mark.parametrize("n", [3, 6, 7, 40])
-def test_pair_factor_rows_are_the_triangle_of_its_features(rng, n):
+def test_pair_factor_rows_are_the_triangle_of_its_features(manifold, rng, n):
     """More than six features reach GTSAM as 13 rows, with the raw rows' linear system.
 
     The linearized factor equals the one built from the 2n raw rows, constant term
     included (``|z| = |e|``), and an error evaluation still gives ``|e|^2 / 2``.
     """
-    body_T_cam, Ta, Tb, feats = random_pair(rng, n=n, pixel_noise=5e-3)
-    moved = Ta @ make_pose(random_rotation(rng, 0.002), [2.0, -1.0, 0.5])
+    body_T_cam, Ta, Tb, feats = manifold.random_pair(rng, n=n, pixel_noise=5e-3)
+    moved = Ta @ make_pose(manifold.random_rotation(rng, 0.002), [2.0, -1.0, 0.5])
     factor = CdtmPairFactor(X(0), X(1), feats, body_T_cam)
     e, Ha, Hb = (a.copy() for a in factor.evaluate(moved, Tb))
     raw = gtsam.JacobianFactor(X(0), Ha.reshape(-1, 6), X(1), Hb.reshape(-1, 6), -e.reshape(-1),
@@ -286,13 +261,13 @@ def test_cholesky_and_householder_triangles_agree(rng):
                                atol=1e-12 * np.abs(T_qr).max())
 
 
-def test_robust_kernel_downweights_outliers(rng):
+def test_robust_kernel_downweights_outliers(manifold, rng):
     """An outlier's rows shrink under Huber and vanish under Tukey beyond the threshold."""
-    body_T_cam, Ta, Tb, feats = random_pair(rng, n=10, pixel_noise=0.0)
+    body_T_cam, Ta, Tb, feats = manifold.random_pair(rng, n=10, pixel_noise=0.0)
     q_b = feats.q_b.copy()
     q_b[0, :2] += 0.05  # ~25 sigma
     feats = PairFeatures.build(Ta @ body_T_cam, Tb @ body_T_cam, feats.q_a, q_b, feats.G_E,
-                               feats.N, NOISE)
+                               feats.N, manifold.PAIR_NOISE)
     plain = CdtmPairFactor(X(0), X(1), feats, body_T_cam).evaluate(Ta, Tb)[0].copy()
     huber = CdtmPairFactor(X(0), X(1), feats, body_T_cam, robust=RobustKernel.HUBER)
     tukey = CdtmPairFactor(X(0), X(1), feats, body_T_cam, robust=RobustKernel.TUKEY)
@@ -303,14 +278,18 @@ def test_robust_kernel_downweights_outliers(rng):
     np.testing.assert_allclose(huber.evaluate(Ta, Tb)[0][1:], plain[1:])
 
 
-def test_noise_model_is_the_projected_feature_covariance(rng):
+def test_noise_model_is_the_projected_feature_covariance(manifold, rng):
     """Sigma_e = B^T Sigma_f B and the whitening inverts it (eqs. 19-26)."""
-    body_T_cam, Ta, Tb, feats = random_pair(rng, pixel_noise=0.0)
+    body_T_cam, Ta, Tb, feats = manifold.random_pair(rng, pixel_noise=0.0)
     wTc_a, wTc_b = Ta @ body_T_cam, Tb @ body_T_cam
     args = (wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3], feats.q_a, feats.q_b,
             feats.G_E, feats.N)
-    Sigma_f = cdtm_math.feature_covariance(*args, NOISE.sigma_q_xy, NOISE.sigma_h_m,
-                                           NOISE.sigma_qa_xy)
+    Sigma_f = cdtm_math.feature_covariance(
+        *args,
+        manifold.PAIR_NOISE.sigma_q_xy,
+        manifold.PAIR_NOISE.sigma_h_m,
+        manifold.PAIR_NOISE.sigma_qa_xy,
+    )
     # At a noiseless solution Sigma_f has rank 2 with q_b in its null space.
     np.testing.assert_allclose(np.einsum("nij,nj->ni", Sigma_f, feats.q_b), 0, atol=1e-15)
     B = feats.basis_b
@@ -320,13 +299,15 @@ def test_noise_model_is_the_projected_feature_covariance(rng):
                                np.broadcast_to(np.eye(2), feats.Sigma_e.shape), atol=1e-9)
 
 
-def test_numba_feature_covariance_equals_the_paper_formulas(rng):
+def test_numba_feature_covariance_equals_the_paper_formulas(manifold, rng):
     """PairFeatures.build's numba noise equals cdtm_math's formulas: Sigma_f (eqs. 19-26),
     the basis, Sigma_e and its whitening."""
-    for qa_noise in (NOISE.sigma_qa_xy, None):
-        noise = FeatureNoise(NOISE.sigma_q_xy, NOISE.sigma_h_m, qa_noise)
+    for qa_noise in (manifold.PAIR_NOISE.sigma_qa_xy, None):
+        noise = FeatureNoise(
+            manifold.PAIR_NOISE.sigma_q_xy, manifold.PAIR_NOISE.sigma_h_m, qa_noise
+        )
         for _ in range(20):
-            body_T_cam, Ta, Tb, feats = random_pair(rng, pixel_noise=5e-3)
+            body_T_cam, Ta, Tb, feats = manifold.random_pair(rng, pixel_noise=5e-3)
             wTc_a, wTc_b = Ta @ body_T_cam, Tb @ body_T_cam
             scale = rng.integers(1, 6, feats.n)  # pairs sharing each feature's DTM error
             built = PairFeatures.build(wTc_a, wTc_b, feats.q_a, feats.q_b, feats.G_E, feats.N,
@@ -355,11 +336,11 @@ def test_numba_feature_covariance_equals_the_paper_formulas(rng):
                     rtol=1e-10)
 
 
-def test_normalized_residuals_are_the_mahalanobis_distances_as_measured(rng):
+def test_normalized_residuals_are_the_mahalanobis_distances_as_measured(manifold, rng):
     """``e^T Sigma_full^-1 e`` of the unwhitened residual: the factor's whitening undone and
     the measured noise's (both observations' pixels and the DTM) applied."""
     for _ in range(10):
-        body_T_cam, Ta, Tb, feats = random_pair(rng, pixel_noise=5e-3)
+        body_T_cam, Ta, Tb, feats = manifold.random_pair(rng, pixel_noise=5e-3)
         factor = CdtmPairFactor(X(0), X(1), feats, body_T_cam)
         d = factor.normalized_residuals(Ta, Tb)
         raw = np.linalg.solve(feats.sqrt_info, factor.whitened_residuals(Ta, Tb)[..., None])
@@ -370,11 +351,11 @@ def test_normalized_residuals_are_the_mahalanobis_distances_as_measured(rng):
         np.testing.assert_allclose(d, expected, rtol=1e-9)
 
 
-def test_innovation_spread_under_a_pose_prior_is_H_P_Ht(rng):
+def test_innovation_spread_under_a_pose_prior_is_H_P_Ht(manifold, rng):
     """Poses drawn from a joint prior P on GTSAM's tangent spaces (Pose3.retract, the
     convention of its marginals) spread the innovations as H P H^T: what the innovation
     gate assumes of H from ``innovations`` and P from iSAM2."""
-    body_T_cam, Ta, Tb, feats = random_pair(rng, n=12, pixel_noise=0.0)
+    body_T_cam, Ta, Tb, feats = manifold.random_pair(rng, n=12, pixel_noise=0.0)
     factor = CdtmPairFactor(X(0), X(1), feats, body_T_cam)
     e0, H_a, H_b = factor.innovations(Ta, Tb)
     L = rng.normal(size=(12, 12)) * 1e-4  # correlations, under pose b's own spread

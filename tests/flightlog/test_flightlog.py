@@ -21,7 +21,6 @@ from cdtm_graph.flightlog import (
     FlightConfig,
     FlightLog,
     Frames,
-    ImuConfig,
     ImuSamples,
     InitialState,
     States,
@@ -32,13 +31,6 @@ from cdtm_graph.flightlog import (
 from cdtm_graph.flightlog import tables as fl
 from cdtm_graph.geometry import make_pose, quat_wxyz_to_rotation, so3_exp, so3_log
 
-T0_NS = 1_403_636_579_758_555_392  # a EuRoC MH_01 epoch: needs int64, not float64
-IMU_DT_NS = 5_000_000
-N_IMU = 60
-FRAME_EVERY = 12
-N_FRAMES = 4
-N_TRACKS = 6
-WIDTH, HEIGHT = 400, 300
 ROTATION_ROUND_TRIP_TOL = 1e-15  # body_T_cam is stored as a quaternion
 ANGLE_TOL_RAD = 1e-12
 
@@ -47,128 +39,19 @@ ANGLE_TOL_RAD = 1e-12
 
 
 @pytest.fixture
-def rng() -> np.random.Generator:
-    return np.random.default_rng(7)
-
-
-def _random_quaternions(rng: np.random.Generator, n: int) -> np.ndarray:
-    q = rng.normal(size=(n, 4))
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
-
-
-def _make_log(root: Path, rng: np.random.Generator) -> FlightLog:
-    camera = PinholeCamera(WIDTH, HEIGHT, 310.5, 309.25, 201.3, 148.7,
-                           (-0.12, 0.03, 8e-4, -5e-4, -0.004))
-    # Downward camera: x along body x, z along -body z (a half turn about x: exact floats).
-    body_T_cam = make_pose(np.diag([1.0, -1.0, -1.0]), [0.25, -0.1, 0.05])
-    config = FlightConfig(
-        gravity_mps2=9.80665,
-        dtm=DtmConfig(root / "dtm.npz", 2.4, (500000.0, 4100000.0, 12.5)),
-        camera=CameraConfig(camera, 0.5, body_T_cam),
-        imu=ImuConfig(200.0, 1.7e-4, 2.0e-3, 1.9e-5, 3.0e-3),
-        initial_state=InitialState(
-            position_m=[10.0, -20.0, 1000.0], quaternion_wxyz=_random_quaternions(rng, 1)[0],
-            velocity_mps=[200.0, 0.5, -1.0], gyro_bias=[1e-4, -2e-4, 3e-5],
-            accel_bias=[0.01, -0.02, 0.005], sigma_position_m=50.0, sigma_attitude_deg=1.0,
-            sigma_velocity_mps=1.0, sigma_gyro_bias=1.0e-4, sigma_accel_bias=1.0e-2),
-        extra={"aircraft": "test", "notes": {"anything": [1, 2.5, "x"]}},
-    )
-    t_imu = T0_NS + IMU_DT_NS * np.arange(N_IMU, dtype=np.int64)
-    imu = ImuSamples(t_imu, rng.normal(scale=0.01, size=(N_IMU, 3)),
-                     rng.normal(scale=0.1, size=(N_IMU, 3)) + [0.0, 0.0, 9.80665])
-    t_frames = t_imu[::FRAME_EVERY][:N_FRAMES]
-    frames = Frames(t_frames, ("",) * N_FRAMES)
-    # Every track in every frame, rows sorted by frame then track.
-    frame = np.repeat(np.arange(N_FRAMES), N_TRACKS)
-    track_id = np.tile(np.arange(N_TRACKS) * 10 + 3, N_FRAMES)
-    uv = np.column_stack([rng.uniform(0.0, WIDTH - 1.0, frame.size),
-                          rng.uniform(0.0, HEIGHT - 1.0, frame.size)])
-    tracks = Tracks(frame, track_id, uv)
-    nav = States(t_frames, rng.normal(size=(N_FRAMES, 3)), _random_quaternions(rng, N_FRAMES),
-                 rng.normal(size=(N_FRAMES, 3)))
-    groundtruth = States(t_imu, rng.normal(size=(N_IMU, 3)), _random_quaternions(rng, N_IMU),
-                         rng.normal(size=(N_IMU, 3)))
-    return FlightLog(root, config, imu, frames, tracks, nav, groundtruth)
-
-
-def _write_dtm(path: Path) -> None:
-    np.savez(path, elevation=np.zeros((3, 3)), x0=0.0, y0=0.0, dx=30.0, dy=30.0)
-
-
-@pytest.fixture
-def log(tmp_path: Path, rng: np.random.Generator) -> FlightLog:
-    """A small valid log, written to tmp_path/log (the DTM written after, as callers do)."""
-    the_log = _make_log(tmp_path / "log", rng)
-    write_flightlog(the_log, the_log.root)
-    _write_dtm(the_log.root / "dtm.npz")
-    return the_log
-
-
-# --------------------------------------------------------------------------- helpers
-
-
-def _lines(path: Path) -> list[str]:
-    return path.read_text().split("\n")
-
-
-def _set_line(path: Path, line_no: int, text: str) -> None:
-    lines = _lines(path)
-    lines[line_no - 1] = text
-    path.write_text("\n".join(lines))
-
-
-def _insert_line(path: Path, line_no: int, text: str) -> None:
-    """Insert so that ``text`` becomes line ``line_no``."""
-    lines = _lines(path)
-    lines.insert(line_no - 1, text)
-    path.write_text("\n".join(lines))
-
-
-def _delete_line(path: Path, line_no: int) -> None:
-    lines = _lines(path)
-    del lines[line_no - 1]
-    path.write_text("\n".join(lines))
-
-
-def _line_of(path: Path, startswith: str) -> int:
-    """1-based number of the first line whose stripped text starts with ``startswith``."""
-    for i, line in enumerate(_lines(path), start=1):
-        if line.strip().startswith(startswith):
-            return i
-    raise AssertionError(f"no line starting with {startswith!r} in {path}")
-
-
-def _set_value(path: Path, line_no: int, column: int, value: str) -> None:
-    fields = _lines(path)[line_no - 1].split(",")
-    fields[column] = value
-    _set_line(path, line_no, ",".join(fields))
-
-
-def _expect_error(root: Path, file: str, line: int, *words: str) -> str:
-    with pytest.raises(FlightLogError) as info:
-        read_flightlog(root)
-    message = str(info.value)
-    assert f"{file}:{line}: " in message, message
-    assert "; expected " in message, message
-    assert "\n" not in message
-    for word in words:
-        assert word in message, message
-    return message
-
-
-def _data_line(row: int) -> int:
-    """Line of 0-based data row ``row`` in a file written with a header."""
-    return row + 2
+def log(small_log: FlightLog) -> FlightLog:
+    """The small valid log of ``tests/support/flightlogs.py``, written with its DTM."""
+    return small_log
 
 
 # --------------------------------------------------------------------------- round trip
 
 
-def test_round_trip_is_exact(log: FlightLog) -> None:
+def test_round_trip_is_exact(flightlog_files, log: FlightLog) -> None:
     back = read_flightlog(log.root)
     assert back == log
     # Spot checks that equality really compares contents (and int64 times survive).
-    assert back.imu.t_ns.dtype == np.int64 and back.imu.t_ns[0] == T0_NS
+    assert back.imu.t_ns.dtype == np.int64 and back.imu.t_ns[0] == flightlog_files.T0_NS
     assert np.array_equal(back.groundtruth.quaternion_wxyz, log.groundtruth.quaternion_wxyz)
     assert back.config.extra == {"aircraft": "test", "notes": {"anything": [1, 2.5, "x"]}}
     assert back.config.dtm.path == log.root / "dtm.npz"
@@ -183,22 +66,29 @@ def test_equality_notices_a_one_ulp_change(log: FlightLog) -> None:
                      log.groundtruth) != log
 
 
-def test_written_files_have_euroc_style_headers(log: FlightLog) -> None:
-    assert _lines(log.root / "imu.csv")[0] == "#t_ns,gyro_x,gyro_y,gyro_z,acc_x,acc_y,acc_z"
-    assert _lines(log.root / "frames.csv")[0] == "#t_ns,image"
-    assert _lines(log.root / "tracks.csv")[0] == "#frame,track_id,u,v"
-    assert _lines(log.root / "nav.csv")[0] == "#t_ns,px,py,pz,qw,qx,qy,qz,vx,vy,vz"
-    assert _lines(log.root / "imu.csv")[1].startswith(f"{T0_NS},")
+def test_written_files_have_euroc_style_headers(flightlog_files, log: FlightLog) -> None:
+    assert (
+        flightlog_files.text_lines(log.root / "imu.csv")[0]
+        == "#t_ns,gyro_x,gyro_y,gyro_z,acc_x,acc_y,acc_z"
+    )
+    assert flightlog_files.text_lines(log.root / "frames.csv")[0] == "#t_ns,image"
+    assert flightlog_files.text_lines(log.root / "tracks.csv")[0] == "#frame,track_id,u,v"
+    assert (
+        flightlog_files.text_lines(log.root / "nav.csv")[0] == "#t_ns,px,py,pz,qw,qx,qy,qz,vx,vy,vz"
+    )
+    assert flightlog_files.text_lines(log.root / "imu.csv")[1].startswith(
+        f"{flightlog_files.T0_NS},"
+    )
     assert (log.root / "flight.yaml").read_text().startswith("format: cdtm-flightlog/1\n")
 
 
-def test_optional_files_absent_read_as_none(tmp_path: Path, rng) -> None:
-    the_log = _make_log(tmp_path / "log", rng)
-    images = tuple(f"images/{k}.png" for k in range(N_FRAMES))
+def test_optional_files_absent_read_as_none(flightlog_files, tmp_path: Path, rng) -> None:
+    the_log = flightlog_files.make_log(tmp_path / "log", rng)
+    images = tuple(f"images/{k}.png" for k in range(flightlog_files.N_FRAMES))
     bare = FlightLog(the_log.root, the_log.config, the_log.imu,
                      Frames(the_log.frames.t_ns, images))
     write_flightlog(bare, bare.root)
-    _write_dtm(bare.root / "dtm.npz")
+    flightlog_files.write_dtm(bare.root / "dtm.npz")
     (bare.root / "images").mkdir()
     for name in images:
         (bare.root / name).write_bytes(b"")
@@ -207,15 +97,17 @@ def test_optional_files_absent_read_as_none(tmp_path: Path, rng) -> None:
     assert back.tracks is None and back.nav is None and back.groundtruth is None
 
 
-def test_general_body_T_cam_rotation_round_trips_to_rounding(tmp_path: Path, rng) -> None:
-    the_log = _make_log(tmp_path / "log", rng)
+def test_general_body_T_cam_rotation_round_trips_to_rounding(
+    flightlog_files, tmp_path: Path, rng
+) -> None:
+    the_log = flightlog_files.make_log(tmp_path / "log", rng)
     body_T_cam = make_pose(so3_exp(np.array([0.3, -1.1, 2.0])), [0.1, 0.2, 0.3])
     cfg = the_log.config
     camera = CameraConfig(cfg.camera.camera, cfg.camera.pixel_sigma_px, body_T_cam)
     config = FlightConfig(cfg.gravity_mps2, cfg.dtm, camera, cfg.imu, cfg.initial_state)
     write_flightlog(FlightLog(the_log.root, config, the_log.imu, the_log.frames, the_log.tracks),
                     the_log.root)
-    _write_dtm(the_log.root / "dtm.npz")
+    flightlog_files.write_dtm(the_log.root / "dtm.npz")
     back = read_flightlog(the_log.root).config.camera.body_T_cam
     assert np.max(np.abs(back - body_T_cam)) <= ROTATION_ROUND_TRIP_TOL
     assert np.array_equal(back[:3, 3], body_T_cam[:3, 3])
@@ -224,9 +116,11 @@ def test_general_body_T_cam_rotation_round_trips_to_rounding(tmp_path: Path, rng
 # --------------------------------------------------------------------------- writer
 
 
-def test_write_into_a_directory_holding_the_dtm_removes_stale_log_files(log: FlightLog) -> None:
+def test_write_into_a_directory_holding_the_dtm_removes_stale_log_files(
+    flightlog_files, log: FlightLog
+) -> None:
     assert (log.root / "tracks.csv").exists()
-    images = tuple(f"{k}.png" for k in range(N_FRAMES))
+    images = tuple(f"{k}.png" for k in range(flightlog_files.N_FRAMES))
     for name in images:
         (log.root / name).write_bytes(b"")
     smaller = FlightLog(log.root, log.config, log.imu, Frames(log.frames.t_ns, images))
@@ -238,8 +132,8 @@ def test_write_into_a_directory_holding_the_dtm_removes_stale_log_files(log: Fli
     assert [p.name for p in log.root.parent.iterdir()] == ["log"]  # no staging left
 
 
-def test_write_failure_leaves_nothing_behind(tmp_path: Path, rng) -> None:
-    the_log = _make_log(tmp_path / "log", rng)
+def test_write_failure_leaves_nothing_behind(flightlog_files, tmp_path: Path, rng) -> None:
+    the_log = flightlog_files.make_log(tmp_path / "log", rng)
     cfg = the_log.config
     bad = FlightConfig(cfg.gravity_mps2, cfg.dtm, cfg.camera, cfg.imu, cfg.initial_state,
                        extra={"not yaml": object()})
@@ -248,11 +142,11 @@ def test_write_failure_leaves_nothing_behind(tmp_path: Path, rng) -> None:
     assert list(tmp_path.iterdir()) == []
 
 
-def test_dtm_outside_the_log_is_written_absolute(tmp_path: Path, rng) -> None:
-    the_log = _make_log(tmp_path / "log", rng)
+def test_dtm_outside_the_log_is_written_absolute(flightlog_files, tmp_path: Path, rng) -> None:
+    the_log = flightlog_files.make_log(tmp_path / "log", rng)
     outside = tmp_path / "terrain" / "dem.npz"
     outside.parent.mkdir()
-    _write_dtm(outside)
+    flightlog_files.write_dtm(outside)
     cfg = the_log.config
     config = FlightConfig(cfg.gravity_mps2, DtmConfig(outside), cfg.camera, cfg.imu,
                           cfg.initial_state)
@@ -321,9 +215,9 @@ def test_euroc_files_copied_in_as_they_are(log: FlightLog, newline: str) -> None
     np.testing.assert_allclose(gt.quaternion_wxyz[0], raw / np.linalg.norm(raw), atol=1e-15)
 
 
-def test_files_without_header_read(log: FlightLog) -> None:
+def test_files_without_header_read(flightlog_files, log: FlightLog) -> None:
     for name in ("imu.csv", "frames.csv", "tracks.csv", "nav.csv", "groundtruth.csv"):
-        _delete_line(log.root / name, 1)
+        flightlog_files.delete_line(log.root / name, 1)
     assert read_flightlog(log.root) == log
 
 
@@ -342,26 +236,26 @@ def test_the_line_scan_reads_what_numpy_reads(log: FlightLog, monkeypatch) -> No
     assert read_flightlog(log.root) == log
 
 
-def test_bad_value_deep_in_a_large_file_is_located(tmp_path: Path, rng) -> None:
-    the_log = _make_log(tmp_path / "log", rng)
+def test_bad_value_deep_in_a_large_file_is_located(flightlog_files, tmp_path: Path, rng) -> None:
+    the_log = flightlog_files.make_log(tmp_path / "log", rng)
     n = 20_000
-    t = T0_NS + IMU_DT_NS * np.arange(n, dtype=np.int64)
+    t = flightlog_files.T0_NS + flightlog_files.IMU_DT_NS * np.arange(n, dtype=np.int64)
     imu = ImuSamples(t, rng.normal(size=(n, 3)), rng.normal(size=(n, 3)))
     write_flightlog(FlightLog(the_log.root, the_log.config, imu, the_log.frames,
                               the_log.tracks), the_log.root)
-    _write_dtm(the_log.root / "dtm.npz")
-    _set_value(the_log.root / "imu.csv", 15_321, 4, "8.1x")
-    _expect_error(the_log.root, "imu.csv", 15_321, "acc_x", "'8.1x'")
+    flightlog_files.write_dtm(the_log.root / "dtm.npz")
+    flightlog_files.set_value(the_log.root / "imu.csv", 15_321, 4, "8.1x")
+    flightlog_files.expect_error(the_log.root, "imu.csv", 15_321, "acc_x", "'8.1x'")
 
 
 # --------------------------------------------------------------------------- flight.yaml errors
 
 
-def test_unknown_top_level_key(log: FlightLog) -> None:
+def test_unknown_top_level_key(flightlog_files, log: FlightLog) -> None:
     path = log.root / "flight.yaml"
-    line = _line_of(path, "dtm:")
-    _insert_line(path, line, "gravity: 9.81")
-    _expect_error(log.root, "flight.yaml", line, "unknown key 'gravity'")
+    line = flightlog_files.line_of(path, "dtm:")
+    flightlog_files.insert_line(path, line, "gravity: 9.81")
+    flightlog_files.expect_error(log.root, "flight.yaml", line, "unknown key 'gravity'")
 
 
 @pytest.mark.parametrize("after, text, key", [
@@ -370,70 +264,79 @@ def test_unknown_top_level_key(log: FlightLog) -> None:
     ("dtm:", "  sigma_h: 2.0", "dtm.sigma_h"),
     ("initial_state:", "  sigma_attitude_rad: 0.01", "initial_state.sigma_attitude_rad"),
 ])
-def test_unknown_nested_key(log: FlightLog, after: str, text: str, key: str) -> None:
+def test_unknown_nested_key(
+    flightlog_files, log: FlightLog, after: str, text: str, key: str
+) -> None:
     path = log.root / "flight.yaml"
-    line = _line_of(path, after) + 1
-    _insert_line(path, line, text)
-    _expect_error(log.root, "flight.yaml", line, f"unknown key '{key}'")
+    line = flightlog_files.line_of(path, after) + 1
+    flightlog_files.insert_line(path, line, text)
+    flightlog_files.expect_error(log.root, "flight.yaml", line, f"unknown key '{key}'")
 
 
-def test_anything_goes_under_extra(log: FlightLog) -> None:
+def test_anything_goes_under_extra(flightlog_files, log: FlightLog) -> None:
     path = log.root / "flight.yaml"
-    line = _line_of(path, "extra:") + 1
-    _insert_line(path, line, "  whatever_key: {nested: [1, 2]}")
+    line = flightlog_files.line_of(path, "extra:") + 1
+    flightlog_files.insert_line(path, line, "  whatever_key: {nested: [1, 2]}")
     assert read_flightlog(log.root).config.extra["whatever_key"] == {"nested": [1, 2]}
 
 
 @pytest.mark.parametrize("value", ["cdtm-flightlog/2", "euroc"])
-def test_wrong_format_string(log: FlightLog, value: str) -> None:
-    _set_line(log.root / "flight.yaml", 1, f"format: {value}")
-    _expect_error(log.root, "flight.yaml", 1, value, "cdtm-flightlog/1")
+def test_wrong_format_string(flightlog_files, log: FlightLog, value: str) -> None:
+    flightlog_files.set_line(log.root / "flight.yaml", 1, f"format: {value}")
+    flightlog_files.expect_error(log.root, "flight.yaml", 1, value, "cdtm-flightlog/1")
 
 
-def test_missing_format(log: FlightLog) -> None:
-    _delete_line(log.root / "flight.yaml", 1)
-    _expect_error(log.root, "flight.yaml", 1, "missing key 'format'")
+def test_missing_format(flightlog_files, log: FlightLog) -> None:
+    flightlog_files.delete_line(log.root / "flight.yaml", 1)
+    flightlog_files.expect_error(log.root, "flight.yaml", 1, "missing key 'format'")
 
 
-def test_missing_required_key(log: FlightLog) -> None:
+def test_missing_required_key(flightlog_files, log: FlightLog) -> None:
     path = log.root / "flight.yaml"
-    _delete_line(path, _line_of(path, "pixel_sigma_px:"))
-    _expect_error(log.root, "flight.yaml", _line_of(path, "camera:"),
+    flightlog_files.delete_line(path, flightlog_files.line_of(path, "pixel_sigma_px:"))
+    flightlog_files.expect_error(log.root, "flight.yaml", flightlog_files.line_of(path, "camera:"),
                   "missing key 'camera.pixel_sigma_px'")
 
 
-def test_duplicate_key(log: FlightLog) -> None:
+def test_duplicate_key(flightlog_files, log: FlightLog) -> None:
     path = log.root / "flight.yaml"
-    line = _line_of(path, "gravity_mps2:") + 1
-    _insert_line(path, line, "gravity_mps2: 9.81")
-    _expect_error(log.root, "flight.yaml", line, "duplicate key 'gravity_mps2'")
+    line = flightlog_files.line_of(path, "gravity_mps2:") + 1
+    flightlog_files.insert_line(path, line, "gravity_mps2: 9.81")
+    flightlog_files.expect_error(log.root, "flight.yaml", line, "duplicate key 'gravity_mps2'")
 
 
 @pytest.mark.parametrize("model", ["radtan8", "fisheye", "kannala_brandt"])
-def test_bad_distortion_model(log: FlightLog, model: str) -> None:
+def test_bad_distortion_model(flightlog_files, log: FlightLog, model: str) -> None:
     path = log.root / "flight.yaml"
-    line = _line_of(path, "distortion_model:")
-    _set_line(path, line, f"  distortion_model: {model}")
-    _expect_error(log.root, "flight.yaml", line, model, "radtan", "equidistant")
+    line = flightlog_files.line_of(path, "distortion_model:")
+    flightlog_files.set_line(path, line, f"  distortion_model: {model}")
+    flightlog_files.expect_error(log.root, "flight.yaml", line, model, "radtan", "equidistant")
 
 
-def test_equidistant_lens_round_trips_and_needs_four_coefficients(tmp_path: Path, rng) -> None:
-    the_log = _make_log(tmp_path / "log", rng)
+def test_equidistant_lens_round_trips_and_needs_four_coefficients(
+    flightlog_files, tmp_path: Path, rng
+) -> None:
+    the_log = flightlog_files.make_log(tmp_path / "log", rng)
     cam = the_log.config.camera.camera
     fisheye = PinholeCamera(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy,
                             (0.0034, 0.0007, -0.0021, 0.0002), "equidistant")
     the_log = dataclasses.replace(the_log, config=dataclasses.replace(
         the_log.config, camera=dataclasses.replace(the_log.config.camera, camera=fisheye)))
     write_flightlog(the_log, the_log.root)
-    _write_dtm(the_log.root / "dtm.npz")
+    flightlog_files.write_dtm(the_log.root / "dtm.npz")
     path = the_log.root / "flight.yaml"
     assert "  distortion_model: equidistant\n" in path.read_text()
     back = read_flightlog(the_log.root)
     assert back == the_log and back.config.camera.camera.model is DistortionModel.EQUIDISTANT
-    line = _line_of(path, "distortion_coeffs:")
-    _set_line(path, line, "  distortion_coeffs: [0.1, 0.2, 0.0, 0.0, 0.0]")
-    _expect_error(the_log.root, "flight.yaml", line, "camera.distortion_coeffs has 5 values",
-                  "4 finite numbers")
+    line = flightlog_files.line_of(path, "distortion_coeffs:")
+    flightlog_files.set_line(path, line, "  distortion_coeffs: [0.1, 0.2, 0.0, 0.0, 0.0]")
+    flightlog_files.expect_error(
+        the_log.root,
+        "flight.yaml",
+        line,
+        "camera.distortion_coeffs has 5 values",
+        "4 finite numbers",
+    )
 
 
 def _with_time_offset(the_log: FlightLog, offset_s: float) -> FlightLog:
@@ -443,15 +346,18 @@ def _with_time_offset(the_log: FlightLog, offset_s: float) -> FlightLog:
 
 
 @pytest.mark.parametrize("offset_s", [0.0123456789, -0.25])
-def test_time_offset_moves_frames_onto_the_imu_clock(tmp_path: Path, rng,
+def test_time_offset_moves_frames_onto_the_imu_clock(flightlog_files, tmp_path: Path, rng,
                                                      offset_s: float) -> None:
     # In memory frames are on the IMU clock (nav.csv's times equal them); frames.csv holds
     # the camera's stamps, t_cam = t_imu - offset, and reads back to the same log.
-    the_log = _with_time_offset(_make_log(tmp_path / "log", rng), offset_s)
+    the_log = _with_time_offset(flightlog_files.make_log(tmp_path / "log", rng), offset_s)
     write_flightlog(the_log, the_log.root)
-    _write_dtm(the_log.root / "dtm.npz")
+    flightlog_files.write_dtm(the_log.root / "dtm.npz")
     offset_ns = round(offset_s * 1e9)
-    stamps = [int(line.split(",")[0]) for line in _lines(the_log.root / "frames.csv")[1:-1]]
+    stamps = [
+        int(line.split(",")[0])
+        for line in flightlog_files.text_lines(the_log.root / "frames.csv")[1:-1]
+    ]
     assert stamps == (the_log.frames.t_ns - offset_ns).tolist()
     back = read_flightlog(the_log.root)
     assert back == the_log
@@ -468,66 +374,84 @@ def test_time_offset_absent_is_zero_and_not_written(log: FlightLog) -> None:
 
 
 @pytest.mark.parametrize("value", ["12.0", "-10.5", "nan", "fast"])
-def test_time_offset_out_of_range_or_not_a_number(log: FlightLog, value: str) -> None:
+def test_time_offset_out_of_range_or_not_a_number(
+    flightlog_files, log: FlightLog, value: str
+) -> None:
     path = log.root / "flight.yaml"
-    line = _line_of(path, "pixel_sigma_px:") + 1
-    _insert_line(path, line, f"  time_offset_s: {value}")
-    _expect_error(log.root, "flight.yaml", line, "camera.time_offset_s", "[-10, 10] s")
+    line = flightlog_files.line_of(path, "pixel_sigma_px:") + 1
+    flightlog_files.insert_line(path, line, f"  time_offset_s: {value}")
+    flightlog_files.expect_error(
+        log.root, "flight.yaml", line, "camera.time_offset_s", "[-10, 10] s"
+    )
 
 
-def test_a_stamp_the_time_offset_pushes_out_of_int64_is_refused(tmp_path: Path, rng) -> None:
-    the_log = _with_time_offset(_make_log(tmp_path / "log", rng), 0.5)
+def test_a_stamp_the_time_offset_pushes_out_of_int64_is_refused(
+    flightlog_files, tmp_path: Path, rng
+) -> None:
+    the_log = _with_time_offset(flightlog_files.make_log(tmp_path / "log", rng), 0.5)
     write_flightlog(the_log, the_log.root)
-    _write_dtm(the_log.root / "dtm.npz")
+    flightlog_files.write_dtm(the_log.root / "dtm.npz")
     path = the_log.root / "frames.csv"
-    last = _data_line(N_FRAMES - 1)
-    _set_value(path, last, 0, str(np.iinfo(np.int64).max - 1000))
-    _expect_error(the_log.root, "frames.csv", last, "int64")
+    last = flightlog_files.data_line(flightlog_files.N_FRAMES - 1)
+    flightlog_files.set_value(path, last, 0, str(np.iinfo(np.int64).max - 1000))
+    flightlog_files.expect_error(the_log.root, "frames.csv", last, "int64")
 
 
-def test_distortion_model_none_or_absent_means_no_distortion(log: FlightLog) -> None:
+def test_distortion_model_none_or_absent_means_no_distortion(
+    flightlog_files, log: FlightLog
+) -> None:
     path = log.root / "flight.yaml"
-    _delete_line(path, _line_of(path, "distortion_coeffs:"))
-    _set_line(path, _line_of(path, "distortion_model:"), "  distortion_model: none")
+    flightlog_files.delete_line(path, flightlog_files.line_of(path, "distortion_coeffs:"))
+    flightlog_files.set_line(
+        path, flightlog_files.line_of(path, "distortion_model:"), "  distortion_model: none"
+    )
     assert read_flightlog(log.root).config.camera.camera.distortion == ()
-    _delete_line(path, _line_of(path, "distortion_model:"))
+    flightlog_files.delete_line(path, flightlog_files.line_of(path, "distortion_model:"))
     assert read_flightlog(log.root).config.camera.camera.distortion == ()
 
 
-def test_distortion_coeffs_of_wrong_length(log: FlightLog) -> None:
+def test_distortion_coeffs_of_wrong_length(flightlog_files, log: FlightLog) -> None:
     path = log.root / "flight.yaml"
-    line = _line_of(path, "distortion_coeffs:")
-    _set_line(path, line, "  distortion_coeffs: [0.1, 0.2, 0.0]")
-    _expect_error(log.root, "flight.yaml", line, "3 values", "4 or 5")
+    line = flightlog_files.line_of(path, "distortion_coeffs:")
+    flightlog_files.set_line(path, line, "  distortion_coeffs: [0.1, 0.2, 0.0]")
+    flightlog_files.expect_error(log.root, "flight.yaml", line, "3 values", "4 or 5")
 
 
-def test_non_unit_quaternion_in_yaml(log: FlightLog) -> None:
+def test_non_unit_quaternion_in_yaml(flightlog_files, log: FlightLog) -> None:
     path = log.root / "flight.yaml"
-    line = _line_of(path, "quaternion_wxyz:")  # body_T_cam's comes first
-    _set_line(path, line, "    quaternion_wxyz: [0.0, 1.1, 0.0, 0.0]")
-    _expect_error(log.root, "flight.yaml", line, "camera.body_T_cam.quaternion_wxyz", "unit")
+    line = flightlog_files.line_of(path, "quaternion_wxyz:")  # body_T_cam's comes first
+    flightlog_files.set_line(path, line, "    quaternion_wxyz: [0.0, 1.1, 0.0, 0.0]")
+    flightlog_files.expect_error(
+        log.root, "flight.yaml", line, "camera.body_T_cam.quaternion_wxyz", "unit"
+    )
 
 
-def test_slightly_off_unit_quaternion_is_normalized(log: FlightLog) -> None:
+def test_slightly_off_unit_quaternion_is_normalized(flightlog_files, log: FlightLog) -> None:
     path = log.root / "flight.yaml"
-    line = _line_of(path, "quaternion_wxyz:")
-    _set_line(path, line, "    quaternion_wxyz: [0.0, 1.0004, 0.0, 0.0]")
+    line = flightlog_files.line_of(path, "quaternion_wxyz:")
+    flightlog_files.set_line(path, line, "    quaternion_wxyz: [0.0, 1.0004, 0.0, 0.0]")
     np.testing.assert_array_equal(read_flightlog(log.root).config.camera.body_T_cam[:3, :3],
                                   np.diag([1.0, -1.0, -1.0]))
 
 
-def test_deg_key_is_degrees(log: FlightLog) -> None:
+def test_deg_key_is_degrees(flightlog_files, log: FlightLog) -> None:
     path = log.root / "flight.yaml"
-    _set_line(path, _line_of(path, "sigma_attitude_deg:"), "  sigma_attitude_deg: 2.0")
+    flightlog_files.set_line(
+        path, flightlog_files.line_of(path, "sigma_attitude_deg:"), "  sigma_attitude_deg: 2.0"
+    )
     state = read_flightlog(log.root).config.initial_state
     assert state.sigma_attitude_deg == 2.0
     assert state.sigma_attitude_rad == pytest.approx(math.radians(2.0), rel=1e-15)
 
 
-def test_exponent_without_dot_is_a_number(log: FlightLog) -> None:
+def test_exponent_without_dot_is_a_number(flightlog_files, log: FlightLog) -> None:
     # PyYAML reads 2e-5 as a string (YAML 1.1); Kalibr files write it that way.
     path = log.root / "flight.yaml"
-    _set_line(path, _line_of(path, "gyroscope_random_walk:"), "  gyroscope_random_walk: 2e-5")
+    flightlog_files.set_line(
+        path,
+        flightlog_files.line_of(path, "gyroscope_random_walk:"),
+        "  gyroscope_random_walk: 2e-5",
+    )
     assert read_flightlog(log.root).config.imu.gyroscope_random_walk == 2e-5
 
 
@@ -541,57 +465,63 @@ def test_exponent_without_dot_is_a_number(log: FlightLog) -> None:
     ("position_m:", "  position_m: [0.0, 0.0]", ("initial_state.position_m", "3")),
     ("sigma_h_m:", "  sigma_h_m: [1.0]", ("dtm.sigma_h_m", "a list")),
 ])
-def test_bad_yaml_values(log: FlightLog, key: str, value: str, words: tuple[str, ...]) -> None:
+def test_bad_yaml_values(
+    flightlog_files, log: FlightLog, key: str, value: str, words: tuple[str, ...]
+) -> None:
     path = log.root / "flight.yaml"
-    line = _line_of(path, key)
-    _set_line(path, line, value)
-    _expect_error(log.root, "flight.yaml", line, *words)
+    line = flightlog_files.line_of(path, key)
+    flightlog_files.set_line(path, line, value)
+    flightlog_files.expect_error(log.root, "flight.yaml", line, *words)
 
 
-def test_yaml_syntax_error(log: FlightLog) -> None:
+def test_yaml_syntax_error(flightlog_files, log: FlightLog) -> None:
     path = log.root / "flight.yaml"
-    line = _line_of(path, "imu:") + 1
-    _insert_line(path, line, "  rate_hz: [200")
+    line = flightlog_files.line_of(path, "imu:") + 1
+    flightlog_files.insert_line(path, line, "  rate_hz: [200")
     with pytest.raises(FlightLogError, match=r"flight\.yaml:\d+: YAML error"):
         read_flightlog(log.root)
 
 
-def test_missing_dtm_file(log: FlightLog) -> None:
+def test_missing_dtm_file(flightlog_files, log: FlightLog) -> None:
     (log.root / "dtm.npz").unlink()
-    line = _line_of(log.root / "flight.yaml", "path:")
-    _expect_error(log.root, "flight.yaml", line, "dtm.path", "does not exist")
+    line = flightlog_files.line_of(log.root / "flight.yaml", "path:")
+    flightlog_files.expect_error(log.root, "flight.yaml", line, "dtm.path", "does not exist")
 
 
-def test_dtm_with_unknown_suffix(log: FlightLog) -> None:
+def test_dtm_with_unknown_suffix(flightlog_files, log: FlightLog) -> None:
     path = log.root / "flight.yaml"
-    line = _line_of(path, "path:")
+    line = flightlog_files.line_of(path, "path:")
     (log.root / "dtm.png").write_bytes(b"")
-    _set_line(path, line, "  path: dtm.png")
-    _expect_error(log.root, "flight.yaml", line, ".png", ".npz")
+    flightlog_files.set_line(path, line, "  path: dtm.png")
+    flightlog_files.expect_error(log.root, "flight.yaml", line, ".png", ".npz")
 
 
 # --------------------------------------------------------------------------- missing files
 
 
 @pytest.mark.parametrize("name", ["flight.yaml", "imu.csv", "frames.csv"])
-def test_missing_required_file(log: FlightLog, name: str) -> None:
+def test_missing_required_file(flightlog_files, log: FlightLog, name: str) -> None:
     (log.root / name).unlink()
-    _expect_error(log.root, name, 1, "missing")
+    flightlog_files.expect_error(log.root, name, 1, "missing")
 
 
-def test_missing_tracks_when_frames_have_no_images(log: FlightLog) -> None:
+def test_missing_tracks_when_frames_have_no_images(flightlog_files, log: FlightLog) -> None:
     (log.root / "tracks.csv").unlink()
-    _expect_error(log.root, "frames.csv", _data_line(0), "no image", "tracks.csv")
+    flightlog_files.expect_error(
+        log.root, "frames.csv", flightlog_files.data_line(0), "no image", "tracks.csv"
+    )
 
 
-def test_missing_image_file_without_tracks(log: FlightLog) -> None:
+def test_missing_image_file_without_tracks(flightlog_files, log: FlightLog) -> None:
     (log.root / "tracks.csv").unlink()
     path = log.root / "frames.csv"
-    for k in range(N_FRAMES):
-        _set_value(path, _data_line(k), 1, f"{k}.png")
+    for k in range(flightlog_files.N_FRAMES):
+        flightlog_files.set_value(path, flightlog_files.data_line(k), 1, f"{k}.png")
         if k != 2:
             (log.root / f"{k}.png").write_bytes(b"")
-    _expect_error(log.root, "frames.csv", _data_line(2), "'2.png'", "does not exist")
+    flightlog_files.expect_error(
+        log.root, "frames.csv", flightlog_files.data_line(2), "'2.png'", "does not exist"
+    )
 
 
 def test_not_a_directory(tmp_path: Path) -> None:
@@ -603,52 +533,58 @@ def test_not_a_directory(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("token", ["nan", "NaN", "inf", "-inf", "Infinity"])
-def test_nan_and_inf_in_imu(log: FlightLog, token: str) -> None:
-    _set_value(log.root / "imu.csv", 6, 2, token)
-    _expect_error(log.root, "imu.csv", 6, "gyro_y", "finite")
+def test_nan_and_inf_in_imu(flightlog_files, log: FlightLog, token: str) -> None:
+    flightlog_files.set_value(log.root / "imu.csv", 6, 2, token)
+    flightlog_files.expect_error(log.root, "imu.csv", 6, "gyro_y", "finite")
 
 
 @pytest.mark.parametrize("name, column, field", [
     ("groundtruth.csv", 8, "vx"), ("nav.csv", 1, "px"), ("tracks.csv", 3, "v"),
 ])
-def test_nan_in_other_files(log: FlightLog, name: str, column: int, field: str) -> None:
-    _set_value(log.root / name, 3, column, "nan")
-    _expect_error(log.root, name, 3, field, "finite")
+def test_nan_in_other_files(
+    flightlog_files, log: FlightLog, name: str, column: int, field: str
+) -> None:
+    flightlog_files.set_value(log.root / name, 3, column, "nan")
+    flightlog_files.expect_error(log.root, name, 3, field, "finite")
 
 
-def test_non_increasing_imu_times(log: FlightLog) -> None:
+def test_non_increasing_imu_times(flightlog_files, log: FlightLog) -> None:
     path = log.root / "imu.csv"
-    previous = _lines(path)[5].split(",")[0]  # line 6
-    _set_value(path, 7, 0, previous)
-    _expect_error(log.root, "imu.csv", 7, "strictly increasing")
+    previous = flightlog_files.text_lines(path)[5].split(",")[0]  # line 6
+    flightlog_files.set_value(path, 7, 0, previous)
+    flightlog_files.expect_error(log.root, "imu.csv", 7, "strictly increasing")
 
 
-def test_decreasing_frame_times(log: FlightLog) -> None:
+def test_decreasing_frame_times(flightlog_files, log: FlightLog) -> None:
     path = log.root / "frames.csv"
-    _set_value(path, _data_line(2), 0, str(T0_NS - 1))
-    _expect_error(log.root, "frames.csv", _data_line(2), "strictly increasing")
+    flightlog_files.set_value(path, flightlog_files.data_line(2), 0, str(flightlog_files.T0_NS - 1))
+    flightlog_files.expect_error(
+        log.root, "frames.csv", flightlog_files.data_line(2), "strictly increasing"
+    )
 
 
-def test_non_increasing_groundtruth_times(log: FlightLog) -> None:
+def test_non_increasing_groundtruth_times(flightlog_files, log: FlightLog) -> None:
     path = log.root / "groundtruth.csv"
-    _set_value(path, 30, 0, str(T0_NS))
-    _expect_error(log.root, "groundtruth.csv", 30, "strictly increasing")
+    flightlog_files.set_value(path, 30, 0, str(flightlog_files.T0_NS))
+    flightlog_files.expect_error(log.root, "groundtruth.csv", 30, "strictly increasing")
 
 
 @pytest.mark.parametrize("name, line", [
     ("imu.csv", 9), ("frames.csv", 3), ("tracks.csv", 5), ("nav.csv", 2), ("groundtruth.csv", 40),
 ])
-def test_short_rows(log: FlightLog, name: str, line: int) -> None:
+def test_short_rows(flightlog_files, log: FlightLog, name: str, line: int) -> None:
     path = log.root / name
-    fields = _lines(path)[line - 1].split(",")
-    _set_line(path, line, ",".join(fields[:-1]) if name != "frames.csv" else fields[0])
-    _expect_error(log.root, name, line, "short row")
+    fields = flightlog_files.text_lines(path)[line - 1].split(",")
+    flightlog_files.set_line(
+        path, line, ",".join(fields[:-1]) if name != "frames.csv" else fields[0]
+    )
+    flightlog_files.expect_error(log.root, name, line, "short row")
 
 
-def test_too_many_values_in_imu(log: FlightLog) -> None:
+def test_too_many_values_in_imu(flightlog_files, log: FlightLog) -> None:
     path = log.root / "imu.csv"
-    _set_line(path, 4, _lines(path)[3] + ",0.0")
-    _expect_error(log.root, "imu.csv", 4, "too many")
+    flightlog_files.set_line(path, 4, flightlog_files.text_lines(path)[3] + ",0.0")
+    flightlog_files.expect_error(log.root, "imu.csv", 4, "too many")
 
 
 @pytest.mark.parametrize("name, line, column, token, field", [
@@ -661,108 +597,143 @@ def test_too_many_values_in_imu(log: FlightLog) -> None:
     ("nav.csv", 3, 5, "", "qx"),  # a missing value
     ("frames.csv", 3, 0, "12x", "t_ns"),
 ])
-def test_non_numeric_tokens(log: FlightLog, name, line, column, token, field) -> None:
-    _set_value(log.root / name, line, column, token)
-    _expect_error(log.root, name, line, field)
+def test_non_numeric_tokens(
+    flightlog_files, log: FlightLog, name, line, column, token, field
+) -> None:
+    flightlog_files.set_value(log.root / name, line, column, token)
+    flightlog_files.expect_error(log.root, name, line, field)
 
 
-def test_blank_line_in_the_middle(log: FlightLog) -> None:
-    _insert_line(log.root / "imu.csv", 10, "")
-    _expect_error(log.root, "imu.csv", 10, "empty line")
+def test_blank_line_in_the_middle(flightlog_files, log: FlightLog) -> None:
+    flightlog_files.insert_line(log.root / "imu.csv", 10, "")
+    flightlog_files.expect_error(log.root, "imu.csv", 10, "empty line")
 
 
-def test_earliest_problem_is_reported(log: FlightLog) -> None:
+def test_earliest_problem_is_reported(flightlog_files, log: FlightLog) -> None:
     path = log.root / "imu.csv"
-    _set_value(path, 20, 1, "nan")
-    _set_value(path, 8, 0, _lines(path)[5].split(",")[0])  # goes back in time on line 8
-    _expect_error(log.root, "imu.csv", 8, "strictly increasing")
+    flightlog_files.set_value(path, 20, 1, "nan")
+    flightlog_files.set_value(
+        path, 8, 0, flightlog_files.text_lines(path)[5].split(",")[0]
+    )  # goes back in time on line 8
+    flightlog_files.expect_error(log.root, "imu.csv", 8, "strictly increasing")
 
 
-def test_track_naming_a_frame_that_does_not_exist(log: FlightLog) -> None:
+def test_track_naming_a_frame_that_does_not_exist(flightlog_files, log: FlightLog) -> None:
     path = log.root / "tracks.csv"
-    last = len(_lines(path)) - 1  # the file ends with a newline
-    _set_value(path, last, 0, str(N_FRAMES))
-    _expect_error(log.root, "tracks.csv", last, f"frame {N_FRAMES} does not exist")
+    last = len(flightlog_files.text_lines(path)) - 1  # the file ends with a newline
+    flightlog_files.set_value(path, last, 0, str(flightlog_files.N_FRAMES))
+    flightlog_files.expect_error(
+        log.root, "tracks.csv", last, f"frame {flightlog_files.N_FRAMES} does not exist"
+    )
 
 
-def test_negative_frame_index(log: FlightLog) -> None:
-    _set_value(log.root / "tracks.csv", 2, 0, "-1")
-    _expect_error(log.root, "tracks.csv", 2, "frame -1 does not exist")
+def test_negative_frame_index(flightlog_files, log: FlightLog) -> None:
+    flightlog_files.set_value(log.root / "tracks.csv", 2, 0, "-1")
+    flightlog_files.expect_error(log.root, "tracks.csv", 2, "frame -1 does not exist")
 
 
-def test_tracks_not_sorted_by_frame(log: FlightLog) -> None:
-    line = _data_line(N_TRACKS + 2)  # a row of frame 1
-    _set_value(log.root / "tracks.csv", line, 0, "0")
-    _expect_error(log.root, "tracks.csv", line, "sorted by frame")
+def test_tracks_not_sorted_by_frame(flightlog_files, log: FlightLog) -> None:
+    line = flightlog_files.data_line(flightlog_files.N_TRACKS + 2)  # a row of frame 1
+    flightlog_files.set_value(log.root / "tracks.csv", line, 0, "0")
+    flightlog_files.expect_error(log.root, "tracks.csv", line, "sorted by frame")
 
 
-def test_track_seen_twice_in_one_frame(log: FlightLog) -> None:
+def test_track_seen_twice_in_one_frame(flightlog_files, log: FlightLog) -> None:
     path = log.root / "tracks.csv"
-    first_id = _lines(path)[_data_line(0) - 1].split(",")[1]
-    _set_value(path, _data_line(3), 1, first_id)
-    _expect_error(log.root, "tracks.csv", _data_line(3), f"track {first_id} is seen twice")
+    first_id = flightlog_files.text_lines(path)[flightlog_files.data_line(0) - 1].split(",")[1]
+    flightlog_files.set_value(path, flightlog_files.data_line(3), 1, first_id)
+    flightlog_files.expect_error(
+        log.root, "tracks.csv", flightlog_files.data_line(3), f"track {first_id} is seen twice"
+    )
 
 
 _MARGIN = fl.IMAGE_BORDER_MARGIN_PX
 
 
-@pytest.mark.parametrize("column, value", [
-    (2, f"{WIDTH - 0.5 + _MARGIN + 1e-9!r}"), (2, f"{-0.5 - _MARGIN - 0.1!r}"),
-    (3, f"{HEIGHT - 0.5 + _MARGIN + 1e-6!r}"), (3, "-30.0"),
+@pytest.mark.parametrize("column, far_edge, beyond_px", [
+    (2, True, 1e-9), (2, False, 0.1), (3, True, 1e-6), (3, False, 29.5 - _MARGIN),
 ])
-def test_pixels_outside_the_image(log: FlightLog, column: int, value: str) -> None:
-    """Beyond the border margin a pixel is a data error naming its line."""
-    _set_value(log.root / "tracks.csv", 7, column, value)
-    _expect_error(log.root, "tracks.csv", 7, "outside", f"{WIDTH}x{HEIGHT}",
-                  f"{_MARGIN:g} px border margin")
+def test_pixels_outside_the_image(flightlog_files, log: FlightLog, column: int, far_edge: bool,
+                                  beyond_px: float) -> None:
+    """Beyond the border margin a pixel is a data error naming its line (u beyond the right
+    or the left edge, v beyond the bottom or the top)."""
+    camera = log.config.camera.camera
+    size = camera.width if column == 2 else camera.height
+    value = size - 0.5 + _MARGIN + beyond_px if far_edge else -0.5 - _MARGIN - beyond_px
+    flightlog_files.set_value(log.root / "tracks.csv", 7, column, f"{value!r}")
+    flightlog_files.expect_error(log.root, "tracks.csv", 7, "outside",
+                                 f"{camera.width}x{camera.height}",
+                                 f"{_MARGIN:g} px border margin")
 
 
-def test_pixels_on_the_outer_edges_are_inside(log: FlightLog) -> None:
+def test_pixels_on_the_outer_edges_are_inside(flightlog_files, log: FlightLog) -> None:
     path = log.root / "tracks.csv"
-    _set_value(path, 7, 2, "-0.5")
-    _set_value(path, 8, 3, f"{HEIGHT - 0.5!r}")
+    flightlog_files.set_value(path, 7, 2, "-0.5")
+    flightlog_files.set_value(path, 8, 3, f"{flightlog_files.HEIGHT - 0.5!r}")
     read_flightlog(log.root)
 
 
-def test_pixels_within_the_border_margin_are_kept_as_they_are(log: FlightLog) -> None:
+def test_pixels_within_the_border_margin_are_kept_as_they_are(
+    flightlog_files, log: FlightLog
+) -> None:
     """Detection noise at the border (a fraction of a pixel out) is not an error: the
     observations are read unchanged, up to the margin itself."""
     path = log.root / "tracks.csv"
-    _set_value(path, 7, 2, f"{-0.5 - _MARGIN!r}")
-    _set_value(path, 8, 3, f"{HEIGHT - 0.5 + _MARGIN!r}")
-    _set_value(path, 9, 2, "-0.85")
+    flightlog_files.set_value(path, 7, 2, f"{-0.5 - _MARGIN!r}")
+    flightlog_files.set_value(path, 8, 3, f"{flightlog_files.HEIGHT - 0.5 + _MARGIN!r}")
+    flightlog_files.set_value(path, 9, 2, "-0.85")
     tracks = read_flightlog(log.root).tracks
     assert tracks.uv_px[7 - 2, 0] == -0.5 - _MARGIN
-    assert tracks.uv_px[8 - 2, 1] == HEIGHT - 0.5 + _MARGIN
+    assert tracks.uv_px[8 - 2, 1] == flightlog_files.HEIGHT - 0.5 + _MARGIN
     assert tracks.uv_px[9 - 2, 0] == -0.85
 
 
-def test_nav_with_a_row_missing(log: FlightLog) -> None:
-    _delete_line(log.root / "nav.csv", _data_line(N_FRAMES - 1))
-    _expect_error(log.root, "nav.csv", _data_line(N_FRAMES - 1), "one row per frame")
+def test_nav_with_a_row_missing(flightlog_files, log: FlightLog) -> None:
+    flightlog_files.delete_line(
+        log.root / "nav.csv", flightlog_files.data_line(flightlog_files.N_FRAMES - 1)
+    )
+    flightlog_files.expect_error(
+        log.root,
+        "nav.csv",
+        flightlog_files.data_line(flightlog_files.N_FRAMES - 1),
+        "one row per frame",
+    )
 
 
-def test_nav_with_a_row_too_many(log: FlightLog) -> None:
+def test_nav_with_a_row_too_many(flightlog_files, log: FlightLog) -> None:
     path = log.root / "nav.csv"
-    row = _lines(path)[_data_line(N_FRAMES - 1) - 1].split(",")
+    row = flightlog_files.text_lines(path)[
+        flightlog_files.data_line(flightlog_files.N_FRAMES - 1) - 1
+    ].split(",")
     row[0] = str(int(row[0]) + 1)
-    _insert_line(path, _data_line(N_FRAMES), ",".join(row))
-    _expect_error(log.root, "nav.csv", _data_line(N_FRAMES), "beyond the last frame")
+    flightlog_files.insert_line(
+        path, flightlog_files.data_line(flightlog_files.N_FRAMES), ",".join(row)
+    )
+    flightlog_files.expect_error(
+        log.root,
+        "nav.csv",
+        flightlog_files.data_line(flightlog_files.N_FRAMES),
+        "beyond the last frame",
+    )
 
 
-def test_nav_with_a_wrong_time(log: FlightLog) -> None:
+def test_nav_with_a_wrong_time(flightlog_files, log: FlightLog) -> None:
     path = log.root / "nav.csv"
-    _set_value(path, _data_line(1), 0, str(int(log.frames.t_ns[1]) + 1))
-    _expect_error(log.root, "nav.csv", _data_line(1), "one row per frame")
+    flightlog_files.set_value(
+        path, flightlog_files.data_line(1), 0, str(int(log.frames.t_ns[1]) + 1)
+    )
+    flightlog_files.expect_error(
+        log.root, "nav.csv", flightlog_files.data_line(1), "one row per frame"
+    )
 
 
 @pytest.mark.parametrize("name", ["nav.csv", "groundtruth.csv"])
-def test_non_unit_quaternion_in_csv(log: FlightLog, name: str) -> None:
+def test_non_unit_quaternion_in_csv(flightlog_files, log: FlightLog, name: str) -> None:
     path = log.root / name
     for column in range(4, 8):  # scale the quaternion by 1.01
-        value = float(_lines(path)[2].split(",")[column])
-        _set_value(path, 3, column, repr(1.01 * value))
-    _expect_error(log.root, name, 3, "norm 1.01", "unit quaternion")
+        value = float(flightlog_files.text_lines(path)[2].split(",")[column])
+        flightlog_files.set_value(path, 3, column, repr(1.01 * value))
+    flightlog_files.expect_error(log.root, name, 3, "norm 1.01", "unit quaternion")
 
 
 # --------------------------------------------------------------------------- Tracks.pairs
@@ -787,9 +758,9 @@ def test_pairs_of_empty_and_single_observation_tracks() -> None:
     assert [a.tolist() for a in single.pairs()] == [[], []]
 
 
-def test_pairs_of_the_fixture_log(log: FlightLog) -> None:
+def test_pairs_of_the_fixture_log(flightlog_files, log: FlightLog) -> None:
     rows_a, rows_b = log.tracks.pairs()
-    assert rows_a.size == N_TRACKS * (N_FRAMES - 1)
+    assert rows_a.size == flightlog_files.N_TRACKS * (flightlog_files.N_FRAMES - 1)
     np.testing.assert_array_equal(log.tracks.track_id[rows_a], log.tracks.track_id[rows_b])
     np.testing.assert_array_equal(log.tracks.frame[rows_b], log.tracks.frame[rows_a] + 1)
 
@@ -828,10 +799,14 @@ def test_slerp_midpoint_and_quarter_point(q1_sign: float) -> None:
     np.testing.assert_array_equal(out.t_ns, [2_000, 1_500])
 
 
-def test_interpolation_at_sample_times_is_exact(rng) -> None:
+def test_interpolation_at_sample_times_is_exact(flightlog_files, rng) -> None:
     n = 5
-    states = States(np.arange(n, dtype=np.int64) * 7 + T0_NS, rng.normal(size=(n, 3)),
-                    _random_quaternions(rng, n), rng.normal(size=(n, 3)))
+    states = States(
+        np.arange(n, dtype=np.int64) * 7 + flightlog_files.T0_NS,
+        rng.normal(size=(n, 3)),
+        flightlog_files.random_quaternions(rng, n),
+        rng.normal(size=(n, 3)),
+    )
     assert states.interpolate(states.t_ns) == states
     single = states.interpolate(int(states.t_ns[-1]))
     assert len(single) == 1 and np.array_equal(single.position_m[0], states.position_m[-1])
@@ -868,25 +843,27 @@ def test_initial_state_world_T_body() -> None:
 # --------------------------------------------------------------------------- odd bytes and headers
 
 
-def test_bytes_that_are_not_utf8_are_located(log: FlightLog) -> None:
+def test_bytes_that_are_not_utf8_are_located(flightlog_files, log: FlightLog) -> None:
     path = log.root / "imu.csv"
     data = path.read_bytes().split(b"\n")
     data[4] = data[4].replace(b",", b",\xff", 1)  # line 5
     path.write_bytes(b"\n".join(data))
-    _expect_error(log.root, "imu.csv", 5, "UTF-8")
+    flightlog_files.expect_error(log.root, "imu.csv", 5, "UTF-8")
 
 
-def test_a_first_row_with_a_number_first_is_data_not_a_header(log: FlightLog) -> None:
+def test_a_first_row_with_a_number_first_is_data_not_a_header(
+    flightlog_files, log: FlightLog
+) -> None:
     # A corrupt first data row must be reported, not skipped as if it were a header.
     path = log.root / "imu.csv"
-    _delete_line(path, 1)
-    _set_value(path, 1, 3, "oops")
-    _expect_error(log.root, "imu.csv", 1, "gyro_z", "'oops'")
+    flightlog_files.delete_line(path, 1)
+    flightlog_files.set_value(path, 1, 3, "oops")
+    flightlog_files.expect_error(log.root, "imu.csv", 1, "gyro_z", "'oops'")
 
 
-def test_header_only_imu_has_no_samples(log: FlightLog) -> None:
+def test_header_only_imu_has_no_samples(flightlog_files, log: FlightLog) -> None:
     (log.root / "imu.csv").write_text("#t_ns,gyro_x,gyro_y,gyro_z,acc_x,acc_y,acc_z\n")
-    _expect_error(log.root, "imu.csv", 2, "no IMU samples")
+    flightlog_files.expect_error(log.root, "imu.csv", 2, "no IMU samples")
 
 
 def test_writer_refuses_image_names_it_could_not_read_back(log: FlightLog) -> None:
@@ -904,20 +881,20 @@ def test_writer_refuses_image_names_it_could_not_read_back(log: FlightLog) -> No
     (400, ("imu.rate_hz is '1000", "expected a number in [1, 100000] Hz")),  # > float max
     (5000, ("value '1000", "Exceeds the limit (4300 digits)", "expected a number")),
 ])
-def test_an_integer_too_large_for_a_float_is_one_line(log: FlightLog, digits: int,
+def test_an_integer_too_large_for_a_float_is_one_line(flightlog_files, log: FlightLog, digits: int,
                                                       words: tuple[str, ...]) -> None:
     path = log.root / "flight.yaml"
-    line = _line_of(path, "rate_hz:")
-    _set_line(path, line, "  rate_hz: 1" + "0" * digits)
-    message = _expect_error(log.root, "flight.yaml", line, *words)
+    line = flightlog_files.line_of(path, "rate_hz:")
+    flightlog_files.set_line(path, line, "  rate_hz: 1" + "0" * digits)
+    message = flightlog_files.expect_error(log.root, "flight.yaml", line, *words)
     assert len(message) < 300
 
 
-def _geodetic_log(root: Path, rng: np.random.Generator) -> FlightLog:
-    """A log with a geodetic origin whose DEM (never read here) is an empty dem.tif."""
+def _geodetic_log(the_log: FlightLog) -> FlightLog:
+    """The log with a geodetic origin whose DEM (never read here) is an empty dem.tif."""
     from cdtm_graph.geodesy import GeodeticOrigin, VerticalDatum
 
-    the_log = _make_log(root, rng)
+    root = the_log.root
     config = dataclasses.replace(
         the_log.config, origin=GeodeticOrigin(36.5, 127.25, 120.0),
         dtm=DtmConfig(root / "dem.tif", 2.4, vertical_datum=VerticalDatum.EGM96,
@@ -934,12 +911,12 @@ def _geodetic_log(root: Path, rng: np.random.Generator) -> FlightLog:
     ("spacing_m", "0.001", ("dtm.spacing_m is 0.001", "[0.01, 10000] m")),
     ("spacing_m", "1e5", ("dtm.spacing_m is 100000.0", "[0.01, 10000] m")),
 ])
-def test_dem_margin_and_spacing_out_of_range_name_the_key(tmp_path: Path, rng, key: str,
-                                                           value: str,
-                                                           words: tuple[str, ...]) -> None:
-    the_log = _geodetic_log(tmp_path / "geo", rng)
+def test_dem_margin_and_spacing_out_of_range_name_the_key(
+    flightlog_files, tmp_path: Path, rng, key: str, value: str, words: tuple[str, ...]
+) -> None:
+    the_log = _geodetic_log(flightlog_files.make_log(tmp_path / "geo", rng))
     assert read_flightlog(the_log.root).config.dtm.spacing_m == 15.0  # as written: valid
     path = the_log.root / "flight.yaml"
-    line = _line_of(path, f"{key}:")
-    _set_line(path, line, f"  {key}: {value}")
-    _expect_error(the_log.root, "flight.yaml", line, *words)
+    line = flightlog_files.line_of(path, f"{key}:")
+    flightlog_files.set_line(path, line, f"  {key}: {value}")
+    flightlog_files.expect_error(the_log.root, "flight.yaml", line, *words)

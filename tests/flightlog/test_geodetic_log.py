@@ -37,8 +37,6 @@ from cdtm_graph.outputs import (
     write_run,
 )
 from cdtm_graph.results import pose_covariance_in_world
-from tests.test_flightlog import _expect_error, _make_log
-from tests.test_outputs import _synthetic_result
 
 ORIGIN = GeodeticOrigin(36.5, 127.25, 120.0)
 #: Geodetic -> world -> geodetic closes to this (m, and deg x 1e-5 ~ 1 m: far looser).
@@ -60,8 +58,9 @@ def _tile(path: Path) -> Path:
     return path
 
 
-def _geodetic_log(root: Path, rng: np.random.Generator) -> FlightLog:
-    base = _make_log(root, rng)
+def _geodetic_log(base: FlightLog) -> FlightLog:
+    """The small log placed near :data:`ORIGIN` over a (UTM) DEM."""
+    root = base.root
     cfg = base.config
     # Positions within a few km of the origin (the synthetic log's are around zero).
     init = dataclasses.replace(cfg.initial_state, position_m=np.array([1500.0, -800.0, 900.0]))
@@ -74,8 +73,8 @@ def _geodetic_log(root: Path, rng: np.random.Generator) -> FlightLog:
 
 
 @pytest.fixture
-def geolog(tmp_path: Path, rng: np.random.Generator) -> FlightLog:
-    log = _geodetic_log(tmp_path / "log", rng)
+def geolog(flightlog_files, tmp_path: Path, rng: np.random.Generator) -> FlightLog:
+    log = _geodetic_log(flightlog_files.make_log(tmp_path / "log", rng))
     write_flightlog(log, log.root)
     _tile(log.root / "dem.tif")
     return log
@@ -144,11 +143,13 @@ def test_initial_state_in_latitude_longitude_and_local_enu(geolog: FlightLog):
     (lambda d: d["initial_state"].update(latitude_deg=36.5), "  position_m",
      ("both position_m",)),
 ])
-def test_geodetic_settings_errors_name_the_line(geolog: FlightLog, edit, key, words):
+def test_geodetic_settings_errors_name_the_line(
+    flightlog_files, geolog: FlightLog, edit, key, words
+):
     _edit_yaml(geolog.root, edit)
     text = (geolog.root / "flight.yaml").read_text().split("\n")
     line = next(i for i, t in enumerate(text, 1) if t.startswith(key))
-    _expect_error(geolog.root, "flight.yaml", line, *words)
+    flightlog_files.expect_error(geolog.root, "flight.yaml", line, *words)
 
 
 @pytest.mark.parametrize("edit, key, words", [
@@ -158,15 +159,15 @@ def test_geodetic_settings_errors_name_the_line(geolog: FlightLog, edit, key, wo
      ("initial_state.latitude_deg without a geodetic origin",)),
     (lambda d: d.pop("gravity_mps2"), "format", ("gravity_mps2", "origin")),
 ])
-def test_geodetic_keys_need_an_origin(tmp_path: Path, rng, edit, key, words):
-    log = _make_log(tmp_path / "log", rng)
+def test_geodetic_keys_need_an_origin(flightlog_files, tmp_path: Path, rng, edit, key, words):
+    log = flightlog_files.make_log(tmp_path / "log", rng)
     write_flightlog(log, log.root)
     np.savez(log.root / "dtm.npz", elevation=np.zeros((3, 3)), x0=0.0, y0=0.0, dx=30.0,
              dy=30.0)
     _edit_yaml(log.root, edit)
     text = (log.root / "flight.yaml").read_text().split("\n")
     line = next(i for i, t in enumerate(text, 1) if t.startswith(key))
-    _expect_error(log.root, "flight.yaml", line, *words)
+    flightlog_files.expect_error(log.root, "flight.yaml", line, *words)
 
 
 # --------------------------------------------------------------------------- nav / groundtruth
@@ -196,23 +197,23 @@ def test_geodetic_states_are_read_into_the_world_frame(geolog: FlightLog, name):
     np.testing.assert_allclose(dots, 1.0, rtol=0, atol=1e-12)
 
 
-def test_geodetic_states_need_an_origin(tmp_path: Path, rng):
-    log = _make_log(tmp_path / "log", rng)
+def test_geodetic_states_need_an_origin(flightlog_files, tmp_path: Path, rng):
+    log = flightlog_files.make_log(tmp_path / "log", rng)
     write_flightlog(log, log.root)
     np.savez(log.root / "dtm.npz", elevation=np.zeros((3, 3)), x0=0.0, y0=0.0, dx=30.0,
              dy=30.0)
     _write_geodetic_states(log.root / "nav.csv", log.nav, LocalFrame(ORIGIN))
-    _expect_error(log.root, "nav.csv", 1, "geodetic columns", "origin")
+    flightlog_files.expect_error(log.root, "nav.csv", 1, "geodetic columns", "origin")
 
 
-def test_latitude_out_of_range_names_its_line(geolog: FlightLog):
+def test_latitude_out_of_range_names_its_line(flightlog_files, geolog: FlightLog):
     _write_geodetic_states(geolog.root / "nav.csv", geolog.nav, LocalFrame(ORIGIN))
     lines = (geolog.root / "nav.csv").read_text().split("\n")
     fields = lines[2].split(",")
     fields[1] = "91.5"
     lines[2] = ",".join(fields)
     (geolog.root / "nav.csv").write_text("\n".join(lines))
-    _expect_error(geolog.root, "nav.csv", 3, "latitude_deg is 91.5", "-90 to 90")
+    flightlog_files.expect_error(geolog.root, "nav.csv", 3, "latitude_deg is 91.5", "-90 to 90")
 
 
 # --------------------------------------------------------------------------- DEM under the flight
@@ -235,8 +236,10 @@ def test_the_dem_is_read_around_the_prior_track(geolog: FlightLog):
     assert flight.config.dtm.sigma_h_m == dtm.sigma_h()
 
 
-def test_a_projected_dtm_far_from_the_flight_is_refused(tmp_path: Path, rng):
-    log = _make_log(tmp_path / "log", rng)  # dtm.origin_enu_m given, but the map is elsewhere
+def test_a_projected_dtm_far_from_the_flight_is_refused(flightlog_files, tmp_path: Path, rng):
+    log = flightlog_files.make_log(
+        tmp_path / "log", rng
+    )  # dtm.origin_enu_m given, but the map is elsewhere
     log = dataclasses.replace(log, config=dataclasses.replace(
         log.config, dtm=DtmConfig(log.root / "dtm.npz", 2.4, (0.0, 0.0, 0.0))))
     write_flightlog(log, log.root)
@@ -249,9 +252,9 @@ def test_a_projected_dtm_far_from_the_flight_is_refused(tmp_path: Path, rng):
 # --------------------------------------------------------------------------- outputs
 
 
-def test_geodetic_outputs_agree_with_the_world_trajectory(tmp_path: Path, rng):
+def test_geodetic_outputs_agree_with_the_world_trajectory(synthetic, tmp_path: Path, rng):
     frame = LocalFrame(ORIGIN)
-    result = _synthetic_result(rng)
+    result = synthetic.synthetic_result(rng)
     write_run(tmp_path / "run", result, {}, frame=frame)
     est = result.estimate
     header = (tmp_path / "run" / TRAJECTORY_GEODETIC_CSV).read_text().split("\n")[0]
@@ -285,9 +288,11 @@ def test_geodetic_outputs_agree_with_the_world_trajectory(tmp_path: Path, rng):
     assert "latitude 36.5" in report["conventions"]["world"]
 
 
-def test_trajectory_geodetic_csv_reads_back_as_groundtruth(geolog: FlightLog, tmp_path, rng):
+def test_trajectory_geodetic_csv_reads_back_as_groundtruth(
+    synthetic, geolog: FlightLog, tmp_path, rng
+):
     frame = LocalFrame(ORIGIN)
-    result = _synthetic_result(rng, k=len(geolog.frames))
+    result = synthetic.synthetic_result(rng, k=len(geolog.frames))
     result = dataclasses.replace(result, estimate=dataclasses.replace(
         result.estimate, t_ns=geolog.frames.t_ns))
     write_run(tmp_path / "run", result, {}, frame=frame)
@@ -298,8 +303,8 @@ def test_trajectory_geodetic_csv_reads_back_as_groundtruth(geolog: FlightLog, tm
                                atol=POSITION_TOL_M)
 
 
-def test_no_geodetic_outputs_without_a_frame(tmp_path: Path, rng):
-    write_run(tmp_path / "run", _synthetic_result(rng), {})
+def test_no_geodetic_outputs_without_a_frame(synthetic, tmp_path: Path, rng):
+    write_run(tmp_path / "run", synthetic.synthetic_result(rng), {})
     assert not (tmp_path / "run" / TRAJECTORY_GEODETIC_CSV).exists()
     assert not (tmp_path / "run" / TRAJECTORY_GEOJSON).exists()
 
@@ -339,15 +344,14 @@ def test_the_worked_example_end_to_end(tmp_path: Path):
     assert error.max() < 5.0  # a 30 m DEM, 1000 m above ground: metres, not tens
 
 
-def test_the_dem_plot_draws_in_the_dems_own_coordinates(tmp_path: Path, rng):
+def test_the_dem_plot_draws_in_the_dems_own_coordinates(synthetic, tmp_path: Path, rng):
     from cdtm_graph.dem import read_dem_window
     from cdtm_graph.plots.dem import plot_trajectory_over_dem
     from cdtm_graph.results import TrajectoryEstimate
     from cdtm_graph.sim.geodetic import write_dem_tile
-    from tests.test_dem import _smooth_native
 
     frame = LocalFrame(ORIGIN)
-    native = _smooth_native()
+    native = synthetic.smooth_native_dtm()
     k = 12
     position = np.column_stack([np.linspace(26500, 29500, k), np.linspace(16500, 18500, k),
                                 np.full(k, 1500.0)])

@@ -37,9 +37,8 @@ from cdtm_graph.flightlog.importers import (
 from cdtm_graph.frontend import track_log
 from cdtm_graph.geometry import invert_pose
 from cdtm_graph.smoother import smooth
-from tests.sensor_files import IMAGE_TOPIC, IMU_TOPIC, write_bag, write_euroc, write_kalibr
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 NATIVE = ROOT / "data" / "sample_images"
 #: body_T_cam goes through Kalibr's T_cam_imu (inverted twice) or EuRoC's 16 numbers.
 MOUNT_TOL = 1e-15
@@ -58,19 +57,21 @@ def native() -> FlightLog:
 
 
 @pytest.fixture(scope="module")
-def files(native, tmp_path_factory) -> Path:
+def files(seed, sensor_files, native, tmp_path_factory) -> Path:
     """The native log's sensor files: EuRoC (plain and with a shifted camera clock), Kalibr
     (plain and with the shift), ROS1 and ROS2 bags."""
     root = tmp_path_factory.mktemp("sensor_files")
-    write_euroc(native, root / "plain" / "mav0")
+    sensor_files.write_euroc(native, root / "plain" / "mav0")
     shift_ns = -round(TIMESHIFT_S * 1e9)  # camera stamps = t_imu - timeshift
-    write_euroc(native, root / "shifted" / "mav0", camera_stamp_shift_ns=shift_ns)
-    write_kalibr(native, root / "camchain.yaml", root / "imu.yaml")
-    write_kalibr(native, root / "camchain_shift.yaml", root / "imu_shift.yaml",
+    sensor_files.write_euroc(native, root / "shifted" / "mav0", camera_stamp_shift_ns=shift_ns)
+    sensor_files.write_kalibr(native, root / "camchain.yaml", root / "imu.yaml")
+    sensor_files.write_kalibr(native, root / "camchain_shift.yaml", root / "imu_shift.yaml",
                  timeshift_s=TIMESHIFT_S)
-    write_bag(native, root / "flight.bag", ros=1)
-    write_bag(native, root / "flight_ros2", ros=2)
-    write_bag(native, root / "shuffled_compressed", ros=2, compressed=True, shuffle_seed=5)
+    sensor_files.write_bag(native, root / "flight.bag", ros=1)
+    sensor_files.write_bag(native, root / "flight_ros2", ros=2)
+    sensor_files.write_bag(
+        native, root / "shuffled_compressed", ros=2, compressed=True, shuffle_seed=seed
+    )
     return root
 
 
@@ -140,15 +141,15 @@ def test_kalibr_timeshift_becomes_the_time_offset_and_frames_csv_keeps_camera_st
     assert "time_offset_s: -0.0234" in (tmp_path / "log" / "flight.yaml").read_text()
 
 
-def test_kalibr_files_read_as_their_names_say(native, files):
+def test_kalibr_files_read_as_their_names_say(sensor_files, native, files):
     cam = read_kalibr_camchain(files / "camchain_shift.yaml")
     chain = yaml.safe_load((files / "camchain_shift.yaml").read_text())["cam0"]
     np.testing.assert_allclose(invert_pose(cam.body_T_cam), chain["T_cam_imu"], rtol=0,
                                atol=1e-15)
     assert cam.time_offset_s == chain["timeshift_cam_imu"] == TIMESHIFT_S
-    assert cam.rostopic == IMAGE_TOPIC
+    assert cam.rostopic == sensor_files.IMAGE_TOPIC
     imu = read_kalibr_imu(files / "imu.yaml")
-    assert imu.imu.rate_hz == 200.0 and imu.rostopic == IMU_TOPIC
+    assert imu.imu.rate_hz == 200.0 and imu.rostopic == sensor_files.IMU_TOPIC
     assert imu.imu == native.config.imu
 
 
@@ -243,13 +244,13 @@ def test_a_missing_topic_lists_the_bag_s_topics(native, files, tmp_path):
                       groundtruth=read_groundtruth(NATIVE / "groundtruth.csv", None))
 
 
-def test_a_topic_of_the_wrong_type_is_refused(native, files, tmp_path):
+def test_a_topic_of_the_wrong_type_is_refused(sensor_files, native, files, tmp_path):
     with pytest.raises(SensorDataError, match="holds sensor_msgs/msg/Image; expected "
                                               "sensor_msgs/msg/Imu"):
         import_rosbag(files / "flight.bag", tmp_path, tmp_path, _settings(native),
                       camera=read_kalibr_camchain(files / "camchain.yaml"),
                       imu=read_kalibr_imu(files / "imu.yaml"),
-                      topics=BagTopics(imu=IMAGE_TOPIC),
+                      topics=BagTopics(imu=sensor_files.IMAGE_TOPIC),
                       groundtruth=read_groundtruth(NATIVE / "groundtruth.csv", None))
 
 
@@ -325,7 +326,7 @@ def test_euroc_initial_state_outside_the_ground_truth_needs_the_flags(native, fi
     np.testing.assert_array_equal(log.config.initial_state.position_m, [1.0, 2.0, 1000.0])
 
 
-def test_an_imu_without_accelerations_is_refused(native, tmp_path):
+def test_an_imu_without_accelerations_is_refused(sensor_files, native, tmp_path):
     from rosbags.rosbag2 import Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -343,21 +344,29 @@ def test_an_imu_without_accelerations_is_refused(native, tmp_path):
     with Writer(tmp_path / "bag", version=9) as writer:
         conn = writer.add_connection("/imu0", "sensor_msgs/msg/Imu", typestore=store)
         writer.write(conn, 1, store.serialize_cdr(msg, "sensor_msgs/msg/Imu"))
-        writer.add_connection(IMAGE_TOPIC, "sensor_msgs/msg/Image", typestore=store)
+        writer.add_connection(sensor_files.IMAGE_TOPIC, "sensor_msgs/msg/Image", typestore=store)
     from cdtm_graph.flightlog.importers import read_bag
 
     with pytest.raises(SensorDataError, match="has no linear_acceleration"):
-        read_bag(tmp_path / "bag", BagTopics(IMU_TOPIC, IMAGE_TOPIC), tmp_path / "images")
+        read_bag(
+            tmp_path / "bag",
+            BagTopics(sensor_files.IMU_TOPIC, sensor_files.IMAGE_TOPIC),
+            tmp_path / "images",
+        )
 
 
-def test_without_rosbags_the_error_says_what_to_install(monkeypatch, tmp_path):
+def test_without_rosbags_the_error_says_what_to_install(sensor_files, monkeypatch, tmp_path):
     import sys
 
     from cdtm_graph.flightlog.importers import read_bag
 
     monkeypatch.setitem(sys.modules, "rosbags.highlevel", None)
     with pytest.raises(SensorDataError, match=r'pip install "cdtm-graph\[rosbag\]"'):
-        read_bag(tmp_path / "bag", BagTopics(IMU_TOPIC, IMAGE_TOPIC), tmp_path / "images")
+        read_bag(
+            tmp_path / "bag",
+            BagTopics(sensor_files.IMU_TOPIC, sensor_files.IMAGE_TOPIC),
+            tmp_path / "images",
+        )
 
 
 def test_a_geodetic_import_places_the_prior_by_latitude_and_longitude(native, files, tmp_path):
@@ -394,11 +403,11 @@ def test_euroc_coefficients_without_a_model_are_refused(native, files, tmp_path)
         import_euroc(tmp_path / "mav0", tmp_path / "out", tmp_path / "out", _settings(native))
 
 
-def test_frames_before_the_imu_starts_are_left_out(native, files, tmp_path):
+def test_frames_before_the_imu_starts_are_left_out(sensor_files, native, files, tmp_path):
     late = dataclasses.replace(native, imu=dataclasses.replace(
         native.imu, t_ns=native.imu.t_ns[300:], gyro_radps=native.imu.gyro_radps[300:],
         acc_mps2=native.imu.acc_mps2[300:]))  # the IMU starts at 1.5 s
-    write_bag(late, tmp_path / "late.bag", ros=1)
+    sensor_files.write_bag(late, tmp_path / "late.bag", ros=1)
     log, contents = import_rosbag(
         tmp_path / "late.bag", tmp_path / "out", tmp_path / "out", _settings(native),
         camera=read_kalibr_camchain(files / "camchain.yaml"),
@@ -413,9 +422,9 @@ def test_frames_before_the_imu_starts_are_left_out(native, files, tmp_path):
     np.testing.assert_array_equal(log.config.initial_state.position_m, truth.position_m[0])
 
 
-def test_recording_times_on_request_and_zero_stamps_refused(native, files, tmp_path):
+def test_recording_times_on_request_and_zero_stamps_refused(sensor_files, native, files, tmp_path):
     delay_ns = 5_000_000  # the recorder gets each message 5 ms after its stamp
-    write_bag(native, tmp_path / "late.bag", ros=1, record_delay_ns=delay_ns)
+    sensor_files.write_bag(native, tmp_path / "late.bag", ros=1, record_delay_ns=delay_ns)
     kwargs = dict(camera=read_kalibr_camchain(files / "camchain.yaml"),
                   imu=read_kalibr_imu(files / "imu.yaml"),
                   groundtruth=read_groundtruth(NATIVE / "groundtruth.csv", None))
@@ -426,7 +435,7 @@ def test_recording_times_on_request_and_zero_stamps_refused(native, files, tmp_p
     np.testing.assert_array_equal(header.frames.t_ns, native.frames.t_ns)
     np.testing.assert_array_equal(recorded.frames.t_ns, native.frames.t_ns + delay_ns)
     np.testing.assert_array_equal(recorded.imu.t_ns, native.imu.t_ns + delay_ns)
-    write_bag(native, tmp_path / "unstamped.bag", ros=1, zero_stamps=True)
+    sensor_files.write_bag(native, tmp_path / "unstamped.bag", ros=1, zero_stamps=True)
     with pytest.raises(SensorDataError, match="header stamps are zero.*--stamps bag"):
         import_rosbag(tmp_path / "unstamped.bag", tmp_path / "c", tmp_path / "c",
                       _settings(native), **kwargs)

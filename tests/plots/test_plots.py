@@ -119,12 +119,11 @@ def test_error_plot_limits_contain_the_three_sigma_bounds(tmp_path, rng):
     assert fig.axes[2].get_ylim()[1] >= 40.0
 
 
-def test_plots_work_as_extra_files_of_a_run(tmp_path, rng):
+def test_plots_work_as_extra_files_of_a_run(synthetic, tmp_path, rng):
     """The CLI's use: plots written inside write_run's atomic directory."""
     from cdtm_graph.outputs import write_run
-    from tests.test_outputs import _synthetic_result
 
-    result = _synthetic_result(rng, k=30)
+    result = synthetic.synthetic_result(rng, k=30)
     cov = _covariances(rng, 30, 3.0)
     write_run(tmp_path / "run", result, {}, extra_files=[
         ("trajectory.png",

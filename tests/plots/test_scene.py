@@ -13,7 +13,7 @@ from cdtm_graph.flightlog import load_log_and_dtm
 from cdtm_graph.outputs import read_trajectory_cov
 from cdtm_graph.plots.scene import FOOTPRINT_LIFT_M, MAX_TERRAIN_SIDE, WORLD_TO_GLTF, scene_frames
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / "data" / "sample_flight"
 #: glTF stores float32: within 10 km of the offset, a few millimetres.
 FLOAT32_TOL_M = 5e-3

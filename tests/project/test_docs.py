@@ -11,7 +11,7 @@ import numpy as np
 from cdtm_graph.flightlog import load_log_and_dtm
 from cdtm_graph.smoother import smooth
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _example_files() -> tuple[dict[str, str], str]:

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PACKAGE = ROOT / "cdtm_graph"
 #: Subpackages the core may not reach into.
 HARNESS = ("cdtm_graph.sim", "cdtm_graph.studies", "cdtm_graph.cli", "cdtm_graph.plots")

@@ -8,7 +8,7 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _python_blocks() -> list[str]:

@@ -12,7 +12,7 @@ import numpy as np
 from cdtm_graph.cli import GEODETIC_EXAMPLE, main
 from cdtm_graph.flightlog import read_flightlog
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 COMMANDS = ["cdtm simulate my_flight --origin 36.5 127.25 120",
             "cdtm smooth my_flight --out my_run --plots"]
 #: Kept small: the documented flight has 60 frames; the same commands run on 8.

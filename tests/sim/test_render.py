@@ -26,13 +26,17 @@ from cdtm_graph.sim.render import (
 )
 
 ALTITUDE_M = 1000.0
-#: Textures whose octaves are all far coarser than the ground pixel (<= 20 m in these
-#: small images) are never faded: every pixel samples the same function, so renders
-#: compare exactly.
-COARSE_TEXTURE = ProceduralTexture(seed=3, longest_wavelength_m=3200.0,
-                                   shortest_wavelength_m=200.0)
 #: Float round-off of ray directions and hit points, relative.
 EXACT_RTOL = 1e-9
+
+
+@pytest.fixture(scope="module")
+def coarse_texture(seed: int) -> ProceduralTexture:
+    """Textures whose octaves are all far coarser than the ground pixel (<= 20 m in these
+    small images) are never faded: every pixel samples the same function, so renders
+    compare exactly."""
+    return ProceduralTexture(seed=seed, longest_wavelength_m=3200.0,
+                             shortest_wavelength_m=200.0)
 
 
 def _flat(height_m: float = 0.0, size_m: float = 6000.0, spacing_m: float = 50.0) -> Dtm:
@@ -45,23 +49,23 @@ def _nadir(x: float = 0.0, y: float = 0.0, z: float = ALTITUDE_M) -> np.ndarray:
     return make_pose(DOWNWARD_BODY_T_CAM[:3, :3], np.array([x, y, z]))
 
 
-def test_flat_ground_radiance_is_albedo_times_lambert_at_the_analytic_hit_points():
+def test_flat_ground_radiance_is_albedo_times_lambert_at_the_analytic_hit_points(coarse_texture):
     camera = PinholeCamera.from_fov(64, 48, 60.0)
     settings = RenderSettings(sun_elevation_deg=30.0, ambient=0.2)
-    renderer = Renderer(_flat(), camera, COARSE_TEXTURE, settings)
+    renderer = Renderer(_flat(), camera, coarse_texture, settings)
     radiance = renderer.radiance(_nadir(10.0, -20.0))
     v, u = np.mgrid[0:48, 0:64]
     x = 10.0 + ALTITUDE_M * (u - camera.cx) / camera.fx
     y = -20.0 - ALTITUDE_M * (v - camera.cy) / camera.fy  # cam y points south
-    albedo = COARSE_TEXTURE.albedo(x.ravel(), y.ravel(), np.ones(x.size)).reshape(x.shape)
+    albedo = coarse_texture.albedo(x.ravel(), y.ravel(), np.ones(x.size)).reshape(x.shape)
     shade = 0.2 + 0.8 * math.sin(math.radians(30.0))
     np.testing.assert_allclose(radiance, albedo * shade, rtol=1e-7)
 
 
-def test_texture_is_fixed_on_the_ground():
+def test_texture_is_fixed_on_the_ground(coarse_texture):
     """Moving the camera by five ground pixels shifts the image by five pixels, exactly."""
     camera = PinholeCamera.from_fov(80, 60, 60.0)
-    renderer = Renderer(_flat(), camera, COARSE_TEXTURE)
+    renderer = Renderer(_flat(), camera, coarse_texture)
     step_m = 5 * ALTITUDE_M / camera.fx
     a = renderer.radiance(_nadir(0.0))
     b = renderer.radiance(_nadir(step_m))
@@ -88,9 +92,8 @@ def test_lambertian_shading_of_a_slope(sun_azimuth_deg, lit):
     np.testing.assert_allclose(radiance, expected, rtol=EXACT_RTOL)
 
 
-def test_texture_detail_finer_than_the_pixels_fades_out():
-    texture = ProceduralTexture(seed=1)
-    rng = np.random.default_rng(4)
+def test_texture_detail_finer_than_the_pixels_fades_out(seed, rng):
+    texture = ProceduralTexture(seed=seed)
     x, y = rng.uniform(-5e4, 5e4, (2, 20000))
     fine = texture.albedo(x, y, np.full(x.size, 0.01))
     assert abs(np.std(fine) - texture.contrast) < 0.1 * texture.contrast
@@ -152,15 +155,15 @@ def test_orthophoto_geotiff_grid_and_origin(tmp_path, monkeypatch):
         OrthophotoTexture.from_geotiff(tmp_path / "o.tif")
 
 
-def test_sensor_gain_noise_and_blur():
+def test_sensor_gain_noise_and_blur(seed, rng):
     camera = PinholeCamera.from_fov(120, 90, 60.0)
-    renderer = Renderer(_flat(), camera, ProceduralTexture(seed=2),
+    renderer = Renderer(_flat(), camera, ProceduralTexture(seed=seed),
                         RenderSettings(noise_sigma_dn=3.0))
     pose = _nadir()
     radiance = renderer.radiance(pose)
     np.testing.assert_array_equal(renderer.render(pose, gain=1.1),
                                   np.clip(np.rint(radiance * 255 * 1.1), 0, 255))
-    noisy = renderer.render(pose, rng=np.random.default_rng(5)).astype(float)
+    noisy = renderer.render(pose, rng=rng).astype(float)
     residual = noisy - np.clip(np.rint(radiance * 255), 0, 255)
     assert abs(np.std(residual) - 3.0) < 0.2
     blurred = renderer.render(pose, blur_px=(4.0, 0.0)).astype(float)
@@ -189,20 +192,20 @@ def test_motion_blur_kernel_is_a_centred_segment(du, dv):
 
 @pytest.mark.parametrize("model, coeffs", [("radtan", (-0.2, 0.05, 0.001, -0.001)),
                                            ("equidistant", (0.01, -0.002, 0.0, 0.0))])
-def test_lens_distortion_is_the_camera_models(model, coeffs):
+def test_lens_distortion_is_the_camera_models(coarse_texture, model, coeffs):
     """A distorted camera sees at pixel p what an undistorted one sees along p's ray."""
     plain = PinholeCamera.from_fov(80, 60, 60.0)
     distorted = PinholeCamera(80, 60, plain.fx, plain.fy, plain.cx, plain.cy, coeffs, model)
     terrain = _flat()
     pose = _nadir()
-    warped = Renderer(terrain, distorted, COARSE_TEXTURE).radiance(pose)
+    warped = Renderer(terrain, distorted, coarse_texture).radiance(pose)
     v, u = np.mgrid[0:60, 0:80]
     uv = np.column_stack([u.ravel(), v.ravel()]).astype(float)
     # The same ground points, through the undistorted model.
     uv_plain = plain.rays_to_pixels(distorted.pixels_to_rays(uv))
     x = ALTITUDE_M * (uv_plain[:, 0] - plain.cx) / plain.fx
     y = -ALTITUDE_M * (uv_plain[:, 1] - plain.cy) / plain.fy
-    expected = COARSE_TEXTURE.albedo(x, y, np.ones(x.size)) * (
+    expected = coarse_texture.albedo(x, y, np.ones(x.size)) * (
         0.3 + 0.7 * math.sin(math.radians(45.0)))
     np.testing.assert_allclose(warped.ravel(), expected, rtol=1e-7)
     assert np.abs(uv_plain - uv).max() > 3.0  # the lens moves pixels by several pixels

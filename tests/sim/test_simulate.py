@@ -8,7 +8,6 @@ check is shown able to fail on the tracks the simulator ended as occluded.
 
 from __future__ import annotations
 
-import functools
 import importlib.util
 import math
 from pathlib import Path
@@ -35,9 +34,8 @@ from cdtm_graph.sim.simulate import (
     write_simulation,
 )
 from cdtm_graph.sim.trajectory import evaluate
-from tests.conftest import TEST_SEED
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SAMPLE_LOG = REPO / "data" / "sample_flight"
 SAMPLE_SCRIPT = REPO / "scripts" / "make_sample_log.py"
 
@@ -67,18 +65,18 @@ SAMPLE_CHI2_PER_DOF_TOL = 0.15
 #: body_T_cam goes through a quaternion in flight.yaml (flightlog module docstring).
 BODY_T_CAM_ROUND_TRIP_TOL = 1e-15
 
-SMALL = dict(frames=10, n_features=120, seed=TEST_SEED)
+SMALL = dict(frames=10, n_features=120)
 
 
-@functools.cache
-def _noisy() -> SimulationResult:
-    return simulate(SimulationSettings(**SMALL, nav=NavMode.NOISY_TRUTH))
+@pytest.fixture(scope="module")
+def noisy(seed: int) -> SimulationResult:
+    return simulate(SimulationSettings(**SMALL, seed=seed, nav=NavMode.NOISY_TRUTH))
 
 
-@functools.cache
-def _noiseless() -> SimulationResult:
-    return simulate(SimulationSettings(**SMALL, noiseless=True, terrain_spacing_m=10.0,
-                                       nav="deadreckoning"))
+@pytest.fixture(scope="module")
+def noiseless(seed: int) -> SimulationResult:
+    return simulate(SimulationSettings(**SMALL, seed=seed, noiseless=True,
+                                       terrain_spacing_m=10.0, nav="deadreckoning"))
 
 
 def _ridge_dtm() -> Dtm:
@@ -90,17 +88,12 @@ def _ridge_dtm() -> Dtm:
     return Dtm(h, x[0], y[0], 10.0, 10.0)
 
 
-@functools.cache
-def _ridge(tmp_dir: str) -> SimulationResult:
-    path = Path(tmp_dir) / "ridge.npz"
-    save_dtm_npz(_ridge_dtm(), path)
-    return simulate(SimulationSettings(terrain=path, frames=14, n_features=150, seed=TEST_SEED,
-                                       noiseless=True, turn_deg=0.0))
-
-
 @pytest.fixture(scope="module")
-def ridge(tmp_path_factory) -> SimulationResult:
-    return _ridge(str(tmp_path_factory.mktemp("ridge")))
+def ridge(tmp_path_factory, seed: int) -> SimulationResult:
+    path = tmp_path_factory.mktemp("ridge") / "ridge.npz"
+    save_dtm_npz(_ridge_dtm(), path)
+    return simulate(SimulationSettings(terrain=path, frames=14, n_features=150, seed=seed,
+                                       noiseless=True, turn_deg=0.0))
 
 
 def _occluded_by_march(dtm: Dtm, camera_m: np.ndarray, ground_m: np.ndarray) -> np.ndarray:
@@ -125,8 +118,8 @@ def _camera_centres(result: SimulationResult, frame: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- logs
 
 
-def test_written_log_reads_back_as_simulated(tmp_path):
-    result = _noisy()
+def test_written_log_reads_back_as_simulated(noisy, tmp_path):
+    result = noisy
     out = write_simulation(result, tmp_path / "log")
     back = read_flightlog(out)
     log = result.log
@@ -155,25 +148,25 @@ def test_written_log_reads_back_as_simulated(tmp_path):
     assert result.dtm.grid_spacing_m == 30.0 and cfg.dtm.sigma_h_m == pytest.approx(2.4)
 
 
-def test_simulate_flight_and_write_simulated_log_agree(tmp_path):
-    settings = SimulationSettings(frames=3, n_features=20, seed=5)
+def test_simulate_flight_and_write_simulated_log_agree(seed, tmp_path):
+    settings = SimulationSettings(frames=3, n_features=20, seed=seed)
     log, dtm = simulate_flight(settings)
     back = read_flightlog(write_simulated_log(settings, tmp_path / "log"))
     assert back.tracks == log.tracks and back.imu == log.imu
     np.testing.assert_array_equal(load_dtm(back.config.dtm.path).elevation, dtm.elevation)
 
 
-def test_simulation_is_deterministic():
-    settings = SimulationSettings(frames=4, n_features=30, seed=11)
+def test_simulation_is_deterministic(seed):
+    settings = SimulationSettings(frames=4, n_features=30, seed=seed)
     a, b = simulate(settings).log, simulate(settings).log
     assert a.imu == b.imu and a.tracks == b.tracks and a.groundtruth == b.groundtruth
     assert a.config.initial_state == b.config.initial_state
-    c = simulate(SimulationSettings(frames=4, n_features=30, seed=12)).log
+    c = simulate(SimulationSettings(frames=4, n_features=30, seed=seed + 1)).log
     assert not np.array_equal(a.tracks.uv_px[:10], c.tracks.uv_px[:10])
 
 
-def test_ground_truth_and_frames_follow_the_plan():
-    result = _noisy()
+def test_ground_truth_and_frames_follow_the_plan(noisy):
+    result = noisy
     log = result.log
     assert len(log.frames) == SMALL["frames"]
     assert all(image == "" for image in log.frames.image)
@@ -194,8 +187,8 @@ def test_ground_truth_and_frames_follow_the_plan():
 # --------------------------------------------------------------------------- geometry
 
 
-def test_noiseless_observations_reproject_exactly_from_the_log(tmp_path):
-    result = _noiseless()
+def test_noiseless_observations_reproject_exactly_from_the_log(noiseless, tmp_path):
+    result = noiseless
     back = read_flightlog(write_simulation(result, tmp_path / "log"))
     assert back.config.dtm.sigma_h_m == EXACT_DTM_SIGMA_H_M
     dtm = load_dtm(back.config.dtm.path)
@@ -217,8 +210,8 @@ def test_noiseless_observations_reproject_exactly_from_the_log(tmp_path):
     assert np.array_equal(tracks.uv_px, result.uv_true_px)
 
 
-def test_noiseless_imu_and_prior_are_the_truth():
-    result = _noiseless()
+def test_noiseless_imu_and_prior_are_the_truth(noiseless):
+    result = noiseless
     log = result.log
     truth = evaluate(result.plan, log.imu.t_ns / NS_PER_S)
     gyro, acc = ideal_imu(truth, log.config.gravity_mps2)
@@ -235,8 +228,8 @@ def test_noiseless_imu_and_prior_are_the_truth():
     np.testing.assert_array_equal(log.nav.t_ns, log.frames.t_ns)
 
 
-def test_observations_are_unoccluded_by_an_independent_check():
-    for result in (_noiseless(), _noisy()):
+def test_observations_are_unoccluded_by_an_independent_check(noiseless, noisy):
+    for result in (noiseless, noisy):
         tracks = result.log.tracks
         occluded = _occluded_by_march(result.terrain, _camera_centres(result, tracks.frame),
                                       result.ground_points_m[tracks.track_id])
@@ -267,8 +260,8 @@ def test_ridge_occludes_tracks_and_no_observation_is_hidden(ridge):
 # --------------------------------------------------------------------------- statistics
 
 
-def test_features_per_frame_pair_meet_the_target():
-    for result in (_noisy(), _noiseless()):
+def test_features_per_frame_pair_meet_the_target(noiseless, noisy):
+    for result in (noisy, noiseless):
         tracks = result.log.tracks
         rows_a, rows_b = tracks.pairs()
         assert np.all(tracks.frame[rows_b] == tracks.frame[rows_a] + 1)  # tracks die when lost
@@ -278,16 +271,16 @@ def test_features_per_frame_pair_meet_the_target():
         assert result.log.config.camera.camera.in_image(tracks.uv_px).all()
 
 
-def test_pixel_noise_matches_its_sigma():
-    result = _noisy()
+def test_pixel_noise_matches_its_sigma(noisy):
+    result = noisy
     noise = result.log.tracks.uv_px - result.uv_true_px
     sigma = result.log.config.camera.pixel_sigma_px
     assert abs(noise.mean()) < 4 * sigma / math.sqrt(noise.size)
     assert noise.std() == pytest.approx(sigma, rel=NOISE_STD_REL_TOL)
 
 
-def test_imu_noise_matches_the_flight_yaml_densities():
-    result = simulate(SimulationSettings(frames=21, n_features=5, seed=TEST_SEED))
+def test_imu_noise_matches_the_flight_yaml_densities(seed):
+    result = simulate(SimulationSettings(frames=21, n_features=5, seed=seed))
     log, imu = result.log, result.imu
     cfg = log.config.imu
     truth = evaluate(result.plan, log.imu.t_ns / NS_PER_S)
@@ -311,9 +304,9 @@ def test_imu_noise_matches_the_flight_yaml_densities():
     assert np.all(imu.gyro_bias[0] != 0) and np.all(log.config.initial_state.gyro_bias == 0)
 
 
-def test_noisy_truth_nav_has_its_sigma():
-    result = _noisy()
-    settings = SimulationSettings(**SMALL)
+def test_noisy_truth_nav_has_its_sigma(noisy, seed):
+    result = noisy
+    settings = SimulationSettings(**SMALL, seed=seed)
     truth = result.log.groundtruth.interpolate(result.log.frames.t_ns)
     error = result.log.nav.position_m - truth.position_m
     # 30 draws: a loose band, but it separates "noise added" from none or a wrong scale.
@@ -325,7 +318,8 @@ def test_noisy_truth_nav_has_its_sigma():
 
 @pytest.mark.parametrize("changes", [
     dict(altitude_m=-1.0), dict(frames=1), dict(n_features=0), dict(fps=0.0), dict(nav="gps"),
-    dict(fov_deg=180.0), dict(dtm_spacing_m=float("nan")), dict(seed=-1),
+    dict(fov_deg=180.0), dict(dtm_spacing_m=float("nan")),
+    dict(seed=-1),  # an invalid seed: the literal is the point
     dict(resolution_px=(400,)),
     # beyond what the log's reader takes: the simulator must not write a log it refuses
     dict(resolution_px=(100_001, 400)), dict(resolution_px=(400, 1)),

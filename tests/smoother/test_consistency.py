@@ -8,17 +8,14 @@ stated probability whatever the correlation along a run. The issue's own band (A
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from cdtm_graph.run import smooth_and_evaluate
-from cdtm_graph.smoother import SmootherSettings
-from cdtm_graph.studies.robustness import BASE, Mode
+from cdtm_graph.studies.robustness import Mode
 
-SEEDS = range(101, 109)
+#: Seeds 1-8: the calibration and verdict tests smooth the same clean flights (batch).
+SEEDS = range(1, 9)
 FRAMES = 30
 #: the frame each run contributes (the middle: not the prior's, not the open end's)
 FRAME = FRAMES // 2
@@ -28,15 +25,10 @@ ANEES_RANGE = (1.2, 4.5)
 
 
 @pytest.fixture(scope="module")
-def runs() -> dict[Mode, list]:
-    out: dict[Mode, list] = {mode: [] for mode in Mode}
-    for seed in SEEDS:
-        from cdtm_graph.sim.simulate import simulate_flight
-
-        log, dtm = simulate_flight(dataclasses.replace(BASE, frames=FRAMES, seed=seed))
-        for mode in Mode:
-            out[mode].append(smooth_and_evaluate(log, dtm, mode.settings(SmootherSettings())))
-    return out
+def runs(clean_flights) -> dict[Mode, list]:
+    """Each seed's clean flight in each mode (shared with the calibration and verdict
+    tests, which read the batch runs of the same flights)."""
+    return {mode: clean_flights.runs_of(SEEDS, FRAMES, mode) for mode in Mode}
 
 
 @pytest.mark.parametrize("mode", list(Mode), ids=lambda m: m.value)

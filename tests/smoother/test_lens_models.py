@@ -20,6 +20,8 @@ from cdtm_graph.smoother import SmootherSettings
 RADTAN = ("radtan", (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05))
 EQUIDISTANT = ("equidistant", (0.0034823894022493434, 0.0007150348452162257,
                                -0.0020532361418706202, 0.00020293673591811182))
+#: The seeds of the measurement below and of docs/flightlog.md: the literal seeds are the
+#: point (the figures quoted are these flights').
 SEEDS = (0, 1, 2, 3)
 #: Short flights (12 frames, 80 features a pair): the 3-D position RMSE is 1-5 m, against
 #: a 50 m prior. Measured (seeds 0-3): radtan 3.44/5.05/3.62/2.37 m, equidistant
@@ -40,7 +42,7 @@ def _rmse_3d_m(log, dtm) -> float:
 
 
 def test_the_simulator_projects_through_the_lens():
-    result = simulate(_settings(EQUIDISTANT, 0))
+    result = simulate(_settings(EQUIDISTANT, SEEDS[0]))
     camera = result.log.config.camera.camera
     assert camera.model is DistortionModel.EQUIDISTANT
     tracks = result.log.tracks

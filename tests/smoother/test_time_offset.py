@@ -24,8 +24,8 @@ def _write(log, dtm, path):
     return load_log_and_dtm(path)
 
 
-def test_a_stated_offset_smooths_like_corrected_stamps(tmp_path):
-    result = simulate(SimulationSettings(frames=12, n_features=80, seed=3))
+def test_a_stated_offset_smooths_like_corrected_stamps(seed, tmp_path):
+    result = simulate(SimulationSettings(frames=12, n_features=80, seed=seed))
     native, dtm = _write(result.log, result.dtm, tmp_path / "native")
     camera = dataclasses.replace(native.config.camera, time_offset_s=OFFSET_S)
     stated = dataclasses.replace(native, config=dataclasses.replace(native.config,

@@ -29,7 +29,6 @@ from cdtm_graph.studies.sweeps import (
     study_tasks,
     trial_rng,
 )
-from tests.conftest import TEST_SEED
 
 #: Trials per value of the trend studies (see the module docstring).
 TREND_TRIALS = 30
@@ -48,23 +47,23 @@ def _pred(result, name: str) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def studies():
+def studies(seed):
     """The reduced studies of the trend tests and the nominal one, run as one batch."""
     specs = {
         "features": StudySettings(StudyParameter.FEATURES, values=(10, 40, 150, 300),
-                                  trials=TREND_TRIALS, seed=TEST_SEED),
+                                  trials=TREND_TRIALS, seed=seed),
         "resolution": StudySettings(StudyParameter.RESOLUTION, values=(100, 400, 1600),
-                                    trials=TREND_TRIALS, seed=TEST_SEED),
+                                    trials=TREND_TRIALS, seed=seed),
         "grid": StudySettings(StudyParameter.GRID, values=(10, 40, 70, 100),
-                              trials=TREND_TRIALS, seed=TEST_SEED),
+                              trials=TREND_TRIALS, seed=seed),
         "relief": StudySettings(StudyParameter.RELIEF, values=(150, 450),
-                                trials=TREND_TRIALS, seed=TEST_SEED),
+                                trials=TREND_TRIALS, seed=seed),
         "baseline": StudySettings(StudyParameter.BASELINE, values=(10, 40, 95),
-                                  trials=TREND_TRIALS, seed=TEST_SEED),
+                                  trials=TREND_TRIALS, seed=seed),
         "fov": StudySettings(StudyParameter.FOV, values=(3, 60), trials=TREND_TRIALS,
-                             seed=TEST_SEED),
+                             seed=seed),
         "nominal": StudySettings(StudyParameter.FEATURES, values=(170,),
-                                 trials=NOMINAL_TRIALS, seed=TEST_SEED + 1),
+                                 trials=NOMINAL_TRIALS, seed=seed + 1),
     }
     results = run_studies(list(specs.values()), ParallelSettings(workers=2))
     return dict(zip(specs, results, strict=True))

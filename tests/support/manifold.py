@@ -1,4 +1,6 @@
-"""Shared test helpers: central differences on the manifold, random poses, scenes."""
+"""Shared test helpers: central differences on the manifold, random poses, scenes.
+
+Imported by ``tests/conftest.py`` only, which hands them to the tests as fixtures."""
 
 from __future__ import annotations
 
@@ -7,6 +9,7 @@ from collections.abc import Callable
 import numpy as np
 
 from cdtm_graph.geometry import make_pose, so3_exp
+from factors import FeatureNoise, PairFeatures
 
 #: Step of the central differences: the truncation error is O(step^2), rounding O(eps/step).
 CENTRAL_DIFF_STEP = 1e-6
@@ -91,3 +94,31 @@ class WavyTerrain:
         x = o + t[:, None] * d
         valid = np.abs(x[:, 2] - self.height(x[:, 0], x[:, 1])) < 1e-9
         return x, self.normal(x[:, 0], x[:, 1]), valid
+
+
+#: The feature noise of :func:`random_pair` (pixels of a 350 px focal length, normalized).
+PAIR_NOISE = FeatureNoise(sigma_q_xy=(0.5 / 350, 0.5 / 340), sigma_h_m=2.4,
+                          sigma_qa_xy=(1.4e-3, 1.5e-3))
+
+
+def random_pair(rng, terrain: WavyTerrain | None = None, n: int = 12, pixel_noise: float = 2e-3):
+    """Two body poses ~40 m apart over terrain, a non-identity mounting and n features."""
+    body_T_cam = downward_body_T_cam(rng)
+    wTb_a = make_pose(random_rotation(rng, 0.2),
+                      np.r_[rng.uniform(-200, 200, 2), 500 + rng.uniform(-50, 50)])
+    step = make_pose(random_rotation(rng, 0.17), np.r_[40.0, 0, 0] + rng.normal(0, 5, 3))
+    wTb_b = wTb_a @ step
+    wTc_a, wTc_b = wTb_a @ body_T_cam, wTb_b @ body_T_cam
+    q_a = np.c_[rng.uniform(-0.4, 0.4, (n, 2)), np.ones(n)]
+    ray = q_a @ wTc_a[:3, :3].T
+    if terrain is None:
+        G = wTc_a[:3, 3] + rng.uniform(300, 700, n)[:, None] * ray
+        N = np.c_[rng.uniform(-0.6, 0.6, (n, 2)), np.ones(n)]
+    else:
+        G, N, valid = terrain.raycast(np.broadcast_to(wTc_a[:3, 3], ray.shape), ray)
+        assert valid.all()
+    g_b = (G - wTc_b[:3, 3]) @ wTc_b[:3, :3]
+    q_b = g_b / g_b[:, 2:3]
+    q_b[:, :2] += rng.normal(0, pixel_noise, (n, 2))  # non-zero residuals exercise every term
+    feats = PairFeatures.build(wTc_a, wTc_b, q_a, q_b, G, N, PAIR_NOISE)
+    return body_T_cam, wTb_a, wTb_b, feats

@@ -35,7 +35,6 @@ from cdtm_graph.imu import SampleHold, dead_reckoning
 from cdtm_graph.results import StateCovariances, TrajectoryEstimate
 from cdtm_graph.sim.imu import simulate_imu
 from cdtm_graph.sim.trajectory import STANDARD_GRAVITY_MPS2, FlightPlan, evaluate
-from tests.manifold import random_rotation
 
 NS_PER_S = 1_000_000_000
 T0_NS = 1_700_000_000 * NS_PER_S
@@ -68,9 +67,14 @@ def _estimate(t_ns: np.ndarray, T: np.ndarray, v: np.ndarray | None = None
                               np.zeros((k, 3)), np.zeros((k, 3)))
 
 
-def _random_poses(rng: np.random.Generator, k: int) -> np.ndarray:
-    return np.stack([make_pose(random_rotation(rng, math.pi * 0.9),
-                               rng.uniform(-1000, 1000, 3)) for _ in range(k)])
+@pytest.fixture
+def random_poses(manifold):
+    """Factory: _random_poses"""
+    def make(rng: np.random.Generator, k: int) -> np.ndarray:
+        return np.stack([make_pose(manifold.random_rotation(rng, math.pi * 0.9),
+                                   rng.uniform(-1000, 1000, 3)) for _ in range(k)])
+
+    return make
 
 
 def _random_spd(rng: np.random.Generator, k: int, sigma: np.ndarray) -> np.ndarray:
@@ -83,10 +87,10 @@ def _random_spd(rng: np.random.Generator, k: int, sigma: np.ndarray) -> np.ndarr
 # --------------------------------------------------------------------------- errors
 
 
-def test_a_known_offset_is_exactly_the_error(rng: np.random.Generator):
+def test_a_known_offset_is_exactly_the_error(random_poses, rng: np.random.Generator):
     k = 30
     t_ns = T0_NS + 100_000_000 * np.arange(k, dtype=np.int64)
-    T_true = _random_poses(rng, k)
+    T_true = random_poses(rng, k)
     offset = np.array([3.0, -4.0, 12.0])
     T_est = T_true.copy()
     T_est[:, :3, 3] += offset
@@ -101,10 +105,12 @@ def test_a_known_offset_is_exactly_the_error(rng: np.random.Generator):
     assert report.position_nees is None and report.anees_pose is None
 
 
-def test_a_known_rotation_offset_is_exactly_the_attitude_error(rng: np.random.Generator):
+def test_a_known_rotation_offset_is_exactly_the_attitude_error(
+    random_poses, rng: np.random.Generator
+):
     k = 20
     t_ns = T0_NS + 50_000_000 * np.arange(k, dtype=np.int64)
-    T_true = _random_poses(rng, k)
+    T_true = random_poses(rng, k)
     angle_deg = 2.5
     T_est = T_true.copy()
     for i in range(k):  # a body-frame rotation about a random axis: same angle either way
@@ -117,9 +123,11 @@ def test_a_known_rotation_offset_is_exactly_the_attitude_error(rng: np.random.Ge
     np.testing.assert_allclose(report.position_error_world_m, 0.0, atol=EXACT_TOL)
 
 
-def test_frames_outside_groundtruth_are_excluded_and_counted(rng: np.random.Generator):
+def test_frames_outside_groundtruth_are_excluded_and_counted(
+    random_poses, rng: np.random.Generator
+):
     t_frames = T0_NS + 100_000_000 * np.arange(10, dtype=np.int64)
-    T = _random_poses(rng, 10)
+    T = random_poses(rng, 10)
     # Ground truth from frame 2 to frame 7 only (at 4x the frame rate, linear motion).
     t_gt = np.arange(t_frames[2], t_frames[7] + 1, 25_000_000, dtype=np.int64)
     gt = States(t_gt, np.zeros((t_gt.size, 3)), np.tile([1.0, 0, 0, 0], (t_gt.size, 1)),
@@ -132,10 +140,10 @@ def test_frames_outside_groundtruth_are_excluded_and_counted(rng: np.random.Gene
     np.testing.assert_allclose(report.position_error_world_m, T[2:8, :3, 3], atol=EXACT_TOL)
 
 
-def test_no_frame_inside_groundtruth_gives_a_json_safe_empty_report(rng):
+def test_no_frame_inside_groundtruth_gives_a_json_safe_empty_report(random_poses, rng):
     t_frames = T0_NS + np.arange(3, dtype=np.int64)
     gt = States(t_frames[:1] - 10, np.zeros((1, 3)), [[1.0, 0, 0, 0]], np.zeros((1, 3)))
-    report = trajectory_errors(_estimate(t_frames, _random_poses(rng, 3)), None, gt)
+    report = trajectory_errors(_estimate(t_frames, random_poses(rng, 3)), None, gt)
     assert report.n_frames_evaluated == 0 and report.n_frames_outside_groundtruth == 3
     d = report.to_dict(per_frame=True)
     json.dumps(d, allow_nan=False)
@@ -145,9 +153,11 @@ def test_no_frame_inside_groundtruth_gives_a_json_safe_empty_report(rng):
 # --------------------------------------------------------------------------- NEES
 
 
-def test_pose_error_is_gtsam_local_coordinates_which_is_logmap_of_the_relative_pose(rng):
+def test_pose_error_is_gtsam_local_coordinates_which_is_logmap_of_the_relative_pose(
+    random_poses, rng
+):
     """The docstring's claim: the wheel's Pose3 retraction is Expmap."""
-    T_est = gtsam.Pose3(_random_poses(rng, 1)[0])
+    T_est = gtsam.Pose3(random_poses(rng, 1)[0])
     xi = np.array([0.3, -0.2, 0.4, 20.0, -5.0, 8.0])
     T_true = T_est.retract(xi)
     np.testing.assert_allclose(T_est.localCoordinates(T_true), xi, atol=1e-12)
@@ -158,11 +168,11 @@ def test_pose_error_is_gtsam_local_coordinates_which_is_logmap_of_the_relative_p
 
 
 @pytest.fixture
-def consistent_case(rng: np.random.Generator):
+def consistent_case(random_poses, rng: np.random.Generator):
     """Estimates whose true poses are drawn from their own covariances (right perturbation)."""
     k = N_NEES_FRAMES
     t_ns = T0_NS + 100_000_000 * np.arange(k, dtype=np.int64)
-    T_est = _random_poses(rng, k)
+    T_est = random_poses(rng, k)
     pose_cov = _random_spd(rng, k, np.array([2e-3, 2e-3, 5e-3, 10.0, 10.0, 30.0]))
     xi = np.einsum("kij,kj->ki", np.linalg.cholesky(pose_cov), rng.normal(size=(k, 6)))
     T_true = np.stack([(gtsam.Pose3(T_est[i]) * gtsam.Pose3.Expmap(xi[i])).matrix()
@@ -296,18 +306,18 @@ def test_dead_reckoning_needs_imu_over_the_frames(tmp_path):
 # --------------------------------------------------------------------------- Table 1
 
 
-def _offset_report(rng, offset: np.ndarray):
+def _offset_report(random_poses, rng, offset: np.ndarray):
     k = 5
     t_ns = T0_NS + np.arange(k, dtype=np.int64)
-    T_true = _random_poses(rng, k)
+    T_true = random_poses(rng, k)
     T_est = T_true.copy()
     T_est[:, :3, 3] += offset * np.linspace(-1.0, 1.0, k)[:, None]  # max |error| = |offset|
     return trajectory_errors(_estimate(t_ns, T_est), None, _states_from_poses(t_ns, T_true))
 
 
-def test_free_vs_compensated_is_table_1(rng):
-    free = _offset_report(rng, np.array([900.0, 1000.0, 250.0]))
-    comp = _offset_report(rng, np.array([25.0, 25.0, 0.0]))
+def test_free_vs_compensated_is_table_1(random_poses, rng):
+    free = _offset_report(random_poses, rng, np.array([900.0, 1000.0, 250.0]))
+    comp = _offset_report(random_poses, rng, np.array([25.0, 25.0, 0.0]))
     table = free_vs_compensated(comp, free)
     assert list(table["rows"]) == ["Free-x", "Compensated-x", "Free-y", "Compensated-y",
                                    "Free-z", "Compensated-z"]

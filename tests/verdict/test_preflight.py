@@ -13,12 +13,11 @@ from cdtm_graph.flightlog import FlightLog, Tracks
 from cdtm_graph.preflight import check_constraints, dtm_coverage
 from cdtm_graph.sim.simulate import SimulationResult, SimulationSettings, simulate
 from cdtm_graph.smoother import SmootherSettings, smooth
-from tests.conftest import TEST_SEED
 
 
 @pytest.fixture(scope="module")
-def sim() -> SimulationResult:
-    return simulate(SimulationSettings(frames=8, n_features=40, seed=TEST_SEED % 997,
+def sim(seed) -> SimulationResult:
+    return simulate(SimulationSettings(frames=8, n_features=40, seed=seed % 997,
                                        noiseless=True, turn_deg=0.0))
 
 
