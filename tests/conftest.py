@@ -91,3 +91,18 @@ def clean_flights() -> _flights.CleanFlights:
     and shared (:class:`tests.support.flights.CleanFlights`): ``clean_flights.run(seed,
     frames, mode)``. The calibration, verdict and consistency tests read the same runs."""
     return _flights.CleanFlights()
+
+
+# --------------------------------------------------------------------------- scheduling
+
+
+def pytest_collection_modifyitems(config, items):
+    """Keep work shared under pytest-xdist (``-n auto --dist loadgroup`` in pyproject.toml):
+    each test file runs whole on one worker, so its module fixtures are made once, and the
+    files that read ``clean_flights`` run on one worker together, so the flights are
+    smoothed once. Without xdist the groups are only labels."""
+    shared = {item.module.__name__ for item in items if "clean_flights" in item.fixturenames}
+    for item in items:
+        if item.get_closest_marker("xdist_group") is None:
+            name = item.module.__name__
+            item.add_marker(pytest.mark.xdist_group("clean_flights" if name in shared else name))

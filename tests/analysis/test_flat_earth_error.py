@@ -38,6 +38,7 @@ def _final_error(flight, t, p) -> float:
     return float(np.linalg.norm(p[-1] - truth.position(t[-1:])[0]))
 
 
+@pytest.mark.slow
 def test_earth_aware_integration_lands_on_the_proj_track(flight):
     frame, truth = flight
     t, p = flat_earth_error.integrate_rk4(frame, truth, DURATION_S, 200.0, "earth", True)

@@ -69,6 +69,7 @@ def test_fixed_plane_mode_converges_near_truth(rng, nominal_terrain):
     assert final_err < 0.5 * initial_err
 
 
+@pytest.mark.slow
 def test_monte_carlo_nominal_scenario_is_consistent(nominal_terrain):
     """Section VI nominal scenario, >= 200 trials.
 
@@ -98,6 +99,7 @@ def test_monte_carlo_nominal_scenario_is_consistent(nominal_terrain):
     assert not bad, bad
 
 
+@pytest.mark.slow
 def test_epipolar_initialization_needs_no_guess_of_the_second_pose(rng, nominal_terrain):
     """Without a guess of pose b (here: b guessed at a) the solve cannot start; the
     essential matrix gives R12 and the direction of p12, the DTM its length, and the
@@ -118,6 +120,7 @@ def test_epipolar_initialization_needs_no_guess_of_the_second_pose(rng, nominal_
             assert np.linalg.norm(so3_log(est[:3, :3].T @ truth[:3, :3])) < ROTATION_TOL_RAD
 
 
+@pytest.mark.slow
 def test_epipolar_initial_pose_recovers_the_ego_motion(rng, nominal_terrain):
     """With noisy matches (half a pixel) and a rough pose a, the relative pose of the
     initial guess is close to the true ego-motion: rotation within 0.5 deg (the

@@ -219,6 +219,7 @@ def noiseless_flight(seed):
     return dataclasses.replace(log, config=dataclasses.replace(log.config, camera=camera)), dtm
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", sorted(FAULTS))
 def test_noiseless_flight_recovers_the_calibration_truth(noiseless_flight, fault):
     flight, dtm = noiseless_flight
@@ -249,6 +250,7 @@ def clean_rmse_m() -> float:
     return _rmse_3d(smooth_and_evaluate(flight, dtm, SmootherSettings()))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", sorted(FAULTS))
 def test_calibration_errors_are_absorbed_online(clean_rmse_m, fault):
     flight, dtm = SCENARIOS[fault].flight(FLIGHT)
@@ -264,6 +266,7 @@ def test_calibration_errors_are_absorbed_online(clean_rmse_m, fault):
                                  4 * np.maximum(sigma[part], 0.05 * (part == "mount")))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["batch", "isam2", "fixed_lag", "batch_no_marginals"])
 def test_a_focal_error_held_by_default_is_flagged_suspect_without_ground_truth(mode):
     """By default every mode holds flight.yaml's calibration and checks it in a batch
@@ -300,6 +303,7 @@ def test_the_side_solve_thins_a_long_log_to_every_nth_frame():
     np.testing.assert_array_equal(sub.tracks.uv_px, flight.tracks.uv_px[rows])
 
 
+@pytest.mark.slow
 def test_a_focal_error_is_flagged_by_a_thinned_side_solve(monkeypatch):
     """With the side solve down to every third frame (as on long logs), the 1% focal
     error is still found and the run is ``calibration_suspect``; a clean run is not."""
@@ -315,6 +319,7 @@ def test_a_focal_error_is_flagged_by_a_thinned_side_solve(monkeypatch):
             assert abs(check.estimate.focal_scale - 1 / 1.01) < 4 * check.estimate.sigmas[4]
 
 
+@pytest.mark.slow
 def test_a_focal_error_held_unchecked_is_caught_only_by_ground_truth():
     """``--calibration held``: the 1% focal error goes into the height, which no
     self-check sees; only ground truth shows it (why the check is on by default)."""
@@ -343,6 +348,7 @@ def clean_seeds(clean_flights):
     return clean_flights.runs_of(CLEAN_SEEDS, CLEAN_FLIGHT.frames)
 
 
+@pytest.mark.slow
 def test_clean_flights_stay_trusted_with_the_calibration_checked(clean_seeds):
     assert all(out.result.calibration_check is not None for out in clean_seeds)  # the default
     assert not any(out.result.calibration_check.suspect for out in clean_seeds)
@@ -350,6 +356,7 @@ def test_clean_flights_stay_trusted_with_the_calibration_checked(clean_seeds):
     assert np.mean(trusted) >= MIN_TRUSTED_SHARE
 
 
+@pytest.mark.slow
 def test_the_focal_scale_estimated_on_clean_flights_is_unbiased(clean_seeds):
     z = np.array([out.result.calibration_check.z[4] for out in clean_seeds])
     assert abs(z.mean()) < MAX_MEAN_Z
@@ -382,6 +389,7 @@ def test_a_mount_yaw_on_a_straight_flight_is_unobservable_and_noted(seed):
                for n in out.verdict.notes)
 
 
+@pytest.mark.slow
 def test_an_incremental_run_on_a_clean_flight_is_checked_and_trusted(clean_flights):
     flight, dtm = clean_flights.flight(CLEAN_FLIGHT.seed, CLEAN_FLIGHT.frames)
     # Mode.ISAM2's settings are SmootherSettings(mode=SmootherMode.INCREMENTAL)

@@ -444,6 +444,7 @@ def _previous_run_with_notes(log: Path, tmp_path: Path, capsys) -> Path:
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("stage", ["smoothing", "writing"])
 def test_sigterm_is_an_interrupt_and_leaves_the_target_as_it_was(log, tmp_path, capsys,
                                                                  stage):
@@ -459,6 +460,7 @@ def test_sigterm_is_an_interrupt_and_leaves_the_target_as_it_was(log, tmp_path, 
     assert _no_staging(out, tmp_path)
 
 
+@pytest.mark.slow
 def test_a_killed_runs_leftovers_go_with_the_next_run(log, tmp_path, capsys):
     out = _previous_run_with_notes(log, tmp_path, capsys)
     before = _tree(out)
@@ -472,6 +474,7 @@ def test_a_killed_runs_leftovers_go_with_the_next_run(log, tmp_path, capsys):
     assert (out / "notes.md").read_text() == "keep me"
 
 
+@pytest.mark.slow
 def test_a_live_runs_staging_is_not_touched_by_a_concurrent_run(log, tmp_path, capsys):
     out = _previous_run_with_notes(log, tmp_path, capsys)
     child = _start_stalled("writing", log, out, tmp_path)

@@ -271,6 +271,7 @@ def test_a_bad_image_is_named(log, capsys, fault, expected):
     assert (log / "tracks.csv").read_bytes() == tracks_before  # nothing written half
 
 
+@pytest.mark.slow
 def test_images_to_trajectory_against_ideal_tracks(seed):
     """The issue's acceptance test, on a small flight (320x240, 30 frames; the benchmark
     measures 640x480 flights): the images' tracks smooth to within 1.5x the RMSE of the
@@ -292,6 +293,7 @@ def test_images_to_trajectory_against_ideal_tracks(seed):
         assert errors.anees_position <= ANEES_MAX
 
 
+@pytest.mark.slow
 def test_demo_with_images_runs_the_chain(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr("cdtm_graph.cli.demo.IMAGE_DEMO_FRAMES", 8)

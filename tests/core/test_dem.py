@@ -298,6 +298,7 @@ def _peak_kib(path) -> int:
     return int(out.stdout.split()[-1])
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="ru_maxrss in KiB: Linux")
 def test_a_3601_tile_costs_only_the_window_under_the_flight(tmp_path, rng):
     # An SRTM 1" tile (N36E127, int16, 25.9 MB on disk; 104 MB as float64) and the same
@@ -323,6 +324,7 @@ def test_a_3601_tile_costs_only_the_window_under_the_flight(tmp_path, rng):
 SAME_SMOOTHING_MAHALANOBIS = 0.1
 
 
+@pytest.mark.slow
 def test_a_flat_flight_smooths_the_same_over_npz_and_over_a_georeferenced_tile(seed, tmp_path):
     import dataclasses
 

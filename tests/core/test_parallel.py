@@ -60,12 +60,14 @@ def test_a_task_error_reaches_the_caller():
         map_tasks(math.sqrt, [4.0, -1.0, 9.0], ParallelSettings(workers=2))
 
 
+@pytest.mark.slow
 def test_two_workers_give_the_same_numbers_as_one(small, serial_numbers):
     numbers = _numbers(run_study(small, ParallelSettings(workers=2)))
     np.testing.assert_array_equal(numbers, serial_numbers)
     assert np.isfinite(serial_numbers).all()  # the comparison compared real numbers
 
 
+@pytest.mark.slow
 def test_dask_cluster_gives_the_same_numbers(small, serial_numbers):
     distributed = pytest.importorskip("dask.distributed")
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,

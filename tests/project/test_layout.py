@@ -76,6 +76,7 @@ def test_the_check_sees_a_violation(tmp_path, monkeypatch):
     assert "cdtm_graph.plots.trajectory" in found
 
 
+@pytest.mark.slow
 def test_importing_the_core_loads_no_harness():
     core = ["cdtm_graph.smoother", "cdtm_graph.flightlog", "cdtm_graph.dtm", "factors",
             "cdtm_graph.outputs", "cdtm_graph.run", "cdtm_graph.evaluation",

@@ -8,6 +8,7 @@ import shlex
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from cdtm_graph.cli import GEODETIC_EXAMPLE, main
 from cdtm_graph.flightlog import read_flightlog
@@ -33,6 +34,7 @@ def test_the_three_places_show_the_same_commands():
         assert command in readme and command in docs and command in helped, command
 
 
+@pytest.mark.slow
 def test_the_worked_example_runs_end_to_end(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     simulate, smooth = (shlex.split(c)[1:] for c in COMMANDS)

@@ -77,6 +77,7 @@ def _acquire(log: FlightLog, dtm: Dtm, settings: AcquisitionSettings | None = No
     return acquire(frames, log.config.camera, dtm, prior, settings), frames
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("wrong_fraction", [0.0, 0.15, 0.30])
 def test_a_fix_1000_m_and_3_deg_off_is_acquired(rng, far_flight, wrong_fraction):
     """Acquired within the smoothers' pull-in of the truth, with up to 30% of the sightings
@@ -96,6 +97,7 @@ def test_a_fix_1000_m_and_3_deg_off_is_acquired(rng, far_flight, wrong_fraction)
     assert result.searched.half_width_m == pytest.approx((3000.0, 3000.0))
 
 
+@pytest.mark.slow
 def test_the_corrected_first_state_is_near_the_truth_in_all_six_degrees(seed, far_flight):
     """Tilt too: the C-DTM refinement fits the whole rotation (the error here is 2, -2 and
     3 deg about the body axes)."""
@@ -113,6 +115,7 @@ def test_the_corrected_first_state_is_near_the_truth_in_all_six_degrees(seed, fa
     assert np.linalg.norm(pose[:3, 3] - gt.position_m[i0]) < FIX_TOLERANCE_M
 
 
+@pytest.mark.slow
 def test_noiseless_window_is_corrected_to_the_truth(seed):
     """No pixel, IMU or DTM error: the refined fix puts the first state on the truth."""
     log, dtm = simulate_flight(dataclasses.replace(
@@ -310,6 +313,7 @@ def test_identity_correction_changes_nothing(far_flight):
                                                             np.ones(3))[0][:3, 3], 1.0)
 
 
+@pytest.mark.slow
 def test_the_demo_acquires_then_every_mode_smooths_as_from_a_clean_prior():
     """scripts/acquisition_demo.py on a short far300 flight: without a search iSAM2 ends
     hundreds of metres off; acquired up front, or by the smoothers' own search on the

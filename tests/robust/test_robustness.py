@@ -20,6 +20,9 @@ from cdtm_graph.run import RunOutput, smooth_and_evaluate
 from cdtm_graph.smoother import SmootherSettings
 from cdtm_graph.studies.robustness import BASE, SCENARIOS, Mode
 
+#: Every test here smooths long flights or many: `-m "not slow"` leaves them out.
+pytestmark = pytest.mark.slow
+
 FRAMES = BASE.frames  # the flight
 #: The issue's acceptance bounds.
 MAX_ANEES = 6.0

@@ -102,6 +102,7 @@ def test_texture_detail_finer_than_the_pixels_fades_out(seed, rng):
     np.testing.assert_array_equal(flat, texture.mean_albedo)
 
 
+@pytest.mark.slow
 def test_orthophoto_texture_samples_its_grid_and_averages_when_far():
     rows, cols = 64, 96
     ramp = 0.2 + 0.005 * np.arange(cols)[None, :] + 0.002 * np.arange(rows)[:, None]

@@ -14,6 +14,9 @@ from scipy.stats import chi2
 
 from cdtm_graph.studies.robustness import Mode
 
+#: Every test here smooths long flights or many: `-m "not slow"` leaves them out.
+pytestmark = pytest.mark.slow
+
 #: Seeds 1-8: the calibration and verdict tests smooth the same clean flights (batch).
 SEEDS = range(1, 9)
 FRAMES = 30

@@ -153,6 +153,7 @@ def _geodetic_dir(result, out: Path, crs: str, pixel: float | None) -> Path:
     return out
 
 
+@pytest.mark.slow
 def test_a_50_km_geodetic_flight_smooths_as_well_as_a_flat_one(seed, tmp_path: Path):
     """Issue 11: 200 s at 250 m/s (50 km, turning) at 36.5 N; the IMU senses the Earth's
     rotation and normal gravity; the DEM is an EPSG:4326 (1", EGM96) and a UTM 52N (30 m)

@@ -119,6 +119,7 @@ def test_incremental_api_one_frame_at_a_time(nominal_log):
     assert sigmas[0] > 20 and sigmas[-1] < 5
 
 
+@pytest.mark.slow
 def test_fixed_lag_smoother_tracks_the_flight(nominal_log):
     flight, dtm = nominal_log
     result = smooth(flight, dtm, SmootherSettings(mode=SmootherMode.INCREMENTAL, lag_s=10.0))
@@ -139,6 +140,7 @@ def test_fixed_lag_smoother_tracks_the_flight(nominal_log):
     np.testing.assert_allclose(live.covariances.pose[-1], result.covariances.pose[-1])
 
 
+@pytest.mark.slow
 def test_innovation_gate_keeps_nearly_every_good_feature(nominal_log):
     """On a clean log a 99.9% gate drops well under 1% of the features and the run keeps
     the ungated accuracy."""
@@ -184,6 +186,7 @@ def test_the_gate_divides_out_a_frames_common_over_dispersion(seed):
     assert gated[3:7].sum() / early.size < 1.5 * 0.1
 
 
+@pytest.mark.slow
 def test_the_innovation_gate_drops_gross_outliers_before_they_enter():
     """Bad matches (2% of observations moved 15-25 px) are gated out as they arrive: the
     incremental run stays near the clean one, where without a gate it does not. The gate
@@ -218,6 +221,7 @@ def test_the_innovation_gate_drops_gross_outliers_before_they_enter():
     assert rmse[0.999] < 2 * np.linalg.norm(clean.errors.rmse_position_m)
 
 
+@pytest.mark.slow
 def test_a_fixed_lag_too_short_for_the_fix_search_is_refused_or_said(seed):
     """The fix search moves the oldest of its window's frames; a lag that lets them go
     cannot apply a fix (it raised deep in GTSAM). Needed from the start (a wide prior):

@@ -54,6 +54,7 @@ def test_the_simulator_projects_through_the_lens():
     assert np.abs(plain.rays_to_pixels(in_cam) - result.uv_true_px).max() > 10.0
 
 
+@pytest.mark.slow
 def test_an_equidistant_log_smooths_as_accurately_as_a_radtan_one(tmp_path):
     rmse: dict[str, list[float]] = {"radtan": [], "equidistant": [], "unstated": []}
     for seed in SEEDS:

@@ -55,6 +55,7 @@ def _worst_sigma(reference, other) -> float:
                                   other.estimate.world_T_body, sigma))
 
 
+@pytest.mark.slow
 def test_incremental_final_estimate_matches_batch(nominal_log):
     """Over the same factors (no gate, no track tests: those judge features as they come,
     frame by frame, in the incremental modes) iSAM2 ends at the batch optimum."""
@@ -67,6 +68,7 @@ def test_incremental_final_estimate_matches_batch(nominal_log):
     assert _worst_sigma(batch, inc) <= INCREMENTAL_VS_BATCH_SIGMA
 
 
+@pytest.mark.slow
 def test_incremental_defaults_stay_within_a_sigma_of_batch(nominal_log, batch_run):
     """With every defence on, the modes leave out slightly different features (the
     incremental ones judge each frame against its prior): within one sigma of batch."""
@@ -75,6 +77,7 @@ def test_incremental_defaults_stay_within_a_sigma_of_batch(nominal_log, batch_ru
     assert _worst_sigma(batch_run.result, inc) <= 1.0
 
 
+@pytest.mark.slow
 def test_short_logs_incremental_and_fixed_lag_reach_the_batch_solution():
     """Regression: with relinearizeSkip the last updates used to stay one step from a stale
     linearization point (20 frames: 1.8 sigma from batch; fixed lag 5 s: 27 m RMSE)."""
@@ -96,6 +99,7 @@ def test_short_logs_incremental_and_fixed_lag_reach_the_batch_solution():
     assert lag.errors.anees_position <= FIXED_LAG_MAX_ANEES
 
 
+@pytest.mark.slow
 def test_noiseless_log_recovers_truth_to_centimetres(seed):
     flight, dtm = simulate_flight(SimulationSettings(frames=20, noiseless=True, seed=seed))
     for mode in SmootherMode:
@@ -138,6 +142,7 @@ def test_marginals_match_gtsam_with_cholesky_and_with_qr(nominal_log, batch_run)
             np.testing.assert_allclose(ours.pose[k], ref, rtol=1e-6, atol=1e-9 * np.abs(ref).max())
 
 
+@pytest.mark.slow
 def test_robust_kernels_resist_mismatched_tracks(rng, nominal_log):
     """5% of observations displaced by up to 25 px (bad matches), the kernels alone (no
     epipolar check, gate or track tests): the chi-square test at the solution flags the

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 
 from cdtm_graph.dtm import save_dtm_npz
 from cdtm_graph.flightlog import load_log_and_dtm, write_flightlog
@@ -24,6 +25,7 @@ def _write(log, dtm, path):
     return load_log_and_dtm(path)
 
 
+@pytest.mark.slow
 def test_a_stated_offset_smooths_like_corrected_stamps(seed, tmp_path):
     result = simulate(SimulationSettings(frames=12, n_features=80, seed=seed))
     native, dtm = _write(result.log, result.dtm, tmp_path / "native")

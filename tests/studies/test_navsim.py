@@ -82,6 +82,7 @@ def _assert_far_below_free(case, estimator: Estimator) -> None:
             >= FREE_OVER_COMPENSATED_MIN * _max_3d_m(case.report(estimator)))
 
 
+@pytest.mark.slow
 def test_compensated_far_below_free_and_below_the_papers_filter(case):
     _assert_far_below_free(case, Estimator.SMOOTHED)
     smoothed = case.max_error_m(Estimator.SMOOTHED)
@@ -91,6 +92,7 @@ def test_compensated_far_below_free_and_below_the_papers_filter(case):
     assert np.all(case.max_error_m(Estimator.FREE)[HORIZONTAL] > paper[HORIZONTAL])
 
 
+@pytest.mark.slow
 def test_as_arrived_is_worse_than_smoothed_but_far_below_free(case):
     smoothed = case.max_error_m(Estimator.SMOOTHED)
     arrived = case.max_error_m(Estimator.AS_ARRIVED)
@@ -103,6 +105,7 @@ def test_as_arrived_is_worse_than_smoothed_but_far_below_free(case):
     assert case.free.n_frames_evaluated == case.frames
 
 
+@pytest.mark.slow
 def test_as_arrived_estimate_is_never_revised_by_later_frames(reduced):
     sim = simulate(reduced.simulation(3000.0, 500))  # the cheapest flight: 41 frames
     flight = sim.log
@@ -127,6 +130,7 @@ def test_frame_interval_keeps_the_baseline_a_fifth_of_the_altitude():
     assert sim.speed_mps == 200.0 and sim.fov_deg == 60.0 and 100 <= sim.n_features <= 120
 
 
+@pytest.mark.slow
 def test_a_case_both_tables_share_is_flown_once(result):
     assert result.table2.columns == (500, 1000)
     assert result.table2.cases[1] is result.table1.cases[0]
@@ -138,6 +142,7 @@ def _markdown_rows(text: str) -> list[list[str]]:
             for line in text.splitlines() if line.startswith("|")]
 
 
+@pytest.mark.slow
 def test_markdown_has_the_papers_rows_and_columns_with_its_numbers_beside_ours(result):
     rows = _markdown_rows(table_markdown(result.table1))
     assert rows[0] == ["Flight height", "1000 m", "paper"]
@@ -161,6 +166,7 @@ def test_markdown_has_the_papers_rows_and_columns_with_its_numbers_beside_ours(r
     assert body2["Compensated-y (smoothed)"][3] == "20"
 
 
+@pytest.mark.slow
 def test_csv_holds_the_same_table_unrounded(result):
     for table, paper in ((result.table1, PAPER_TABLE1_M), (result.table2, PAPER_TABLE2_M)):
         rows = list(csv.reader(io.StringIO(table_csv(table))))
@@ -199,6 +205,7 @@ def test_frames_option_sets_the_duration_at_the_table2_altitude():
         settings_from_args(build_parser().parse_args(["navsim", "--frames", "1"]))
 
 
+@pytest.mark.slow
 def test_cli_writes_the_four_tables_and_prints_them(seed, tmp_path, capsys):
     out = tmp_path / "navsim"
     code = cdtm_main(["navsim", "--out", str(out), "--quick", "--altitudes", "3000",

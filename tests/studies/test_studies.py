@@ -69,6 +69,7 @@ def studies(seed):
     return dict(zip(specs, results, strict=True))
 
 
+@pytest.mark.slow
 def test_features_improve_accuracy_and_saturate(studies):
     """Fig. 2: better with more features; the gain from 150 to 300 is far below 10 to 40."""
     r = studies["features"]
@@ -82,6 +83,7 @@ def test_features_improve_accuracy_and_saturate(studies):
     assert pos[2] - pos[3] < 0.1 * (pos[0] - pos[1])  # flat on an absolute scale
 
 
+@pytest.mark.slow
 def test_resolution_improves_accuracy(studies):
     """Fig. 3: half-pixel registration error, smaller pixels: better everything."""
     r = studies["resolution"]
@@ -91,6 +93,7 @@ def test_resolution_improves_accuracy(studies):
         assert p[-1] < 0.5 * p[0], name  # 16x finer pixels
 
 
+@pytest.mark.slow
 def test_grid_spacing_degrades_position_about_linearly(studies):
     """Figs. 5-6: sigma_h grows linearly with the grid spacing, and so does the error.
 
@@ -111,6 +114,7 @@ def test_grid_spacing_degrades_position_about_linearly(studies):
     assert r.column("failures").sum() == 0
 
 
+@pytest.mark.slow
 def test_relief_helps_pose_but_not_ego_rotation(studies):
     """Fig. 8: more relief, better pose; the ego-motion rotation barely changes."""
     r = studies["relief"]  # 150 m, 450 m
@@ -120,6 +124,7 @@ def test_relief_helps_pose_but_not_ego_rotation(studies):
     assert abs(r12[1] / r12[0] - 1) < 0.15
 
 
+@pytest.mark.slow
 def test_baseline_improves_camera_pose(studies):
     """Fig. 9: the baseline is critical for the position (roughly inverse to it)."""
     r = studies["baseline"]  # 10, 40, 95 m
@@ -128,6 +133,7 @@ def test_baseline_improves_camera_pose(studies):
     assert pos[0] > 2.5 * pos[1]
 
 
+@pytest.mark.slow
 def test_narrow_fov_fails_every_trial_wide_fov_none(studies):
     """Section V.B: a 3-degree FOV is degenerate (counted, no numbers); 60 degrees is fine."""
     r = studies["fov"]
@@ -138,6 +144,7 @@ def test_narrow_fov_fails_every_trial_wide_fov_none(studies):
     assert wide.failures == 0
 
 
+@pytest.mark.slow
 def test_nominal_prediction_matches_achieved_error(studies):
     """Predicted RMS 1-sigma vs achieved RMS error at nominal, 150 trials, within 20 %.
 
@@ -189,6 +196,7 @@ def test_bad_feature_counts_are_user_errors(values):
         study_tasks(StudySettings(StudyParameter.FEATURES, values=values, trials=2))
 
 
+@pytest.mark.slow
 def test_cli_writes_exact_csv_columns_figure_and_table(tmp_path, capsys):
     out = tmp_path / "out"
     code = cdtm_main(["study", "baseline", "--trials", "4", "--values", "20", "40",

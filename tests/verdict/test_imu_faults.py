@@ -160,6 +160,7 @@ def test_finding_frames(span, expected):
     assert finding_frames(*span, frames) == expected
 
 
+@pytest.mark.slow
 def test_an_imu_gap_spanning_a_turn_is_honest_and_named():
     """The issue's flight (BASE, 1 fps, 150 m/s): 5 s of imu.csv missing from 8 s, across
     the roll into the first turn at 10 s. Without the gap model the smoother is far more
@@ -180,6 +181,7 @@ def test_an_imu_gap_spanning_a_turn_is_honest_and_named():
     assert errors.anees_position > 3 * ANEES_BOUND  # measured 65 (and 200-240000 on BASE)
 
 
+@pytest.mark.slow
 def test_a_long_gap_does_not_lock_isam2_onto_a_wrong_fix():
     """10 s missing (BASE, seed 2): the first frames after the gap are predicted through
     it, far from where they are. Without relinearizing there, iSAM2's single step left
@@ -210,6 +212,7 @@ def test_bias_excess_is_the_distance_in_the_prior_spread_by_its_random_walk():
     np.testing.assert_allclose(accel_excess, [1.0, 0.0, 16.0])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode, lag", [(SmootherMode.BATCH, None),
                                        (SmootherMode.INCREMENTAL, None),
                                        (SmootherMode.INCREMENTAL, 10.0)],
@@ -261,6 +264,7 @@ def test_the_samples_own_noise_is_measured_through_a_flights_motion(rng):
     np.testing.assert_allclose(understated.ratios, 5.0, rtol=0.05)
 
 
+@pytest.mark.slow
 def test_noise_densities_stated_too_small_are_named():
     """flight.yaml's four IMU densities 5x smaller than the IMU's (the clean flight's
     samples): the run leans on the IMU far more than it should (ANEES 7-21 at trusted

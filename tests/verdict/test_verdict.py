@@ -330,6 +330,7 @@ def test_consistency_words(rng, scale, words):
 # --------------------------------------------------------------------------- faults
 
 
+@pytest.mark.slow
 def test_clean_flights_stay_trusted(clean_flights):
     """20 seeds of the issue's flight, 30 frames, batch: measured 20 of 20 trusted. Catches
     a rule that cries wolf on clean data (the runs are the calibration tests', shared)."""
@@ -369,6 +370,7 @@ def test_an_imu_gap_names_its_frame():
     assert out.verdict.status is Status.DEGRADED
 
 
+@pytest.mark.slow
 def test_a_long_imu_gap_in_a_turn_is_named_and_stays_honest():
     """2 s without IMU samples in the turn: before the gap's maneuver-model noise
     (imu_faults.py) this run went ~400 m off with its covariance none the wiser; now the
@@ -386,6 +388,7 @@ def test_a_long_imu_gap_in_a_turn_is_named_and_stays_honest():
     assert (_only(blind, "imu_gap").first_frame, _only(blind, "imu_gap").last_frame) == (11, 12)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("pixel_sigma_px, status", [(1.5, Status.TRUSTED),
                                                      (0.17, Status.FAILED)])
 def test_a_misstated_pixel_noise_is_named(pixel_sigma_px, status):
