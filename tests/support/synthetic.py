@@ -19,8 +19,7 @@ from cdtm_graph.results import (
     StateCovariances,
     TrajectoryEstimate,
 )
-
-from .manifold import random_rotation
+from tests.support.manifold import random_rotation
 
 #: Frames of :func:`synthetic_result` unless asked.
 FRAMES = 40
