@@ -86,6 +86,14 @@ def nominal_log():
 
 
 @pytest.fixture(scope="session")
+def nominal_runs(nominal_log) -> _flights.FlightRuns:
+    """``nominal_log`` smoothed and judged with default settings, once per mode per session
+    (``nominal_runs.run(Mode.BATCH)``): the smoother and incremental tests read the same
+    runs."""
+    return _flights.FlightRuns(nominal_log)
+
+
+@pytest.fixture(scope="session")
 def clean_flights() -> _flights.CleanFlights:
     """The clean flights of the robustness study's base flight, smoothed once per session
     and shared (:class:`tests.support.flights.CleanFlights`): ``clean_flights.run(seed,
@@ -96,13 +104,20 @@ def clean_flights() -> _flights.CleanFlights:
 # --------------------------------------------------------------------------- scheduling
 
 
+#: Session fixtures whose runs several files read (their files share an xdist worker).
+SHARED_FIXTURES = ("clean_flights", "nominal_runs")
+
+
 def pytest_collection_modifyitems(config, items):
     """Keep work shared under pytest-xdist (``-n auto --dist loadgroup`` in pyproject.toml):
     each test file runs whole on one worker, so its module fixtures are made once, and the
-    files that read ``clean_flights`` run on one worker together, so the flights are
-    smoothed once. Without xdist the groups are only labels."""
-    shared = {item.module.__name__ for item in items if "clean_flights" in item.fixturenames}
+    files that read one of :data:`SHARED_FIXTURES` run on one worker together, so its
+    flights are smoothed once. Without xdist the groups are only labels."""
+    group = {}
+    for fixture in SHARED_FIXTURES:
+        group.update({item.module.__name__: fixture for item in items
+                      if fixture in item.fixturenames and item.module.__name__ not in group})
     for item in items:
         if item.get_closest_marker("xdist_group") is None:
             name = item.module.__name__
-            item.add_marker(pytest.mark.xdist_group("clean_flights" if name in shared else name))
+            item.add_marker(pytest.mark.xdist_group(group.get(name, name)))

@@ -14,7 +14,8 @@ from cdtm_graph.graph import GraphSettings
 from cdtm_graph.results import Rejection
 from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
-from cdtm_graph.smoother import IncrementalSmoother, SmootherMode, SmootherSettings, smooth
+from cdtm_graph.smoother import IncrementalSmoother, SmootherMode, SmootherSettings
+from cdtm_graph.studies.robustness import Mode
 from factors import RobustKernel
 
 MAX_RMSE_M = 10.0
@@ -120,9 +121,10 @@ def test_incremental_api_one_frame_at_a_time(nominal_log):
 
 
 @pytest.mark.slow
-def test_fixed_lag_smoother_tracks_the_flight(nominal_log):
+def test_fixed_lag_smoother_tracks_the_flight(nominal_log, nominal_runs):
     flight, dtm = nominal_log
-    result = smooth(flight, dtm, SmootherSettings(mode=SmootherMode.INCREMENTAL, lag_s=10.0))
+    # Mode.FIXED_LAG: SmootherSettings(mode=INCREMENTAL, lag_s=10.0)
+    result = nominal_runs.run(Mode.FIXED_LAG).result
     truth = flight.groundtruth.interpolate(flight.frames.t_ns).position_m
     err = result.estimate.position_m - truth
     assert np.sqrt(np.mean(err**2, axis=0)).max() <= MAX_RMSE_M
@@ -141,12 +143,13 @@ def test_fixed_lag_smoother_tracks_the_flight(nominal_log):
 
 
 @pytest.mark.slow
-def test_innovation_gate_keeps_nearly_every_good_feature(nominal_log):
+def test_innovation_gate_keeps_nearly_every_good_feature(nominal_log, nominal_runs):
     """On a clean log a 99.9% gate drops well under 1% of the features and the run keeps
     the ungated accuracy."""
     flight, dtm = nominal_log
-    runs = {gate: smooth_and_evaluate(flight, dtm, SmootherSettings(
-        mode=SmootherMode.INCREMENTAL, innovation_gate=gate)) for gate in (None, 0.999)}
+    ungated = SmootherSettings(mode=SmootherMode.INCREMENTAL, innovation_gate=None)
+    assert SmootherSettings().innovation_gate == 0.999  # Mode.ISAM2's run is gated at 0.999
+    runs = {None: smooth_and_evaluate(flight, dtm, ungated), 0.999: nominal_runs.run(Mode.ISAM2)}
     counts = runs[0.999].result.counts
     n_gated = counts.n_rejected(Rejection.GATED)
     assert 0 < n_gated < 0.01 * (counts.n_cdtm_features + n_gated)

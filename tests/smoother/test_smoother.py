@@ -17,6 +17,7 @@ from cdtm_graph.smoother import (
     SmootherSettings,
     smooth,
 )
+from cdtm_graph.studies.robustness import Mode
 
 #: Acceptance bounds of the smoothing issue.
 MAX_RMSE_M = 10.0
@@ -30,9 +31,8 @@ NOISELESS_TOL_DEG = 1e-3
 
 
 @pytest.fixture(scope="module")
-def batch_run(nominal_log):
-    flight, dtm = nominal_log
-    return smooth_and_evaluate(flight, dtm, SmootherSettings())
+def batch_run(nominal_runs):
+    return nominal_runs.run(Mode.BATCH)
 
 
 def test_batch_accuracy_and_consistency(batch_run):
@@ -69,11 +69,10 @@ def test_incremental_final_estimate_matches_batch(nominal_log):
 
 
 @pytest.mark.slow
-def test_incremental_defaults_stay_within_a_sigma_of_batch(nominal_log, batch_run):
+def test_incremental_defaults_stay_within_a_sigma_of_batch(nominal_runs, batch_run):
     """With every defence on, the modes leave out slightly different features (the
     incremental ones judge each frame against its prior): within one sigma of batch."""
-    flight, dtm = nominal_log
-    inc = smooth(flight, dtm, SmootherSettings(mode=SmootherMode.INCREMENTAL))
+    inc = nominal_runs.run(Mode.ISAM2).result  # SmootherSettings(mode=INCREMENTAL)
     assert _worst_sigma(batch_run.result, inc) <= 1.0
 
 

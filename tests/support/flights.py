@@ -1,5 +1,5 @@
 """The clean simulated flights several test folders smooth, each made and smoothed once per
-session (the ``clean_flights`` fixture).
+session (the ``clean_flights`` and ``nominal_runs`` fixtures).
 
 A flight is the robustness study's base flight (:data:`cdtm_graph.studies.robustness.BASE`:
 the issue's 1800 m, 150 m/s, ~150 features, 1 fps) of ``frames`` frames and ``seed``, with
@@ -44,11 +44,31 @@ class CleanFlights:
         """The clean flight smoothed and judged in ``mode`` with default settings."""
         key = (seed, frames, mode)
         if key not in self.runs:
-            self.runs[key] = smooth_and_evaluate(*self.flight(seed, frames),
-                                                 mode.settings(SmootherSettings()))
+            self.runs[key] = smoothed(self.flight(seed, frames), mode)
         return self.runs[key]
 
     def runs_of(self, seeds: Iterable[int], frames: int,
                 mode: Mode = Mode.BATCH) -> list[RunOutput]:
         """:meth:`run` of each seed, in order."""
         return [self.run(seed, frames, mode) for seed in seeds]
+
+
+@dataclasses.dataclass
+class FlightRuns:
+    """One flight's runs, one per mode, each made once (``nominal_runs``)."""
+
+    flight: tuple[FlightLog, Dtm]
+    runs: dict[Mode, RunOutput] = dataclasses.field(default_factory=dict)
+
+    def run(self, mode: Mode = Mode.BATCH) -> RunOutput:
+        """The flight smoothed and judged in ``mode`` with default settings."""
+        if mode not in self.runs:
+            self.runs[mode] = smoothed(self.flight, mode)
+        return self.runs[mode]
+
+
+def smoothed(flight: tuple[FlightLog, Dtm], mode: Mode) -> RunOutput:
+    """``flight`` (log, DTM) smoothed and judged in ``mode`` with default settings
+    (``Mode.BATCH``: ``SmootherSettings()``; ``ISAM2``: ``mode=INCREMENTAL``; ``FIXED_LAG``:
+    ``lag_s=10``)."""
+    return smooth_and_evaluate(*flight, mode.settings(SmootherSettings()))
