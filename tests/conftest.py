@@ -1,18 +1,130 @@
+"""Fixtures every test folder shares: the seed, the helpers of ``tests/support`` and the
+simulated flights several files smooth (each made once per session).
+
+Test files never import each other, this file or ``tests/support``: what they share comes
+through the fixtures below (tests/README.md lists them).
+"""
+
+from __future__ import annotations
+
 import numpy as np
 import pytest
+
+from tests.support import flightlogs as _flightlogs
+from tests.support import flights as _flights
+from tests.support import manifold as _manifold
+from tests.support import sensor_files as _sensor_files
+from tests.support import synthetic as _synthetic
+from tests.support import ulog_files as _ulog_files
 
 #: One seed for every random generator in the tests.
 TEST_SEED = 20261121
 
 
+@pytest.fixture(scope="session")
+def seed() -> int:
+    """The tests' one seed (:data:`TEST_SEED`); a second independent draw is ``seed + 1``."""
+    return TEST_SEED
+
+
 @pytest.fixture
-def rng() -> np.random.Generator:
-    return np.random.default_rng(TEST_SEED)
+def rng(seed: int) -> np.random.Generator:
+    return np.random.default_rng(seed)
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+@pytest.fixture(scope="session")
+def manifold():
+    """:mod:`tests.support.manifold`: central differences on the manifold, random rotations
+    and mountings, a wavy terrain with an exact ray caster, a random C-DTM frame pair."""
+    return _manifold
+
+
+@pytest.fixture(scope="session")
+def sensor_files():
+    """:mod:`tests.support.sensor_files`: EuRoC, Kalibr and ROS bag writers of a log."""
+    return _sensor_files
+
+
+@pytest.fixture(scope="session")
+def ulog_files():
+    """:mod:`tests.support.ulog_files`: PX4 ULog files written from a simulated log."""
+    return _ulog_files
+
+
+@pytest.fixture(scope="session")
+def flightlog_files():
+    """:mod:`tests.support.flightlogs`: the small log's builder and the line editing of
+    the malformed-input tests (``expect_error`` asserts the one-line message)."""
+    return _flightlogs
+
+
+@pytest.fixture(scope="session")
+def synthetic():
+    """:mod:`tests.support.synthetic`: a made-up smoother result, a smooth world DTM."""
+    return _synthetic
+
+
+@pytest.fixture
+def small_log(tmp_path, rng: np.random.Generator):
+    """A small valid log (4 frames, 6 tracks, random values), written to tmp_path/log with
+    its DTM (:func:`tests.support.flightlogs.make_log`)."""
+    from cdtm_graph.flightlog import write_flightlog
+
+    the_log = _flightlogs.make_log(tmp_path / "log", rng)
+    write_flightlog(the_log, the_log.root)
+    _flightlogs.write_dtm(the_log.root / "dtm.npz")
+    return the_log
+
+
+# --------------------------------------------------------------------------- flights
 
 
 @pytest.fixture(scope="session")
 def nominal_log():
-    """60 frames at 1 fps, ~1000 m above 300 m-relief fractal terrain, 30 m DTM."""
+    """60 frames at 1 fps, ~1000 m above 300 m-relief fractal terrain, 30 m DTM. Seed 1:
+    the literal is the point, the smoother tests quote this flight's measured figures
+    (its ANEES 2.63 inside the band for independent frames, which other seeds may leave)."""
     from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
 
     return simulate_flight(SimulationSettings(frames=60, altitude_m=1000.0, relief_m=300.0, seed=1))
+
+
+@pytest.fixture(scope="session")
+def nominal_runs(nominal_log) -> _flights.FlightRuns:
+    """``nominal_log`` smoothed and judged with default settings, once per mode per session
+    (``nominal_runs.run(Mode.BATCH)``): the smoother and incremental tests read the same
+    runs."""
+    return _flights.FlightRuns(nominal_log)
+
+
+@pytest.fixture(scope="session")
+def clean_flights() -> _flights.CleanFlights:
+    """The clean flights of the robustness study's base flight, smoothed once per session
+    and shared (:class:`tests.support.flights.CleanFlights`): ``clean_flights.run(seed,
+    frames, mode)``. The calibration, verdict and consistency tests read the same runs."""
+    return _flights.CleanFlights()
+
+
+# --------------------------------------------------------------------------- scheduling
+
+
+#: Session fixtures whose runs several files read (their files share an xdist worker).
+SHARED_FIXTURES = ("clean_flights", "nominal_runs")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Keep work shared under pytest-xdist (``-n auto --dist loadgroup`` in pyproject.toml):
+    each test file runs whole on one worker, so its module fixtures are made once, and the
+    files that read one of :data:`SHARED_FIXTURES` run on one worker together, so its
+    flights are smoothed once. Without xdist the groups are only labels."""
+    group = {}
+    for fixture in SHARED_FIXTURES:
+        group.update({item.module.__name__: fixture for item in items
+                      if fixture in item.fixturenames and item.module.__name__ not in group})
+    for item in items:
+        if item.get_closest_marker("xdist_group") is None:
+            name = item.module.__name__
+            item.add_marker(pytest.mark.xdist_group(group.get(name, name)))

@@ -1,0 +1,265 @@
+"""``cdtm evaluate`` and ``cdtm smooth-many``: many runs in one table and figures (issue 23).
+
+Logs are tiny simulations (6 frames, 40 features per pair, as tests/test_cli_safety.py's):
+a smoothing run takes about a second.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cdtm_graph.atomic import MANIFEST_NAME, read_manifest
+from cdtm_graph.cli import main
+from cdtm_graph.cli.evaluate import EVALUATE_FILES
+from cdtm_graph.errors import CdtmError
+from cdtm_graph.outputs import read_run, read_tum, write_trajectory_tum
+from cdtm_graph.sim.simulate import SimulationSettings, write_simulated_log
+from cdtm_graph.verdict.comparison import REPORT_AGREEMENT_M, TABLE_COLUMNS, run_series
+
+#: Exit statuses of a smoothing run that wrote its outputs (the verdict of a 6-frame log is
+#: not what these tests are about).
+WROTE_OUTPUTS = (0, 3)
+#: Three modes, as `cdtm smooth` options.
+MODES = {"batch": [], "isam2": ["--mode", "incremental"],
+         "lag": ["--mode", "incremental", "--lag-s", "3"]}
+
+
+def _log(directory: Path, seed: int) -> Path:
+    settings = SimulationSettings(frames=6, n_features=40, seed=seed, resolution_px=(640, 480))
+    return write_simulated_log(settings, directory)
+
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory, seed) -> list[Path]:
+    root = tmp_path_factory.mktemp("logs")
+    return [_log(root / f"log{i}", seed % 1000 + i) for i in range(4)]
+
+
+@pytest.fixture(scope="module")
+def runs(logs, tmp_path_factory) -> list[Path]:
+    """Runs of three modes over two logs."""
+    root = tmp_path_factory.mktemp("runs")
+    out = []
+    for log in logs[:2]:
+        for mode, options in MODES.items():
+            run = root / f"{log.name}_{mode}"
+            assert main(["smooth", str(log), "--out", str(run), "--quiet", *options]) in \
+                WROTE_OUTPUTS
+            out.append(run)
+    return out
+
+
+@pytest.fixture(scope="module")
+def singles(logs, tmp_path_factory) -> dict[str, Path]:
+    """Each log through `cdtm smooth`, as a user runs one."""
+    root = tmp_path_factory.mktemp("singles")
+    out = {}
+    for log in logs:
+        out[log.name] = root / log.name
+        assert main(["smooth", str(log), "--out", str(out[log.name]), "--quiet"]) in \
+            WROTE_OUTPUTS
+    return out
+
+
+def _one_line(err: str, *words: str) -> None:
+    lines = [line for line in err.strip().splitlines() if line.strip()]
+    assert len(lines) == 1, err
+    for word in words:
+        assert word in lines[0], (word, lines[0])
+
+
+def test_evaluate_writes_one_row_per_run_and_the_three_figures(runs, tmp_path, capsys):
+    """Three modes over two logs: the table holds report.json's figures for each run, the
+    figures one box / line per run.
+
+    Catches: a column read from the wrong report key or axis (the CSV is compared with
+    each report.json), a run left out of a figure, outputs not under the manifest."""
+    out = tmp_path / "eval"
+    assert main(["evaluate", *map(str, runs), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert set(read_manifest(out)) == set(EVALUATE_FILES)
+    with open(out / "evaluation.csv") as f:
+        table = list(csv.DictReader(f))
+    assert tuple(table[0]) == TABLE_COLUMNS
+    assert [row["run"] for row in table] == [r.name for r in runs]
+    for row, run in zip(table, runs, strict=True):
+        report = json.loads((run / "report.json").read_text())
+        c = report["evaluation"]["compensated"]
+        for a in "xyz":
+            assert float(row[f"rmse_{a}_m"]) == c["rmse_position_m"][a]
+            assert float(row[f"max_{a}_m"]) == c["max_abs_position_error_m"][a]
+        assert float(row["anees_position"]) == c["anees_position"]
+        consistency = c["position_consistency"]
+        assert float(row["nees_p90"]) == consistency["nees_percentiles"]["p90"]
+        assert float(row["inside_95"]) == consistency["inside_fraction"]
+        assert row["verdict"] == report["verdict"]
+        assert float(row["time_s"]) == report["timings_s"]["total"]
+    assert [row["mode"] for row in table[:3]] == ["batch", "incremental",
+                                                  "incremental, lag 3 s"]
+    markdown = (out / "evaluation.md").read_text()
+    assert markdown == printed and markdown.count("\n") == 2 + len(runs)
+    for name in EVALUATE_FILES[2:]:
+        assert (out / name).read_bytes()[:4] == b"\x89PNG"
+
+
+def test_the_figures_show_every_run(runs, tmp_path):
+    """One box per run in each panel, one error line per run and axis, one NEES line per run
+    beside the chi-square bounds; the per-frame series agree with report.json.
+
+    Catches: a run dropped from a figure; series from files of another run."""
+    from cdtm_graph.plots.comparison import (
+        plot_error_boxplots,
+        plot_errors_over_time,
+        plot_nees_over_time,
+    )
+    from cdtm_graph.verdict.comparison import NEES_DOF
+    from cdtm_graph.verdict.evaluation import nees_bound
+
+    runs = runs[::2]  # three runs are enough to see none is dropped
+    names = [r.name for r in runs]
+    series = [run_series(read_run(r)) for r in runs]
+    boxes = plot_error_boxplots(tmp_path / "b.png", names, series)
+    for ax in boxes.axes:
+        assert [t.get_text() for t in ax.get_xticklabels()] == names
+    over_time = plot_errors_over_time(tmp_path / "e.png", names, series)
+    for ax in over_time.axes:
+        labelled = [ln for ln in ax.lines if not ln.get_label().startswith("_")]
+        assert [ln.get_label() for ln in labelled] == names
+    nees = plot_nees_over_time(tmp_path / "n.png", names, series)
+    lines = nees.axes[0].lines
+    assert sum(ln.get_label().split(" (")[0] in names for ln in lines) == len(runs)
+    assert any(np.allclose(ln.get_ydata(), nees_bound(NEES_DOF)) for ln in lines)
+    for run, s in zip(runs, series, strict=True):
+        report = json.loads((run / "report.json").read_text())
+        assert s.rmse_position_3d_m == pytest.approx(
+            report["evaluation"]["compensated"]["rmse_position_3d_m"], abs=REPORT_AGREEMENT_M)
+
+
+def test_files_of_two_runs_mixed_are_named_not_averaged(runs, tmp_path):
+    """A run directory whose groundtruth.tum belongs to another log is refused.
+
+    Catches: series taken without checking them against report.json."""
+    mixed = tmp_path / "mixed"
+    shutil.copytree(runs[0], mixed)
+    t_ns, world_T_body = read_tum(mixed / "groundtruth.tum")
+    world_T_body[:, 0, 3] += 0.5  # another flight's truth, half a metre east
+    write_trajectory_tum(mixed / "groundtruth.tum", t_ns, world_T_body)
+    with pytest.raises(CdtmError, match="expected the files of one run"):
+        run_series(read_run(mixed))
+
+
+@pytest.mark.parametrize("case, words", [
+    ("not_a_run", ["not a run directory (no report.json)"]),
+    ("missing", ["does not exist"]),
+    ("no_truth", ["no ground truth", "groundtruth.tum"]),
+])
+def test_evaluate_bad_input_is_one_line_and_nothing_written(runs, logs, tmp_path, capsys,
+                                                            case, words):
+    """A log instead of a run, a missing directory, a run without ground truth: one line
+    naming it, exit 1, no --out.
+
+    Catches: a traceback, or a table written without the run."""
+    bad = {"not_a_run": logs[0], "missing": tmp_path / "nothing"}.get(case)
+    if case == "no_truth":
+        bad = tmp_path / "no_truth"
+        shutil.copytree(runs[0], bad)
+        (bad / "groundtruth.tum").unlink()
+    out = tmp_path / "eval"
+    assert main(["evaluate", str(runs[0]), str(bad), "--out", str(out)]) == 1
+    _one_line(capsys.readouterr().err, str(bad), *words)
+    assert not out.exists()
+
+
+def test_smooth_many_gives_each_log_the_run_cdtm_smooth_gives_it(logs, singles, tmp_path,
+                                                                 capsys):
+    """smooth-many (in one process: --workers 1) writes DIR/<log> exactly as four single
+    runs, each its own cdtm output directory, and the evaluation beside them; a rerun
+    keeps a user's file in DIR.
+
+    Catches: other settings or files than cdtm smooth's, runs not under their own
+    manifest (a later `cdtm smooth --out DIR/log0` refused), the evaluation missing."""
+    out = tmp_path / "many"
+    code = main(["smooth-many", *map(str, logs), "--out", str(out), "--workers", "1",
+                 "--quiet"])
+    assert code in WROTE_OUTPUTS
+    for log in logs:
+        single = singles[log.name]
+        many = out / log.name
+        assert read_manifest(many) == read_manifest(single)
+        assert (many / "trajectory.tum").read_text() == (single / "trajectory.tum").read_text()
+        a, b = (json.loads((d / "report.json").read_text())["evaluation"]
+                for d in (many, single))
+        assert a == b
+    assert set(read_manifest(out)) == set(EVALUATE_FILES)
+    assert {p.name for p in out.iterdir()} == {*EVALUATE_FILES, MANIFEST_NAME,
+                                               *(log.name for log in logs)}
+
+
+def test_smooth_many_tasks_run_on_worker_processes(logs, singles, tmp_path):
+    """smooth-many's task on two local worker processes (its default backend): the same
+    trajectories as `cdtm smooth`.
+
+    Catches: a task that cannot be pickled or run in a worker process."""
+    import argparse
+
+    from cdtm_graph.cli.smooth_many import _TASK_OPTIONS, SmoothTask, smooth_task
+    from cdtm_graph.parallel import ParallelSettings, map_tasks
+
+    parser = argparse.ArgumentParser()
+    sub = parser.add_subparsers()
+    from cdtm_graph.cli import smooth_many
+
+    smooth_many.register(sub)
+    args = parser.parse_args(["smooth-many", "L", "--out", "O"])
+    options = {k: getattr(args, k) for k in _TASK_OPTIONS}
+    tasks = [SmoothTask(str(log), str(tmp_path / log.name), options) for log in logs[:2]]
+    done = map_tasks(smooth_task, tasks, ParallelSettings(workers=2))
+    assert [d.out for d in done] == [t.out for t in tasks]
+    for log in logs[:2]:
+        assert (tmp_path / log.name / "trajectory.tum").read_text() == (
+            singles[log.name] / "trajectory.tum").read_text()
+
+
+def test_smooth_many_bad_input_is_one_line_before_any_work(logs, tmp_path, capsys):
+    """A log without ground truth, a missing log, an --out holding a user's files: one
+    line, exit 1, nothing written.
+
+    Catches: a run smoothed (minutes) before the evaluation refuses it."""
+    no_truth = tmp_path / "no_truth"
+    shutil.copytree(logs[0], no_truth)
+    (no_truth / "groundtruth.csv").unlink()
+    out = tmp_path / "many"
+    assert main(["smooth-many", str(logs[1]), str(no_truth), "--out", str(out)]) == 1
+    _one_line(capsys.readouterr().err, str(no_truth), "no groundtruth.csv")
+    assert main(["smooth-many", str(logs[1]), str(tmp_path / "nope"), "--out", str(out)]) == 1
+    _one_line(capsys.readouterr().err, "nope", "does not exist")
+    assert not out.exists()
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.md").write_text("mine")
+    assert main(["smooth-many", str(logs[1]), "--out", str(mine)]) == 1
+    _one_line(capsys.readouterr().err, "notes.md", "not written by cdtm")
+    assert [p.name for p in mine.iterdir()] == ["notes.md"]
+
+
+def test_smooth_many_rerun_keeps_what_it_did_not_write(logs, tmp_path, capsys):
+    """A rerun into the same DIR replaces its runs and evaluation and keeps a user's notes
+    beside them (in DIR and in a run's directory).
+
+    Catches: DIR refused on the rerun (its runs are not in DIR's manifest), or the user's
+    files replaced or deleted."""
+    out = tmp_path / "many"
+    argv = ["smooth-many", str(logs[0]), "--out", str(out), "--workers", "1", "--quiet"]
+    assert main(argv) in WROTE_OUTPUTS
+    (out / "notes.md").write_text("mine")
+    (out / logs[0].name / "seen.txt").write_text("mine too")
+    assert main(argv) in WROTE_OUTPUTS
+    assert (out / "notes.md").read_text() == "mine"
+    assert (out / logs[0].name / "seen.txt").read_text() == "mine too"
+    assert set(read_manifest(out)) == set(EVALUATE_FILES)

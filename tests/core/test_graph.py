@@ -1,0 +1,68 @@
+"""Graph builders: C-DTM factors of frame pairs, dropped features."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cdtm_graph.camera import DOWNWARD_BODY_T_CAM
+from cdtm_graph.dtm import Dtm
+from cdtm_graph.geometry import make_pose
+from cdtm_graph.graph import GraphSettings, cdtm_factors
+from cdtm_graph.results import Rejection
+from cdtm_graph.tracks import FramePairObservations
+from factors import CdtmPairFactor, FeatureNoise, PlaneMode
+
+
+def test_features_with_nan_rays_are_dropped_and_counted(rng):
+    """A pixel the distortion model cannot invert has a NaN ray: no factor row, counted."""
+    x = np.arange(0.0, 2000.0, 50.0)
+    elevation = 30.0 * np.sin(x / 300.0)[None, :] * np.cos(x / 400.0)[:, None]
+    dtm = Dtm(elevation, 0.0, 0.0, 50.0, 50.0, sigma_h_m=2.0)
+    q_a = np.c_[rng.uniform(-0.3, 0.3, (10, 2)), np.ones(10)]
+    q_b = q_a.copy()
+    q_a[3, 0] = np.nan
+    q_b[7, 1] = np.nan
+    pair = FramePairObservations(0, 1, q_a, q_b, np.arange(10), np.ones(10, dtype=int))
+    poses = [make_pose(np.eye(3), [1000.0, 1000.0, 800.0]),
+             make_pose(np.eye(3), [1040.0, 1000.0, 800.0])]
+    noise = FeatureNoise((1e-3, 1e-3), 2.0)
+    build = cdtm_factors([pair], poses, DOWNWARD_BODY_T_CAM, dtm, noise, GraphSettings())
+    assert build.n_features == 8 and build.rejections.total(Rejection.MISSED_DTM) == 2
+    e, _, _ = build.factors[0].evaluate(poses[0], poses[1])
+    assert np.isfinite(e).all()
+
+
+def test_a_factor_evaluated_where_it_was_built_casts_no_planes_and_equals_one_that_does(rng):
+    """The planes a pair's features were cast at are the factor's cast at that camera-a
+    pose: an innovation test there (the gate's, at the pose guess the pair was built at)
+    casts nothing and gives what a factor casting its own gives; elsewhere it casts."""
+    x = np.arange(0.0, 2000.0, 50.0)
+    elevation = 30.0 * np.sin(x / 300.0)[None, :] * np.cos(x / 400.0)[:, None]
+    dtm = Dtm(elevation, 0.0, 0.0, 50.0, 50.0, sigma_h_m=2.0)
+    q_a = np.c_[rng.uniform(-0.3, 0.3, (12, 2)), np.ones(12)]
+    q_b = q_a + rng.normal(0.0, 1e-3, q_a.shape) * [1.0, 1.0, 0.0]
+    q_a[4, 0] = np.nan  # a feature left out: the planes kept are the features' own
+    pair = FramePairObservations(0, 1, q_a, q_b, np.arange(12), np.ones(12, dtype=int))
+    poses = [make_pose(np.eye(3), [1000.0, 1000.0, 800.0]),
+             make_pose(np.eye(3), [1040.0, 1000.0, 800.0])]
+    casts = []
+    cast = dtm.tangent_planes
+
+    def counted(origin, ray):
+        casts.append(len(ray))
+        return cast(origin, ray)
+
+    dtm.tangent_planes = counted  # type: ignore[method-assign]
+    build = cdtm_factors([pair], poses, DOWNWARD_BODY_T_CAM, dtm, FeatureNoise((1e-3, 1e-3), 2.0),
+                         GraphSettings())
+    factor = build.factors[0]
+    n_built = len(casts)
+    e, H_a, H_b = factor.innovations(poses[0], poses[1])
+    assert len(casts) == n_built
+    own = CdtmPairFactor(factor.key_a, factor.key_b, factor.features, DOWNWARD_BODY_T_CAM,
+                         PlaneMode.REINTERSECT, counted)
+    for mine, theirs in zip((e, H_a, H_b), own.innovations(poses[0], poses[1])):
+        np.testing.assert_array_equal(mine, theirs)
+    assert len(casts) == n_built + 1
+    factor.innovations(poses[0] @ make_pose(np.eye(3), [5.0, 0.0, 0.0]), poses[1])
+    assert len(casts) == n_built + 2
