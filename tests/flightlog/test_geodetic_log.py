@@ -371,7 +371,7 @@ MIN_ELLIPSE_PX = 8.0
 
 
 def test_the_dem_plots_ellipses_are_visible_and_the_truth_is_drawn_over_the_estimate(
-        tmp_path: Path):
+        tmp_path: Path, synthetic):
     """trajectory_dem.png: 1 m ellipses on a 4 km track are magnified until they measure
     at least MIN_ELLIPSE_PX on screen, the factor in the legend; the ground truth's line is
     drawn above the estimate's; the IMU-only track is there.
@@ -383,7 +383,6 @@ def test_the_dem_plots_ellipses_are_visible_and_the_truth_is_drawn_over_the_esti
     from cdtm_graph.plots.dem import plot_trajectory_over_dem
     from cdtm_graph.results import TrajectoryEstimate
     from cdtm_graph.sim.geodetic import write_dem_tile
-    from tests.test_dem import _smooth_native
 
     frame = LocalFrame(ORIGIN)
     k = 12
@@ -399,7 +398,7 @@ def test_the_dem_plots_ellipses_are_visible_and_the_truth_is_drawn_over_the_esti
     truth = States(estimate.t_ns, position + [2.0, -1.0, 0.0], np.tile([1.0, 0, 0, 0], (k, 1)),
                    zeros)
     cov = np.tile(np.diag([1.0, 0.5, 1.0]), (k, 1, 1))  # 3 m at 3 sigma
-    tile = write_dem_tile(_smooth_native(), frame, tmp_path / "dem.tif", "EPSG:4326", 1 / 3600)
+    tile = write_dem_tile(synthetic.smooth_native_dtm(), frame, tmp_path / "dem.tif", "EPSG:4326", 1 / 3600)
     window = read_dem_window([tile], frame, (26000.0, 30000.0, 16000.0, 19000.0),
                              VerticalDatum.ELLIPSOID)
     fig = plot_trajectory_over_dem(tmp_path / "dem.png", window, frame, estimate, cov, truth,
