@@ -194,7 +194,7 @@ def normal_gravity_mps2(latitude_deg, height_m=0.0) -> np.ndarray:
     ``gamma(lat) = gamma_e (1 + k sin^2 lat) / sqrt(1 - e^2 sin^2 lat)`` (Somigliana) on
     the ellipsoid, times ``1 - 2/a (1 + f + m - 2 f sin^2 lat) h + 3 h^2 / a^2`` at
     ellipsoidal height h (second order in h/a). Measured against the gradient of the
-    closed-form normal potential (tests/test_geodesy.py): within 1.1e-7 m/s^2 up to 1 km
+    closed-form normal potential (tests/core/test_geodesy.py): within 1.1e-7 m/s^2 up to 1 km
     and 1.5e-6 m/s^2 (0.15 micro-g) up to 20 km.
 
     Args:
@@ -338,7 +338,7 @@ class ImuEnvironment:
         With ``omegaCoriolis`` set, GTSAM 4.3's predict adds the centrifugal term
         ``-Omega x (Omega x p_i)`` of the interval's start position ``p_i`` (in the world,
         from the world origin) to the gravity it is given (its second-order Coriolis term;
-        4.3's Python API cannot switch it off; measured in tests/test_geodesy.py). Normal
+        4.3's Python API cannot switch it off; measured in tests/core/test_geodesy.py). Normal
         gravity already holds the centrifugal acceleration, so GTSAM must get
         ``gravity + Omega x (Omega x p_i)``: the two cancel and the result is the normal
         gravity (1.6e-4 m/s^2 at 30 km from the origin otherwise, 2.6 m after 240 s).
@@ -375,7 +375,7 @@ class LocalFrame:
                                               origin.height_m)[0]
         self.world_R_ecef = enu_R_ecef(origin.latitude_deg, origin.longitude_deg)[0]
         # World -> geodetic in one PROJ pipeline (its topocentric conversion is this frame:
-        # tests/test_geodesy.py compares it with world_R_ecef and origin_ecef_m).
+        # tests/core/test_geodesy.py compares it with world_R_ecef and origin_ecef_m).
         self._world_to_geodetic = Transformer.from_pipeline(
             "+proj=pipeline "
             f"+step +inv +proj=topocentric +ellps=WGS84 +lat_0={origin.latitude_deg!r} "

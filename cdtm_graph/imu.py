@@ -38,7 +38,7 @@ in the tangent space of the preintegrated rotation, not as the exact product of
 per-step exponentials (``PreintegratedCombinedMeasurementsManifold`` is exact). That adds
 a small first-order rotation error (about a third of the MIDPOINT figure above) and makes
 two consecutive preintegrations composed differ from one over the union by ~1e-6.
-``integrate_interval`` works with either class. ``tests/test_imu.py`` measures all of
+``integrate_interval`` works with either class. ``tests/core/test_imu.py`` measures all of
 this against the analytic trajectory.
 
 **The Earth** (a log with a geodetic ``origin:``; ``ImuIntervals(.., earth=True)``). The
@@ -213,7 +213,7 @@ def preintegration_params(noise: ImuNoise, gravity_mps2: float,
     GTSAM takes continuous-time covariances: each ``integrateMeasurement(.., dt)`` uses
     ``accelerometerCovariance / dt`` (gyro likewise) as the covariance of that step's
     held measurement and adds ``dt * biasAccCovariance`` (omega likewise) for the bias
-    random walk (CombinedImuFactor.cpp; ``tests/test_imu.py`` checks that 1 s of
+    random walk (CombinedImuFactor.cpp; ``tests/core/test_imu.py`` checks that 1 s of
     preintegration gives density^2 * 1 s at 100 Hz and at 400 Hz). So the densities are
     squared and passed as they are; the sample rate is not needed, and ``rate_hz`` is
     only checked, for callers that have it at hand. Every covariance is set because

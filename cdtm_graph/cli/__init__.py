@@ -62,7 +62,7 @@ COMMANDS: dict[str, Command] = {
 
 
 #: The worked example ``cdtm --help`` ends with (README and docs/flightlog.md tell it whole;
-#: tests/test_worked_example.py runs it).
+#: tests/project/test_worked_example.py runs it).
 GEODETIC_EXAMPLE = """\
 exit status: 0 success (cdtm smooth, cdtm demo: the run's verdict is trusted); 3 outputs
 written but the verdict is degraded or failed (each reason one line on stderr); 1 bad

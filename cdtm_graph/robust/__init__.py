@@ -14,5 +14,5 @@
 - :mod:`~cdtm_graph.robust.fix_search` and :mod:`~cdtm_graph.robust.acquisition`: finding
   the fix when the prior is wider than the smoothers pull in.
 
-The wing never imports the smoothers (``tests/test_layout.py``).
+The wing never imports the smoothers (``tests/project/test_layout.py``).
 """

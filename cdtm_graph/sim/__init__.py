@@ -1,7 +1,7 @@
 """Synthetic flights for tests, studies and benchmarks: trajectories, terrain, IMU, logs.
 
 Not part of the estimator: nothing outside ``sim``, ``studies``, ``cli`` and ``plots``
-imports it (``tests/test_layout.py``).
+imports it (``tests/project/test_layout.py``).
 
 - :mod:`~cdtm_graph.sim.trajectory`: flight plans and their exact kinematics.
 - :mod:`~cdtm_graph.sim.terrain`: fractal terrain, cloned cells, Fig. 6's sigma_h.

@@ -21,7 +21,7 @@ rate are closed-form in every segment. Position is closed-form on straights and
 constant-rate arcs; inside a ramp, ``integral cos(heading)`` has no elementary
 antiderivative and is evaluated by Gauss-Legendre quadrature of the closed-form
 integrand, which is analytic with a small heading change, so it is exact to round-off
-(``tests/test_trajectory.py`` checks it against adaptive quadrature). Nothing is
+(``tests/sim/test_trajectory.py`` checks it against adaptive quadrature). Nothing is
 numerically differentiated.
 
 Times outside the plan: before t = 0 the first straight is extended backwards, after

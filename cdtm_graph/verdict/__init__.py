@@ -12,7 +12,7 @@ degraded or failed, and why).
 - :mod:`~cdtm_graph.verdict.rules`: :func:`assess`, the rules that turn all of it into a
   :class:`Verdict` (:mod:`~cdtm_graph.verdict.outcome`: the verdict as data).
 
-The wing judges results; it never imports the smoothers (``tests/test_layout.py``).
+The wing judges results; it never imports the smoothers (``tests/project/test_layout.py``).
 ``from cdtm_graph.verdict import assess`` loads the rules on first use only, so that the
 preflight check does not pay for them.
 """

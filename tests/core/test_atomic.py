@@ -217,7 +217,9 @@ def test_a_manifest_cannot_make_cdtm_delete_outside_its_files(tmp_path: Path, na
 
 
 def test_signals_wait_until_the_files_are_published(tmp_path: Path, monkeypatch):
-    """SIGINT arriving between two renames is held until every file is in place."""
+    """SIGINT arriving between two renames is held until every file is in place, then
+    delivered to the handler that was there: here Python's own, as in a command (a worker
+    of pytest-xdist ignores SIGINT, and a held signal then stays ignored, rightly)."""
     out = tmp_path / "run"
     with atomic_output_dir(out, writer="smooth") as staging:
         _write(staging, **{"a.txt": "old a", "b.txt": "old b"})
@@ -231,9 +233,13 @@ def test_signals_wait_until_the_files_are_published(tmp_path: Path, monkeypatch)
             signal.raise_signal(signal.SIGINT)
 
     monkeypatch.setattr(atomic.os, "replace", replace_then_signal)
-    with pytest.raises(KeyboardInterrupt):
-        with atomic_output_dir(out, writer="smooth") as staging:
-            _write(staging, **{"a.txt": "new a", "b.txt": "new b"})
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with atomic_output_dir(out, writer="smooth") as staging:
+                _write(staging, **{"a.txt": "new a", "b.txt": "new b"})
+    finally:
+        signal.signal(signal.SIGINT, previous)
     assert "b.txt" in calls  # the publication went on after the signal
     assert (out / "a.txt").read_text() == "new a" and (out / "b.txt").read_text() == "new b"
     assert json.loads((out / MANIFEST_NAME).read_text())["complete"] is True

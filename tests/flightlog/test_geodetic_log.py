@@ -398,7 +398,8 @@ def test_the_dem_plots_ellipses_are_visible_and_the_truth_is_drawn_over_the_esti
     truth = States(estimate.t_ns, position + [2.0, -1.0, 0.0], np.tile([1.0, 0, 0, 0], (k, 1)),
                    zeros)
     cov = np.tile(np.diag([1.0, 0.5, 1.0]), (k, 1, 1))  # 3 m at 3 sigma
-    tile = write_dem_tile(synthetic.smooth_native_dtm(), frame, tmp_path / "dem.tif", "EPSG:4326", 1 / 3600)
+    tile = write_dem_tile(synthetic.smooth_native_dtm(), frame, tmp_path / "dem.tif",
+                          "EPSG:4326", 1 / 3600)
     window = read_dem_window([tile], frame, (26000.0, 30000.0, 16000.0, 19000.0),
                              VerticalDatum.ELLIPSOID)
     fig = plot_trajectory_over_dem(tmp_path / "dem.png", window, frame, estimate, cov, truth,
