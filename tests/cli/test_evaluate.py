@@ -176,6 +176,7 @@ def test_evaluate_bad_input_is_one_line_and_nothing_written(runs, logs, tmp_path
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_smooth_many_gives_each_log_the_run_cdtm_smooth_gives_it(logs, singles, tmp_path,
                                                                  capsys):
     """smooth-many (in one process: --workers 1) writes DIR/<log> exactly as four single
@@ -201,6 +202,7 @@ def test_smooth_many_gives_each_log_the_run_cdtm_smooth_gives_it(logs, singles, 
                                                *(log.name for log in logs)}
 
 
+@pytest.mark.slow
 def test_smooth_many_tasks_run_on_worker_processes(logs, singles, tmp_path):
     """smooth-many's task on two local worker processes (its default backend): the same
     trajectories as `cdtm smooth`.
@@ -248,6 +250,7 @@ def test_smooth_many_bad_input_is_one_line_before_any_work(logs, tmp_path, capsy
     assert [p.name for p in mine.iterdir()] == ["notes.md"]
 
 
+@pytest.mark.slow
 def test_smooth_many_rerun_keeps_what_it_did_not_write(logs, tmp_path, capsys):
     """A rerun into the same DIR replaces its runs and evaluation and keeps a user's notes
     beside them (in DIR and in a run's directory).

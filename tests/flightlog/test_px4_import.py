@@ -170,8 +170,8 @@ def test_the_imported_px4_log_smooths_as_well_as_its_native_log(flight, imported
     assert imported_rmse < 5.0
 
 
-def test_frd_axes_keep_px4_s_samples_and_the_camera_must_look_down(flight, tmp_path, capsys,
-                                                                      sensor_files):
+def test_frd_axes_keep_px4_s_samples_and_the_camera_must_look_down(flight, imported, tmp_path,
+                                                                      capsys, sensor_files):
     """Without ``--imu-axes flu`` the body is PX4's FRD: the samples as logged and the truth's
     attitude in FRD, the same world motion, with a calibration in FRD. The FLU calibration
     with FRD axes turns the camera up: one line naming --imu-axes flu. Catches: an axes
@@ -190,7 +190,7 @@ def test_frd_axes_keep_px4_s_samples_and_the_camera_must_look_down(flight, tmp_p
     args[args.index("--kalibr") + 1] = str(tmp_path / "camchain.yaml")
     assert main(args) == 0
     frd = read_flightlog(tmp_path / "frd", read_tracks=False)
-    flu = read_flightlog(flight / "imported", read_tracks=False)
+    flu = read_flightlog(imported, read_tracks=False)
     np.testing.assert_array_equal(frd.imu.gyro_radps, flu.imu.gyro_radps @ FLU_R_FRD)
     np.testing.assert_array_equal(frd.imu.acc_mps2, flu.imu.acc_mps2 @ FLU_R_FRD)
     world_R_frd = quat_wxyz_to_rotation(frd.groundtruth.quaternion_wxyz)

@@ -27,6 +27,7 @@ def flights():
     return {name: SCENARIOS[name].flight(base) for name in ("wrong30", "far1000_periodic")}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", MODES)
 @pytest.mark.parametrize("scenario", ["wrong30", "far1000_periodic"])
 def test_the_stages_add_up_to_the_runs_counts(flights, scenario, mode):
