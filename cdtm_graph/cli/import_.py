@@ -22,9 +22,9 @@ from cdtm_graph.flightlog import (
     FlightLog,
     write_tracks,
 )
-from cdtm_graph.flightlog.importers.px4 import GnssSource, ImuAxes, ImuTopics
-from cdtm_graph.flightlog.importers.recording import ImuNoiseSource
 from cdtm_graph.geodesy import GeodeticOrigin, VerticalDatum
+from cdtm_graph.importers.px4 import GnssSource, ImuAxes, ImuTopics
+from cdtm_graph.importers.recording import ImuNoiseSource
 
 #: Who writes an imported log (the output manifest's writer names).
 WRITERS = {"euroc": "import euroc", "rosbag": "import rosbag", "px4": "import px4"}
@@ -190,7 +190,7 @@ def _common_options(p: argparse.ArgumentParser, kalibr_required: bool) -> None:
 
 
 def _settings(args: argparse.Namespace):
-    from cdtm_graph.flightlog.importers import DtmSource, ImportSettings, InitialPrior
+    from cdtm_graph.importers import DtmSource, ImportSettings, InitialPrior
 
     origin = GeodeticOrigin(*args.origin) if args.origin is not None else None
     datum = VerticalDatum(args.vertical_datum) if args.vertical_datum is not None else None
@@ -248,7 +248,7 @@ class _LazyBar:
 
 
 def run(args: argparse.Namespace) -> int:
-    from cdtm_graph.flightlog.importers import import_euroc
+    from cdtm_graph.importers import import_euroc
 
     if args.source == "px4":
         _px4_origin(args)
@@ -283,7 +283,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _import_bag(args, staging: Path, out: Path, settings, progress):
-    from cdtm_graph.flightlog.importers import (
+    from cdtm_graph.importers import (
         BagTopics,
         StampSource,
         import_rosbag,
@@ -305,7 +305,7 @@ def _px4_origin(args: argparse.Namespace) -> None:
     """A PX4 log is geodetic: a DEM's vertical datum is required, and the origin defaults to
     the log's first GNSS fix."""
     from cdtm_graph.errors import SensorDataError
-    from cdtm_graph.flightlog.importers.px4 import gnss_origin
+    from cdtm_graph.importers.px4 import gnss_origin
 
     if args.vertical_datum is None:
         raise SensorDataError("a PX4 log is in latitude and longitude; expected --dtm DEM "
@@ -316,8 +316,8 @@ def _px4_origin(args: argparse.Namespace) -> None:
 
 
 def _import_px4(args, staging: Path, out: Path, settings, progress):
-    from cdtm_graph.flightlog.importers import read_kalibr_camchain, read_kalibr_imu
-    from cdtm_graph.flightlog.importers.px4 import Px4Options, import_px4
+    from cdtm_graph.importers import read_kalibr_camchain, read_kalibr_imu
+    from cdtm_graph.importers.px4 import Px4Options, import_px4
 
     options = Px4Options(ImuAxes(args.imu_axes), ImuTopics(args.imu_topics),
                          GnssSource(args.gnss))
@@ -331,7 +331,7 @@ def _image_sources(args: argparse.Namespace, log: FlightLog) -> dict[str, str]:
     """What the user knows each imported image as: the EuRoC file it was copied from, or
     the bag it was decoded from (the staging copies vanish with a failed import)."""
     if args.source == "euroc":
-        from cdtm_graph.flightlog.importers.euroc import find_mav0
+        from cdtm_graph.importers.euroc import find_mav0
 
         data = find_mav0(args.mav0) / args.camera / "data"
         return {name: str(data / PurePosixPath(name).name) for name in log.frames.image}

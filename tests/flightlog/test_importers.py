@@ -23,7 +23,9 @@ from cdtm_graph.cli import main
 from cdtm_graph.data import egm96_grid_file, sample_images_path
 from cdtm_graph.errors import FlightLogError, SensorDataError
 from cdtm_graph.flightlog import FlightLog, read_flightlog, write_tracks
-from cdtm_graph.flightlog.importers import (
+from cdtm_graph.frontend import track_log
+from cdtm_graph.geometry import invert_pose
+from cdtm_graph.importers import (
     BagTopics,
     DtmSource,
     ImportSettings,
@@ -35,8 +37,6 @@ from cdtm_graph.flightlog.importers import (
     read_kalibr_camchain,
     read_kalibr_imu,
 )
-from cdtm_graph.frontend import track_log
-from cdtm_graph.geometry import invert_pose
 from cdtm_graph.run.prepare import load_log_and_dtm
 from cdtm_graph.smoother import smooth
 
@@ -347,7 +347,7 @@ def test_an_imu_without_accelerations_is_refused(sensor_files, native, tmp_path)
         conn = writer.add_connection("/imu0", "sensor_msgs/msg/Imu", typestore=store)
         writer.write(conn, 1, store.serialize_cdr(msg, "sensor_msgs/msg/Imu"))
         writer.add_connection(sensor_files.IMAGE_TOPIC, "sensor_msgs/msg/Image", typestore=store)
-    from cdtm_graph.flightlog.importers import read_bag
+    from cdtm_graph.importers import read_bag
 
     with pytest.raises(SensorDataError, match="has no linear_acceleration"):
         read_bag(
@@ -360,7 +360,7 @@ def test_an_imu_without_accelerations_is_refused(sensor_files, native, tmp_path)
 def test_without_rosbags_the_error_says_what_to_install(sensor_files, monkeypatch, tmp_path):
     import sys
 
-    from cdtm_graph.flightlog.importers import read_bag
+    from cdtm_graph.importers import read_bag
 
     monkeypatch.setitem(sys.modules, "rosbags.highlevel", None)
     with pytest.raises(SensorDataError, match=r'pip install "cdtm-graph\[rosbag\]"'):

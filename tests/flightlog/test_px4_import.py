@@ -22,7 +22,9 @@ import pytest
 from cdtm_graph.cli import main
 from cdtm_graph.errors import SensorDataError
 from cdtm_graph.flightlog import read_flightlog
-from cdtm_graph.flightlog.importers.px4 import (
+from cdtm_graph.geodesy import GeodeticOrigin, local_frame
+from cdtm_graph.geometry import quat_wxyz_to_rotation
+from cdtm_graph.importers.px4 import (
     ENU_R_NED,
     FLU_R_FRD,
     CameraTriggers,
@@ -37,8 +39,6 @@ from cdtm_graph.flightlog.importers.px4 import (
     match_triggers,
     read_ulog,
 )
-from cdtm_graph.geodesy import GeodeticOrigin, local_frame
-from cdtm_graph.geometry import quat_wxyz_to_rotation
 from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.run.prepare import load_log_and_dtm
 from cdtm_graph.sim.simulate import SimulationSettings, write_simulated_log
@@ -344,9 +344,9 @@ def test_the_real_px4_imu_meets_the_import_s_noise_check(caplog):
     and ``measured`` keeps the stated densities. Catches: a check that cries wolf on a
     quiet IMU; ``measured`` lowering a stated density."""
     from cdtm_graph.camera import PinholeCamera
-    from cdtm_graph.flightlog.importers import CameraCalibration, ImuNoiseSource, SensorRecording
-    from cdtm_graph.flightlog.importers.recording import imu_noise_config
     from cdtm_graph.flightlog.model import ImuConfig
+    from cdtm_graph.importers import CameraCalibration, ImuNoiseSource, SensorRecording
+    from cdtm_graph.importers.recording import imu_noise_config
 
     imu, _ = extract_imu(read_ulog(REAL_IMU))
     stated = ImuConfig(250.0, 1.6968e-4, 2.0e-3, 1.9e-5, 3.0e-3)
@@ -369,7 +369,7 @@ def test_the_raw_imu_topics_agree_with_sensor_combined():
     0.01 rad/s and 0.15 m/s^2 of sensor_combined there (measured 2026-11-27: 0.0077,
     0.12; the raw topics are single samples, sensor_combined 4 ms averages). Catches: raw
     times off the clock (seconds off: values would disagree by the motion), axes not FRD."""
-    from cdtm_graph.flightlog.importers.px4 import ImuTopics
+    from cdtm_graph.importers.px4 import ImuTopics
 
     ulog = read_ulog(SITL)
     raw, _ = extract_imu(ulog, ImuTopics.RAW)

@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from cdtm_graph.flightlog import FlightLog
-from cdtm_graph.flightlog.importers.px4 import ENU_R_NED, FLU_R_FRD
 from cdtm_graph.geometry import quat_wxyz_to_rotation, rotation_to_quat_wxyz
+from cdtm_graph.importers.px4 import ENU_R_NED, FLU_R_FRD
 
 MAGIC = b"ULog\x01\x12\x35"
 _TYPES = {"uint64_t": "<u8", "int64_t": "<i8", "uint32_t": "<u4", "int32_t": "<i4",

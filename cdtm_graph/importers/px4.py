@@ -44,8 +44,11 @@ from typing import Any
 import numpy as np
 
 from cdtm_graph.errors import SensorDataError
-from cdtm_graph.flightlog.importers.calibration import CameraCalibration, ImuCalibration
-from cdtm_graph.flightlog.importers.recording import (
+from cdtm_graph.flightlog.model import FlightLog, ImuSamples, States
+from cdtm_graph.geodesy import GeodeticOrigin, LocalFrame, geoid_undulation_m, local_frame
+from cdtm_graph.geometry import quat_wxyz_to_rotation, rotation_to_quat_wxyz
+from cdtm_graph.importers.calibration import CameraCalibration, ImuCalibration
+from cdtm_graph.importers.recording import (
     IMAGE_DIR,
     ImportSettings,
     SensorRecording,
@@ -54,9 +57,6 @@ from cdtm_graph.flightlog.importers.recording import (
     check_prior,
     write_imported_log,
 )
-from cdtm_graph.flightlog.model import FlightLog, ImuSamples, States
-from cdtm_graph.geodesy import GeodeticOrigin, LocalFrame, geoid_undulation_m, local_frame
-from cdtm_graph.geometry import quat_wxyz_to_rotation, rotation_to_quat_wxyz
 
 logger = logging.getLogger(__name__)
 

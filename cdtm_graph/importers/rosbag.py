@@ -30,8 +30,9 @@ import cv2
 import numpy as np
 
 from cdtm_graph.errors import SensorDataError
-from cdtm_graph.flightlog.importers.calibration import CameraCalibration, ImuCalibration
-from cdtm_graph.flightlog.importers.recording import (
+from cdtm_graph.flightlog.model import FlightLog, ImuSamples, States
+from cdtm_graph.importers.calibration import CameraCalibration, ImuCalibration
+from cdtm_graph.importers.recording import (
     IMAGE_DIR,
     ImportSettings,
     SensorRecording,
@@ -39,7 +40,6 @@ from cdtm_graph.flightlog.importers.recording import (
     check_prior,
     write_imported_log,
 )
-from cdtm_graph.flightlog.model import FlightLog, ImuSamples, States
 
 IMU_TYPES = ("sensor_msgs/msg/Imu",)
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")

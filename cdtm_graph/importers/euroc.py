@@ -25,13 +25,17 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from cdtm_graph.errors import SensorDataError, why_not_a_file
-from cdtm_graph.flightlog.importers.calibration import (
+from cdtm_graph.flightlog.model import FlightLog, ImuConfig
+from cdtm_graph.flightlog.problems import _fail, _show
+from cdtm_graph.flightlog.tables import _read_frames, _read_imu
+from cdtm_graph.geometry import invert_pose
+from cdtm_graph.importers.calibration import (
     CameraCalibration,
     read_euroc_sensor,
     read_kalibr_camchain,
     read_kalibr_imu,
 )
-from cdtm_graph.flightlog.importers.recording import (
+from cdtm_graph.importers.recording import (
     IMAGE_DIR,
     ImportSettings,
     SensorRecording,
@@ -41,10 +45,6 @@ from cdtm_graph.flightlog.importers.recording import (
     read_groundtruth,
     write_imported_log,
 )
-from cdtm_graph.flightlog.model import FlightLog, ImuConfig
-from cdtm_graph.flightlog.problems import _fail, _show
-from cdtm_graph.flightlog.tables import _read_frames, _read_imu
-from cdtm_graph.geometry import invert_pose
 
 #: The IMU's T_BS may differ from the identity by this much (EuRoC prints 1.0 and 0.0).
 IDENTITY_TOL = 1e-9

@@ -1,25 +1,25 @@
 """Sensor recordings into ``cdtm-flightlog/1`` logs: EuRoC folders, ROS bags, Kalibr files.
 
-- :mod:`~cdtm_graph.flightlog.importers.calibration`: Kalibr camchain and IMU files, EuRoC
+- :mod:`~cdtm_graph.importers.calibration`: Kalibr camchain and IMU files, EuRoC
   ``sensor.yaml`` (``T_cam_imu`` inverted into ``body_T_cam``, ``timeshift_cam_imu`` as
   ``camera.time_offset_s``, ``update_rate`` as ``imu.rate_hz``).
-- :mod:`~cdtm_graph.flightlog.importers.recording`: what every importer shares: the DTM,
+- :mod:`~cdtm_graph.importers.recording`: what every importer shares: the DTM,
   the prior, assembling and writing the log.
-- :mod:`~cdtm_graph.flightlog.importers.euroc`,
-  :mod:`~cdtm_graph.flightlog.importers.rosbag` (needs the ``rosbag`` extra) and
-  :mod:`~cdtm_graph.flightlog.importers.px4` (PX4 ULog files; the ``px4`` extra): the
+- :mod:`~cdtm_graph.importers.euroc`,
+  :mod:`~cdtm_graph.importers.rosbag` (needs the ``rosbag`` extra) and
+  :mod:`~cdtm_graph.importers.px4` (PX4 ULog files; the ``px4`` extra): the
   readers.
 """
 
-from cdtm_graph.flightlog.importers.calibration import (
+from cdtm_graph.importers.calibration import (
     CameraCalibration,
     ImuCalibration,
     read_euroc_sensor,
     read_kalibr_camchain,
     read_kalibr_imu,
 )
-from cdtm_graph.flightlog.importers.euroc import import_euroc, read_euroc
-from cdtm_graph.flightlog.importers.px4 import (
+from cdtm_graph.importers.euroc import import_euroc, read_euroc
+from cdtm_graph.importers.px4 import (
     GnssSource,
     ImuAxes,
     ImuTopics,
@@ -27,7 +27,7 @@ from cdtm_graph.flightlog.importers.px4 import (
     import_px4,
     read_px4,
 )
-from cdtm_graph.flightlog.importers.recording import (
+from cdtm_graph.importers.recording import (
     DtmSource,
     ImportSettings,
     ImuNoiseSource,
@@ -37,7 +37,7 @@ from cdtm_graph.flightlog.importers.recording import (
     read_groundtruth,
     write_imported_log,
 )
-from cdtm_graph.flightlog.importers.rosbag import BagTopics, StampSource, import_rosbag, read_bag
+from cdtm_graph.importers.rosbag import BagTopics, StampSource, import_rosbag, read_bag
 
 __all__ = [
     "GnssSource", "ImuAxes", "ImuTopics", "Px4Options", "import_px4", "read_px4",

@@ -30,7 +30,6 @@ import numpy as np
 from cdtm_graph.constants import STANDARD_GRAVITY_MPS2
 from cdtm_graph.errors import FlightLogError, SensorDataError, why_not_a_file
 from cdtm_graph.flightlog.config import RANGES
-from cdtm_graph.flightlog.importers.calibration import CameraCalibration
 from cdtm_graph.flightlog.model import (
     CameraConfig,
     DtmConfig,
@@ -52,6 +51,7 @@ from cdtm_graph.flightlog.tables import (
 from cdtm_graph.flightlog.writer import write_flightlog_files
 from cdtm_graph.geodesy import GeodeticOrigin, VerticalDatum, local_frame, normal_gravity_mps2
 from cdtm_graph.geometry import quat_wxyz_to_rotation
+from cdtm_graph.importers.calibration import CameraCalibration
 from cdtm_graph.run.prepare import load_flight_dtm
 from cdtm_graph.verdict.imu_faults import MeasuredImuNoise, sample_noise
 
