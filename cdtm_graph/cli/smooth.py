@@ -1,4 +1,9 @@
-"""``cdtm smooth LOG --out DIR``: smooth a flight log and write the run directory."""
+"""``cdtm smooth LOG --out DIR``: smooth a flight log and write the run directory.
+
+The module imports only the options' vocabulary at the top (``cdtm smooth --help`` and a
+usage error load no numerics); the estimator, the outputs and the plots are imported by the
+functions that use them.
+"""
 
 from __future__ import annotations
 
@@ -7,17 +12,17 @@ import math
 import sys
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from cdtm_graph.cli import COMMANDS
 from cdtm_graph.cli.outdir import add_out_option, output_dir
 from cdtm_graph.errors import CdtmError
-from cdtm_graph.graph import GraphSettings
-from cdtm_graph.outputs import ALL_RUN_FILES, RUN_WRITER, write_run_files
-from cdtm_graph.results import pose_covariance_in_world
-from cdtm_graph.run import RunOutput, smooth_and_evaluate
-from cdtm_graph.run.prepare import load_log_and_dtm
-from cdtm_graph.smoother import SmootherMode, SmootherSettings
-from factors import PlaneMode, RobustKernel
+from cdtm_graph.smoother.modes import SmootherMode
+from factors.modes import PlaneMode, RobustKernel
+
+if TYPE_CHECKING:
+    from cdtm_graph.run import RunOutput
+    from cdtm_graph.smoother import SmootherSettings
 
 #: Runs with at least this many frames show a progress bar (unless --quiet).
 PROGRESS_MIN_FRAMES = 100
@@ -112,6 +117,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def settings_from_args(args: argparse.Namespace) -> SmootherSettings:
+    from cdtm_graph.graph import GraphSettings
+    from cdtm_graph.smoother import SmootherSettings
+
     if args.lag_s is not None and not (math.isfinite(args.lag_s) and args.lag_s > 0):
         raise CdtmError(f"--lag-s {args.lag_s}: expected a finite lag > 0 seconds (without "
                         "--lag-s: the full history)")
@@ -152,6 +160,7 @@ def progress_bar(quiet: bool):
 def plot_writers(out: RunOutput, dtm, flight) -> list:
     from cdtm_graph.plots.trajectory import plot_errors, plot_trajectory_over_dtm
     from cdtm_graph.plots.verdict import plot_verdict
+    from cdtm_graph.results import pose_covariance_in_world
 
     est = out.result.estimate
     _, pos_cov = pose_covariance_in_world(est.world_T_body, out.result.covariances.pose)
@@ -234,6 +243,10 @@ def print_verdict(out: RunOutput, command: str = "cdtm smooth") -> int:
 def smooth_log_to_dir(log_dir: str, out_dir: Path, args: argparse.Namespace) -> RunOutput:
     """Smooth ``log_dir`` into ``out_dir``; the output directory is checked (and its staging
     directory made) before the log is read, so a bad ``--out`` fails before any work."""
+    from cdtm_graph.outputs import ALL_RUN_FILES, RUN_WRITER, write_run_files
+    from cdtm_graph.run import smooth_and_evaluate
+    from cdtm_graph.run.prepare import load_log_and_dtm
+
     settings = settings_from_args(args)
     # (the geodetic files only come with an origin; unknown before the log is read)
     scene = bool(getattr(args, "scene", False))
