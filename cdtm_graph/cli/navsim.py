@@ -77,14 +77,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def settings_from_args(args: argparse.Namespace) -> NavsimSettings:
-    """The navsim settings the arguments ask for (``CdtmError`` on a bad value)."""
+    """The navsim settings the arguments ask for (``CdtmError`` on a bad value; a bad
+    ``--frames`` before the simulator is imported)."""
+    if args.frames is not None and args.frames < 2:
+        raise CdtmError(f"--frames {args.frames}: expected at least 2 frames")
     from cdtm_graph.studies.navsim import NavsimSettings
 
     settings = NavsimSettings(altitudes_m=tuple(args.altitudes),
                               resolutions_px=tuple(args.resolutions), seed=args.seed)
     if args.frames is not None:
-        if args.frames < 2:
-            raise CdtmError(f"--frames {args.frames}: expected at least 2 frames")
         interval = settings.frame_interval_s(settings.table2_altitude_m)
         return dataclasses.replace(settings, duration_s=(args.frames - 1) * interval)
     if args.duration_s is not None:
@@ -111,9 +112,9 @@ def _progress(done: int, total: int, case: tuple[float, int]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    settings = settings_from_args(args)
     from cdtm_graph.studies.navsim import run_navsim, table_markdown
 
-    settings = settings_from_args(args)
     out_dir = Path(args.out)
     with output_dir(args, out_dir, WRITER, names=OUTPUT_FILES) as staging:
         result = run_navsim(settings, None if args.quiet else _progress)

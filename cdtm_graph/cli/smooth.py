@@ -117,9 +117,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def settings_from_args(args: argparse.Namespace) -> SmootherSettings:
-    from cdtm_graph.graph import GraphSettings
-    from cdtm_graph.smoother import SmootherSettings
-
+    """The settings the options ask for; a bad value is one line (``CdtmError``) before
+    the estimator is imported."""
     if args.lag_s is not None and not (math.isfinite(args.lag_s) and args.lag_s > 0):
         raise CdtmError(f"--lag-s {args.lag_s}: expected a finite lag > 0 seconds (without "
                         "--lag-s: the full history)")
@@ -127,6 +126,9 @@ def settings_from_args(args: argparse.Namespace) -> SmootherSettings:
         raise CdtmError("--lag-s needs --mode incremental")
     if args.gate is not None and not 0.0 < args.gate < 1.0:
         raise CdtmError(f"--gate {args.gate}: expected a probability strictly between 0 and 1")
+    from cdtm_graph.graph import GraphSettings
+    from cdtm_graph.smoother import SmootherSettings
+
     graph = GraphSettings(plane_mode=PlaneMode(args.plane), robust=RobustKernel(args.robust))
     calibration = getattr(args, "calibration", "checked")  # (parsers without the option)
     if calibration == "held":
@@ -243,11 +245,11 @@ def print_verdict(out: RunOutput, command: str = "cdtm smooth") -> int:
 def smooth_log_to_dir(log_dir: str, out_dir: Path, args: argparse.Namespace) -> RunOutput:
     """Smooth ``log_dir`` into ``out_dir``; the output directory is checked (and its staging
     directory made) before the log is read, so a bad ``--out`` fails before any work."""
+    settings = settings_from_args(args)
     from cdtm_graph.outputs import ALL_RUN_FILES, RUN_WRITER, write_run_files
     from cdtm_graph.run import smooth_and_evaluate
     from cdtm_graph.run.prepare import load_log_and_dtm
 
-    settings = settings_from_args(args)
     # (the geodetic files only come with an origin; unknown before the log is read)
     scene = bool(getattr(args, "scene", False))
     names = [*ALL_RUN_FILES, *(PLOT_FILES if args.plots else ()),

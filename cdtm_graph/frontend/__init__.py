@@ -15,6 +15,8 @@ loaded with the package, the tracker (OpenCV) on first use of one of its names.
 
 from __future__ import annotations
 
+import sys
+import types
 from typing import TYPE_CHECKING, Any
 
 from cdtm_graph.errors import ImageError
@@ -41,6 +43,20 @@ __all__ = [
     "camera_rotations_from_imu",
     "load_image", "track_log",
 ]
+
+
+class _Package(types.ModuleType):
+    """The package's ``track_log`` is the function, as it was when the package loaded its
+    modules eagerly: importing the submodule of the same name (which the import system
+    binds on its package) leaves the name to the function."""
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        if name == "track_log" and isinstance(value, types.ModuleType):
+            return
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package
 
 
 def __getattr__(name: str) -> Any:
