@@ -24,17 +24,20 @@ ROOT = Path(__file__).resolve().parents[2]
 HEAVY = ("numpy", "gtsam", "numba", "scipy", "cv2", "trimesh", "pandas", "matplotlib")
 
 #: Runs each argv (a JSON list of lists, argv[1]) through ``cdtm``'s ``main`` in this one
-#: process, in order; prints per argv its exit code, the heavy modules loaded so far and
-#: stderr (a step that loads one shows first, later steps keep it).
+#: process, in order, stderr a terminal; prints per argv its exit code, the heavy modules
+#: loaded so far and stderr (a step that loads one shows first, later steps keep it).
 _PROBE = r"""
 import contextlib, io, json, sys
 from cdtm_graph.cli import ALL, build_parser, main
 heavy = set(sys.argv[2].split(","))
 rows = []
+class Terminal(io.StringIO):  # stderr as a user's: the compilation announcement is on
+    def isatty(self):
+        return True
 def loaded():
     return sorted(heavy & {name.partition(".")[0] for name in sys.modules})
 for argv in json.loads(sys.argv[1]):
-    out, err = io.StringIO(), io.StringIO()
+    out, err = io.StringIO(), Terminal()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         if argv == ["<every parser>"]:
             build_parser(only=ALL)
@@ -108,7 +111,9 @@ def test_usage_errors_of_every_command_load_no_numerics():
     Catches a usage error that imports the estimator first: the mutation above, or a
     command checking its options after importing its numerics (mutation tried: the imports
     of ``settings_from_args`` in cli/smooth.py moved above its checks; also the navsim
-    ``--frames`` check after ``NavsimSettings`` is imported).
+    ``--frames`` check after ``NavsimSettings`` is imported); and, stderr being a terminal,
+    the compilation announcement importing numba before the command runs (mutation tried:
+    ``from numba.core import event`` back at the start of ``announced``).
     """
     mistyped = [[name, "--no-such-option"] for name in COMMANDS]
     missing = [["smooth"], ["track"], ["import", "px4", "x.ulg"], ["analyze", "LOG"],
@@ -125,3 +130,39 @@ def test_usage_errors_of_every_command_load_no_numerics():
         lines = row["err"].strip().splitlines()
         assert row["code"] == 1 and len(lines) == 1, row
         assert lines[0].startswith(f"cdtm {argv[0]}: error: ") and words in lines[0], row
+
+
+_ANNOUNCED = r"""
+import io, sys
+from cdtm_graph.cli.compiling import announced
+class Terminal(io.StringIO):
+    def isatty(self):
+        return True
+stream = Terminal()
+with announced("cdtm x", stream=stream) as counter:
+    before = "numba" in sys.modules
+    from numba import njit
+
+    @njit(cache=False)
+    def twice(x):
+        return 2.0 * x
+
+    twice(1.0)
+print(before, counter.compiled, len(stream.getvalue().splitlines()))
+"""
+
+
+def test_the_announcement_waits_for_the_command_to_load_numba():
+    """On a terminal, the compilation announcement loads no numba itself, and still sees a
+    kernel compiled after the command loaded numba inside it (the other path, numba loaded
+    before: tests/cli/test_cli.py).
+
+    Catches ``announced`` importing numba as it starts (every command on a terminal paid
+    numba's import, an option refused with exit 1 too), and a deferred listener that is
+    never registered (mutation tried: the hook not inserted into ``sys.meta_path``: 0
+    kernels counted).
+    """
+    done = subprocess.run([sys.executable, "-c", _ANNOUNCED], cwd=ROOT, capture_output=True,
+                          text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == ["False", "1", "2"]
