@@ -2,8 +2,9 @@
 
 Times ``python -m cdtm_graph smooth --help`` (the parser of the heaviest command) and
 ``python -m cdtm_graph --version`` (the interpreter and the package's ``__init__``: the
-floor; 7cb9496 has no ``--version`` and answers it with a usage error, exit 2,
-from the same top-level parser), best of ``--repeats`` each, every process fresh (``PYTHONPATH`` the checkout).
+floor; 7cb9496 has no ``--version`` and answers it with a usage error, exit 2, from the
+same top-level parser), best of ``--repeats`` each, every process fresh (``PYTHONPATH``
+the checkout).
 With ``--ref DIR`` (e.g. ``/work/wt-old``, commit 7cb9496) the same commands of that
 checkout run interleaved with this one's (A B A B ...), so the machine's drift hits both
 alike. ``--real`` adds a short real command: ``simulate`` of a 4-frame flight into a
