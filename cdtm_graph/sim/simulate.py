@@ -78,6 +78,18 @@ from cdtm_graph.sim.faults import (
 from cdtm_graph.sim.geodetic import origin_of, write_geodetic_simulation_files
 from cdtm_graph.sim.imu import ImuData, simulate_imu
 from cdtm_graph.sim.render import write_images
+from cdtm_graph.sim.settings import (
+    DEFAULT_SEED,
+    NOMINAL_ALTITUDE_M,
+    NOMINAL_DTM_SPACING_M,
+    NOMINAL_FEATURES,
+    NOMINAL_FPS,
+    NOMINAL_FRAMES,
+    NOMINAL_RELIEF_M,
+    NOMINAL_RESOLUTION_PX,
+    NOMINAL_SPEED_MPS,
+    NavMode,
+)
 from cdtm_graph.sim.terrain import NOMINAL_CORRELATION_LENGTH_M, clone_basic_cell, fractal_terrain
 from cdtm_graph.sim.trajectory import STANDARD_GRAVITY_MPS2, FlightPlan, Trajectory, evaluate
 
@@ -149,14 +161,6 @@ _SPAWN_MIN_CANDIDATES = 64
 _SPAWN_MAX_CANDIDATES = 200_000
 _SPAWN_ROUNDS = 8
 
-
-
-class NavMode(enum.Enum):
-    """Whether and how the simulated log gets a nav.csv (an external navigation solution)."""
-
-    NONE = "none"                    # no nav.csv
-    DEAD_RECKONING = "deadreckoning"  # IMU-only propagation from the initial-state prior
-    NOISY_TRUTH = "noisy_truth"      # the true state plus white noise per frame
 
 
 class TrackEnd(enum.IntEnum):
@@ -244,18 +248,18 @@ class SimulationSettings:
     """
 
     terrain: Path | None = None
-    relief_m: float = 300.0
+    relief_m: float = NOMINAL_RELIEF_M
     terrain_cell_m: float = 3000.0
     correlation_length_m: float = NOMINAL_CORRELATION_LENGTH_M
     terrain_spacing_m: float | None = None
-    dtm_spacing_m: float = 30.0
+    dtm_spacing_m: float = NOMINAL_DTM_SPACING_M
     exact_dtm: bool = False
-    altitude_m: float = 1000.0
-    speed_mps: float = 200.0
-    frames: int = 60
-    fps: float = 1.0
-    n_features: int = 170
-    resolution_px: tuple[int, int] = (400, 400)
+    altitude_m: float = NOMINAL_ALTITUDE_M
+    speed_mps: float = NOMINAL_SPEED_MPS
+    frames: int = NOMINAL_FRAMES
+    fps: float = NOMINAL_FPS
+    n_features: int = NOMINAL_FEATURES
+    resolution_px: tuple[int, int] = NOMINAL_RESOLUTION_PX
     fov_deg: float = 60.0
     distortion_model: DistortionModel | str = DistortionModel.NONE
     distortion_coeffs: tuple[float, ...] = ()
@@ -287,7 +291,7 @@ class SimulationSettings:
     terrain_mismatch: TerrainMismatch | None = None
     flat_ground: FlatGround | None = None
     origin: GeodeticOrigin | None = None
-    seed: int = 0
+    seed: int = DEFAULT_SEED
 
     def __post_init__(self) -> None:
         if self.terrain is not None:
