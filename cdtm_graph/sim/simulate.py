@@ -77,6 +77,7 @@ from cdtm_graph.sim.faults import (
 )
 from cdtm_graph.sim.geodetic import origin_of, write_geodetic_simulation_files
 from cdtm_graph.sim.imu import ImuData, simulate_imu
+from cdtm_graph.sim.map_detail import MapDetail, apply_map_detail
 from cdtm_graph.sim.render import write_images
 from cdtm_graph.sim.settings import (
     DEFAULT_SEED,
@@ -238,6 +239,9 @@ class SimulationSettings:
             (:class:`~cdtm_graph.sim.faults.TerrainMismatch`).
         flat_ground: flat ground (a lake) under part of the track, in the truth and the
             DTM alike (:class:`~cdtm_graph.sim.faults.FlatGround`).
+        map_detail: ground detail the DTM lacks, correlated over tens to hundreds of
+            metres, everywhere (:class:`~cdtm_graph.sim.map_detail.MapDetail`): a map
+            error other than the resampling remainder ``sigma_h`` is fitted to.
         origin: where the world is on the Earth (WGS84): the world is the ENU tangent
             plane there, fixed to the rotating Earth, and the IMU senses the Earth's
             rotation and WGS84 normal gravity along the local vertical
@@ -290,6 +294,7 @@ class SimulationSettings:
     initial_error_deg: tuple[float, float, float] | None = None
     terrain_mismatch: TerrainMismatch | None = None
     flat_ground: FlatGround | None = None
+    map_detail: MapDetail | None = None
     origin: GeodeticOrigin | None = None
     seed: int = DEFAULT_SEED
 
@@ -405,7 +410,7 @@ class SimulationSettings:
                 value = value.value
             elif isinstance(value, ImuNoise):
                 value = dataclasses.asdict(value)
-            elif isinstance(value, (TerrainMismatch, FlatGround)):
+            elif isinstance(value, (TerrainMismatch, FlatGround, MapDetail)):
                 value = value.to_dict()
             elif isinstance(value, GeodeticOrigin):
                 value = dataclasses.asdict(value)
@@ -794,6 +799,10 @@ def _make_world(settings: SimulationSettings, frame_t_s: np.ndarray,
         at = evaluate(plan, np.array([settings.terrain_mismatch.at_s])).position_m[0]
         terrain = apply_terrain_mismatch(terrain, settings.terrain_mismatch, (at[0], at[1]))
         info["dtm_height_error_rms_with_mismatch_m"] = _height_error_rms(dtm, terrain)
+    if settings.map_detail is not None:  # the truth changes, the DTM does not
+        terrain = apply_map_detail(terrain, settings.map_detail)
+        info["map_detail"] = settings.map_detail.to_dict()
+        info["dtm_height_error_rms_with_detail_m"] = _height_error_rms(dtm, terrain)
     return _World(terrain, dtm, plan, info)
 
 
