@@ -352,3 +352,27 @@ def test_every_computing_command_runs_inside_the_announcement(monkeypatch, tmp_p
     assert main(["smooth", str(tmp_path / "no_such_log"), "--out", str(tmp_path / "r"),
                  "--quiet"]) == 1
     assert seen == [("cdtm smooth", True)]
+
+
+def test_the_console_and_report_json_say_the_same_word_with_the_same_figures(tmp_path,
+                                                                              capsys):
+    """One decision of "consistent" (issue 21, build 6): the console's line is report.json's
+    ``position_consistency.summary``, and ``anees_position_consistent`` says its word. The
+    sample flight is a case the two old rules split (measured 2026-11-27: ANEES 1.85,
+    outside the band for 40 independent frames [2.29, 3.81], all 40 frames inside the
+    95% bound: report.json said false, the console consistent). Mutations: report.json's
+    ``anees_position_consistent`` back to the ANEES band (false) -> fails; the console's
+    word from the ANEES band -> fails."""
+    out = tmp_path / "run"
+    assert main(["smooth", str(SAMPLE), "--out", str(out)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    printed = [line for line in lines if line.startswith("position covariance ")]
+    assert len(printed) == 1, lines
+    c = json.loads((out / "report.json").read_text())["evaluation"]["compensated"]
+    consistency = c["position_consistency"]
+    assert printed[0] == f"position covariance {consistency['summary']}"
+    word = printed[0].removeprefix("position covariance ").split(":")[0]
+    assert word == consistency["verdict"]
+    assert c["anees_position_consistent"] is consistency["consistent"] is (word == "consistent")
+    assert f"ANEES {c['anees_position']:.2f}" in printed[0]
+    assert c["anees_position_inside_band_95"] is False  # the case the old rules split
