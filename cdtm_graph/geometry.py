@@ -188,7 +188,8 @@ def _rays_in_world_kernel(world_T_cam, camera, ray_cam, centre, ray):
 
 def largest_eigenvalue_sym3(A: np.ndarray) -> float:
     """The largest eigenvalue of a symmetric 3x3 (a covariance's largest variance)."""
-    return float(sym3_eigenvalue_range(np.asarray(A, dtype=np.float64))[1])
+    # (contiguous: a view of a larger covariance would compile the kernel a second time)
+    return float(sym3_eigenvalue_range(np.ascontiguousarray(A, dtype=np.float64))[1])
 
 
 @njit(cache=True)
@@ -281,9 +282,13 @@ def _triangulate_kernel(track_index: np.ndarray, centre: np.ndarray, ray: np.nda
     weight = np.ones(m)
     A = np.empty((n_tracks, 3, 3))
     b = np.empty((n_tracks, 3))
+    # (element by element throughout: numba's slice stores cost ~1 s of compilation each)
     for _ in range(2):
-        A[:] = 0.0
-        b[:] = 0.0
+        for t in range(n_tracks):
+            for r in range(3):
+                b[t, r] = 0.0
+                for c in range(3):
+                    A[t, r, c] = 0.0
         for i in range(m):
             t, w = track_index[i], weight[i]
             dc = d[i, 0] * centre[i, 0] + d[i, 1] * centre[i, 1] + d[i, 2] * centre[i, 2]
@@ -298,8 +303,10 @@ def _triangulate_kernel(track_index: np.ndarray, centre: np.ndarray, ray: np.nda
                     points[t, r] = (cov[t, r, 0] * b[t, 0] + cov[t, r, 1] * b[t, 1]
                                     + cov[t, r, 2] * b[t, 2])
             else:
-                cov[t] = np.nan
-                points[t] = np.nan
+                for r in range(3):
+                    points[t, r] = np.nan
+                    for c in range(3):
+                        cov[t, r, c] = np.nan
         for i in range(m):
             t = track_index[i]
             range_m = np.sqrt((points[t, 0] - centre[i, 0]) ** 2
@@ -308,7 +315,8 @@ def _triangulate_kernel(track_index: np.ndarray, centre: np.ndarray, ray: np.nda
             if not np.isfinite(range_m):
                 range_m = 1.0
             weight[i] = 1.0 / max(sigma[i] * range_m, 1e-12) ** 2
-    chi2_fit[:] = 0.0
+    for t in range(n_tracks):
+        chi2_fit[t] = 0.0
     for i in range(m):
         t = track_index[i]
         x0, x1, x2 = (points[t, 0] - centre[i, 0], points[t, 1] - centre[i, 1],

@@ -481,7 +481,14 @@ def _put(out_id, out_frame, out_q, o, track, frame, q, i):
     """Row o of the output: the track, the frame and row i of ``q`` (element by element:
     numba's row slices cost more than the copy)."""
     out_id[o], out_frame[o] = track, frame
-    out_q[o, 0], out_q[o, 1], out_q[o, 2] = q[i, 0], q[i, 1], q[i, 2]
+    _copy_row(out_q, o, q, i)
+
+
+@njit(cache=True, inline="always")
+def _copy_row(out, o, a, i):
+    """Row o of ``out`` = row i of ``a`` (three columns), element by element: numba's row
+    slices cost more than the copy, and their stores cost ~1 s of compilation each."""
+    out[o, 0], out[o, 1], out[o, 2] = a[i, 0], a[i, 1], a[i, 2]
 
 
 @njit(cache=True)
@@ -512,13 +519,13 @@ def _match(ids, frame, q_seen, pairs, track_id, q, k, oldest_frame):
         if a >= oldest_frame:
             rows[n_kept] = i
             frame_a[n_kept] = a
-            q_a[n_kept, :] = q_seen[at, :]
+            _copy_row(q_a, n_kept, q_seen, at)
             rank[n_kept] = pairs[at]
             n_kept += 1
         else:
             n_too_old += 1
         frame[at] = k
-        q_seen[at, :] = q[i, :]
+        _copy_row(q_seen, at, q, i)
     return (new_rows[:n_new], rows[:n_kept], frame_a[:n_kept], q_a[:n_kept], rank[:n_kept],
             n_too_old)
 
@@ -535,7 +542,7 @@ def _reject(ids, frame, q_seen, pairs, fails, track_id, frame_a, q_a, patience):
             fails[at] = 0
             continue
         frame[at] = frame_a
-        q_seen[at, :] = q_a[i, :]
+        _copy_row(q_seen, at, q_a, i)
 
 
 @njit(cache=True)
@@ -559,7 +566,7 @@ def _append(ids, frame, q_seen, pairs, fails, n, new_ids, q_new, k):
     for i in range(m):
         ids[n + i] = new_ids[i]
         frame[n + i] = k
-        q_seen[n + i, :] = q_new[i, :]
+        _copy_row(q_seen, n + i, q_new, i)
         pairs[n + i] = 0
         fails[n + i] = 0
     return n + m
@@ -573,7 +580,7 @@ def _compact(ids, frame, q_seen, pairs, fails, n, oldest_frame):
         if frame[i] >= oldest_frame:
             ids[j] = ids[i]
             frame[j] = frame[i]
-            q_seen[j, :] = q_seen[i, :]
+            _copy_row(q_seen, j, q_seen, i)
             pairs[j] = pairs[i]
             fails[j] = fails[i]
             j += 1

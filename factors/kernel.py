@@ -123,9 +123,11 @@ def cdtm_linearize(
             if want_jacobians and e_loss_out.shape[0]:
                 e_loss_out[i, 0] = 0.0
                 e_loss_out[i, 1] = 0.0
-            if want_jacobians:
-                Ha_out[i, :, :] = 0.0
-                Hb_out[i, :, :] = 0.0
+            if want_jacobians:  # (element by element: numba's slice stores cost compilation)
+                for k in range(2):
+                    for j in range(6):
+                        Ha_out[i, k, j] = 0.0
+                        Hb_out[i, k, j] = 0.0
             continue
         gn = np.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
         h0, h1, h2 = g0 / gn, g1 / gn, g2 / gn
@@ -332,7 +334,13 @@ def _gram_triangle(e, Ha, Hb, Ja_out, Jb_out, z_out):
             for m in range(j):
                 s -= G[m, j] * G[m, q]
             G[j, q] = s / r if r > 0.0 else 0.0
-    _copy_triangle(G, Ja_out, Jb_out, z_out, False)
+    # the triangle out (here and in _householder_triangle, not one helper with a
+    # `transposed` flag: numba compiled such a helper once per constant flag)
+    for r in range(c):
+        for j in range(6):
+            Ja_out[r, j] = G[r, j] if j >= r else 0.0
+            Jb_out[r, j] = G[r, 6 + j] if 6 + j >= r else 0.0
+        z_out[r] = G[r, 12]
     return True
 
 
@@ -372,18 +380,11 @@ def _householder_triangle(e, Ha, Hb, work, Ja_out, Jb_out, z_out):
                 for i in range(j + 1, m):
                     y[i] -= s * x[i]
         x[j] = alpha
-    _copy_triangle(work, Ja_out, Jb_out, z_out, True)
-
-
-@njit(cache=True)
-def _copy_triangle(T, Ja_out, Jb_out, z_out, transposed):
-    for r in range(COMPRESSED_ROWS):
+    for r in range(c):  # the triangle out, transposed back
         for j in range(6):
-            a = T[j, r] if transposed else T[r, j]
-            b = T[6 + j, r] if transposed else T[r, 6 + j]
-            Ja_out[r, j] = a if j >= r else 0.0
-            Jb_out[r, j] = b if 6 + j >= r else 0.0
-        z_out[r] = T[12, r] if transposed else T[r, 12]
+            Ja_out[r, j] = work[j, r] if j >= r else 0.0
+            Jb_out[r, j] = work[6 + j, r] if 6 + j >= r else 0.0
+        z_out[r] = work[12, r]
 
 
 @njit(cache=True)
@@ -452,7 +453,7 @@ def feature_covariance_kernel(R_a, p_a, R_b, p_b, q_a, q_b, G_E, N, sx, sy, sigm
         for a in range(3):
             x[a] = (R_b[0, a] * r[0] + R_b[1, a] * r[1] + R_b[2, a] * r[2]) * sigma_h[i] / Nr
         _np_apply(q, qq, g, gn, x, w)
-        cols[2, :] = w
+        cols[2, 0], cols[2, 1], cols[2, 2] = w[0], w[1], w[2]
         # q_a columns: lam N_P R_b^T P(r, N) R_a e_c, as configured (sax, say); when the
         # factor leaves q_a exact, the full covariance gets them at the pixel noise.
         configured = sax != 0.0 or say != 0.0
@@ -469,7 +470,7 @@ def feature_covariance_kernel(R_a, p_a, R_b, p_b, q_a, q_b, G_E, N, sx, sy, sigm
             for a in range(3):
                 x[a] = (R_b[0, a] * v0 + R_b[1, a] * v1 + R_b[2, a] * v2) * lam * s
             _np_apply(q, qq, g, gn, x, w)
-            cols[m, :] = w
+            cols[m, 0], cols[m, 1], cols[m, 2] = w[0], w[1], w[2]
             m += 1
             if c < 2:
                 m_configured = m

@@ -132,13 +132,17 @@ def _ransac(q_a: np.ndarray, q_b: np.ndarray, R_ba: np.ndarray, prior: np.ndarra
             picks: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:
     """The translation direction most features agree with (two-point hypotheses from
     ``picks``, the IMU's ``prior`` first), refined on its inliers; and the inliers."""
+    # (element by element throughout: numba's array expressions and slice stores cost
+    # seconds of compilation, and no run time here)
     n = q_a.shape[0]
     terms = _sampson_terms(q_a, q_b, R_ba)
     # each feature's epipolar plane normal q_b x R q_a; t must be perpendicular to every
     # inlier's
-    normals = -terms[:, 3:6]
+    normals = np.empty((n, 3))
+    for i in range(n):
+        normals[i, 0], normals[i, 1], normals[i, 2] = -terms[i, 3], -terms[i, 4], -terms[i, 5]
     candidates = np.empty((picks.shape[0] + 1, 3))
-    candidates[0] = prior
+    candidates[0, 0], candidates[0, 1], candidates[0, 2] = prior[0], prior[1], prior[2]
     h = 1
     for j in range(picks.shape[0]):
         a, b = picks[j, 0], picks[j, 1]
@@ -162,10 +166,13 @@ def _ransac(q_a: np.ndarray, q_b: np.ndarray, R_ba: np.ndarray, prior: np.ndarra
     for j in range(1, h):
         if counts[j] > counts[top] or (counts[j] == counts[top] and costs[j] < costs[top]):
             top = j
-    best = candidates[top].copy()
+    best = np.empty((1, 3))
+    best[0, 0], best[0, 1], best[0, 2] = candidates[top, 0], candidates[top, 1], candidates[top, 2]
     d2 = np.empty((1, n))
-    _sampson_kernel(terms, candidates[top:top + 1], limit, d2, counts, costs)
-    inlier = d2[0] < limit
+    _sampson_kernel(terms, best, limit, d2, counts, costs)
+    inlier = np.empty(n, np.bool_)
+    for i in range(n):
+        inlier[i] = d2[0, i] < limit
     # refine the direction on the inliers (smallest singular vector of their normals)
     # (the smallest eigenvector of their scatter: the smallest right singular vector)
     scatter = np.zeros((3, 3))
@@ -178,11 +185,13 @@ def _ransac(q_a: np.ndarray, q_b: np.ndarray, R_ba: np.ndarray, prior: np.ndarra
                     scatter[r, c] += w * normals[i, r] * normals[i, c]
             m += 1
     if m >= 3:
-        v = np.linalg.eigh(scatter)[1][:, 0].copy()
-        best = v if v @ prior >= 0 else -v
-        _sampson_kernel(terms, best.reshape(1, 3), limit, d2, counts, costs)
-        inlier = d2[0] < limit
-    return best, inlier
+        v = np.linalg.eigh(scatter)[1]  # its first column
+        sign = 1.0 if v[0, 0] * prior[0] + v[1, 0] * prior[1] + v[2, 0] * prior[2] >= 0 else -1.0
+        best[0, 0], best[0, 1], best[0, 2] = sign * v[0, 0], sign * v[1, 0], sign * v[2, 0]
+        _sampson_kernel(terms, best, limit, d2, counts, costs)
+        for i in range(n):
+            inlier[i] = d2[0, i] < limit
+    return best[0], inlier
 
 
 def check_pair(q_a: np.ndarray, q_b: np.ndarray, R_ba: np.ndarray, t_b: np.ndarray,

@@ -127,9 +127,10 @@ def track_heights(track_id: np.ndarray, centre_m: np.ndarray, ray_world: np.ndar
     m = index.size
     points, cov, chi2_fit = triangulate(index, ids.size, centre_m, ray_world, sigma_rad)
     ground, normal = dtm.height_and_normal(points[:, 0], points[:, 1])
+    # (writable: a read-only view would compile the kernel a second time)
     dh, sigma = _height_sigma(index, points, cov, ground, normal,
-                              np.ascontiguousarray(np.broadcast_to(
-                                  np.asarray(pose_sigma_m, float), (m,))), float(sigma_h_m))
+                              np.require(np.broadcast_to(np.asarray(pose_sigma_m, float), (m,)),
+                                         requirements=["C", "W"]), float(sigma_h_m))
     return TrackHeights(ids, points, counts, dh, sigma, chi2_fit)
 
 

@@ -106,3 +106,15 @@ def test_the_closed_form_eigenvalues_of_a_symmetric_3x3_are_lapacks(rng):
     assert sym3_eigenvalue_range(2.5 * np.eye(3)) == (2.5, 2.5)
     cov = np.diag([1.0, 2.0, 3.0, 9.0, 4.0, 1.0])
     assert largest_eigenvalue_sym3(cov[3:, 3:]) == pytest.approx(9.0, rel=1e-14)
+
+
+def test_a_covariance_block_compiles_the_eigenvalue_kernel_no_second_time():
+    """A pose covariance's 3x3 block (a strided view) reaches the kernel as the
+    contiguous array it is compiled for: one signature, one compilation on a first run
+    (issue 22). Catches: the boundary's cast dropped (``np.asarray``: an 'A'-layout
+    signature compiled beside the 'C' one)."""
+    largest_eigenvalue_sym3(np.eye(3))  # the contiguous signature, as the package calls it
+    compiled = set(sym3_eigenvalue_range.signatures)
+    cov = np.diag(np.arange(1.0, 7.0))
+    assert largest_eigenvalue_sym3(cov[3:, 3:]) == pytest.approx(6.0, rel=1e-14)
+    assert set(sym3_eigenvalue_range.signatures) == compiled

@@ -27,6 +27,7 @@ from cdtm_graph.robust.epipolar import EpipolarSettings, _sampson_kernel, _samps
 from cdtm_graph.robust.mismatch import (
     MismatchSettings,
     TrackHeights,
+    _height_sigma,
     inconsistent,
     mismatched,
     track_heights,
@@ -332,6 +333,24 @@ def test_track_heights_are_the_triangulation_against_the_dtm_written_out():
     got = track_heights(track_id, centres, rays, SIGMA_Q, dtm, 2.4, pose_sigma)
     lost = np.isnan(got.sigma_m) & ~np.isnan(known.sigma_m)
     assert got.track_id[lost].tolist() == [track_id[0]]
+
+
+def test_per_observation_pose_sigmas_compile_the_height_kernel_no_second_time(rng):
+    """Pose sigmas per observation (an array: ``np.broadcast_to`` makes it a read-only
+    view) reach the kernel as the writable array that one sigma for all (a scalar,
+    broadcast and copied) does: one signature, one compilation on a first run (issue 22).
+    Catches: the boundary's ``np.require(..., "W")`` dropped (a read-only signature
+    compiled beside the writable one)."""
+    dtm = Dtm(np.zeros((5, 5)), 0.0, 0.0, 30.0, 30.0, sigma_h_m=2.4)
+    track_id = np.repeat(np.arange(4), 3)
+    point = np.repeat(np.c_[rng.uniform(20, 100, (4, 2)), np.zeros(4)], 3, axis=0)
+    centres = np.c_[rng.uniform(0, 120, (12, 2)), np.full(12, 500.0)]
+    one = track_heights(track_id, centres, point - centres, SIGMA_Q, dtm, 2.4, 3.0)
+    compiled = set(_height_sigma.signatures)
+    each = track_heights(track_id, centres, point - centres, SIGMA_Q, dtm, 2.4,
+                         np.full(12, 3.0))
+    assert set(_height_sigma.signatures) == compiled
+    assert np.array_equal(each.sigma_m, one.sigma_m, equal_nan=True)
 
 
 def test_first_sightings_are_the_first_of_each_track_and_frame(rng):
