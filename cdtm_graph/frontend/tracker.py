@@ -357,18 +357,29 @@ class FeatureTracker:
                               shift - np.median(rotated - prev_uv, axis=0))
         guess = (rotated + self._shift_px).astype(np.float32)
         p0 = prev_uv.astype(np.float32)
-        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+        # (the minimum eigenvalue as the error: OpenCV skips the window's residual, which
+        # is not used; positions and status are the same)
+        flags = cv2.OPTFLOW_USE_INITIAL_FLOW | cv2.OPTFLOW_LK_GET_MIN_EIGENVALS
         p1, st, _ = cv2.calcOpticalFlowPyrLK(previous, gray, p0, guess.copy(),
                                              winSize=self._window, maxLevel=s.pyramid_levels,
                                              criteria=self._criteria, flags=flags)
-        back, st_back, _ = cv2.calcOpticalFlowPyrLK(gray, previous, p1, p0.copy(),
-                                                    winSize=self._window,
-                                                    maxLevel=s.pyramid_levels,
-                                                    criteria=self._criteria, flags=flags)
         matched = p1.astype(float).reshape(-1, 2)
+        forward = (st.ravel() == 1) & np.isfinite(matched).all(axis=1)
+        # Tracked back: only what the forward pass kept, and only where the check can
+        # matter (a match out of the image whose prediction is out too ends LEFT_IMAGE
+        # whatever the backward pass does). Lucas-Kanade tracks each point alone: the
+        # others' results do not change.
+        back_rows = np.flatnonzero(forward & (self._inside(matched) | self._inside(guess)))
+        back = np.full((prev_uv.shape[0], 2), np.nan, np.float32)
+        st_back = np.ones(prev_uv.shape[0], np.uint8)  # (not tracked back: not lost)
+        if back_rows.size:
+            back_p, back_st, _ = cv2.calcOpticalFlowPyrLK(
+                gray, previous, p1[back_rows], p0[back_rows], winSize=self._window,
+                maxLevel=s.pyramid_levels, criteria=self._criteria, flags=flags)
+            back[back_rows], st_back[back_rows] = back_p.reshape(-1, 2), back_st.ravel()
         status = np.full(prev_uv.shape[0], MatchStatus.TRACKED, dtype=np.int8)
-        lost = (st.ravel() == 0) | (st_back.ravel() == 0) | ~np.isfinite(matched).all(axis=1)
-        fb_error = np.linalg.norm(back.reshape(-1, 2) - p0, axis=1)
+        lost = ~forward | (st_back == 0)
+        fb_error = np.linalg.norm(back - p0, axis=1)
         status[~(fb_error <= s.forward_backward_px)] = MatchStatus.FORWARD_BACKWARD
         status[lost] = MatchStatus.LOST
         # Lucas-Kanade loses what leaves the image too: judged by the prediction then.
