@@ -365,13 +365,12 @@ class FeatureTracker:
                                              criteria=self._criteria, flags=flags)
         matched = p1.astype(float).reshape(-1, 2)
         forward = (st.ravel() == 1) & np.isfinite(matched).all(axis=1)
-        # Tracked back: only what the forward pass kept, and only where the check can
-        # matter (a match out of the image whose prediction is out too ends LEFT_IMAGE
-        # whatever the backward pass does). Lucas-Kanade tracks each point alone: the
-        # others' results do not change.
-        back_rows = np.flatnonzero(forward & (self._inside(matched) | self._inside(guess)))
+        # Tracked back: only what the forward pass kept (the rest is lost whatever the
+        # backward pass does: ~1 in 5 features a frame, mostly leaving the image).
+        # Lucas-Kanade tracks each point alone: the others' results do not change.
+        back_rows = np.flatnonzero(forward)
         back = np.full((prev_uv.shape[0], 2), np.nan, np.float32)
-        st_back = np.ones(prev_uv.shape[0], np.uint8)  # (not tracked back: not lost)
+        st_back = np.zeros(prev_uv.shape[0], np.uint8)
         if back_rows.size:
             back_p, back_st, _ = cv2.calcOpticalFlowPyrLK(
                 gray, previous, p1[back_rows], p0[back_rows], winSize=self._window,
