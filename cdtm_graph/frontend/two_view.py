@@ -103,7 +103,7 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _norm(v: np.ndarray, keepdims: bool = False) -> np.ndarray:
     """``np.linalg.norm(v, axis=-1)`` of a real array, by the same sum (the same bits)."""
-    return np.sqrt(np.add.reduce(v * v, axis=-1, keepdims=keepdims))
+    return np.sqrt(np.sum(v * v, axis=-1, keepdims=keepdims))  # (np.add.reduce)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
