@@ -12,10 +12,12 @@ tracks seen in it (``track_id``, pixel). Per image:
    median translational flow of the previous frame pair. Lucas-Kanade starts there, so
    the pyramid has to absorb only the prediction error, not a 100 px flight-direction
    flow or a fast roll.
-3. **Pyramidal Lucas-Kanade** (``cv2.calcOpticalFlowPyrLK``) on pyramids built once per
-   image and used forward and backward, with a **forward-backward check**: tracked back
-   into the previous image, a feature must land within ``forward_backward_px`` of where
-   it started.
+3. **Pyramidal Lucas-Kanade** (``cv2.calcOpticalFlowPyrLK``) with a **forward-backward
+   check**: tracked back into the previous image, a feature must land within
+   ``forward_backward_px`` of where it started (only the forward pass's matches are
+   tracked back: the others are lost whatever the backward pass says). Each call builds
+   its own pyramids: OpenCV's Python binding takes no precomputed ones
+   (opencv/opencv#4777; still so in OpenCV 5.0).
 4. **Geometric verification** of the frame pair: matches are turned into rays by the
    camera model (so the lens model, whatever it is, is undone there) and fitted by
    RANSAC: the translation direction given the IMU rotation
