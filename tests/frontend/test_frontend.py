@@ -20,6 +20,7 @@ from cdtm_graph.frontend import (
     track_log,
 )
 from cdtm_graph.frontend import tracker as tracker_module
+from cdtm_graph.frontend.tracker import Replenishment
 from cdtm_graph.frontend.two_view import (
     FitMethod,
     _inliers,
@@ -263,6 +264,48 @@ def test_the_backward_pass_skips_only_what_cannot_change_a_status(flight, monkey
                                       np.where(lost[:, None], np.nan, matched.astype(float)))
     # features leave the image every frame (~55 px of flow): fewer are tracked back
     assert sum(lk.backward_points) < 0.9 * sum(lk.forward_points)
+
+
+def test_replenishment_looks_only_where_the_need_reaches(flight, monkeypatch):
+    """Issue 22, ``Replenishment.NEEDED_CELLS``: corners are looked for cell by cell, only
+    in the cells the fill level of the need reaches (about half the cells here), and the
+    corners chosen are nearly all those the whole image gives (the rest differ next to
+    cells not looked at).
+    Catches looking at every open cell again (the area), and a cell read at the wrong
+    place or its corners put back wrong (the agreement)."""
+    result, images = flight
+    rotations = camera_rotations_from_imu(result.log)
+    cells = TrackerSettings(replenishment=Replenishment.NEEDED_CELLS)
+    whole = dataclasses.replace(cells, replenishment=Replenishment.WHOLE_IMAGE)
+    tracker = FeatureTracker(_camera(result), cells)
+    looked_px = []
+
+    class _Counting:
+        def __getattr__(self, name):
+            return getattr(cv2, name)
+
+        def goodFeaturesToTrackWithQuality(self, image, *args, **kwargs):
+            looked_px.append(image.size)
+            return cv2.goodFeaturesToTrackWithQuality(image, *args, **kwargs)
+
+    agree, total, cells_looked = 0, 0, []
+    for k, image in enumerate(images[:-1]):
+        tracker.track(image, rotations[k])
+        gray = tracker._normalized(images[k + 1])
+        live = tracker._uv.astype(float)[: tracker.settings.max_features - 40]  # need 40
+        monkeypatch.setattr(tracker_module, "cv2", _Counting())
+        looked_px.clear()
+        new = tracker._detect(gray, live)
+        monkeypatch.setattr(tracker_module, "cv2", cv2)
+        tracker.settings = whole
+        reference = tracker._detect(gray, live)
+        tracker.settings = cells
+        assert new.shape[0] == reference.shape[0] == 40
+        agree += sum(np.any(np.all(reference == q, axis=1)) for q in new)
+        total += 40
+        cells_looked.append(len(looked_px) / tracker.settings.cells)
+    assert agree / total > 0.9, agree / total
+    assert np.median(cells_looked) < 0.6, cells_looked
 
 
 def test_an_unrelated_image_keeps_no_wrong_matches(flight):
