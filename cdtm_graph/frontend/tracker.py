@@ -101,8 +101,8 @@ class Replenishment(enum.Enum):
     #: goodFeaturesToTrack over the whole image, the full cells masked.
     WHOLE_IMAGE = "whole_image"
     #: cell by cell, only in the cells the fill level of the need reaches (about half of
-    #: them at 150 features over 8x6 cells): 0.86x the tracker's time per frame on the
-    #: rendered 640x480 flights, 0.65x on the CLIF frames; the corners chosen are nearly
+    #: them at 150 features over 8x6 cells): 0.86-0.90x the tracker's time per frame on
+    #: the rendered 640x480 flights, 0.65x on the CLIF frames; the corners chosen are nearly
     #: all the whole image's (the rest differ next to the cells not looked at), and the
     #: benchmark's figures moved by up to 0.13 % (docs/frontend.md, 2026-11-27).
     NEEDED_CELLS = "needed_cells"
