@@ -27,12 +27,13 @@ model does not invert.
 
 from __future__ import annotations
 
-import enum
 import math
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
+from cdtm_graph.choices import DistortionModel
 
 #: Reprojection error (pixels) at which OpenCV's iterative undistortion stops. Far below
 #: any feature noise; the round trip pixels -> rays -> pixels is exact to this level.
@@ -44,14 +45,6 @@ UNDISTORT_MAX_ITERATIONS = 200
 #: its ray is reported as NaN instead of a wrong direction.
 UNDISTORT_CHECK_TOL_PX = 1e-6
 
-
-
-class DistortionModel(enum.Enum):
-    """The lens distortion model (flight.yaml ``camera.distortion_model``, Kalibr's names)."""
-
-    NONE = "none"
-    RADTAN = "radtan"            # OpenCV k1 k2 p1 p2 [k3]
-    EQUIDISTANT = "equidistant"  # OpenCV fisheye (Kannala-Brandt) k1 k2 k3 k4
 
 
 #: How many coefficients each model takes.

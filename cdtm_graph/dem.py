@@ -47,7 +47,13 @@ import numpy as np
 
 from cdtm_graph.dtm import Dtm, gdal_quiet, gdal_reason, sigma_h_from_grid_spacing
 from cdtm_graph.errors import DtmError, why_not_a_file
-from cdtm_graph.geodesy import WGS84_A_M, WGS84_E2, LocalFrame, VerticalDatum
+from cdtm_graph.geodesy import (
+    WGS84_A_M,
+    WGS84_E2,
+    LocalFrame,
+    VerticalDatum,
+    ellipsoidal_height_m,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -443,7 +449,7 @@ def _terrain_height(surfaces: list[_Surface], datum: VerticalDatum,
         height[need] = surface.grid.height(sx, sy)
     valid = np.isfinite(height)
     if valid.any() and datum is not VerticalDatum.ELLIPSOID:
-        height[valid] = datum.to_ellipsoidal_m(lat[valid], lon[valid], height[valid])
+        height[valid] = ellipsoidal_height_m(datum, lat[valid], lon[valid], height[valid])
     return height
 
 

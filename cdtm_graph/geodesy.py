@@ -24,7 +24,6 @@ Array conventions: latitudes and longitudes in degrees, heights and positions in
 
 from __future__ import annotations
 
-import enum
 import functools
 import math
 import os
@@ -33,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cdtm_graph.choices import VerticalDatum
 from cdtm_graph.data import egm96_grid_file
 from cdtm_graph.errors import CdtmError
 from cdtm_graph.geometry import quat_wxyz_to_rotation, rotation_to_quat_wxyz
@@ -52,6 +52,7 @@ __all__ = [
     "LocalFrame",
     "VerticalDatum",
     "enu_R_ecef",
+    "ellipsoidal_height_m",
     "geoid_undulation_m",
     "normal_gravity_enu_mps2",
     "normal_gravity_mps2",
@@ -297,22 +298,13 @@ def geoid_undulation_m(latitude_deg, longitude_deg) -> np.ndarray:
     return n
 
 
-class VerticalDatum(enum.Enum):
-    """What a DEM's heights are measured from (``dtm.vertical_datum`` in flight.yaml).
-
-    ELLIPSOID: WGS84 ellipsoidal heights (GNSS heights).
-    EGM96: heights above the EGM96 geoid ("MSL"), as SRTM and Copernicus GLO-30 give them.
-    """
-
-    ELLIPSOID = "ellipsoid"
-    EGM96 = "egm96"
-
-    def to_ellipsoidal_m(self, latitude_deg, longitude_deg, height_m) -> np.ndarray:
-        """Ellipsoidal heights (N,) of heights in this datum at geodetic points (N,)."""
-        height = np.asarray(height_m, dtype=float).ravel()
-        if self is VerticalDatum.ELLIPSOID:
-            return height.copy()
-        return height + geoid_undulation_m(latitude_deg, longitude_deg)
+def ellipsoidal_height_m(datum: VerticalDatum, latitude_deg, longitude_deg,
+                        height_m) -> np.ndarray:
+    """Ellipsoidal heights (N,) of heights in ``datum`` at geodetic points (N,)."""
+    height = np.asarray(height_m, dtype=float).ravel()
+    if datum is VerticalDatum.ELLIPSOID:
+        return height.copy()
+    return height + geoid_undulation_m(latitude_deg, longitude_deg)
 
 
 # --------------------------------------------------------------------------- local frame

@@ -313,6 +313,62 @@ class TerrainFindings:
     considered_vertical_m: np.ndarray
 
 
+def position_move_nees(world_T_body: np.ndarray, pose_cov: np.ndarray,
+                       position_m: np.ndarray) -> np.ndarray:
+    """Per frame, how far ``position_m`` lies from the run's positions in the run's own
+    position covariance: ``d^T P^-1 d``, ``d`` the run's position less ``position_m``.
+
+    Args:
+        world_T_body: (F, 4, 4) the run's poses.
+        pose_cov: (F, 6, 6) their covariances (body frame, [rot, trans]).
+        position_m: (F, 3) the other solution's positions, world axes.
+
+    Returns:
+        (F,) the squared Mahalanobis distances; NaN where a frame has no covariance.
+    """
+    d = world_T_body[:, :3, 3] - position_m
+    R = world_T_body[:, :3, :3]
+    P = R @ pose_cov[:, 3:, 3:] @ np.swapaxes(R, 1, 2)  # body -> world
+    ok = np.isfinite(P).all(axis=(1, 2))
+    out = np.full(d.shape[0], np.nan)
+    if ok.any():
+        out[ok] = np.einsum("ki,ki->k", d[ok], np.linalg.solve(P[ok], d[ok][..., None])[..., 0])
+    return out
+
+
+@dataclass(frozen=True)
+class ConvergenceCheck:
+    """One more solve from a run's estimate: how far it moves the positions against the
+    run's own covariance (:func:`cdtm_graph.smoother.convergence.check_convergence`; made
+    when the run's solver did not report convergence, read by the verdict's
+    ``not_converged`` rule).
+
+    Attributes:
+        frames: (F,) the frames solved (every n-th of a long log).
+        move_m: (F,) how far each frame's position moved (m).
+        move_nees: (F,) the move's squared Mahalanobis distance in the run's position
+            covariance (:func:`position_move_nees`; NaN without a covariance).
+        converged: whether the extra solve itself converged.
+        time_s: its cost.
+    """
+
+    frames: np.ndarray
+    move_m: np.ndarray
+    move_nees: np.ndarray
+    converged: bool
+    time_s: float
+
+    def to_dict(self) -> dict:
+        finite = self.move_nees[np.isfinite(self.move_nees)]
+        return {"n_frames": int(self.frames.size),
+                "max_move_m": float(np.max(self.move_m)) if self.move_m.size else None,
+                "median_move_m": float(np.median(self.move_m)) if self.move_m.size else None,
+                "max_move_nees": float(np.max(finite)) if finite.size else None,
+                "median_move_nees": float(np.median(finite)) if finite.size else None,
+                "n_frames_with_covariance": int(finite.size),
+                "converged": self.converged, "time_s": self.time_s}
+
+
 @dataclass(frozen=True)
 class SmootherResult:
     """Everything a smoothing run produced (``smooth(...)`` or the incremental smoother).
@@ -347,6 +403,8 @@ class SmootherResult:
             per-frame stages in order, then the work charged apart (the track tests'
             rounds, the fix search's verdicts); they add up to ``counts.rejected_per_frame``
             (:meth:`cdtm_graph.robust.stages.Stages.summary`).
+        convergence_check: a run whose solver did not report convergence: how far one
+            more batch solve from its estimate moves it (:class:`ConvergenceCheck`).
     """
 
     estimate: TrajectoryEstimate
@@ -362,6 +420,7 @@ class SmootherResult:
     map_offset: MapOffset = field(default_factory=MapOffset)
     bias_prior: BiasPrior | None = None
     stages: tuple[dict, ...] = ()
+    convergence_check: ConvergenceCheck | None = None
 
 
 def frame_flags(counts: GraphCounts, extra: dict[int, list[str]] | None = None

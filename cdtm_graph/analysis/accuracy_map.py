@@ -27,6 +27,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cdtm_graph.analysis.closed_form import ClosedFormAnalysis, DegeneracySettings, analyze_pair
+from cdtm_graph.analysis.map_options import (
+    MAX_ABS_HEADING_DEG,
+    MAX_FEATURES,
+    MAX_NODES,
+    RESOLUTION_RANGE_PX,
+    AltitudeReference,
+)
 from cdtm_graph.camera import DOWNWARD_BODY_T_CAM, PinholeCamera
 from cdtm_graph.dtm import Dtm, visible_from
 from cdtm_graph.errors import CdtmError
@@ -41,23 +48,8 @@ _CANDIDATES_PER_FEATURE = 3
 DEFAULT_NODES_PER_SIDE = 40
 #: Highest camera altitude (m) of a map: beyond it the camera is in space.
 MAX_ALTITUDE_M = 1e5
-#: Most features per pair (each node casts three times as many rays).
-MAX_FEATURES = 100_000
-#: Most nodes of a map (1000 x 1000; 40 x 40 by default): a finer --step-m is a typo.
-MAX_NODES = 1_000_000
-#: Image sides (px), as flight.yaml's camera.resolution.
-RESOLUTION_RANGE_PX = (2, 100_000)
-#: Headings (deg) accepted: one turn either way.
-MAX_ABS_HEADING_DEG = 360.0
 #: Body axis of the inter-frame rotation: equal roll, pitch and yaw.
 _ROTATION_AXIS_BODY = np.ones(3) / math.sqrt(3.0)
-
-
-class AltitudeReference(enum.Enum):
-    """What ``altitude_m`` is measured from."""
-
-    MEAN_TERRAIN = "mean"  # the DTM's mean height: constant-altitude flight (the paper's)
-    GROUND = "ground"  # the DTM height right below the first camera
 
 
 class DegeneracyCode(enum.IntFlag):

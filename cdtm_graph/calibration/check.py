@@ -40,7 +40,7 @@ from cdtm_graph.flightlog import CalibrationSigmas, FlightLog, Frames, Tracks
 from cdtm_graph.graph import GraphSettings
 from cdtm_graph.graph.log_graph import build_log_graph
 from cdtm_graph.optimizer import LinearSolver, key_marginals, levenberg_marquardt
-from cdtm_graph.results import SmootherResult
+from cdtm_graph.results import SmootherResult, TrajectoryEstimate, position_move_nees
 from factors.calibration import CALIBRATION_DIM
 
 #: The flight contradicts flight.yaml's calibration when estimating it lowers the error
@@ -84,6 +84,18 @@ def thinned(flight: FlightLog, max_frames: int = MAX_FRAMES) -> tuple[FlightLog,
         rows = tracks.frame % n == 0
         tracks = Tracks(tracks.frame[rows] // n, tracks.track_id[rows], tracks.uv_px[rows])
     return replace(flight, frames=frames, tracks=tracks, nav=None), kept
+
+
+def estimate_values(estimate: TrajectoryEstimate, kept: np.ndarray) -> gtsam.Values:
+    """The run's states at the ``kept`` frames, numbered as the thinned log numbers them
+    (:func:`thinned`): a side solve's starting point."""
+    values = gtsam.Values()
+    for j, k in enumerate(kept):
+        values.insert(X(j), gtsam.Pose3(estimate.world_T_body[k]))
+        values.insert(V(j), np.asarray(estimate.velocity_mps[k], dtype=float))
+        values.insert(B(j), gtsam.imuBias.ConstantBias(estimate.accel_bias[k],
+                                                       estimate.gyro_bias[k]))
+    return values
 
 
 #: The calibration pinned at flight.yaml's for the likelihood ratio's first solve: its
@@ -170,13 +182,8 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
             (the run's ``SmootherSettings``).
     """
     start = time.perf_counter()
-    est = result.estimate
     sub, kept = thinned(flight, MAX_FRAMES)
-    values = gtsam.Values()
-    for j, k in enumerate(kept):
-        values.insert(X(j), gtsam.Pose3(est.world_T_body[k]))
-        values.insert(V(j), np.asarray(est.velocity_mps[k], dtype=float))
-        values.insert(B(j), gtsam.imuBias.ConstantBias(est.accel_bias[k], est.gyro_bias[k]))
+    values = estimate_values(result.estimate, kept)
     values.insert(CALIBRATION_KEY, np.zeros(CALIBRATION_DIM))
     if unfixed_frames is not None:  # the kept ones, as the thinned log numbers them
         unfixed_frames = np.searchsorted(kept, unfixed_frames[np.isin(unfixed_frames, kept)])
@@ -220,13 +227,9 @@ def _matters(position_nees: float) -> bool:
 def _position_nees(result: SmootherResult, frames: np.ndarray, position_m: np.ndarray
                    ) -> float:
     """Mean over ``frames`` of ``d^T P^-1 d``: ``d`` the run's position less ``position_m``
-    (F, 3), ``P`` its position covariance (world axes; frames without one skipped)."""
-    pose = result.estimate.world_T_body[frames]
-    d = pose[:, :3, 3] - position_m
-    R = pose[:, :3, :3]
-    P = R @ result.covariances.pose[frames, 3:, 3:] @ np.swapaxes(R, 1, 2)  # body -> world
-    ok = np.isfinite(P).all(axis=(1, 2))
-    if not ok.any():
-        return float("nan")
-    nees = np.einsum("ki,ki->k", d[ok], np.linalg.solve(P[ok], d[ok][..., None])[..., 0])
-    return float(np.mean(nees))
+    (F, 3), ``P`` its position covariance (world axes; frames without one skipped:
+    :func:`~cdtm_graph.results.position_move_nees`)."""
+    nees = position_move_nees(result.estimate.world_T_body[frames],
+                              result.covariances.pose[frames], position_m)
+    ok = np.isfinite(nees)
+    return float(np.mean(nees[ok])) if ok.any() else float("nan")

@@ -15,25 +15,21 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
-
-from cdtm_graph.analysis.accuracy_map import (
-    DEGENERACY_CODE_NAMES,
+from cdtm_graph.analysis.map_options import (
     MAX_ABS_HEADING_DEG,
     MAX_FEATURES,
     MAX_NODES,
     RESOLUTION_RANGE_PX,
-    AccuracyMap,
-    AccuracyMapSettings,
     AltitudeReference,
-    accuracy_map,
 )
 from cdtm_graph.atomic import atomic_output_file
 from cdtm_graph.cli import COMMANDS
 from cdtm_graph.cli.outdir import add_out_option, output_dir
-from cdtm_graph.dtm import load_dtm
-from cdtm_graph.parallel import ParallelSettings
+
+if TYPE_CHECKING:
+    from cdtm_graph.analysis.accuracy_map import AccuracyMap
 
 #: Resolution of the PNG: readable labels, files under ~200 kB (the hillshade is busy).
 FIGURE_DPI = 80
@@ -85,6 +81,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def write_accuracy_map_npz(result: AccuracyMap, path: Path) -> None:
     """The map's arrays and settings as ``.npz`` (keys in the module docstring), atomically."""
+    import numpy as np
+
+    from cdtm_graph.analysis.accuracy_map import DEGENERACY_CODE_NAMES
+
     s = result.settings
     with atomic_output_file(path) as tmp, open(tmp, "wb") as f:
         np.savez(f, x_m=result.x_m, y_m=result.y_m, sigma_pos2_m=result.sigma_pos2_m,
@@ -99,6 +99,16 @@ def write_accuracy_map_npz(result: AccuracyMap, path: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from cdtm_graph.analysis.accuracy_map import (
+        DEGENERACY_CODE_NAMES,
+        AccuracyMapSettings,
+        accuracy_map,
+    )
+    from cdtm_graph.dtm import load_dtm
+    from cdtm_graph.parallel import ParallelSettings
+
     settings = AccuracyMapSettings(
         altitude_m=args.altitude_m, fov_deg=args.fov_deg, resolution_px=args.resolution_px,
         n_features=args.features, baseline_m=args.baseline_m, rotation_deg=args.rotation_deg,

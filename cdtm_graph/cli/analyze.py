@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import TYPE_CHECKING
 
-import numpy as np
-
-from cdtm_graph.analysis.closed_form import C2_NAMES, THETA_NAMES
-from cdtm_graph.analysis.two_frame import LogPairAnalysis, analyze_log_pair
 from cdtm_graph.cli import COMMANDS
-from cdtm_graph.run.prepare import load_log_and_dtm
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from cdtm_graph.analysis.two_frame import LogPairAnalysis
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -30,11 +31,17 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _json_matrix(a: np.ndarray) -> list:
+    import numpy as np
+
     return [[float(x) if np.isfinite(x) else None for x in row] for row in np.atleast_2d(a)]
 
 
 def to_json(result: LogPairAnalysis) -> dict:
     """The JSON report: metres and radians, theta order ``theta_names``."""
+    import numpy as np
+
+    from cdtm_graph.analysis.closed_form import C2_NAMES, THETA_NAMES
+
     unc = result.uncertainty
     a = unc.analysis
     cond = a.condition_number
@@ -59,12 +66,18 @@ def to_json(result: LogPairAnalysis) -> dict:
 
 
 def _sigmas(cov: np.ndarray) -> np.ndarray:
+    import numpy as np
+
     with np.errstate(invalid="ignore"):
         return np.sqrt(np.diag(cov))
 
 
 def to_table(result: LogPairAnalysis) -> str:
     """1-sigma values, metres and degrees."""
+    import numpy as np
+
+    from cdtm_graph.analysis.closed_form import C2_NAMES, THETA_NAMES
+
     unc = result.uncertainty
     a = unc.analysis
     cols = (("eq13 weighted", _sigmas(a.sigma_theta_weighted)),
@@ -92,6 +105,9 @@ def to_table(result: LogPairAnalysis) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from cdtm_graph.analysis.two_frame import analyze_log_pair
+    from cdtm_graph.run.prepare import load_log_and_dtm
+
     flight, dtm = load_log_and_dtm(args.log)
     result = analyze_log_pair(flight, dtm, args.pair[0], args.pair[1], args.at)
     print(json.dumps(to_json(result)) if args.json else to_table(result))

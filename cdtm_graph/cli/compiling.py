@@ -2,15 +2,20 @@
 cached for every later run): say so on stderr, once, with what it cost.
 
 Only where a person watches (stderr a terminal) and not with ``--quiet``: a log file or a
-test's captured stderr gets no such line.
+test's captured stderr gets no such line. Numba is not imported for it: the listener is
+registered when the command itself loads numba (at once if it is loaded already), so a
+command that fails on its options, or never computes, pays nothing.
 """
 
 from __future__ import annotations
 
 import contextlib
+import importlib.abc
+import importlib.util
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from types import ModuleType
 from typing import Any, TextIO
 
 
@@ -39,6 +44,39 @@ class _Counter:
             self.spent_s += time.perf_counter() - self.started
 
 
+#: The numba module whose listeners see compilations.
+_EVENTS = "numba.core.event"
+
+
+class _WhenImported(importlib.abc.MetaPathFinder):
+    """Calls ``then(module)`` once the module ``name`` has been imported (a one-shot
+    finder first in ``sys.meta_path``: the module's own loader runs, then ``then``)."""
+
+    def __init__(self, name: str, then: Callable[[ModuleType], None]):
+        self.name, self.then = name, then
+
+    def find_spec(self, fullname: str, path: Any, target: Any = None) -> Any:
+        if fullname != self.name:
+            return None
+        self.remove()
+        spec = importlib.util.find_spec(fullname)
+        if spec is None or spec.loader is None:
+            return spec
+        loader, then = spec.loader, self.then
+        execute = loader.exec_module
+
+        def exec_module(module: ModuleType) -> None:
+            execute(module)
+            then(module)
+
+        loader.exec_module = exec_module  # type: ignore[method-assign]
+        return spec
+
+    def remove(self) -> None:
+        if self in sys.meta_path:
+            sys.meta_path.remove(self)
+
+
 @contextlib.contextmanager
 def announced(command: str, quiet: bool = False,
               stream: TextIO | None = None) -> Iterator[_Counter | None]:
@@ -48,23 +86,34 @@ def announced(command: str, quiet: bool = False,
     if quiet or not stream.isatty():
         yield None
         return
-    from numba.core import event  # (only a command that computes pays for numba here)
-
     counter = _Counter(command, stream)
+    registered: list[tuple[Any, Any]] = []
 
-    class Listener(event.Listener):  # a compilation's start and end (not a cache load)
-        def on_start(self, ev: Any) -> None:
-            counter.start()
+    def register(event: Any) -> None:
+        class Listener(event.Listener):  # a compilation's start and end (not a cache load)
+            def on_start(self, ev: Any) -> None:
+                counter.start()
 
-        def on_end(self, ev: Any) -> None:
-            counter.end()
+            def on_end(self, ev: Any) -> None:
+                counter.end()
 
-    listener = Listener()
-    event.register("numba:compile", listener)
+        listener = Listener()
+        event.register("numba:compile", listener)
+        registered.append((event, listener))
+
+    hook = None
+    if _EVENTS in sys.modules:
+        register(sys.modules[_EVENTS])
+    else:  # (only a command that computes pays for numba: when it imports it)
+        hook = _WhenImported(_EVENTS, register)
+        sys.meta_path.insert(0, hook)
     try:
         yield counter
     finally:
-        event.unregister("numba:compile", listener)
+        if hook is not None:
+            hook.remove()
+        for event, listener in registered:
+            event.unregister("numba:compile", listener)
         if counter.compiled:
             print(f"{command}: compiled {counter.compiled} kernels in {counter.spent_s:.0f} s "
                   "(cached now)", file=stream, flush=True)

@@ -13,14 +13,11 @@ import dataclasses
 import sys
 from pathlib import Path
 
-from tqdm import tqdm
-
 from cdtm_graph.atomic import read_manifest
 from cdtm_graph.cli import COMMANDS
 from cdtm_graph.cli.outdir import add_force_option
 from cdtm_graph.cli.smooth import VERDICT_HELP, print_verdict, smooth_log_to_dir, summary
 from cdtm_graph.data import sample_flight_path
-from cdtm_graph.outputs import RUN_WRITER
 
 #: The rendered demo flight: the paper's geometry (1000 m, 200 m/s, 60 deg), 1 fps.
 IMAGE_DEMO_FRAMES = 30
@@ -55,6 +52,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from cdtm_graph.outputs import RUN_WRITER
+
     if args.images:
         return run_images(Path(args.out or "cdtm-demo-images-out"), args)
     out_dir = Path(args.out or "cdtm-demo-out")
@@ -69,6 +68,8 @@ def run(args: argparse.Namespace) -> int:
 
 def run_images(out_dir: Path, args: argparse.Namespace) -> int:
     """Simulate, render, track, smooth; OUT/log is the flight log, OUT/run the run."""
+    from tqdm import tqdm
+
     from cdtm_graph.cli.smooth import settings_from_args
     from cdtm_graph.flightlog import TRACKS_CSV, write_tracks
     from cdtm_graph.frontend import track_log

@@ -5,26 +5,20 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path, PurePosixPath
-
-from tqdm import tqdm
+from typing import TYPE_CHECKING
 
 from cdtm_graph.atomic import read_manifest
-from cdtm_graph.camera import DistortionModel
+from cdtm_graph.choices import DistortionModel, VerticalDatum
 from cdtm_graph.cli import COMMANDS
 from cdtm_graph.cli.outdir import OUT_RULES, add_force_option, output_dir
 from cdtm_graph.errors import CdtmError, OutputError
-from cdtm_graph.flightlog import (
-    FLIGHT_YAML,
-    FRAMES_CSV,
-    IMU_CSV,
-    LOG_FILES,
-    TRACKS_CSV,
-    FlightLog,
-    write_tracks,
-)
-from cdtm_graph.geodesy import GeodeticOrigin, VerticalDatum
-from cdtm_graph.importers.px4 import GnssSource, ImuAxes, ImuTopics
-from cdtm_graph.importers.recording import ImuNoiseSource
+from cdtm_graph.flightlog.names import FLIGHT_YAML, FRAMES_CSV, IMU_CSV, LOG_FILES, TRACKS_CSV
+from cdtm_graph.importers.options import GnssSource, ImuAxes, ImuNoiseSource, ImuTopics
+
+if TYPE_CHECKING:
+    from tqdm import tqdm
+
+    from cdtm_graph.flightlog import FlightLog
 
 #: Who writes an imported log (the output manifest's writer names).
 WRITERS = {"euroc": "import euroc", "rosbag": "import rosbag", "px4": "import px4"}
@@ -190,6 +184,7 @@ def _common_options(p: argparse.ArgumentParser, kalibr_required: bool) -> None:
 
 
 def _settings(args: argparse.Namespace):
+    from cdtm_graph.geodesy import GeodeticOrigin
     from cdtm_graph.importers import DtmSource, ImportSettings, InitialPrior
 
     origin = GeodeticOrigin(*args.origin) if args.origin is not None else None
@@ -238,6 +233,8 @@ class _LazyBar:
         if self.quiet:
             return
         if self.bar is None:
+            from tqdm import tqdm
+
             self.bar = tqdm(total=total, unit=self.unit, desc="importing", file=sys.stderr,
                             leave=False)
         self.bar.update(done - self.bar.n)
@@ -342,6 +339,9 @@ def _image_sources(args: argparse.Namespace, log: FlightLog) -> dict[str, str]:
 
 
 def _track(log: FlightLog, staging: Path, quiet: bool, sources: dict[str, str]):
+    from tqdm import tqdm
+
+    from cdtm_graph.flightlog import write_tracks
     from cdtm_graph.frontend import track_log
 
     try:

@@ -12,20 +12,28 @@ import argparse
 import dataclasses
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from cdtm_graph.cli import COMMANDS
 from cdtm_graph.cli.outdir import add_out_option, output_dir
 from cdtm_graph.errors import CdtmError
-from cdtm_graph.studies.navsim import (
+from cdtm_graph.sim.settings import DEFAULT_SEED, NOMINAL_SPEED_MPS
+from cdtm_graph.studies.settings import (
+    BASELINE_PER_ALTITUDE,
+    NAVSIM_DURATION_S,
     QUICK_DURATION_S,
-    NavsimResult,
-    NavsimSettings,
-    run_navsim,
-    table_csv,
-    table_markdown,
+    TABLE1_ALTITUDES_M,
+    TABLE2_ALTITUDE_M,
+    TABLE2_RESOLUTIONS_PX,
+    frame_interval_s,
 )
 
-_DEFAULTS = NavsimSettings()
+if TYPE_CHECKING:
+    from cdtm_graph.studies.navsim import NavsimResult, NavsimSettings
+
+#: The interval between frames at the Table 2 altitude (s), as NavsimSettings defaults it.
+_TABLE2_INTERVAL_S = frame_interval_s(TABLE2_ALTITUDE_M, BASELINE_PER_ALTITUDE,
+                                      NOMINAL_SPEED_MPS)
 
 #: The files written into --out.
 OUTPUT_FILES = ("table1.md", "table1.csv", "table2.md", "table2.csv")
@@ -45,21 +53,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "table1.md, table1.csv, table2.md and table2.csv into --out.")
     add_out_option(parser, "output directory", default="cdtm-navsim-out")
     parser.add_argument("--altitudes", type=float, nargs="+", metavar="M",
-                        default=list(_DEFAULTS.altitudes_m),
+                        default=list(TABLE1_ALTITUDES_M),
                         help="Table 1 altitudes, m (default: %(default)s)")
     parser.add_argument("--resolutions", type=int, nargs="+", metavar="PX",
-                        default=list(_DEFAULTS.resolutions_px),
+                        default=list(TABLE2_RESOLUTIONS_PX),
                         help="Table 2 image sides, px (default: %(default)s)")
     length = parser.add_mutually_exclusive_group()
     length.add_argument("--frames", type=int, metavar="N",
                         help="flight length as the frame count at the Table 2 altitude "
-                             f"({_DEFAULTS.table2_altitude_m:g} m, one frame every "
-                             f"{_DEFAULTS.frame_interval_s(_DEFAULTS.table2_altitude_m):g} s); "
+                             f"({TABLE2_ALTITUDE_M:g} m, one frame every "
+                             f"{_TABLE2_INTERVAL_S:g} s); "
                              "every case flies that long")
     length.add_argument("--duration-s", type=float, metavar="S",
-                        help=f"flight length, s (default: {_DEFAULTS.duration_s:g}; "
+                        help=f"flight length, s (default: {NAVSIM_DURATION_S:g}; "
                              f"{QUICK_DURATION_S:g} with --quick)")
-    parser.add_argument("--seed", type=int, default=_DEFAULTS.seed,
+    parser.add_argument("--seed", type=int, default=DEFAULT_SEED,
                         help="seed of every case (default: %(default)s)")
     parser.add_argument("--quick", action="store_true",
                         help=f"short flights ({QUICK_DURATION_S:g} s): a check in seconds, "
@@ -69,12 +77,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def settings_from_args(args: argparse.Namespace) -> NavsimSettings:
-    """The navsim settings the arguments ask for (``CdtmError`` on a bad value)."""
+    """The navsim settings the arguments ask for (``CdtmError`` on a bad value; a bad
+    ``--frames`` before the simulator is imported)."""
+    if args.frames is not None and args.frames < 2:
+        raise CdtmError(f"--frames {args.frames}: expected at least 2 frames")
+    from cdtm_graph.studies.navsim import NavsimSettings
+
     settings = NavsimSettings(altitudes_m=tuple(args.altitudes),
                               resolutions_px=tuple(args.resolutions), seed=args.seed)
     if args.frames is not None:
-        if args.frames < 2:
-            raise CdtmError(f"--frames {args.frames}: expected at least 2 frames")
         interval = settings.frame_interval_s(settings.table2_altitude_m)
         return dataclasses.replace(settings, duration_s=(args.frames - 1) * interval)
     if args.duration_s is not None:
@@ -86,6 +97,8 @@ def settings_from_args(args: argparse.Namespace) -> NavsimSettings:
 
 def write_tables(result: NavsimResult, directory: Path) -> None:
     """The four table files (into a staging directory: see ``run``)."""
+    from cdtm_graph.studies.navsim import table_csv, table_markdown
+
     for name, table in (("table1", result.table1), ("table2", result.table2)):
         (directory / f"{name}.md").write_text(table_markdown(table))
         (directory / f"{name}.csv").write_text(table_csv(table))
@@ -100,6 +113,8 @@ def _progress(done: int, total: int, case: tuple[float, int]) -> None:
 
 def run(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
+    from cdtm_graph.studies.navsim import run_navsim, table_markdown
+
     out_dir = Path(args.out)
     with output_dir(args, out_dir, WRITER, names=OUTPUT_FILES) as staging:
         result = run_navsim(settings, None if args.quiet else _progress)

@@ -6,23 +6,24 @@ import argparse
 import sys
 from pathlib import Path
 
-from tqdm import tqdm
-
-from cdtm_graph.camera import DistortionModel
+from cdtm_graph.choices import DistortionModel, VerticalDatum
 from cdtm_graph.cli import COMMANDS
 from cdtm_graph.cli.outdir import OUT_RULES, add_force_option, output_dir
 from cdtm_graph.errors import CdtmError
-from cdtm_graph.geodesy import GeodeticOrigin, VerticalDatum
-from cdtm_graph.sim.render import OrthophotoTexture, RenderSettings, render_flight
-from cdtm_graph.sim.simulate import (
-    WRITER,
+from cdtm_graph.sim.settings import (
+    DEFAULT_SEED,
+    NOMINAL_ALTITUDE_M,
+    NOMINAL_DTM_SPACING_M,
+    NOMINAL_FEATURES,
+    NOMINAL_FPS,
+    NOMINAL_FRAMES,
+    NOMINAL_RELIEF_M,
+    NOMINAL_RESOLUTION_PX,
+    NOMINAL_SPEED_MPS,
     NavMode,
-    SimulationSettings,
-    simulate,
-    write_simulation_files,
+    RenderSettings,
 )
 
-_DEFAULTS = SimulationSettings()
 _RENDER_DEFAULTS = RenderSettings()
 
 
@@ -43,16 +44,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--terrain", type=Path, metavar="DTMFILE",
                         help="fly over this DTM (.npz, .asc, .tif) instead of a fractal "
                              "terrain; it is then also the log's DTM")
-    parser.add_argument("--altitude-m", "--alt-m", type=float, default=_DEFAULTS.altitude_m,
+    parser.add_argument("--altitude-m", "--alt-m", type=float, default=NOMINAL_ALTITUDE_M,
                         help="altitude above the terrain's mean height, m (default %(default)s)")
-    parser.add_argument("--speed-mps", type=float, default=_DEFAULTS.speed_mps,
+    parser.add_argument("--speed-mps", type=float, default=NOMINAL_SPEED_MPS,
                         help="ground speed, m/s (default %(default)s)")
-    parser.add_argument("--frames", type=int, default=_DEFAULTS.frames,
+    parser.add_argument("--frames", type=int, default=NOMINAL_FRAMES,
                         help="number of camera frames (default %(default)s)")
-    parser.add_argument("--fps", type=float, default=_DEFAULTS.fps,
+    parser.add_argument("--fps", type=float, default=NOMINAL_FPS,
                         help="frame rate, Hz (default %(default)s)")
     parser.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"),
-                        default=list(_DEFAULTS.resolution_px),
+                        default=list(NOMINAL_RESOLUTION_PX),
                         help="image width and height, pixels (default %(default)s)")
     parser.add_argument("--distortion-model", choices=[m.value for m in DistortionModel],
                         default=DistortionModel.NONE.value,
@@ -61,18 +62,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                              "k1 k2 k3 k4)")
     parser.add_argument("--distortion-coeffs", type=float, nargs="+", default=[], metavar="K",
                         help="the lens's coefficients")
-    parser.add_argument("--features", type=int, default=_DEFAULTS.n_features,
+    parser.add_argument("--features", type=int, default=NOMINAL_FEATURES,
                         help="features per consecutive frame pair (default %(default)s)")
-    parser.add_argument("--seed", type=int, default=_DEFAULTS.seed,
+    parser.add_argument("--seed", type=int, default=DEFAULT_SEED,
                         help="seed of every random draw (default %(default)s)")
     parser.add_argument("--noiseless", action="store_true",
                         help="no IMU noise or bias, no pixel noise, the DTM is the truth")
     parser.add_argument("--exact-dtm", action="store_true",
                         help="the log's DTM is the true terrain (not resampled)")
-    parser.add_argument("--dtm-spacing-m", type=float, default=_DEFAULTS.dtm_spacing_m,
+    parser.add_argument("--dtm-spacing-m", type=float, default=NOMINAL_DTM_SPACING_M,
                         help="grid spacing of the log's DTM, the truth resampled, m (default "
                              "%(default)s; not used with --terrain, --exact-dtm, --noiseless)")
-    parser.add_argument("--relief-m", type=float, default=_DEFAULTS.relief_m,
+    parser.add_argument("--relief-m", type=float, default=NOMINAL_RELIEF_M,
                         help="relief (max - min) of the fractal terrain cell, m "
                              "(default %(default)s; not used with --terrain)")
     parser.add_argument("--nav", choices=[m.value for m in NavMode], default=NavMode.NONE.value,
@@ -108,6 +109,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from cdtm_graph.geodesy import GeodeticOrigin
+    from cdtm_graph.sim.render import OrthophotoTexture, render_flight
+    from cdtm_graph.sim.simulate import (
+        WRITER,
+        SimulationSettings,
+        simulate,
+        write_simulation_files,
+    )
+
     settings = SimulationSettings(
         terrain=args.terrain, altitude_m=args.altitude_m, speed_mps=args.speed_mps,
         frames=args.frames,

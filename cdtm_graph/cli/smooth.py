@@ -1,4 +1,9 @@
-"""``cdtm smooth LOG --out DIR``: smooth a flight log and write the run directory."""
+"""``cdtm smooth LOG --out DIR``: smooth a flight log and write the run directory.
+
+The module imports only the options' vocabulary at the top (``cdtm smooth --help`` and a
+usage error load no numerics); the estimator, the outputs and the plots are imported by the
+functions that use them.
+"""
 
 from __future__ import annotations
 
@@ -7,17 +12,17 @@ import math
 import sys
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from cdtm_graph.cli import COMMANDS
 from cdtm_graph.cli.outdir import add_out_option, output_dir
 from cdtm_graph.errors import CdtmError
-from cdtm_graph.graph import GraphSettings
-from cdtm_graph.outputs import ALL_RUN_FILES, RUN_WRITER, write_run_files
-from cdtm_graph.results import pose_covariance_in_world
-from cdtm_graph.run import RunOutput, smooth_and_evaluate
-from cdtm_graph.run.prepare import load_log_and_dtm
-from cdtm_graph.smoother import SmootherMode, SmootherSettings
-from factors import PlaneMode, RobustKernel
+from cdtm_graph.smoother.modes import SmootherMode
+from factors.modes import PlaneMode, RobustKernel
+
+if TYPE_CHECKING:
+    from cdtm_graph.run import RunOutput
+    from cdtm_graph.smoother import SmootherSettings
 
 #: Runs with at least this many frames show a progress bar (unless --quiet).
 PROGRESS_MIN_FRAMES = 100
@@ -112,6 +117,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def settings_from_args(args: argparse.Namespace) -> SmootherSettings:
+    """The settings the options ask for; a bad value is one line (``CdtmError``) before
+    the estimator is imported."""
     if args.lag_s is not None and not (math.isfinite(args.lag_s) and args.lag_s > 0):
         raise CdtmError(f"--lag-s {args.lag_s}: expected a finite lag > 0 seconds (without "
                         "--lag-s: the full history)")
@@ -119,6 +126,9 @@ def settings_from_args(args: argparse.Namespace) -> SmootherSettings:
         raise CdtmError("--lag-s needs --mode incremental")
     if args.gate is not None and not 0.0 < args.gate < 1.0:
         raise CdtmError(f"--gate {args.gate}: expected a probability strictly between 0 and 1")
+    from cdtm_graph.graph import GraphSettings
+    from cdtm_graph.smoother import SmootherSettings
+
     graph = GraphSettings(plane_mode=PlaneMode(args.plane), robust=RobustKernel(args.robust))
     calibration = getattr(args, "calibration", "checked")  # (parsers without the option)
     if calibration == "held":
@@ -152,6 +162,7 @@ def progress_bar(quiet: bool):
 def plot_writers(out: RunOutput, dtm, flight) -> list:
     from cdtm_graph.plots.trajectory import plot_errors, plot_trajectory_over_dtm
     from cdtm_graph.plots.verdict import plot_verdict
+    from cdtm_graph.results import pose_covariance_in_world
 
     est = out.result.estimate
     _, pos_cov = pose_covariance_in_world(est.world_T_body, out.result.covariances.pose)
@@ -235,6 +246,10 @@ def smooth_log_to_dir(log_dir: str, out_dir: Path, args: argparse.Namespace) -> 
     """Smooth ``log_dir`` into ``out_dir``; the output directory is checked (and its staging
     directory made) before the log is read, so a bad ``--out`` fails before any work."""
     settings = settings_from_args(args)
+    from cdtm_graph.outputs import ALL_RUN_FILES, RUN_WRITER, write_run_files
+    from cdtm_graph.run import smooth_and_evaluate
+    from cdtm_graph.run.prepare import load_log_and_dtm
+
     # (the geodetic files only come with an origin; unknown before the log is read)
     scene = bool(getattr(args, "scene", False))
     names = [*ALL_RUN_FILES, *(PLOT_FILES if args.plots else ()),

@@ -31,8 +31,6 @@ from cdtm_graph.cli.smooth import (
     smooth_log_to_dir,
 )
 from cdtm_graph.errors import CdtmError
-from cdtm_graph.flightlog import GROUNDTRUTH_CSV
-from cdtm_graph.outputs import ALL_RUN_FILES
 
 #: The options of ``cdtm smooth`` each task takes over (the rest are smooth-many's own).
 _TASK_OPTIONS = ("mode", "plane", "robust", "lag_s", "gate", "calibration", "plots", "scene",
@@ -90,6 +88,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from cdtm_graph.flightlog import GROUNDTRUTH_CSV
+    from cdtm_graph.outputs import ALL_RUN_FILES
     from cdtm_graph.parallel import ParallelSettings, map_tasks
     from cdtm_graph.verdict.comparison import run_names
 

@@ -12,19 +12,15 @@ import csv
 import math
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from cdtm_graph.atomic import atomic_output_file
 from cdtm_graph.cli import COMMANDS
 from cdtm_graph.cli.outdir import add_out_option, output_dir
-from cdtm_graph.parallel import ParallelSettings
-from cdtm_graph.studies.sweeps import (
-    STUDY_COLUMNS,
-    StudyParameter,
-    StudyResult,
-    StudySettings,
-    TrialStatus,
-    run_study,
-)
+from cdtm_graph.studies.settings import StudyParameter
+
+if TYPE_CHECKING:
+    from cdtm_graph.studies.sweeps import StudyResult
 
 #: Significant digits of the CSV numbers (well below the Monte Carlo noise).
 CSV_DIGITS = 8
@@ -58,6 +54,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def write_study_csv(result: StudyResult, path: Path) -> None:
     """The study table as CSV, atomically; NaN where every trial of a value failed."""
+    from cdtm_graph.studies.sweeps import STUDY_COLUMNS
+
     with atomic_output_file(path) as tmp, open(tmp, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(STUDY_COLUMNS)
@@ -82,6 +80,8 @@ def write_study_figure(result: StudyResult, path: Path) -> None:
 
 def format_table(result: StudyResult) -> str:
     """The study as a fixed-width text table (metres, degrees), with failure causes."""
+    from cdtm_graph.studies.sweeps import TrialStatus
+
     head = (f"{'value':>8} {'fail':>8}  {'pos2 pred/err [m]':>18}  {'att2 pred/err [deg]':>20}"
             f"  {'t12 pred/err [m]':>17}  {'r12 pred/err [deg]':>19}  causes")
     lines = [head]
@@ -98,6 +98,9 @@ def format_table(result: StudyResult) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from cdtm_graph.parallel import ParallelSettings
+    from cdtm_graph.studies.sweeps import SWEEPS, StudySettings, run_study
+
     parameter = StudyParameter(args.parameter)
     settings = StudySettings(parameter, values=tuple(args.values) if args.values else None,
                              trials=args.trials, seed=args.seed)
@@ -112,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
         write_study_csv(result, staging / csv_name)
         write_study_figure(result, staging / png_name)
     csv_path, png_path = args.out / csv_name, args.out / png_name
-    sweep = parameter.sweep
+    sweep = SWEEPS[parameter]
     print(f"study {parameter.value}: {sweep.label}; {settings.trials} trials per value, "
           f"seed {settings.seed}, {elapsed_s:.1f} s")
     print(format_table(result))

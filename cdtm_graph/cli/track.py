@@ -27,23 +27,17 @@ import shutil
 import sys
 from collections.abc import Iterator
 from pathlib import Path
-
-import numpy as np
-from tqdm import tqdm
+from typing import TYPE_CHECKING
 
 from cdtm_graph.atomic import fsync_path, signals_deferred, temporary_beside
 from cdtm_graph.cli import COMMANDS
 from cdtm_graph.errors import CdtmError, OutputError
-from cdtm_graph.flightlog import (
-    FRAMES_CSV,
-    LOG_FILES,
-    TRACKS_CSV,
-    FlightLog,
-    read_flightlog,
-    write_tracks,
-)
-from cdtm_graph.frontend import TrackerSettings, track_log
-from cdtm_graph.frontend.track_log import TrackingReport
+from cdtm_graph.flightlog.names import FRAMES_CSV, LOG_FILES, TRACKS_CSV
+from cdtm_graph.frontend.settings import TrackerSettings
+
+if TYPE_CHECKING:
+    from cdtm_graph.flightlog import FlightLog
+    from cdtm_graph.frontend.track_log import TrackingReport
 
 _DEFAULTS = TrackerSettings()
 
@@ -181,7 +175,7 @@ def _check_report_apart_from_inputs(report: Path, given: str, flight: FlightLog)
 
 def _check_tracked(report: TrackingReport, log: Path, target: Path, existed: bool) -> None:
     """Refuse tracks that tie no two frames together: the smoother would refuse them."""
-    if np.any(report.pairs_per_frame):
+    if report.pairs_per_frame.any():
         return
     k = report.n_frames
     found = (f"{report.n_single_sightings} feature(s) found, each in one frame only"
@@ -258,6 +252,11 @@ def _publish(tracks_tmp: Path, target: Path, report_tmp: Path | None, report: Pa
 
 
 def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from cdtm_graph.flightlog import read_flightlog, write_tracks
+    from cdtm_graph.frontend import track_log
+
     target = args.log / TRACKS_CSV
     _check_tracks_target(target, args.force)
     given = args.report

@@ -9,12 +9,19 @@ files can be copied in as they are.
 - :mod:`~cdtm_graph.flightlog.tables` and :mod:`~cdtm_graph.flightlog.config`: the CSV
   and flight.yaml parsers; :mod:`~cdtm_graph.flightlog.reader` reads a whole directory.
 - :mod:`~cdtm_graph.flightlog.writer`: writes one, bit-exact on the round trip.
+- :mod:`~cdtm_graph.flightlog.names`: the file names (light: the command line's help).
 
 Every problem in a log raises :class:`~cdtm_graph.errors.FlightLogError` with a
 one-line message ``"<file>:<line>: <what is wrong>; expected <what>"``.
+
+The file names are loaded with the package, the rest on first use of one of its names.
 """
 
-from cdtm_graph.flightlog.model import (
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+from cdtm_graph.flightlog.names import (
     FLIGHT_YAML,
     FORMAT,
     FRAMES_CSV,
@@ -23,21 +30,34 @@ from cdtm_graph.flightlog.model import (
     LOG_FILES,
     NAV_CSV,
     TRACKS_CSV,
-    CalibrationSigmas,
-    CameraConfig,
-    DtmConfig,
-    FlightConfig,
-    FlightLog,
-    Frames,
-    ImuConfig,
-    ImuSamples,
-    InitialState,
-    States,
-    Tracks,
 )
-from cdtm_graph.flightlog.reader import read_flightlog
-from cdtm_graph.flightlog.writer import write_flightlog, write_flightlog_files, write_tracks
 
+if TYPE_CHECKING:
+    from cdtm_graph.flightlog.model import (
+        CalibrationSigmas,
+        CameraConfig,
+        DtmConfig,
+        FlightConfig,
+        FlightLog,
+        Frames,
+        ImuConfig,
+        ImuSamples,
+        InitialState,
+        States,
+        Tracks,
+    )
+    from cdtm_graph.flightlog.reader import read_flightlog
+    from cdtm_graph.flightlog.writer import (
+        write_flightlog,
+        write_flightlog_files,
+        write_tracks,
+    )
+
+_WHERE = {"CalibrationSigmas": "model", "CameraConfig": "model", "DtmConfig": "model",
+          "FlightConfig": "model", "FlightLog": "model", "Frames": "model", "ImuConfig": "model",
+          "ImuSamples": "model", "InitialState": "model", "States": "model", "Tracks": "model",
+          "read_flightlog": "reader", "write_flightlog": "writer",
+          "write_flightlog_files": "writer", "write_tracks": "writer"}
 __all__ = [
     "FLIGHT_YAML", "FORMAT", "FRAMES_CSV", "GROUNDTRUTH_CSV", "IMU_CSV", "LOG_FILES", "NAV_CSV",
     "TRACKS_CSV", "CalibrationSigmas", "CameraConfig", "DtmConfig", "FlightConfig",
@@ -46,3 +66,10 @@ __all__ = [
     "read_flightlog", "write_flightlog", "write_flightlog_files",
     "write_tracks",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _WHERE:
+        import importlib
+        return getattr(importlib.import_module(f"cdtm_graph.flightlog.{_WHERE[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

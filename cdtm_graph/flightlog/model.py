@@ -1,6 +1,7 @@
 """The data model of a ``cdtm-flightlog/1`` log (docs/flightlog.md): plain numpy, no I/O.
 
-The file names, tolerances and dataclasses every reader and writer of the format shares.
+The tolerances and dataclasses every reader and writer of the format shares (the file
+names: :mod:`~cdtm_graph.flightlog.names`, re-exported here).
 """
 
 from __future__ import annotations
@@ -15,19 +16,18 @@ import numpy as np
 
 from cdtm_graph.camera import PinholeCamera
 from cdtm_graph.errors import FlightLogError
+from cdtm_graph.flightlog.names import (  # noqa: F401  (re-exported: the format's names)
+    FLIGHT_YAML,
+    FORMAT,
+    FRAMES_CSV,
+    GROUNDTRUTH_CSV,
+    IMU_CSV,
+    LOG_FILES,
+    NAV_CSV,
+    TRACKS_CSV,
+)
 from cdtm_graph.geodesy import GeodeticOrigin, LocalFrame, VerticalDatum, local_frame
 from cdtm_graph.geometry import make_pose, quat_wxyz_to_rotation
-
-FORMAT = "cdtm-flightlog/1"
-
-FLIGHT_YAML = "flight.yaml"
-IMU_CSV = "imu.csv"
-FRAMES_CSV = "frames.csv"
-TRACKS_CSV = "tracks.csv"
-NAV_CSV = "nav.csv"
-GROUNDTRUTH_CSV = "groundtruth.csv"
-#: Every file the writer owns; stale optional ones are removed when a log is rewritten.
-LOG_FILES = (FLIGHT_YAML, IMU_CSV, FRAMES_CSV, TRACKS_CSV, NAV_CSV, GROUNDTRUTH_CSV)
 
 DTM_SUFFIXES = (".npz", ".asc", ".tif")
 #: DEM files a geodetic log (top-level ``origin:``) may name: any CRS, read through GDAL.

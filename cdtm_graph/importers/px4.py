@@ -31,7 +31,6 @@ log's IMU clock (``t_ns = 1000 t_us``). What is read, each piece a function test
 
 from __future__ import annotations
 
-import enum
 import logging
 import os
 import re
@@ -48,6 +47,7 @@ from cdtm_graph.flightlog.model import FlightLog, ImuSamples, States
 from cdtm_graph.geodesy import GeodeticOrigin, LocalFrame, geoid_undulation_m, local_frame
 from cdtm_graph.geometry import quat_wxyz_to_rotation, rotation_to_quat_wxyz
 from cdtm_graph.importers.calibration import CameraCalibration, ImuCalibration
+from cdtm_graph.importers.options import GnssSource, ImuAxes, ImuTopics
 from cdtm_graph.importers.recording import (
     IMAGE_DIR,
     ImportSettings,
@@ -74,27 +74,6 @@ MIN_FIX_TYPE = 3
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm")
 GPS_TOPICS = ("vehicle_gps_position", "sensor_gps")
 TRIGGER_TOPICS = ("camera_capture", "camera_trigger")
-
-
-class ImuAxes(enum.Enum):
-    """The axes of the imported log's body (the IMU)."""
-
-    FRD = "frd"  # PX4's body frame, as logged: x forward, y right, z down
-    FLU = "flu"  # ROS base_link (mavros): x forward, y left, z up
-
-
-class ImuTopics(enum.Enum):
-    """Which topics give the IMU samples."""
-
-    SENSOR_COMBINED = "sensor_combined"  # calibrated, the estimator's input (default)
-    RAW = "raw"                          # sensor_gyro + sensor_accel, uncalibrated
-
-
-class GnssSource(enum.Enum):
-    """Which topic gives the GNSS track (ground truth, initial state, origin)."""
-
-    GPS = "gps"                          # vehicle_gps_position, else sensor_gps
-    GLOBAL_POSITION = "global_position"  # vehicle_global_position (the estimator's)
 
 
 @dataclass(frozen=True, eq=False)

@@ -17,7 +17,6 @@ was written is what the smoother will read.
 from __future__ import annotations
 
 import dataclasses
-import enum
 import logging
 import os
 import shutil
@@ -52,6 +51,7 @@ from cdtm_graph.flightlog.writer import write_flightlog_files
 from cdtm_graph.geodesy import GeodeticOrigin, VerticalDatum, local_frame, normal_gravity_mps2
 from cdtm_graph.geometry import quat_wxyz_to_rotation
 from cdtm_graph.importers.calibration import CameraCalibration
+from cdtm_graph.importers.options import ImuNoiseSource
 from cdtm_graph.run.prepare import load_flight_dtm
 from cdtm_graph.verdict.imu_faults import MeasuredImuNoise, sample_noise
 
@@ -88,18 +88,6 @@ class SensorRecording:
     groundtruth: States | None = None
     groundtruth_bias: np.ndarray | None = None
     provenance: dict = field(default_factory=dict)
-
-
-class ImuNoiseSource(enum.Enum):
-    """Which white-noise densities an imported log's flight.yaml gets (``--imu-noise``)."""
-
-    #: The calibration's (Kalibr, EuRoC sensor.yaml): a datasheet or an Allan variance at
-    #: rest, without the vibration of flight.
-    STATED = "stated"
-    #: What the samples themselves scatter (:func:`cdtm_graph.verdict.imu_faults.sample_noise`,
-    #: vibration included), the noisiest axis, where that exceeds the stated density; an
-    #: IMU that filters its output reads low, so a stated density is never lowered.
-    MEASURED = "measured"
 
 
 @dataclass(frozen=True)

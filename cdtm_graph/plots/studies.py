@@ -14,7 +14,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.ticker import FormatStrFormatter
 
-from cdtm_graph.studies.sweeps import StudyResult
+from cdtm_graph.studies.sweeps import SWEEPS, StudyResult
 
 #: Values with fewer good trials than this are left out of the curves (too noisy to show).
 MIN_GOOD_TRIALS_PLOTTED = 10
@@ -76,7 +76,7 @@ def study_figure(result: StudyResult) -> Figure:
     Returns:
         A matplotlib figure, 11 x 5.5 inches.
     """
-    sweep = result.parameter.sweep
+    sweep = SWEEPS[result.parameter]
     x = np.asarray(result.values, dtype=float)
     fig = Figure(figsize=(11, 5.5), layout="constrained")
     grid = fig.add_gridspec(2, 2, height_ratios=(4, 1))

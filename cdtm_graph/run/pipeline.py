@@ -91,5 +91,7 @@ def smooth_and_evaluate(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
     report["self_checks"] = verdict.self_checks.to_dict()
     if result.calibration_check is not None:
         report["calibration_check"] = result.calibration_check.to_dict()
+    if result.convergence_check is not None:
+        report["convergence_check"] = result.convergence_check.to_dict()
     report["timings_s"]["total"] = time.perf_counter() - start
     return RunOutput(result, errors, free, free_errors, report, verdict)

@@ -31,6 +31,7 @@ from cdtm_graph.geometry import make_pose, so3_exp
 class MismatchKind(enum.Enum):
     PIT = "pit"        # a round pit (quarry, collapsed ground) under the track
     BLOCKS = "blocks"  # flat-roofed blocks (buildings; a forest with small ones)
+    HILL = "hill"      # a broad smooth hill under the track (a map from before an embankment)
 
 
 @dataclass(frozen=True)
@@ -38,11 +39,13 @@ class TerrainMismatch:
     """Terrain that the true ground has and the DTM lacks.
 
     Attributes:
-        kind: PIT or BLOCKS.
-        depth_m: PIT: how far the pit floor lies below the ground (m).
+        kind: PIT, BLOCKS or HILL.
+        depth_m: PIT: how far the pit floor lies below the ground (m); HILL: how high the
+            hill rises above it.
         radius_m: PIT: radius of the floor (m); the wall slopes over ``wall_m`` outside it.
+            HILL: the hill's Gaussian sigma (m): smooth, with no edge a test can see.
         wall_m: PIT: horizontal width of the wall (m).
-        at_s: PIT: the pit is centred under the flight at this time (s).
+        at_s: PIT, HILL: centred under the flight at this time (s).
         coverage: BLOCKS: fraction of the ground the blocks cover.
         height_m: BLOCKS: (low, high) block heights, uniform (m).
         size_m: BLOCKS: (low, high) block side lengths, uniform (m).
@@ -85,6 +88,9 @@ def apply_terrain_mismatch(truth: Dtm, mismatch: TerrainMismatch,
         r = np.hypot(x[None, :] - centre_xy_m[0], y[:, None] - centre_xy_m[1])
         s = np.clip((mismatch.radius_m + mismatch.wall_m - r) / mismatch.wall_m, 0.0, 1.0)
         elevation -= mismatch.depth_m * s * s * (3.0 - 2.0 * s)  # smoothstep wall
+    elif mismatch.kind is MismatchKind.HILL:
+        r = np.hypot(x[None, :] - centre_xy_m[0], y[:, None] - centre_xy_m[1])
+        elevation += mismatch.depth_m * np.exp(-0.5 * (r / mismatch.radius_m) ** 2)
     else:
         rng = np.random.default_rng(mismatch.seed)
         raised = np.zeros(truth.shape, dtype=bool)

@@ -42,6 +42,7 @@ from numba import njit, prange
 from cdtm_graph.camera import PinholeCamera
 from cdtm_graph.dtm import Dtm, visible_from
 from cdtm_graph.errors import SimulationError
+from cdtm_graph.sim.settings import RenderSettings
 
 if TYPE_CHECKING:
     from cdtm_graph.sim.simulate import SimulationResult
@@ -365,60 +366,6 @@ def _trilinear(flat, offsets, shapes, row, col, level, out):
         v1 = _bilinear_level(flat, offsets[l1], shapes[l1, 0], shapes[l1, 1], row[i] * s1,
                              col[i] * s1)
         out[i] = v0 * (1 - w) + v1 * w
-
-
-@dataclass(frozen=True)
-class RenderSettings:
-    """How images are made (module docstring).
-
-    Attributes:
-        sun_azimuth_deg: compass direction the sunlight comes from (0 = north, 90 = east).
-        sun_elevation_deg: sun elevation above the horizon (deg), in (0, 90].
-        ambient: share of the light that does not depend on the normal, in [0, 1].
-        exposure: digital numbers per unit radiance divided by 255 (1: an albedo-1 surface
-            facing the sun saturates exactly).
-        exposure_jitter: relative exposure change per frame, drawn uniformly in
-            ``[-jitter, +jitter]`` (0.1: +-10 %).
-        motion_blur_px: length of a linear motion blur along each frame's image motion (px).
-        noise_sigma_dn: Gaussian sensor noise (8-bit digital numbers).
-        seed: seeds the sensor noise and the exposure draws.
-    """
-
-    sun_azimuth_deg: float = 135.0
-    sun_elevation_deg: float = 45.0
-    ambient: float = 0.3
-    exposure: float = 1.0
-    exposure_jitter: float = 0.0
-    motion_blur_px: float = 0.0
-    noise_sigma_dn: float = 1.0
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        checks = {
-            "sun_elevation_deg": 0 < self.sun_elevation_deg <= 90,
-            "ambient": 0 <= self.ambient <= 1,
-            "exposure": 0 < self.exposure < math.inf,
-            "exposure_jitter": 0 <= self.exposure_jitter < 1,
-            "motion_blur_px": 0 <= self.motion_blur_px < 64,
-            "noise_sigma_dn": 0 <= self.noise_sigma_dn < math.inf,
-            "sun_azimuth_deg": math.isfinite(self.sun_azimuth_deg),
-        }
-        expected = {"sun_elevation_deg": "in (0, 90]", "ambient": "in [0, 1]",
-                    "exposure": "> 0", "exposure_jitter": "in [0, 1)",
-                    "motion_blur_px": "in [0, 64)", "noise_sigma_dn": ">= 0",
-                    "sun_azimuth_deg": "finite"}
-        for name, ok in checks.items():
-            if not ok:
-                raise SimulationError(f"render {name} = {getattr(self, name)!r}, "
-                                      f"expected {expected[name]}")
-        if not (isinstance(self.seed, int | np.integer) and self.seed >= 0):
-            raise SimulationError(f"render seed = {self.seed!r}, expected an integer >= 0")
-
-    @property
-    def sun_world(self) -> np.ndarray:
-        """(3,) unit vector toward the sun in world ENU."""
-        az, el = math.radians(self.sun_azimuth_deg), math.radians(self.sun_elevation_deg)
-        return np.array([math.sin(az) * math.cos(el), math.cos(az) * math.cos(el), math.sin(el)])
 
 
 class Renderer:

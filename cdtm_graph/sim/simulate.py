@@ -77,7 +77,20 @@ from cdtm_graph.sim.faults import (
 )
 from cdtm_graph.sim.geodetic import origin_of, write_geodetic_simulation_files
 from cdtm_graph.sim.imu import ImuData, simulate_imu
+from cdtm_graph.sim.map_detail import MapDetail, apply_map_detail
 from cdtm_graph.sim.render import write_images
+from cdtm_graph.sim.settings import (
+    DEFAULT_SEED,
+    NOMINAL_ALTITUDE_M,
+    NOMINAL_DTM_SPACING_M,
+    NOMINAL_FEATURES,
+    NOMINAL_FPS,
+    NOMINAL_FRAMES,
+    NOMINAL_RELIEF_M,
+    NOMINAL_RESOLUTION_PX,
+    NOMINAL_SPEED_MPS,
+    NavMode,
+)
 from cdtm_graph.sim.terrain import NOMINAL_CORRELATION_LENGTH_M, clone_basic_cell, fractal_terrain
 from cdtm_graph.sim.trajectory import STANDARD_GRAVITY_MPS2, FlightPlan, Trajectory, evaluate
 
@@ -149,14 +162,6 @@ _SPAWN_MIN_CANDIDATES = 64
 _SPAWN_MAX_CANDIDATES = 200_000
 _SPAWN_ROUNDS = 8
 
-
-
-class NavMode(enum.Enum):
-    """Whether and how the simulated log gets a nav.csv (an external navigation solution)."""
-
-    NONE = "none"                    # no nav.csv
-    DEAD_RECKONING = "deadreckoning"  # IMU-only propagation from the initial-state prior
-    NOISY_TRUTH = "noisy_truth"      # the true state plus white noise per frame
 
 
 class TrackEnd(enum.IntEnum):
@@ -234,6 +239,9 @@ class SimulationSettings:
             (:class:`~cdtm_graph.sim.faults.TerrainMismatch`).
         flat_ground: flat ground (a lake) under part of the track, in the truth and the
             DTM alike (:class:`~cdtm_graph.sim.faults.FlatGround`).
+        map_detail: ground detail the DTM lacks, correlated over tens to hundreds of
+            metres, everywhere (:class:`~cdtm_graph.sim.map_detail.MapDetail`): a map
+            error other than the resampling remainder ``sigma_h`` is fitted to.
         origin: where the world is on the Earth (WGS84): the world is the ENU tangent
             plane there, fixed to the rotating Earth, and the IMU senses the Earth's
             rotation and WGS84 normal gravity along the local vertical
@@ -244,18 +252,18 @@ class SimulationSettings:
     """
 
     terrain: Path | None = None
-    relief_m: float = 300.0
+    relief_m: float = NOMINAL_RELIEF_M
     terrain_cell_m: float = 3000.0
     correlation_length_m: float = NOMINAL_CORRELATION_LENGTH_M
     terrain_spacing_m: float | None = None
-    dtm_spacing_m: float = 30.0
+    dtm_spacing_m: float = NOMINAL_DTM_SPACING_M
     exact_dtm: bool = False
-    altitude_m: float = 1000.0
-    speed_mps: float = 200.0
-    frames: int = 60
-    fps: float = 1.0
-    n_features: int = 170
-    resolution_px: tuple[int, int] = (400, 400)
+    altitude_m: float = NOMINAL_ALTITUDE_M
+    speed_mps: float = NOMINAL_SPEED_MPS
+    frames: int = NOMINAL_FRAMES
+    fps: float = NOMINAL_FPS
+    n_features: int = NOMINAL_FEATURES
+    resolution_px: tuple[int, int] = NOMINAL_RESOLUTION_PX
     fov_deg: float = 60.0
     distortion_model: DistortionModel | str = DistortionModel.NONE
     distortion_coeffs: tuple[float, ...] = ()
@@ -286,8 +294,9 @@ class SimulationSettings:
     initial_error_deg: tuple[float, float, float] | None = None
     terrain_mismatch: TerrainMismatch | None = None
     flat_ground: FlatGround | None = None
+    map_detail: MapDetail | None = None
     origin: GeodeticOrigin | None = None
-    seed: int = 0
+    seed: int = DEFAULT_SEED
 
     def __post_init__(self) -> None:
         if self.terrain is not None:
@@ -401,7 +410,7 @@ class SimulationSettings:
                 value = value.value
             elif isinstance(value, ImuNoise):
                 value = dataclasses.asdict(value)
-            elif isinstance(value, (TerrainMismatch, FlatGround)):
+            elif isinstance(value, (TerrainMismatch, FlatGround, MapDetail)):
                 value = value.to_dict()
             elif isinstance(value, GeodeticOrigin):
                 value = dataclasses.asdict(value)
@@ -790,6 +799,10 @@ def _make_world(settings: SimulationSettings, frame_t_s: np.ndarray,
         at = evaluate(plan, np.array([settings.terrain_mismatch.at_s])).position_m[0]
         terrain = apply_terrain_mismatch(terrain, settings.terrain_mismatch, (at[0], at[1]))
         info["dtm_height_error_rms_with_mismatch_m"] = _height_error_rms(dtm, terrain)
+    if settings.map_detail is not None:  # the truth changes, the DTM does not
+        terrain = apply_map_detail(terrain, settings.map_detail)
+        info["map_detail"] = settings.map_detail.to_dict()
+        info["dtm_height_error_rms_with_detail_m"] = _height_error_rms(dtm, terrain)
     return _World(terrain, dtm, plan, info)
 
 

@@ -38,6 +38,7 @@ from cdtm_graph.results import (
 from cdtm_graph.robust.clutter import considered_offsets
 from cdtm_graph.robust.track_tests import BatchTrackTests
 from cdtm_graph.smoother.assembly import ClutterOutcome, assemble_result
+from cdtm_graph.smoother.convergence import check_convergence
 from cdtm_graph.smoother.incremental import IncrementalSmoother
 from cdtm_graph.smoother.settings import Progress, SmootherMode, SmootherSettings
 from cdtm_graph.verdict.preflight import check_constraints
@@ -254,7 +255,13 @@ def _online_calibration(flight: FlightLog, settings: SmootherSettings
 def _checked(flight: FlightLog, dtm: Dtm, settings: SmootherSettings, result: SmootherResult,
              left_out: np.ndarray, unfixed_frames: np.ndarray) -> SmootherResult:
     """``result`` (which held flight.yaml's calibration) with the side solve's check of it
-    (:mod:`cdtm_graph.calibration.check`), unless the settings hold it unchecked."""
+    (:mod:`cdtm_graph.calibration.check`), unless the settings hold it unchecked; and, if
+    its solver did not report convergence, with one more solve's move
+    (:mod:`cdtm_graph.smoother.convergence`)."""
+    if not result.stats.converged:
+        result = replace(result, convergence_check=check_convergence(
+            flight, dtm, settings.graph, result, left_out, unfixed_frames,
+            settings.max_iterations, settings.relative_error_tol))
     sigmas = flight.config.camera.calibration or settings.graph.calibration
     if sigmas is None:
         return result

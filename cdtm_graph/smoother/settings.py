@@ -9,16 +9,10 @@ from dataclasses import asdict, dataclass, field
 
 from cdtm_graph.graph import GraphSettings
 from cdtm_graph.robust.acquisition import AcquisitionSettings
+from cdtm_graph.smoother.modes import SmootherMode
 
 #: ``progress(done, total)``: called once per frame on long runs.
 Progress = Callable[[int, int], None]
-
-
-class SmootherMode(enum.Enum):
-    """Which solver a run uses."""
-
-    BATCH = "batch"              # Levenberg-Marquardt over the whole log
-    INCREMENTAL = "incremental"  # iSAM2, one update per frame (fixed lag with ``lag_s``)
 
 
 @dataclass(frozen=True)

@@ -66,8 +66,18 @@ from cdtm_graph.imu import ImuNoise
 from cdtm_graph.replay import replay
 from cdtm_graph.results import TrajectoryEstimate
 from cdtm_graph.run import smooth_and_evaluate
+from cdtm_graph.sim.settings import DEFAULT_SEED, NOMINAL_SPEED_MPS
 from cdtm_graph.sim.simulate import SimulationSettings, simulate
 from cdtm_graph.smoother import IncrementalSmoother, SmootherMode, SmootherSettings
+from cdtm_graph.studies.settings import (  # noqa: F401  (QUICK_DURATION_S re-exported)
+    BASELINE_PER_ALTITUDE,
+    NAVSIM_DURATION_S,
+    QUICK_DURATION_S,
+    TABLE1_ALTITUDES_M,
+    TABLE2_ALTITUDE_M,
+    TABLE2_RESOLUTIONS_PX,
+    frame_interval_s,
+)
 from cdtm_graph.verdict.evaluation import AXES, ErrorReport, trajectory_errors
 
 logger = logging.getLogger(__name__)
@@ -106,9 +116,6 @@ TACTICAL_IMU = ImuNoise(
     accelerometer_random_walk=3.0e-4,
 )
 
-#: Flight duration of ``cdtm navsim --quick`` (s): a minute, enough for Free to drift
-#: tens of metres; seconds of computing per case.
-QUICK_DURATION_S = 60.0
 
 #: Paper, Table 1 (maximum |error|, m): altitude (m) -> ("Free" | "Compensated", axis).
 #: The paper labels its first row "Free"; it is Free-x (the rows go x, y, z in pairs).
@@ -197,13 +204,13 @@ class NavsimSettings:
         seed: the one seed of every case (>= 0).
     """
 
-    altitudes_m: tuple[float, ...] = (700.0, 1000.0, 3000.0)
-    resolutions_px: tuple[int, ...] = (500, 1000, 4000)
+    altitudes_m: tuple[float, ...] = TABLE1_ALTITUDES_M
+    resolutions_px: tuple[int, ...] = TABLE2_RESOLUTIONS_PX
     table1_resolution_px: int = 1000
-    table2_altitude_m: float = 1000.0
-    duration_s: float = 300.0
-    baseline_per_altitude: float = 0.2
-    speed_mps: float = 200.0
+    table2_altitude_m: float = TABLE2_ALTITUDE_M
+    duration_s: float = NAVSIM_DURATION_S
+    baseline_per_altitude: float = BASELINE_PER_ALTITUDE
+    speed_mps: float = NOMINAL_SPEED_MPS
     fov_deg: float = 60.0
     n_features: int = 110
     pixel_sigma_px: float = 0.5
@@ -217,7 +224,7 @@ class NavsimSettings:
     sigma_accel_bias: float = 1.0e-3 * STANDARD_GRAVITY_MPS2
     smoother: SmootherSettings = field(default_factory=SmootherSettings)
     as_arrived_skip_frames: int = 1
-    seed: int = 0
+    seed: int = DEFAULT_SEED
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "altitudes_m", _positive_tuple(
@@ -246,7 +253,7 @@ class NavsimSettings:
 
     def frame_interval_s(self, altitude_m: float) -> float:
         """Time between frames at ``altitude_m`` (s): the baseline scales with altitude."""
-        return self.baseline_per_altitude * altitude_m / self.speed_mps
+        return frame_interval_s(altitude_m, self.baseline_per_altitude, self.speed_mps)
 
     def frames(self, altitude_m: float) -> int:
         """Frames of the flight at ``altitude_m``: every whole interval of ``duration_s``."""

@@ -32,7 +32,14 @@ from cdtm_graph.sim.faults import (
     with_imu_gap,
     with_wrong_matches,
 )
+from cdtm_graph.sim.map_detail import DetailShape, MapDetail
 from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
+from cdtm_graph.sim.slips import (
+    with_cluster_drift,
+    with_epipolar_wrong_matches,
+    with_track_drift,
+    with_track_jumps,
+)
 from cdtm_graph.smoother import SmootherMode, SmootherSettings
 from cdtm_graph.verdict.outcome import Verdict
 
@@ -61,17 +68,22 @@ class Scenario:
         name: short name. simulation: changes to the base simulation settings.
         fault: what is done to the finished log (``log, rng -> log``), or None.
         dtm_fault: what is done to the log's DTM (``log, dtm -> dtm``), or None.
+        slip: what a tracker does to the log's tracks, seeing the log's map (``log, dtm,
+            rng -> log``: :mod:`cdtm_graph.sim.slips`), or None.
     """
 
     name: str
     simulation: dict = field(default_factory=dict)
     fault: Callable[[FlightLog, np.random.Generator], FlightLog] | None = None
     dtm_fault: Callable[[FlightLog, Dtm], Dtm] | None = None
+    slip: Callable[[FlightLog, Dtm, np.random.Generator], FlightLog] | None = None
 
     def flight(self, base: SimulationSettings = BASE) -> tuple[FlightLog, Dtm]:
         log, dtm = simulate_flight(dataclasses.replace(base, **self.simulation))
         if self.fault is not None:
             log = self.fault(log, np.random.default_rng(base.seed + 1000))
+        if self.slip is not None:
+            log = self.slip(log, dtm, np.random.default_rng(base.seed + 2000))
         if self.dtm_fault is not None:
             dtm = self.dtm_fault(log, dtm)
         return log, dtm
@@ -90,6 +102,11 @@ def _far(metres: float, heading_deg: float, terrain_cell_m: float = 12000.0) -> 
                 initial_error_m=(metres * np.cos(angle), -metres * np.sin(angle), 0.0),
                 initial_error_deg=(0.0, 0.0, heading_deg),
                 region_margin_m=max(400.0, 3.5 * metres), terrain_cell_m=terrain_cell_m)
+
+
+def _detail(shape: DetailShape, rms_m: float, wavelength_m: tuple[float, float],
+            n: int = 24) -> dict:
+    return dict(map_detail=MapDetail(shape, rms_m, wavelength_m, n))
 
 
 SCENARIOS: dict[str, Scenario] = {s.name: s for s in (
@@ -119,6 +136,20 @@ SCENARIOS: dict[str, Scenario] = {s.name: s for s in (
     Scenario("dtm_end60", dtm_fault=lambda log, dtm: with_dtm_ending(log, dtm, 60.0)),
     Scenario("dtm_elsewhere", dtm_fault=lambda log, dtm: Dtm(
         dtm.elevation, dtm.x0 + 100_000.0, dtm.y0, dtm.dx, dtm.dy, dtm.sigma_h_m)),
+    # Map error and tracker faults of other shapes than the ones sigma_h and the epipolar
+    # check were fitted on (issue 21): correlated ground detail the DTM lacks...
+    Scenario("detail_waves", _detail(DetailShape.WAVES, 3.0, (40.0, 200.0))),
+    Scenario("detail_ridges", _detail(DetailShape.RIDGES, 4.0, (60.0, 300.0))),
+    Scenario("detail_bumps", _detail(DetailShape.BUMPS, 3.0, (40.0, 300.0), 40)),
+    Scenario("hill15", dict(terrain_mismatch=TerrainMismatch(MismatchKind.HILL, depth_m=15.0,
+                                                             radius_m=1000.0, at_s=45.0))),
+    # ...and tracker slips the geometry of two frames does not see.
+    Scenario("jumps15", slip=lambda log, dtm, rng: with_track_jumps(log, dtm, 0.15, rng)[0]),
+    Scenario("jumps30", slip=lambda log, dtm, rng: with_track_jumps(log, dtm, 0.30, rng)[0]),
+    Scenario("drift10", slip=lambda log, dtm, rng: with_track_drift(log, 0.10, rng)[0]),
+    Scenario("cluster_drift", slip=lambda log, dtm, rng: with_cluster_drift(log, rng)[0]),
+    Scenario("wrong_epipolar15",
+             slip=lambda log, dtm, rng: with_epipolar_wrong_matches(log, 0.15, rng)[0]),
 )}
 
 

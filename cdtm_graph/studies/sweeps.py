@@ -53,6 +53,7 @@ from cdtm_graph.sim.scenario import (
     make_terrain,
     sample_pair,
 )
+from cdtm_graph.studies.settings import StudyParameter
 
 log = logging.getLogger(__name__)
 
@@ -84,21 +85,6 @@ STUDY_COLUMNS = ("value", "trials", "failures",
 #: The four reported quantities, in the order of :attr:`TrialOutcomes.pred_var`.
 QUANTITIES = ("pos2", "att2", "t12", "r12")
 _ANGULAR = np.array([False, True, False, True])  # reported in degrees
-
-
-class StudyParameter(enum.Enum):
-    """The swept parameter (one paper figure each)."""
-
-    FEATURES = "features"
-    RESOLUTION = "resolution"
-    GRID = "grid"
-    RELIEF = "relief"
-    BASELINE = "baseline"
-    FOV = "fov"
-
-    @property
-    def sweep(self) -> Sweep:
-        return SWEEPS[self]
 
 
 @dataclass(frozen=True)
@@ -196,7 +182,7 @@ class StudySettings:
 
     def resolved_values(self) -> tuple[float | int, ...]:
         """The swept values, validated and typed as the scenario takes them."""
-        sweep = self.parameter.sweep
+        sweep = SWEEPS[self.parameter]
         raw = sweep.default_values if self.values is None else tuple(self.values)
         if not raw:
             raise CdtmError(f"study {self.parameter.value}: no values to sweep")
@@ -204,7 +190,7 @@ class StudySettings:
 
     def scenario(self, value: float | int) -> PairScenario:
         """The base scenario with the swept parameter set to ``value``."""
-        return self.base.with_(**{self.parameter.sweep.scenario_field: value})
+        return self.base.with_(**{SWEEPS[self.parameter].scenario_field: value})
 
     def check(self) -> None:
         """Raise CdtmError on settings that cannot run."""

@@ -120,17 +120,17 @@ class NeesConsistency:
             return None
         bound = nees_bound(dof)
         inside = float(np.mean(values <= bound))
-        median = float(np.median(values))
-        if inside < bounds.min_inside_fraction:
-            verdict = CovarianceVerdict.OPTIMISTIC
-        elif median < chi2_quantile(bounds.conservative_median_quantile, dof):
-            verdict = CovarianceVerdict.CONSERVATIVE
-        else:
-            verdict = CovarianceVerdict.CONSISTENT
+        verdict = covariance_verdict(inside, float(np.median(values)), dof, bounds)
         return cls(dof, int(values.size),
                    {p: float(np.percentile(values, p)) for p in NEES_PERCENTILES},
                    {p: float(chi2_quantile(p / 100.0, dof)) for p in NEES_PERCENTILES},
                    bound, inside, float(values.mean()), verdict)
+
+    @property
+    def consistent(self) -> bool:
+        """The one decision "consistent" (console and report.json alike: ``verdict`` is
+        CONSISTENT; :func:`covariance_verdict`)."""
+        return self.verdict is CovarianceVerdict.CONSISTENT
 
     def summary(self) -> str:
         """One line, e.g. ``consistent: 93% of 90 frames inside the chi-square(3) 95% bound
@@ -148,6 +148,8 @@ class NeesConsistency:
     def to_dict(self) -> dict[str, Any]:
         return {
             "verdict": self.verdict.value,
+            "consistent": self.consistent,
+            "summary": self.summary(),
             "n_frames": self.n_frames,
             "dof": self.dof,
             "bound_95": self.bound,
@@ -163,6 +165,33 @@ class NeesConsistency:
                             "varies much more than independent frames' would: a hint, not "
                             "a test"),
         }
+
+
+def covariance_verdict(inside_fraction: float, median_nees: float, dof: int,
+                       bounds: ConsistencyBounds | None = None) -> CovarianceVerdict:
+    """THE decision of how a run's covariances compare with its errors, which the console,
+    report.json (``position_consistency``, ``anees_position_consistent``) and the verdict's
+    ``overconfident`` all read (docs/verdict.md, "One definition of consistent").
+
+    Args:
+        inside_fraction: share of the frames whose NEES lies within chi-square(dof)'s 95%
+            quantile (:func:`nees_bound`).
+        median_nees: their median NEES.
+        dof: degrees of freedom of one frame's NEES.
+        bounds: where the words change.
+
+    Returns:
+        OPTIMISTIC below ``min_inside_fraction`` inside (the binomial bound of the few
+        independent samples a flight's correlated errors hold); CONSERVATIVE when the
+        median NEES is below chi-square(dof)'s ``conservative_median_quantile``;
+        CONSISTENT otherwise.
+    """
+    bounds = bounds or ConsistencyBounds()
+    if inside_fraction < bounds.min_inside_fraction:
+        return CovarianceVerdict.OPTIMISTIC
+    if median_nees < chi2_quantile(bounds.conservative_median_quantile, dof):
+        return CovarianceVerdict.CONSERVATIVE
+    return CovarianceVerdict.CONSISTENT
 
 
 def nees_bound(dof: int, probability: float = NEES_BOUND_PROBABILITY) -> float:
@@ -252,14 +281,36 @@ class ErrorReport:
         return NeesConsistency.of(self.position_nees, POSITION_DOF)
 
     @property
+    def pose_consistency(self) -> NeesConsistency | None:
+        """Per-frame pose NEES against chi-square(6) (None without covariances)."""
+        if self.pose_nees is None:
+            return None
+        return NeesConsistency.of(self.pose_nees, POSE_DOF)
+
+    @property
     def position_consistent(self) -> bool | None:
-        """ANEES of position inside its band (None without covariances). The band assumes
-        independent frames: see the module docstring; prefer ``position_consistency``."""
-        return _inside(self.anees_position, self.anees_position_band)
+        """Whether the position covariances are consistent with the errors: the one
+        decision, :attr:`position_consistency`'s (None without covariances); report.json's
+        ``anees_position_consistent``."""
+        consistency = self.position_consistency
+        return None if consistency is None else consistency.consistent
 
     @property
     def pose_consistent(self) -> bool | None:
-        """ANEES of pose inside its band (None without covariances)."""
+        """The same for the pose (6 dof): :attr:`pose_consistency`'s decision."""
+        consistency = self.pose_consistency
+        return None if consistency is None else consistency.consistent
+
+    @property
+    def anees_position_inside_band(self) -> bool | None:
+        """ANEES of position inside its 95% band for *independent* frames (None without
+        covariances): a figure, not the decision: smoothed errors are correlated over
+        many frames and honest runs fall outside it on both sides (module docstring)."""
+        return _inside(self.anees_position, self.anees_position_band)
+
+    @property
+    def anees_pose_inside_band(self) -> bool | None:
+        """The same for the pose's ANEES."""
         return _inside(self.anees_pose, self.anees_pose_band)
 
     def to_dict(self, per_frame: bool = False) -> dict[str, Any]:
@@ -284,13 +335,17 @@ class ErrorReport:
                                 "p_true - p_est with the world-frame block, 3 dof"),
             "anees_position": _float(self.anees_position),
             "anees_position_band_95": _floats(self.anees_position_band),
+            "anees_position_inside_band_95": self.anees_position_inside_band,
             "anees_position_consistent": self.position_consistent,
             "anees_pose": _float(self.anees_pose),
             "anees_pose_band_95": _floats(self.anees_pose_band),
+            "anees_pose_inside_band_95": self.anees_pose_inside_band,
             "anees_pose_consistent": self.pose_consistent,
         }
         consistency = self.position_consistency
         out["position_consistency"] = consistency.to_dict() if consistency else None
+        pose = self.pose_consistency
+        out["pose_consistency"] = pose.to_dict() if pose else None
         if per_frame:
             out["per_frame"] = {
                 "t_ns": [int(t) for t in self.t_ns],

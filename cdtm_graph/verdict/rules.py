@@ -42,8 +42,9 @@ NeesConsistency`).
 **Rules** (:class:`VerdictSettings`; the measurements behind the defaults are in
 docs/verdict.md):
 
-- ``failed``: the solver did not converge (``not_converged``); or fewer than half of the
-  frames have a camera/DTM fix (``no_fix``: frames flagged ``no_features`` or
+- ``failed``: the solver did not report convergence and one more solve from its estimate
+  moves it beyond its covariance (``not_converged``; moved less: a note); or fewer than
+  half of the frames have a camera/DTM fix (``no_fix``: frames flagged ``no_features`` or
   ``off_dtm``); or the solution does not fit its data (``misfit``: the run's normalized
   residual chi-square above 1.5; ``wrong_fix``: half of the features offered or more
   left out as off the map); or, with ground truth, most frames' errors beyond the
@@ -70,7 +71,13 @@ from cdtm_graph.codes import FAILING, Code
 from cdtm_graph.constants import NS_PER_S, chi2_2dof_quantile, chi2_quantile
 from cdtm_graph.results import Rejection, SmootherResult
 from cdtm_graph.robust.gating import OUTLIER_TEST_PROBABILITY
-from cdtm_graph.verdict.evaluation import CovarianceVerdict, ErrorReport
+from cdtm_graph.verdict.evaluation import (
+    POSITION_DOF,
+    ConsistencyBounds,
+    CovarianceVerdict,
+    ErrorReport,
+    NeesConsistency,
+)
 from cdtm_graph.verdict.fix_geometry import (
     fix_geometry,
     unit_height_information,
@@ -186,6 +193,11 @@ class VerdictSettings:
         max_imu_noise_ratio: ``imu_noise`` when the IMU samples' own scatter exceeds
             flight.yaml's noise density by more than this factor
             (:class:`~cdtm_graph.verdict.imu_faults.MeasuredImuNoise`).
+        min_moved_inside_fraction: a run whose solver did not report convergence is
+            FAILED (``not_converged``) when one more solve from its estimate moves fewer
+            frames than this share less than the chi-square(3) 95% bound of their
+            covariance: the share the verdict's ``overconfident`` asks of the errors with
+            ground truth (:class:`~cdtm_graph.verdict.evaluation.ConsistencyBounds`).
     """
 
     window_s: float = 10.0
@@ -205,6 +217,7 @@ class VerdictSettings:
     max_beyond_999_fraction: float = 0.5
     bias_probability: float = 0.999
     max_imu_noise_ratio: float = 1.5
+    min_moved_inside_fraction: float = ConsistencyBounds().min_inside_fraction
 
 
 #: The per-frame flags :func:`assess` sets itself (besides the rejection rules' codes).
@@ -532,10 +545,8 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
 
     last = f.k - 1
     run_wide: list[Reason] = []
-    if not result.stats.converged:
-        run_wide.append(reason(Code.NOT_CONVERGED, (
-            f"the {result.stats.solver.value} solver did not converge (final error "
-            f"{result.stats.final_error:.4g}): the estimate is not the optimum"), 0, last))
+    convergence_failures, convergence_notes = _convergence_check(result, settings)
+    run_wide += [reason(code, message, 0, last) for code, message in convergence_failures]
     n_later = int(f.later.sum())
     fixed = n_later - int((unfixed & f.later).sum())
     if n_later and fixed < settings.min_fix_fraction * n_later:
@@ -575,8 +586,42 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
     else:
         status = Status.TRUSTED
     return Verdict(status, reasons, flags, checks,
-                   tuple(notes + _calibration_notes(result) + calibration_notes
-                         + _map_offset_notes(result)))
+                   tuple(convergence_notes + notes + _calibration_notes(result)
+                         + calibration_notes + _map_offset_notes(result)))
+
+
+def _convergence_check(result: SmootherResult, settings: VerdictSettings
+                       ) -> tuple[list[tuple[Code, str]], list[str]]:
+    """``not_converged`` judged by its effect (:mod:`cdtm_graph.smoother.convergence`).
+
+    One more solve from the run's estimate stands in for ground truth: each frame's move
+    is judged against the run's covariance as its error would be
+    (:class:`~cdtm_graph.verdict.evaluation.NeesConsistency`). An honest run passes
+    whatever the extra solve's own error: the move to a better estimate has a covariance
+    below the run's, so its NEES lies inside the chi-square(3) 95% bound on ~95% of the
+    frames or more. FAILED when fewer than ``min_moved_inside_fraction`` do (the share
+    the verdict's ``overconfident`` asks of the errors); a note otherwise. FAILED as
+    before when no such solve was made (a run not from
+    :func:`~cdtm_graph.smoother.smooth`) or no frame has a covariance to judge it by."""
+    stats = result.stats
+    if stats.converged:
+        return [], []
+    said = (f"the {stats.solver.value} solver did not report convergence (final error "
+            f"{stats.final_error:.4g})")
+    check = result.convergence_check
+    moved = None if check is None else NeesConsistency.of(check.move_nees, POSITION_DOF)
+    if check is None or moved is None:
+        return [(Code.NOT_CONVERGED, f"{said}: the estimate may not be the optimum")], []
+    figures = (f"one more batch solve from its estimate moved the positions by up to "
+               f"{float(np.max(check.move_m)):.2f} m (median {float(np.median(check.move_m)):.2f}"
+               f" m): {_pct(moved.inside_fraction)} of the frames moved less than the "
+               f"chi-square(3) 95% bound of their covariance (NEES {moved.bound:.2f}; at least "
+               f"{_pct(settings.min_moved_inside_fraction)} needed; the move's NEES median "
+               f"{moved.percentiles[50.0]:.3g}, largest {float(np.nanmax(check.move_nees)):.3g})")
+    if moved.inside_fraction < settings.min_moved_inside_fraction:
+        return [(Code.NOT_CONVERGED, f"{said}, and {figures}: the estimate is not the "
+                 "optimum of its data, beyond its covariance")], []
+    return [], [f"{Code.NOT_CONVERGED}: {said}, but {figures}: the estimate stands"]
 
 
 def _map_offset_notes(result: SmootherResult) -> list[str]:

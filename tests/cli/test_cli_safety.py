@@ -337,8 +337,8 @@ def test_out_on_a_read_only_filesystem_fails_before_smoothing(log, tmp_path, cap
     """EROFS injected where the staging directory is made (no mount needed in a test)."""
     import errno
 
+    import cdtm_graph.run as run_package
     from cdtm_graph import atomic
-    from cdtm_graph.cli import smooth as smooth_cli
 
     def read_only(*args, **kwargs):
         raise OSError(errno.EROFS, os.strerror(errno.EROFS))
@@ -347,7 +347,7 @@ def test_out_on_a_read_only_filesystem_fails_before_smoothing(log, tmp_path, cap
         raise AssertionError("smoothing ran before --out was checked")
 
     monkeypatch.setattr(atomic.tempfile, "mkdtemp", read_only)
-    monkeypatch.setattr(smooth_cli, "smooth_and_evaluate", never)
+    monkeypatch.setattr(run_package, "smooth_and_evaluate", never)  # where cdtm smooth finds it
     code, err = _smooth(capsys, log, tmp_path / "ro" / "out")
     assert code == 1
     _one_line(err, "cannot write in", "Read-only file system")
@@ -364,12 +364,14 @@ def test_out_without_permission_fails_before_smoothing(log, tmp_path, capsys):
 
 
 def test_other_commands_check_out_before_any_work(tmp_path, capsys, monkeypatch):
-    from cdtm_graph.cli import accuracy_map, navsim, study
+    from cdtm_graph.analysis import accuracy_map
+    from cdtm_graph.studies import navsim, sweeps
 
     def never(*args, **kwargs):
         raise AssertionError("the work ran before --out was checked")
 
-    for module, name in ((navsim, "run_navsim"), (study, "run_study"),
+    # (where the commands find them as they run)
+    for module, name in ((navsim, "run_navsim"), (sweeps, "run_study"),
                          (accuracy_map, "accuracy_map")):
         monkeypatch.setattr(module, name, never)
     a_file = tmp_path / "a_file"
@@ -413,18 +415,19 @@ def test_simulate_rewrites_its_log_and_keeps_what_the_user_added(tmp_path, capsy
 #: Runs ``cdtm`` with a stall injected at one stage, announced by touching a file.
 _STALLED_CLI = r"""
 import sys, time, pathlib
-import cdtm_graph.cli.smooth as smooth_cli
+import cdtm_graph.outputs, cdtm_graph.run  # where cdtm smooth finds the two as it runs
 from cdtm_graph.cli import main
 ready, stage = pathlib.Path(sys.argv[1]), sys.argv[2]
-name = {"smoothing": "smooth_and_evaluate", "writing": "write_run_files"}[stage]
-real = getattr(smooth_cli, name)
+module, name = {"smoothing": (cdtm_graph.run, "smooth_and_evaluate"),
+                "writing": (cdtm_graph.outputs, "write_run_files")}[stage]
+real = getattr(module, name)
 def stalled(*args, **kwargs):
     if stage == "writing":
         real(*args, **kwargs)  # the files are half published: written, not yet moved
     ready.touch()
     time.sleep(600)
     return real(*args, **kwargs)
-setattr(smooth_cli, name, stalled)
+setattr(module, name, stalled)
 sys.exit(main(sys.argv[3:]))
 """
 
@@ -505,7 +508,7 @@ def test_an_interrupt_surfacing_through_compiled_code_is_still_an_interrupt(log,
                                                                            monkeypatch):
     """Measured: SIGTERM handled inside a numba callback reached the CLI as a SystemError
     chained to the KeyboardInterrupt, with a traceback. It is an interrupt: one line, 130."""
-    from cdtm_graph.cli import smooth as smooth_cli
+    import cdtm_graph.run as run_package
 
     def interrupted_in_a_kernel(*args, **kwargs):
         try:
@@ -513,7 +516,7 @@ def test_an_interrupt_surfacing_through_compiled_code_is_still_an_interrupt(log,
         except KeyboardInterrupt as exc:
             raise SystemError("CPUDispatcher returned a result with an exception set") from exc
 
-    monkeypatch.setattr(smooth_cli, "smooth_and_evaluate", interrupted_in_a_kernel)
+    monkeypatch.setattr(run_package, "smooth_and_evaluate", interrupted_in_a_kernel)
     code, err = _smooth(capsys, log, tmp_path / "out")
     assert code == 130
     _one_line(err, "cdtm smooth: interrupted")

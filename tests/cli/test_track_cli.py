@@ -105,7 +105,7 @@ def test_report_never_overwrites_a_file_it_did_not_write(log, capsys, monkeypatc
     if not force:
         (log / "tracks.csv").unlink()
     before, notes = _snapshot(log), _snapshot(log.parent)
-    monkeypatch.setattr("cdtm_graph.cli.track.track_log", _must_not_track)  # checked first
+    monkeypatch.setattr("cdtm_graph.frontend.track_log", _must_not_track)  # checked first
     report = log / where
     argv = ["track", str(log), "--quiet", "--report", str(report)]
     assert main(argv + (["--force"] if force else [])) == 1
@@ -160,7 +160,7 @@ def test_a_report_path_that_cannot_be_written_fails_before_any_work(
               "trailing slash": str(tmp_path / "new") + "/",
               "symbolic link": str(tmp_path / "link.json")}[fault]
     (tmp_path / "link.json").symlink_to(tmp_path / "reports" / "report.json")
-    monkeypatch.setattr("cdtm_graph.cli.track.track_log", _must_not_track)
+    monkeypatch.setattr("cdtm_graph.frontend.track_log", _must_not_track)
     assert main(["track", str(log), "--quiet", "--report", report]) == 1
     err = _one_line_error(capsys)
     assert f"--report {report}:" in err and expected in err and ".tmp" not in err
@@ -236,7 +236,7 @@ def test_tracks_csv_that_is_a_directory_is_named(log, capsys, monkeypatch):
     (log / "tracks.csv").unlink()
     (log / "tracks.csv").mkdir()
     (log / "tracks.csv" / "mine.txt").write_text("kept\n")
-    monkeypatch.setattr("cdtm_graph.cli.track.track_log", _must_not_track)
+    monkeypatch.setattr("cdtm_graph.frontend.track_log", _must_not_track)
     assert main(["track", str(log), "--quiet", "--force"]) == 1
     err = _one_line_error(capsys)
     assert f"{log / 'tracks.csv'}: is a directory; expected the tracks.csv file" in err

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -31,7 +32,10 @@ from cdtm_graph.sim.trajectory import STANDARD_GRAVITY_MPS2, FlightPlan, evaluat
 from cdtm_graph.verdict.evaluation import (
     POSE_DOF,
     POSITION_DOF,
+    CovarianceVerdict,
+    NeesConsistency,
     anees_band,
+    covariance_verdict,
     free_vs_compensated,
     trajectory_errors,
 )
@@ -191,9 +195,11 @@ def test_consistent_covariance_gives_anees_inside_the_chi2_band(consistent_case)
     np.testing.assert_allclose(report.pose_nees, expected_pose_nees, rtol=1e-6)
     lo, hi = report.anees_pose_band
     assert (lo, hi) == anees_band(N_NEES_FRAMES, POSE_DOF)
-    assert lo < report.anees_pose < hi and report.pose_consistent
+    assert lo < report.anees_pose < hi and report.anees_pose_inside_band
     lo, hi = report.anees_position_band
-    assert lo < report.anees_position < hi and report.position_consistent
+    assert lo < report.anees_position < hi and report.anees_position_inside_band
+    # independent frames drawn from their covariance: the one decision agrees
+    assert report.pose_consistent and report.position_consistent
     assert report.to_dict()["anees_pose_consistent"] is True
 
 
@@ -203,6 +209,8 @@ def test_overconfident_covariance_falls_outside_the_band(consistent_case):
     report = trajectory_errors(_estimate(t_ns, T_est), small, _states_from_poses(t_ns, T_true))
     assert report.anees_pose > report.anees_pose_band[1]
     assert report.anees_position > report.anees_position_band[1]
+    assert report.anees_pose_inside_band is False
+    assert report.anees_position_inside_band is False
     assert report.pose_consistent is False and report.position_consistent is False
 
 
@@ -327,3 +335,61 @@ def test_free_vs_compensated_is_table_1(random_poses, rng):
     assert table["ratio_free_over_compensated"]["y"] == pytest.approx(40.0)
     assert table["ratio_free_over_compensated"]["z"] is None  # compensated error is zero
     json.dumps(table, allow_nan=False)
+
+
+# --------------------------------------------------------------------------- one decision
+
+
+#: Constructed per-frame position NEES of 90 frames (a flight's length): the decision's
+#: cases. ``split``: 75 frames at 3 and 15 at 9 (83% inside 7.81, ANEES 4.0 outside the
+#: band for 90 independent frames [2.41, 3.65]): the case the console and report.json
+#: used to name differently.
+NEES_CASES = {
+    "split": (np.r_[np.full(75, 3.0), np.full(15, 9.0)], CovarianceVerdict.CONSISTENT),
+    "at_the_bound": (np.r_[np.full(72, 3.0), np.full(18, 9.0)], CovarianceVerdict.CONSISTENT),
+    "optimistic": (np.r_[np.full(71, 3.0), np.full(19, 9.0)], CovarianceVerdict.OPTIMISTIC),
+    "conservative": (np.full(90, 0.2), CovarianceVerdict.CONSERVATIVE),
+    "honest": (np.full(90, 2.4), CovarianceVerdict.CONSISTENT),
+}
+
+
+@pytest.mark.parametrize("case", sorted(NEES_CASES))
+def test_one_decision_of_consistent_on_constructed_nees(case):
+    """The one decision (:func:`covariance_verdict`): optimistic below 80% of the frames
+    inside chi-square(3)'s 95% bound (72 of 90 = 80% is not, 71 is), conservative when the
+    median is under chi-square(3)'s 5% quantile (0.35), consistent otherwise, whatever
+    ANEES's band for independent frames says; ``consistent``, report.json's
+    ``anees_position_consistent`` and the summary's first word agree. Mutations: the
+    decision taken from the ANEES band (``split`` and ``at_the_bound`` fail); the 80%
+    compared with <= (``at_the_bound`` fails); report.json's key back to the band test
+    (``split`` fails)."""
+    nees, word = NEES_CASES[case]
+    c = NeesConsistency.of(nees, POSITION_DOF)
+    assert c is not None and c.verdict is word
+    assert covariance_verdict(c.inside_fraction, c.percentiles[50.0], POSITION_DOF) is word
+    assert c.consistent is (word is CovarianceVerdict.CONSISTENT)
+    d = c.to_dict()
+    assert d["verdict"] == word.value and d["consistent"] is c.consistent
+    assert d["summary"] == c.summary() and c.summary().startswith(f"{word.value}: ")
+    # the report of an estimate with these NEES: its keys read the same decision
+    k = nees.size
+    report = dataclasses.replace(
+        _report_of_nees_frames(k), position_nees=nees, anees_position=float(nees.mean()),
+        anees_position_band=anees_band(k, POSITION_DOF))
+    out = report.to_dict()
+    assert out["anees_position_consistent"] is c.consistent is report.position_consistent
+    assert out["position_consistency"]["summary"] == c.summary()
+    lo, hi = anees_band(k, POSITION_DOF)
+    inside_band = bool(lo <= nees.mean() <= hi)
+    assert out["anees_position_inside_band_95"] is inside_band
+    if case == "split":  # the case the two old rules split
+        assert not inside_band and c.consistent
+
+
+def _report_of_nees_frames(k: int):
+    """An error report of ``k`` frames at rest on their ground truth (its NEES replaced)."""
+    t_ns = T0_NS + 1_000_000_000 * np.arange(k, dtype=np.int64)
+    T = np.tile(np.eye(4), (k, 1, 1))
+    cov = StateCovariances(np.tile(np.eye(6), (k, 1, 1)), np.tile(np.eye(3), (k, 1, 1)),
+                           np.tile(np.eye(6), (k, 1, 1)))
+    return trajectory_errors(_estimate(t_ns, T), cov, _states_from_poses(t_ns, T))

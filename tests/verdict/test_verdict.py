@@ -462,3 +462,148 @@ def test_a_dtm_elsewhere_is_refused_with_exit_1(tmp_path, capsys):
     assert len(err) == 1 and err[0].startswith("cdtm smooth: error: ")
     assert "expected the DTM under the flight" in err[0]
     assert not out.exists() or not any(out.iterdir())
+
+
+# --------------------------------------------------------------------------- each rule bites
+# (issue 21, build 7: every verdict rule has a test that fails when it is switched off;
+# these are the rules whose switch-off tests/verdict did not notice on 2026-11-27)
+
+
+def test_outliers_beyond_one_percent_degrade_the_run():
+    """2% of the features beyond the chi-square(2) 99.9% test at the solution (0.1%
+    expected): ``outliers``, degraded; 0.7%: trusted. Mutation: the ``outliers`` rule
+    switched off -> the first run trusted: fails."""
+    for per_frame, status in ((3, Status.DEGRADED), (1, Status.TRUSTED)):
+        result = _result()
+        outliers = np.where(np.arange(result.counts.n_frames) >= 1, per_frame, 0)
+        result = dataclasses.replace(result, counts=dataclasses.replace(
+            result.counts, n_outliers=int(outliers.sum()), outliers_per_frame=outliers))
+        verdict = assess(result)
+        assert verdict.status is status, verdict.lines()
+        assert ("outliers" in _codes(verdict)) is (status is Status.DEGRADED)
+        assert verdict.self_checks.outlier_fraction == pytest.approx(per_frame / 150)
+
+
+def _errors_of(result: SmootherResult, offset_m: np.ndarray):
+    """The errors of ``result`` against a truth ``offset_m`` (K,) metres west of each
+    estimate: with the synthetic run's unit position covariance, NEES = offset^2."""
+    from cdtm_graph.flightlog import States
+    from cdtm_graph.verdict.evaluation import trajectory_errors
+
+    est = result.estimate
+    k = len(est)
+    position = est.world_T_body[:, :3, 3] - np.c_[offset_m, np.zeros((k, 2))]
+    truth = States(est.t_ns, position, np.tile([1.0, 0.0, 0.0, 0.0], (k, 1)), np.zeros((k, 3)))
+    return trajectory_errors(est, result.covariances, truth)
+
+
+@pytest.mark.parametrize("n_off, offset_m, code", [
+    (0, 1.0, None),                       # NEES 1 everywhere: honest
+    (12, 3.0, "overconfident"),           # 12 of 30 at NEES 9: 60% inside 7.81
+    (20, 5.0, "confidently_wrong")])      # 20 of 30 at NEES 25: 67% beyond 16.3
+def test_errors_beyond_the_covariance_are_named_with_ground_truth(n_off, offset_m, code):
+    """With ground truth: fewer than 80% of the frames inside chi-square(3)'s 95% bound
+    is ``overconfident`` (degraded); more than half beyond its 99.9% bound is
+    ``confidently_wrong`` (failed). Mutations: either rule switched off -> its case
+    passes as trusted: fails."""
+    result = _result()
+    k = result.counts.n_frames
+    offset = np.where(np.arange(k) < n_off, offset_m, 1.0)
+    verdict = assess(result, _errors_of(result, offset))
+    assert [c for c in _codes(verdict)] == ([code] if code else []), verdict.lines()
+    expected = {None: Status.TRUSTED, "overconfident": Status.DEGRADED,
+                "confidently_wrong": Status.FAILED}[code]
+    assert verdict.status is expected
+
+
+def _calibration(observable: bool = True):
+    from cdtm_graph.calibration.online import CalibrationEstimate
+
+    return CalibrationEstimate(
+        0.0, 0.0, np.zeros(3), 1.01, 500.0, 500.0, np.full(5, 1e-3), np.full(5, 1e-2),
+        np.eye(5) * 1e-6, {"time_offset": True, "mount": observable, "focal_scale": True})
+
+
+@pytest.mark.parametrize("cost_drop, position_nees, conclusive, code, note", [
+    (100.0, 50.0, True, "calibration_suspect", None),
+    (100.0, 50.0, False, None, "calibration_unresolved"),
+    (100.0, 1.0, True, None, "calibration_held"),
+    (10.0, 50.0, True, None, None)])
+def test_the_calibration_check_is_a_reason_or_a_note(cost_drop, position_nees, conclusive,
+                                                     code, note):
+    """The side solve's findings (:class:`~cdtm_graph.calibration.check.CalibrationCheck`)
+    as the verdict reads them: significant, far from the run and conclusive is
+    ``calibration_suspect`` (degraded); not conclusive a note ``calibration_unresolved``;
+    within the run's covariance a note ``calibration_held``; not significant nothing.
+    Mutations: each of the three switched off -> its case: fails."""
+    from cdtm_graph.calibration.check import SUSPECT_COST_DROP, SUSPECT_NEES, CalibrationCheck
+
+    suspect = cost_drop > SUSPECT_COST_DROP and position_nees > SUSPECT_NEES and conclusive
+    check = CalibrationCheck(_calibration(), np.zeros(5), position_nees, cost_drop,
+                             conclusive, suspect, 0.1, 30)
+    verdict = assess(dataclasses.replace(_result(), calibration_check=check))
+    assert _codes(verdict) == ([code] if code else []), verdict.lines()
+    assert verdict.status is (Status.DEGRADED if code else Status.TRUSTED)
+    named = [n.split(":")[0] for n in verdict.notes if n.startswith("calibration")]
+    assert named == ([note] if note else [])
+
+
+def test_a_calibration_part_the_flight_did_not_tell_is_a_note():
+    """``calibration_unobservable``: a part estimated online that kept its prior's sigma is
+    a note, not a reason. Mutation: the note switched off -> fails."""
+    told = assess(dataclasses.replace(_result(), calibration=_calibration(True)))
+    untold = assess(dataclasses.replace(_result(), calibration=_calibration(False)))
+    assert not any(n.startswith("calibration_unobservable") for n in told.notes)
+    notes = [n for n in untold.notes if n.startswith("calibration_unobservable: ")]
+    assert len(notes) == 1 and "mount" in notes[0]
+    assert untold.status is Status.TRUSTED
+
+
+def test_a_map_offset_flight_yaml_does_not_declare_is_a_note():
+    """``map_offset_undeclared``: no sigma for the whole map's offset is a note; declared,
+    none. Mutation: the note switched off -> fails."""
+    from cdtm_graph.results import MapOffset
+
+    undeclared = assess(dataclasses.replace(_result(), map_offset=MapOffset()))
+    declared = assess(dataclasses.replace(_result(), map_offset=MapOffset(5.0, 10.0)))
+    assert any(n.startswith("map_offset_undeclared: ") for n in undeclared.notes)
+    assert not any(n.startswith("map_offset_undeclared") for n in declared.notes)
+    assert undeclared.status is declared.status is Status.TRUSTED
+
+
+def test_a_smoother_event_is_a_reason_however_short():
+    """``search_beyond_lag`` on one frame (an event, :data:`SMOOTHER_EVENTS`) is a reason;
+    another smoother flag on one frame is only a flag (the IMU bridges a short stretch).
+    Mutation: events judged by the stretch's length -> the first run trusted: fails."""
+    event = assess(_result(flags={6: ["search_beyond_lag"]}))
+    assert _codes(event) == ["search_beyond_lag"] and event.status is Status.DEGRADED
+    short = assess(_result(flags={6: ["acquisition_lost"]}))
+    assert short.reasons == () and short.flags == {6: ["acquisition_lost"]}
+
+
+def _footprint_information(k: int, free_rotation_info: float) -> np.ndarray:
+    """(K, 6, 6) per-frame C-DTM information whose horizontal position comes mostly with
+    a tilt (a lever of 1800 m: the camera's height), the tilt told apart by
+    ``free_rotation_info`` alone; horizontal 0.2 of the height's (not flat)."""
+    lever = 1800.0
+    ax = np.array([0.0, lever, 0.0, 1.0, 0.0, 0.0])
+    ay = np.array([-lever, 0.0, 0.0, 0.0, 1.0, 0.0])
+    info = (0.2 * (np.outer(ax, ax) + np.outer(ay, ay)) + np.diag([0.0, 0, 1e3, 0, 0, 1])
+            + free_rotation_info * np.diag([1.0, 1, 0, 0, 0, 0]))
+    out = np.zeros((k, 6, 6))
+    out[1:] = info
+    return out
+
+
+@pytest.mark.parametrize("free_rotation_info, narrow", [(1e4, True), (1e5, False)])
+def test_a_narrow_footprint_is_named(free_rotation_info, narrow):
+    """Horizontal information that a tilt explains: once the attitude is free 1.5% of it
+    is left (under 6%): ``narrow_fov`` over the flight, degraded; with the tilt told
+    apart (13% left), trusted. Mutation: the ``narrow_fov`` rule switched off -> the
+    first case trusted: fails."""
+    result = _result()
+    result = dataclasses.replace(result, cdtm_information=_footprint_information(
+        result.counts.n_frames, free_rotation_info))
+    verdict = assess(result)
+    assert _codes(verdict) == (["narrow_fov"] if narrow else []), verdict.lines()
+    assert verdict.status is (Status.DEGRADED if narrow else Status.TRUSTED)
