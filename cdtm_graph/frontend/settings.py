@@ -5,11 +5,25 @@
 
 from __future__ import annotations
 
+import enum
 import math
 import numbers
 from dataclasses import dataclass
 
 from cdtm_graph.errors import CdtmError
+
+
+class Replenishment(enum.Enum):
+    """Where new corners are looked for (``FeatureTracker._detect``)."""
+
+    #: goodFeaturesToTrack over the whole image, the full cells masked.
+    WHOLE_IMAGE = "whole_image"
+    #: cell by cell, only in the cells the fill level of the need reaches (about half of
+    #: them at 150 features over 8x6 cells): 0.86-0.90x the tracker's time per frame on
+    #: the rendered 640x480 flights, 0.65x on the CLIF frames; the corners chosen are nearly
+    #: all the whole image's (the rest differ next to the cells not looked at), and the
+    #: benchmark's figures moved by up to 0.13 % (docs/frontend.md, 2026-11-27).
+    NEEDED_CELLS = "needed_cells"
 
 
 @dataclass(frozen=True)
@@ -47,6 +61,7 @@ class TrackerSettings:
             length it kept 64-88 % of them on the real frames, all correct (the
             five-point fit kept 95-100 %).
         normalize_exposure: map each image to a fixed mean and contrast before tracking.
+        replenishment: where new corners are looked for (:class:`Replenishment`).
         seed: seeds the RANSAC draws (one stream per tracker).
     """
 
@@ -66,6 +81,7 @@ class TrackerSettings:
     ransac_confidence: float = 0.999
     min_rotation_inlier_fraction: float = 0.95
     normalize_exposure: bool = True
+    replenishment: Replenishment = Replenishment.WHOLE_IMAGE
     seed: int = 0
 
     def __post_init__(self) -> None:

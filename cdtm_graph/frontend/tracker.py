@@ -12,10 +12,12 @@ tracks seen in it (``track_id``, pixel). Per image:
    median translational flow of the previous frame pair. Lucas-Kanade starts there, so
    the pyramid has to absorb only the prediction error, not a 100 px flight-direction
    flow or a fast roll.
-3. **Pyramidal Lucas-Kanade** (``cv2.calcOpticalFlowPyrLK``) on pyramids built once per
-   image and used forward and backward, with a **forward-backward check**: tracked back
-   into the previous image, a feature must land within ``forward_backward_px`` of where
-   it started.
+3. **Pyramidal Lucas-Kanade** (``cv2.calcOpticalFlowPyrLK``) with a **forward-backward
+   check**: tracked back into the previous image, a feature must land within
+   ``forward_backward_px`` of where it started (only the forward pass's matches are
+   tracked back: the others are lost whatever the backward pass says). Each call builds
+   its own pyramids: OpenCV's Python binding takes no precomputed ones
+   (opencv/opencv#4777; still so in OpenCV 5.0).
 4. **Geometric verification** of the frame pair: matches are turned into rays by the
    camera model (so the lens model, whatever it is, is undone there) and fitted by
    RANSAC: the translation direction given the IMU rotation
@@ -51,7 +53,7 @@ import cv2
 import numpy as np
 
 from cdtm_graph.errors import ImageError
-from cdtm_graph.frontend.settings import TrackerSettings
+from cdtm_graph.frontend.settings import Replenishment, TrackerSettings
 from cdtm_graph.frontend.two_view import (
     MIN_MATCHES,
     EpipolarFit,
@@ -68,6 +70,7 @@ __all__ = [
     "FrameTracks",
     "ImageError",
     "MatchStatus",
+    "Replenishment",
     "TrackerSettings",
 ]
 
@@ -275,18 +278,28 @@ class FeatureTracker:
                               shift - np.median(rotated - prev_uv, axis=0))
         guess = (rotated + self._shift_px).astype(np.float32)
         p0 = prev_uv.astype(np.float32)
-        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+        # (the minimum eigenvalue as the error: OpenCV skips the window's residual, which
+        # is not used; positions and status are the same)
+        flags = cv2.OPTFLOW_USE_INITIAL_FLOW | cv2.OPTFLOW_LK_GET_MIN_EIGENVALS
         p1, st, _ = cv2.calcOpticalFlowPyrLK(previous, gray, p0, guess.copy(),
                                              winSize=self._window, maxLevel=s.pyramid_levels,
                                              criteria=self._criteria, flags=flags)
-        back, st_back, _ = cv2.calcOpticalFlowPyrLK(gray, previous, p1, p0.copy(),
-                                                    winSize=self._window,
-                                                    maxLevel=s.pyramid_levels,
-                                                    criteria=self._criteria, flags=flags)
         matched = p1.astype(float).reshape(-1, 2)
+        forward = (st.ravel() == 1) & np.isfinite(matched).all(axis=1)
+        # Tracked back: only what the forward pass kept (the rest is lost whatever the
+        # backward pass does: ~1 in 5 features a frame, mostly leaving the image).
+        # Lucas-Kanade tracks each point alone: the others' results do not change.
+        back_rows = np.flatnonzero(forward)
+        back = np.full((prev_uv.shape[0], 2), np.nan, np.float32)
+        st_back = np.zeros(prev_uv.shape[0], np.uint8)
+        if back_rows.size:
+            back_p, back_st, _ = cv2.calcOpticalFlowPyrLK(
+                gray, previous, p1[back_rows], p0[back_rows], winSize=self._window,
+                maxLevel=s.pyramid_levels, criteria=self._criteria, flags=flags)
+            back[back_rows], st_back[back_rows] = back_p.reshape(-1, 2), back_st.ravel()
         status = np.full(prev_uv.shape[0], MatchStatus.TRACKED, dtype=np.int8)
-        lost = (st.ravel() == 0) | (st_back.ravel() == 0) | ~np.isfinite(matched).all(axis=1)
-        fb_error = np.linalg.norm(back.reshape(-1, 2) - p0, axis=1)
+        lost = ~forward | (st_back == 0)
+        fb_error = np.linalg.norm(back - p0, axis=1)
         status[~(fb_error <= s.forward_backward_px)] = MatchStatus.FORWARD_BACKWARD
         status[lost] = MatchStatus.LOST
         # Lucas-Kanade loses what leaves the image too: judged by the prediction then.
@@ -354,51 +367,147 @@ class FeatureTracker:
         return fit_essential(rays_prev, rays_new, threshold_rad, s.ransac_confidence)
 
     def _detect(self, gray: np.ndarray, live_uv: np.ndarray) -> np.ndarray:
-        """New corners for the cells below their share, away from live features."""
+        """New corners for the cells below their share, away from live features.
+
+        The emptiest cells are served first (a corner's fill level is its cell's count
+        with it), per cell the strongest corners first. With
+        ``Replenishment.WHOLE_IMAGE``, Shi-Tomasi corners (``cv2.goodFeaturesToTrack``)
+        of the whole image, the full cells masked. With ``Replenishment.NEEDED_CELLS``,
+        corners are looked for only in the cells at or below the fill level that
+        ``need`` corners reach when every cell has enough, and one level more at a time
+        when they do not; per cell, on the cell and the pixels around it the filters
+        reach (so the whole image's eigenvalues), then the whole image's rules over the
+        cells looked at: the quality bound relative to the strongest corner, and
+        ``min_distance_px`` across cell borders (the weaker goes). Issue 22: the
+        whole-image detection every frame is about half of the tracker's time.
+        """
         s = self.settings
         cam = self.camera
         need = s.max_features - live_uv.shape[0]
         if need <= 0:
             return np.zeros((0, 2))
-        cell_w, cell_h = cam.width / s.grid_cols, cam.height / s.grid_rows
         per_cell = math.ceil(s.max_features / s.cells)
-
-        def cell_of(uv: np.ndarray) -> np.ndarray:
-            col = np.clip((uv[:, 0] + 0.5) // cell_w, 0, s.grid_cols - 1).astype(np.int64)
-            row = np.clip((uv[:, 1] + 0.5) // cell_h, 0, s.grid_rows - 1).astype(np.int64)
-            return row * s.grid_cols + col
-
-        occupied = np.bincount(cell_of(live_uv), minlength=s.cells)
+        occupied = np.bincount(self._cell_of(live_uv), minlength=s.cells)
         mask = np.zeros((cam.height, cam.width), np.uint8)
         b = int(math.ceil(s.border_px))
         mask[b:cam.height - b, b:cam.width - b] = 255
         radius = int(math.ceil(s.min_distance_px))
-        # one OpenCV call per feature: 0.4 ms for 200 at 640x480, a dilation 1.9 ms
-        for u, v in np.rint(live_uv).astype(int):
-            cv2.circle(mask, (int(u), int(v)), radius, 0, -1)
-        full = np.flatnonzero(occupied >= per_cell)
-        for c in full:  # full cells: no detection there at all
-            x0, y0 = int((c % s.grid_cols) * cell_w), int((c // s.grid_cols) * cell_h)
-            mask[y0:int(y0 + cell_h + 1), x0:int(x0 + cell_w + 1)] = 0
-        corners = cv2.goodFeaturesToTrack(gray, maxCorners=4 * s.max_features,
-                                          qualityLevel=s.quality_level,
-                                          minDistance=s.min_distance_px, mask=mask,
-                                          blockSize=s.block_size_px)
-        if corners is None:
-            return np.zeros((0, 2))
-        uv = corners.reshape(-1, 2).astype(float)
+        # one OpenCV call per feature: 0.1 ms for 115 at 640x480 over Python ints (0.3 ms
+        # unpacking numpy rows), a dilation 1.9 ms
+        for u, v in np.rint(live_uv).astype(int).tolist():
+            cv2.circle(mask, (u, v), radius, 0, -1)
+        deficit = per_cell - occupied  # (cells at their share: 0)
+        if s.replenishment is Replenishment.WHOLE_IMAGE:
+            cell_w, cell_h = cam.width / s.grid_cols, cam.height / s.grid_rows
+            for c in np.flatnonzero(deficit <= 0):  # full cells: no detection there at all
+                x0, y0 = int((c % s.grid_cols) * cell_w), int((c // s.grid_cols) * cell_h)
+                mask[y0:int(y0 + cell_h + 1), x0:int(x0 + cell_w + 1)] = 0
+            corners = cv2.goodFeaturesToTrack(gray, maxCorners=4 * s.max_features,
+                                              qualityLevel=s.quality_level,
+                                              minDistance=s.min_distance_px, mask=mask,
+                                              blockSize=s.block_size_px)
+            uv = np.zeros((0, 2)) if corners is None else corners.reshape(-1, 2).astype(float)
+            return self._fill(uv, occupied, per_cell - 1)[:need]
+        # the fill level the need reaches if every cell has corners enough
+        level = 0
+        while (level < per_cell - 1
+               and np.clip(level + 1 - occupied, 0, deficit).sum() < need):
+            level += 1
+        found_uv, found_quality = [], []
+        looked = np.zeros(s.cells, bool)
+        while True:
+            to_look = np.flatnonzero((occupied <= level) & (deficit > 0) & ~looked)
+            looked[to_look] = True
+            for cell in to_look.tolist():
+                uv, quality = self._cell_corners(gray, mask, cell, 3 * per_cell)
+                found_uv.append(uv)
+                found_quality.append(quality)
+            chosen = self._fill(self._spaced(found_uv, found_quality), occupied, level)
+            if chosen.shape[0] >= need or level >= per_cell - 1:
+                return chosen[:need]
+            level += 1
+
+    def _cell_of(self, uv: np.ndarray) -> np.ndarray:
+        """(N,) grid cell of each pixel (row-major)."""
+        s = self.settings
+        cell_w, cell_h = self.camera.width / s.grid_cols, self.camera.height / s.grid_rows
+        col = np.clip((uv[:, 0] + 0.5) // cell_w, 0, s.grid_cols - 1).astype(np.int64)
+        row = np.clip((uv[:, 1] + 0.5) // cell_h, 0, s.grid_rows - 1).astype(np.int64)
+        return row * s.grid_cols + col
+
+    def _cell_corners(self, gray: np.ndarray, mask: np.ndarray, cell: int,
+                      max_corners: int) -> tuple[np.ndarray, np.ndarray]:
+        """(n, 2) Shi-Tomasi corners of one grid cell where ``mask`` is set, strongest
+        first, and their (n,) minimum eigenvalues. The cell's pixels are those
+        :meth:`_cell_of` puts in it; the image is read with the rows and columns around
+        them that the Sobel derivative, the block and the 3x3 local-maximum test reach."""
+        s = self.settings
+        height, width = gray.shape
+        row, col = divmod(cell, s.grid_cols)
+        cell_w, cell_h = width / s.grid_cols, height / s.grid_rows
+        x0, x1 = (min(max(math.ceil(k * cell_w - 0.5), 0), width) for k in (col, col + 1))
+        y0, y1 = (min(max(math.ceil(k * cell_h - 0.5), 0), height) for k in (row, row + 1))
+        if col == s.grid_cols - 1:
+            x1 = width
+        if row == s.grid_rows - 1:
+            y1 = height
+        margin = 1 + s.block_size_px // 2 + 1 + 1
+        left, top = max(x0 - margin, 0), max(y0 - margin, 0)
+        right, bottom = min(x1 + margin, width), min(y1 + margin, height)
+        sub_mask = np.zeros((bottom - top, right - left), np.uint8)
+        sub_mask[y0 - top:y1 - top, x0 - left:x1 - left] = mask[y0:y1, x0:x1]
+        if not sub_mask.any():
+            return np.zeros((0, 2)), np.zeros(0)
+        corners, quality = cv2.goodFeaturesToTrackWithQuality(
+            gray[top:bottom, left:right], max_corners, s.quality_level, s.min_distance_px,
+            sub_mask, blockSize=s.block_size_px)
+        if corners is None or corners.size == 0:
+            return np.zeros((0, 2)), np.zeros(0)
+        return (corners.reshape(-1, 2).astype(float) + (left, top),
+                quality.ravel().astype(float))
+
+    def _spaced(self, found_uv: list[np.ndarray], found_quality: list[np.ndarray]
+                ) -> np.ndarray:
+        """(n, 2) the corners of the cells looked at, strongest first, the whole image's
+        rules applied: the quality bound relative to the strongest, ``min_distance_px``
+        across cell borders (the weaker goes; within a cell OpenCV kept it)."""
+        s = self.settings
+        uv, quality = np.concatenate(found_uv), np.concatenate(found_quality)
+        if uv.shape[0] == 0:
+            return uv
+        order = np.argsort(-quality, kind="stable")
+        uv, quality = uv[order], quality[order]
+        keep = quality > s.quality_level * quality[0]
+        # only corners that near a cell border can clash
+        cell_w, cell_h = self.camera.width / s.grid_cols, self.camera.height / s.grid_rows
+        du = np.abs((uv[:, 0] + 0.5 + cell_w / 2) % cell_w - cell_w / 2)
+        dv = np.abs((uv[:, 1] + 0.5 + cell_h / 2) % cell_h - cell_h / 2)
+        near = np.flatnonzero(keep & ((du < s.min_distance_px) | (dv < s.min_distance_px)))
+        min_d2 = s.min_distance_px ** 2
+        kept_near: list[int] = []
+        for i in near.tolist():
+            if kept_near:
+                d = uv[kept_near] - uv[i]
+                if np.any(d[:, 0] ** 2 + d[:, 1] ** 2 < min_d2):
+                    keep[i] = False
+                    continue
+            kept_near.append(i)
+        return uv[keep]
+
+    def _fill(self, uv: np.ndarray, occupied: np.ndarray, level: int) -> np.ndarray:
+        """Of corners ``uv`` (strongest first), those that fill the cells up to fill level
+        ``level``: per cell strongest first, the emptiest cells first."""
         if self._has_shift:  # predicted to leave the image before the next one: skip
             uv = uv[self._inside(uv + self._shift_px, margin_px=1.0)]
-        # Per cell, strongest first (goodFeaturesToTrack's order), up to its share. The
-        # emptiest cells are served first: a corner's fill level is the cell's count with
-        # it, so every cell gets one before any gets two more than the others.
-        cell = cell_of(uv)
+        # A corner's fill level is the cell's count with it, so every cell gets one
+        # before any gets two more than the others.
+        cell = self._cell_of(uv)
         order = np.argsort(cell, kind="stable")
         sorted_cell = cell[order]
         first = np.searchsorted(sorted_cell, sorted_cell, side="left")
         rank = np.empty_like(order)
         rank[order] = np.arange(order.size) - first
         fill = occupied[cell] + rank
-        keep = np.flatnonzero(fill < per_cell)
+        keep = np.flatnonzero(fill <= level)
         keep = keep[np.argsort(fill[keep], kind="stable")]
-        return uv[keep[:need]]
+        return uv[keep]

@@ -92,9 +92,70 @@ class EpipolarFit:
         return float(self.inliers.sum()) / n if n else 0.0
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross`` of (..., 3) arrays (broadcast), the same products and differences
+    (so the same bits) without its axis handling, which cost more than the arithmetic
+    on the tracker's ~150 rays."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+def _norm(v: np.ndarray, keepdims: bool = False) -> np.ndarray:
+    """``np.linalg.norm(v, axis=-1)`` of a real array, by the same sum (the same bits)."""
+    return np.sqrt(np.sum(v * v, axis=-1, keepdims=keepdims))  # (np.add.reduce)
+
+
 def _unit(v: np.ndarray) -> np.ndarray:
-    norm = np.linalg.norm(v, axis=-1, keepdims=True)
+    norm = _norm(v, keepdims=True)
     return v / np.where(norm > 0, norm, 1.0)
+
+
+class _Matches:
+    """Matched rays under one rotation, with what every translation hypothesis shares
+    (unit rays, their normals, parallax, the triangulation's dot products) computed once:
+    the fits ask about several translations per frame pair. The arithmetic of
+    :func:`epipolar_residual_rad`, :func:`triangulate_depths` and :func:`_inliers` (which
+    call it) is unchanged, so are their bits."""
+
+    def __init__(self, rays_a: np.ndarray, rays_b: np.ndarray, a_R_b: np.ndarray):
+        self.fa = np.asarray(rays_a, dtype=float)
+        self.fb = np.asarray(rays_b, dtype=float) @ np.asarray(a_R_b, dtype=float).T
+        self.unit_a, self.unit_b = _unit(self.fa), _unit(self.fb)
+        self.normal = _cross(self.unit_b, self.unit_a)  # t . n = 0 on the epipolar plane
+        self.parallax = _norm(self.normal)  # (|f_a x f_b|: the same bits)
+        self.aa = np.einsum("ij,ij->i", self.fa, self.fa)
+        self.bb = np.einsum("ij,ij->i", self.fb, self.fb)
+        self.ab = np.einsum("ij,ij->i", self.fa, self.fb)
+
+    def residual_rad(self, a_t_b: np.ndarray) -> np.ndarray:
+        """:func:`epipolar_residual_rad` under the translation ``a_t_b``."""
+        t = _unit(np.asarray(a_t_b, dtype=float))
+        det = np.abs(np.einsum("ij,ij->i", self.normal, np.broadcast_to(t, self.fa.shape)))
+        sine = np.minimum(_norm(_cross(t, self.unit_a)), _norm(_cross(t, self.unit_b)))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return det / sine
+
+    def depths(self, a_t_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`triangulate_depths` with the baseline ``a_t_b``."""
+        t = np.asarray(a_t_b, dtype=float)
+        aa, bb, ab = self.aa, self.bb, self.ab
+        ta, tb = self.fa @ t, self.fb @ t
+        det = aa * bb - ab * ab
+        with np.errstate(divide="ignore", invalid="ignore"):
+            good = det > 1e-12 * aa * bb
+            la = np.where(good, (bb * ta - ab * tb) / det, np.nan)
+            lb = np.where(good, (ab * ta - aa * tb) / det, np.nan)
+        return la, lb
+
+    def inliers(self, t: np.ndarray, threshold_rad: float) -> tuple[np.ndarray, np.ndarray]:
+        """Residuals and inliers under the translation ``t`` (:func:`_inliers`)."""
+        residual = self.residual_rad(t)
+        inliers = residual <= threshold_rad
+        la, lb = self.depths(t)
+        # Depth signs mean something only where the rays are apart by more than the noise.
+        behind = (self.parallax > 3.0 * threshold_rad) & ~((la > 0) & (lb > 0))
+        return residual, inliers & ~behind
 
 
 def epipolar_residual_rad(rays_a: np.ndarray, rays_b: np.ndarray, a_R_b: np.ndarray,
@@ -111,14 +172,7 @@ def epipolar_residual_rad(rays_a: np.ndarray, rays_b: np.ndarray, a_R_b: np.ndar
     Returns:
         (N,) residuals; ``|det(f_a, t, R f_b)|`` over the two sines, NaN for NaN rays.
     """
-    fa = _unit(np.asarray(rays_a, dtype=float))
-    fb = _unit(np.asarray(rays_b, dtype=float) @ np.asarray(a_R_b, dtype=float).T)
-    t = _unit(np.asarray(a_t_b, dtype=float))
-    det = np.abs(np.einsum("ij,ij->i", np.cross(fb, fa), np.broadcast_to(t, fa.shape)))
-    sine = np.minimum(np.linalg.norm(np.cross(t, fa), axis=1),
-                      np.linalg.norm(np.cross(t, fb), axis=1))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return det / sine
+    return _Matches(rays_a, rays_b, a_R_b).residual_rad(a_t_b)
 
 
 def triangulate_depths(rays_a: np.ndarray, rays_b: np.ndarray, a_R_b: np.ndarray,
@@ -133,33 +187,14 @@ def triangulate_depths(rays_a: np.ndarray, rays_b: np.ndarray, a_R_b: np.ndarray
     Returns:
         ``lambda_a``, ``lambda_b``: (N,) each; NaN where the rays are parallel.
     """
-    fa = np.asarray(rays_a, dtype=float)
-    fb = np.asarray(rays_b, dtype=float) @ np.asarray(a_R_b, dtype=float).T
-    t = np.asarray(a_t_b, dtype=float)
     # Normal equations of [fa, -fb] [la, lb]^T = t, one 2x2 system per match.
-    aa = np.einsum("ij,ij->i", fa, fa)
-    bb = np.einsum("ij,ij->i", fb, fb)
-    ab = np.einsum("ij,ij->i", fa, fb)
-    ta, tb = fa @ t, fb @ t
-    det = aa * bb - ab * ab
-    with np.errstate(divide="ignore", invalid="ignore"):
-        good = det > 1e-12 * aa * bb
-        la = np.where(good, (bb * ta - ab * tb) / det, np.nan)
-        lb = np.where(good, (ab * ta - aa * tb) / det, np.nan)
-    return la, lb
+    return _Matches(rays_a, rays_b, a_R_b).depths(a_t_b)
 
 
 def _inliers(rays_a: np.ndarray, rays_b: np.ndarray, a_R_b: np.ndarray, t: np.ndarray,
              threshold_rad: float) -> tuple[np.ndarray, np.ndarray]:
     """Residuals and inliers of one pose; matches with parallax behind a camera are out."""
-    residual = epipolar_residual_rad(rays_a, rays_b, a_R_b, t)
-    inliers = residual <= threshold_rad
-    la, lb = triangulate_depths(rays_a, rays_b, a_R_b, t)
-    # Depth signs mean something only where the rays are apart by more than the noise.
-    fa, fb = _unit(rays_a), _unit(rays_b @ a_R_b.T)
-    parallax = np.linalg.norm(np.cross(fa, fb), axis=1)
-    behind = (parallax > 3.0 * threshold_rad) & ~((la > 0) & (lb > 0))
-    return residual, inliers & ~behind
+    return _Matches(rays_a, rays_b, a_R_b).inliers(t, threshold_rad)
 
 
 def fit_translation_given_rotation(rays_a: np.ndarray, rays_b: np.ndarray, a_R_b: np.ndarray,
@@ -192,15 +227,15 @@ def fit_translation_given_rotation(rays_a: np.ndarray, rays_b: np.ndarray, a_R_b
     n_matches = fa.shape[0]
     if n_matches < MIN_MATCHES:
         return _nothing_fitted(n_matches, a_R_b)
-    normals = np.cross(fb_in_a, fa)  # (N, 3); t . n_i = 0 for an exact match
+    normals = _cross(fb_in_a, fa)  # (N, 3); t . n_i = 0 for an exact match
     best_t, best_count = None, -1
     drawn, needed, batch = 0, max_hypotheses, 32
     while drawn < min(needed, max_hypotheses):
         i = rng.integers(0, n_matches, batch)
         j = (i + rng.integers(1, n_matches, batch)) % n_matches
-        t = np.cross(normals[i], normals[j])
-        size = np.linalg.norm(t, axis=1)
-        scale = np.linalg.norm(normals[i], axis=1) * np.linalg.norm(normals[j], axis=1)
+        t = _cross(normals[i], normals[j])
+        size = _norm(t)
+        scale = _norm(normals[i]) * _norm(normals[j])
         ok = size > _MIN_HYPOTHESIS_SINE * np.maximum(scale, 1e-300)
         drawn += batch
         if not ok.any():
@@ -208,8 +243,8 @@ def fit_translation_given_rotation(rays_a: np.ndarray, rays_b: np.ndarray, a_R_b
         t = t[ok] / size[ok, None]
         # residual of every match under every hypothesis: |t . n| / sine(t, ray)
         det = np.abs(t @ normals.T)  # (H, N)
-        sine = np.minimum(np.linalg.norm(np.cross(t[:, None, :], fa[None]), axis=2),
-                          np.linalg.norm(np.cross(t[:, None, :], fb_in_a[None]), axis=2))
+        sine = np.minimum(_norm(_cross(t[:, None, :], fa[None])),
+                          _norm(_cross(t[:, None, :], fb_in_a[None])))
         counts = np.sum(det <= threshold_rad * sine, axis=1)
         h = int(np.argmax(counts))
         if counts[h] > best_count:
@@ -226,17 +261,18 @@ def fit_translation_given_rotation(rays_a: np.ndarray, rays_b: np.ndarray, a_R_b
                            residual, FitMethod.ROTATION_PRIOR)
     # Sign first (the hypotheses have none): most consensus points in front of camera a.
     t = best_t
-    consensus = epipolar_residual_rad(fa, fb_in_a, np.eye(3), t) <= threshold_rad
+    matches = _Matches(fa, fb_in_a, np.eye(3))
+    consensus = matches.residual_rad(t) <= threshold_rad
     la, _ = triangulate_depths(fa[consensus], fb_in_a[consensus], np.eye(3), t)
     if np.sum(la < 0) > np.sum(la > 0):
         t = -t
-    residual, inliers = _inliers(fa, fb_in_a, np.eye(3), t, threshold_rad)
+    residual, inliers = matches.inliers(t, threshold_rad)
     for _ in range(2):  # least-squares refinement on the inliers, then re-score
         if inliers.sum() < 2:
             break
         _, _, vt = np.linalg.svd(normals[inliers], full_matrices=False)
         refined = vt[-1] if vt[-1] @ t >= 0 else -vt[-1]
-        r_res, r_in = _inliers(fa, fb_in_a, np.eye(3), refined, threshold_rad)
+        r_res, r_in = matches.inliers(refined, threshold_rad)
         if r_in.sum() < inliers.sum():
             break
         t, residual, inliers = refined, r_res, r_in
@@ -341,10 +377,11 @@ def _pose_in_front(E: np.ndarray, fa: np.ndarray, fb: np.ndarray,
     best, best_score = None, None
     for b_R_a in (b_R_a1, b_R_a2):
         a_R_b = b_R_a.T
-        alignment = float(np.sum(_unit(fa) * _unit(fb @ a_R_b.T)))
+        matches = _Matches(fa, fb, a_R_b)
+        alignment = float(np.sum(matches.unit_a * matches.unit_b))
         for sign in (1.0, -1.0):
             a_t_b = _unit(-sign * (a_R_b @ b_t_a.ravel()))
-            kept = int(_inliers(fa, fb, a_R_b, a_t_b, threshold_rad)[1].sum())
+            kept = int(matches.inliers(a_t_b, threshold_rad)[1].sum())
             if best_score is None or (kept, alignment) > best_score:
                 best, best_score = (a_R_b, a_t_b), (kept, alignment)
     assert best is not None

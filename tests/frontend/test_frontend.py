@@ -20,8 +20,10 @@ from cdtm_graph.frontend import (
     track_log,
 )
 from cdtm_graph.frontend import tracker as tracker_module
+from cdtm_graph.frontend.tracker import Replenishment
 from cdtm_graph.frontend.two_view import (
     FitMethod,
+    _inliers,
     epipolar_residual_rad,
     fit_essential,
     fit_translation_given_rotation,
@@ -204,6 +206,108 @@ def test_each_check_catches_the_wrong_matches_it_guards_against(rng, flight, mon
     assert (out.status[rest] == MatchStatus.TRACKED).mean() > 0.95  # the rest are kept
 
 
+class _BackwardOverAllPoints:
+    """cv2 whose Lucas-Kanade also tracks back every point of each forward pass (what the
+    tracker did before issue 22) and keeps it, beside the calls the tracker makes."""
+
+    def __init__(self):
+        self.forward_points, self.backward_points, self.frames = [], [], []
+        self.images: tuple = ()
+
+    def __getattr__(self, name):
+        return getattr(cv2, name)
+
+    def calcOpticalFlowPyrLK(self, prev, nxt, p0, p1, **kwargs):
+        start = p1.copy()
+        out = cv2.calcOpticalFlowPyrLK(prev, nxt, p0, p1, **kwargs)
+        if self.frames and prev is self.images[1] and nxt is self.images[0]:  # backward
+            self.backward_points.append(len(p0))
+        else:
+            self.images = (prev, nxt)
+            self.forward_points.append(len(p0))
+            matched, status, _ = out
+            back, back_status, _ = cv2.calcOpticalFlowPyrLK(nxt, prev, matched, p0.copy(),
+                                                            **kwargs)
+            self.frames.append((p0.reshape(-1, 2), start.reshape(-1, 2),
+                                matched.reshape(-1, 2), status.ravel(), back.reshape(-1, 2),
+                                back_status.ravel()))
+        return out
+
+
+def test_the_backward_pass_skips_only_what_cannot_change_a_status(flight, monkeypatch):
+    """Issue 22: the backward pass tracks back only what the forward pass kept, and every
+    feature ends, and is matched, as when all were tracked back (the rule before
+    verification applied to a backward pass over every point). Catches tracking back
+    everything again (the point counts) and skipping a match the backward pass decides,
+    e.g. one leaving the image (its status or matched pixel)."""
+    result, images = flight
+    rotations = camera_rotations_from_imu(result.log)
+    lk = _BackwardOverAllPoints()
+    tracker = FeatureTracker(_camera(result))
+    s = tracker.settings
+    monkeypatch.setattr(tracker_module, "cv2", lk)
+    for k, image in enumerate(images):
+        out = tracker.track(image, rotations[k])
+        if k == 0:
+            continue
+        p0, guess, matched, status, back, back_status = lk.frames[-1]
+        lost = (status == 0) | (back_status == 0) | ~np.isfinite(matched).all(axis=1)
+        before = np.full(p0.shape[0], MatchStatus.TRACKED)
+        before[~(np.linalg.norm(back - p0, axis=1) <= s.forward_backward_px)] = \
+            MatchStatus.FORWARD_BACKWARD
+        before[lost] = MatchStatus.LOST
+        before[~tracker._inside(np.where(lost[:, None], guess, matched))] = \
+            MatchStatus.LEFT_IMAGE
+        verified = np.where(out.status == MatchStatus.EPIPOLAR, MatchStatus.TRACKED, out.status)
+        np.testing.assert_array_equal(verified, before, err_msg=f"frame {k}")
+        np.testing.assert_array_equal(out.matched_uv_px,
+                                      np.where(lost[:, None], np.nan, matched.astype(float)))
+    # features leave the image every frame (~55 px of flow): fewer are tracked back
+    assert sum(lk.backward_points) < 0.9 * sum(lk.forward_points)
+
+
+def test_replenishment_looks_only_where_the_need_reaches(flight, monkeypatch):
+    """Issue 22, ``Replenishment.NEEDED_CELLS``: corners are looked for cell by cell, only
+    in the cells the fill level of the need reaches (about half the cells here), and the
+    corners chosen are nearly all those the whole image gives (the rest differ next to
+    cells not looked at).
+    Catches looking at every open cell again (the area), and a cell read at the wrong
+    place or its corners put back wrong (the agreement)."""
+    result, images = flight
+    rotations = camera_rotations_from_imu(result.log)
+    cells = TrackerSettings(replenishment=Replenishment.NEEDED_CELLS)
+    whole = dataclasses.replace(cells, replenishment=Replenishment.WHOLE_IMAGE)
+    tracker = FeatureTracker(_camera(result), cells)
+    looked_px = []
+
+    class _Counting:
+        def __getattr__(self, name):
+            return getattr(cv2, name)
+
+        def goodFeaturesToTrackWithQuality(self, image, *args, **kwargs):
+            looked_px.append(image.size)
+            return cv2.goodFeaturesToTrackWithQuality(image, *args, **kwargs)
+
+    agree, total, cells_looked = 0, 0, []
+    for k, image in enumerate(images[:-1]):
+        tracker.track(image, rotations[k])
+        gray = tracker._normalized(images[k + 1])
+        live = tracker._uv.astype(float)[: tracker.settings.max_features - 40]  # need 40
+        monkeypatch.setattr(tracker_module, "cv2", _Counting())
+        looked_px.clear()
+        new = tracker._detect(gray, live)
+        monkeypatch.setattr(tracker_module, "cv2", cv2)
+        tracker.settings = whole
+        reference = tracker._detect(gray, live)
+        tracker.settings = cells
+        assert new.shape[0] == reference.shape[0] == 40
+        agree += sum(np.any(np.all(reference == q, axis=1)) for q in new)
+        total += 40
+        cells_looked.append(len(looked_px) / tracker.settings.cells)
+    assert agree / total > 0.9, agree / total
+    assert np.median(cells_looked) < 0.6, cells_looked
+
+
 def test_an_unrelated_image_keeps_no_wrong_matches(flight):
     """A frame of other ground (a camera glitch): nothing survives the checks, and
     tracking resumes from fresh corners."""
@@ -291,6 +395,42 @@ def test_noiseless_two_view_geometry_is_recovered(rng):
     depth_a, depth_b = triangulate_depths(rays_a, rays_b, a_R_b, a_t_b)
     np.testing.assert_allclose(rays_a * depth_a[:, None],
                                (rays_b * depth_b[:, None]) @ a_R_b.T + a_t_b, atol=1e-6)
+
+
+def test_inlier_scoring_is_the_textbook_formulas_to_the_bit(rng):
+    """The scoring shares unit rays and normals between hypotheses and writes the cross
+    products out (issue 22): residuals, depths and inliers are the same bits as the
+    formulas written plainly with np.cross and np.linalg.norm. Catches any change of the
+    arithmetic (a norm by einsum, rays normalized once less, a cross product reordered)."""
+    rays_a, rays_b, a_R_b, a_t_b = _two_views(rng, 200)
+    rays_b = rays_b + rng.normal(0.0, 2e-3, rays_b.shape)  # some off their planes
+    rays_b[::7] = rays_a[::7]  # some without parallax ...
+    rays_b[1::7] = 2 * rays_a[1::7] - rays_b[1::7]  # ... some moving backwards: behind
+    threshold = 1e-3
+
+    def unit(v):
+        norm = np.linalg.norm(v, axis=-1, keepdims=True)
+        return v / np.where(norm > 0, norm, 1.0)
+
+    fa, fb, t = unit(rays_a), unit(rays_b @ a_R_b.T), unit(a_t_b)
+    det = np.abs(np.einsum("ij,ij->i", np.cross(fb, fa), np.broadcast_to(t, fa.shape)))
+    residual = det / np.minimum(np.linalg.norm(np.cross(t, fa), axis=1),
+                                np.linalg.norm(np.cross(t, fb), axis=1))
+    raw_b = rays_b @ a_R_b.T
+    aa, bb = np.einsum("ij,ij->i", rays_a, rays_a), np.einsum("ij,ij->i", raw_b, raw_b)
+    ab = np.einsum("ij,ij->i", rays_a, raw_b)
+    ta, tb, d = rays_a @ a_t_b, raw_b @ a_t_b, aa * bb - ab * ab
+    la, lb = (bb * ta - ab * tb) / d, (ab * ta - aa * tb) / d
+    behind = (np.linalg.norm(np.cross(fa, fb), axis=1) > 3 * threshold) & ~((la > 0) & (lb > 0))
+
+    np.testing.assert_array_equal(epipolar_residual_rad(rays_a, rays_b, a_R_b, a_t_b), residual)
+    depth_a, depth_b = triangulate_depths(rays_a, rays_b, a_R_b, a_t_b)
+    np.testing.assert_array_equal(depth_a, la)
+    np.testing.assert_array_equal(depth_b, lb)
+    got_residual, got_inliers = _inliers(rays_a, rays_b, a_R_b, a_t_b, threshold)
+    np.testing.assert_array_equal(got_residual, residual)
+    np.testing.assert_array_equal(got_inliers, (residual <= threshold) & ~behind)
+    assert 0 < behind.sum() and 0 < (residual > threshold).sum()
 
 
 @pytest.mark.parametrize("fitter", ["rotation_prior", "essential"])
