@@ -37,3 +37,27 @@ def test_tiered_record_answers_as_one_run(rng, fold_rows):
                 assert np.array_equal(got, want)
         assert np.array_equal(tiered.since(k - 5), one_run.since(k - 5))
     assert len(tiered) == len(one_run)
+
+
+def test_first_recorded_is_the_earliest_frame_of_any_track_asked(rng):
+    """The frame a take-out scan starts from (``TrackJudge.first_recorded``): the earliest
+    frame any of the tracks entered the solver at, past every frame for tracks never
+    recorded (none of the factors holds them). Catches: the latest frame taken (a scan
+    starting after factors that hold the tracks: features left in the solver), the
+    tracks' first frames not gathered from both runs of a tiered record."""
+    from cdtm_graph.results import Rejections
+    from cdtm_graph.robust.mismatch import MismatchSettings
+    from cdtm_graph.robust.track_judge import TrackJudge
+
+    judge = TrackJudge(MismatchSettings(), None, None, None, np.eye(4), Rejections(),
+                       TieredObservations(fold_rows=50))
+    for k in range(1, 12):  # track t closes pairs at frames t // 10 + 1 ... t // 10 + 3
+        ids = np.array([t for t in range(200) if t // 10 + 1 <= k <= t // 10 + 3])
+        judge.observations.add(np.r_[ids, ids], np.r_[np.full(ids.size, k - 1),
+                                                       np.full(ids.size, k)],
+                               rng.normal(size=(2 * ids.size, 3)))
+    # recorded frames: track 31 3-6, track 47 4-7, track 95 9-11
+    assert judge.first_recorded(np.array([95, 47, 31])) == 3
+    assert judge.first_recorded(np.array([95, 47])) == 4
+    assert judge.first_recorded(np.array([95])) == 9
+    assert judge.first_recorded(np.array([5000])) == np.iinfo(np.int64).max
