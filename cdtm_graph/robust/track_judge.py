@@ -55,7 +55,8 @@ class TrackJudge:
     WINDOW_FRAMES = 20
 
     def __init__(self, mismatch: MismatchSettings, clutter: ClutterSettings | None, dtm: Dtm,
-                 noise: FeatureNoise, body_T_cam: np.ndarray, rejections: Rejections):
+                 noise: FeatureNoise, body_T_cam: np.ndarray, rejections: Rejections,
+                 observations: TrackObservations | None = None):
         self.mismatch = mismatch
         self.clutter_settings = clutter
         self.dtm = dtm
@@ -63,7 +64,9 @@ class TrackJudge:
         self.body_T_cam = body_T_cam
         self.rejections = rejections
         self.left_out = np.zeros(0, np.int64)  # sorted: tracks kept out from now on
-        self.observations = TrackObservations()  # what entered the solver
+        # what entered the solver (a full history's: :class:`~cdtm_graph.robust.
+        # observations.TieredObservations`)
+        self.observations = TrackObservations() if observations is None else observations
         self.clutter = Clutter.none()  # the latest fit of the tracks' heights
         self.considered_m: dict[int, float] = {}  # frame -> vertical offset it may carry
         self._found_off = np.zeros(0, np.int64)  # tracks the tests themselves found off
@@ -96,6 +99,12 @@ class TrackJudge:
             self.observations.add(np.concatenate((ids, ids)),
                                   np.repeat([_frame(f.key_a), k], ids.size),
                                   np.concatenate((f.features.q_a, f.features.q_b)))
+
+    def first_recorded(self, track_ids: np.ndarray) -> int:
+        """The earliest frame at which any of these tracks entered the solver (as recorded,
+        from the oldest frame still held on); past every frame if none has."""
+        _, frame, _ = self.observations.of(track_ids)
+        return int(frame.min()) if frame.size else np.iinfo(np.int64).max
 
     def leave_out(self, track_ids: np.ndarray) -> None:
         """Keep these tracks out from now on (off the map, or holding a wrong match)."""

@@ -38,6 +38,7 @@ from cdtm_graph.results import (
 from cdtm_graph.robust.acquisition import Correction
 from cdtm_graph.robust.fix_search import FixSearch
 from cdtm_graph.robust.gating import InnovationGate
+from cdtm_graph.robust.observations import TieredObservations
 from cdtm_graph.robust.stages import (
     BUILD,
     BuildFactors,
@@ -129,8 +130,9 @@ class IncrementalSmoother:
         self._gate = InnovationGate(settings.innovation_gate, max(abs(dtm.dx), abs(dtm.dy)),
                                     self.rejections)
         # terrain the DTM lacks, clutter, wrong matches: tracks judged and left out
-        self._judge = (None if graph.mismatch is None else TrackJudge(
-            graph.mismatch, graph.clutter, dtm, noise, camera.body_T_cam, self.rejections))
+        self._judge = (None if graph.mismatch is None else TrackJudge(  # (a full history's
+            graph.mismatch, graph.clutter, dtm, noise, camera.body_T_cam, self.rejections,
+            TieredObservations() if settings.lag_s is None else None))  # record: tiered)
         # fix acquisition: while the pose is too uncertain for the C-DTM linearization,
         # sightings are held back until a search over the newest frames finds the fix
         self._search = (None if settings.acquisition is None else
@@ -281,7 +283,8 @@ class IncrementalSmoother:
         earlier out of the solver (those still in it), counted for ``reason``."""
         assert self._judge is not None
         self._judge.leave_out(track_ids)
-        self._window.take_out(track_ids, reason, self.rejections)
+        first = self._judge.first_recorded(track_ids)
+        self._window.take_out(track_ids, reason, self.rejections, first)
 
     # -- the solver side of the defences ---------------------------------------------------
 

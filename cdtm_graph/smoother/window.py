@@ -290,14 +290,16 @@ class SolverWindow:
         cost must not grow with the flight)."""
         return bisect.bisect_left(self.frame_b, frame)
 
-    def take_out(self, track_ids: np.ndarray, reason: Rejection,
-                 rejections: Rejections) -> None:
+    def take_out(self, track_ids: np.ndarray, reason: Rejection, rejections: Rejections,
+                 first_frame: int = 0) -> None:
         """Take the features of these tracks that are still in the solver out (counted for
-        ``reason`` by each factor's later frame)."""
+        ``reason`` by each factor's later frame). ``first_frame``: the earliest frame any
+        of them entered the solver at (the factors ending before it hold none of them:
+        full history, the scan would otherwise grow with the flight)."""
         graph = gtsam.NonlinearFactorGraph()
         slots, changed = [], []
         # a factor whose later frame has left the window has left the solver
-        for i in range(self.since(self.settled), len(self.cdtm)):
+        for i in range(self.since(max(self.settled, first_frame)), len(self.cdtm)):
             f, ids = self.cdtm[i], self.ids[i]
             if f is None or _frame(f.key_a) < self.settled:
                 continue
