@@ -115,6 +115,7 @@ def clean_flights() -> _flights.CleanFlights:
 SHARED_FIXTURES = ("clean_flights", "nominal_runs")
 
 
+@pytest.hookimpl(tryfirst=True)  # before xdist's, which reads the groups into node ids
 def pytest_collection_modifyitems(config, items):
     """Keep work shared under pytest-xdist (``-n auto --dist loadgroup`` in pyproject.toml):
     each test file runs whole on one worker, so its module fixtures are made once, and the
