@@ -61,6 +61,20 @@ def run_tracker(camera, images, rotations, settings: TrackerSettings):
     return outputs, np.array(times)
 
 
+def _refilled(image: np.ndarray, pts: np.ndarray, settings: TrackerSettings) -> np.ndarray:
+    """The bare loops' points (N, 1, 2) topped up to ``max_features`` with new corners kept
+    ``min_distance_px`` from them."""
+    mask = np.full(image.shape, 255, np.uint8)
+    for u, v in pts.reshape(-1, 2).tolist():
+        cv2.circle(mask, (int(u), int(v)), int(settings.min_distance_px), 0, -1)
+    new = cv2.goodFeaturesToTrack(image, settings.max_features - len(pts),
+                                  settings.quality_level, settings.min_distance_px,
+                                  mask=mask, blockSize=settings.block_size_px)
+    if new is None:
+        return pts
+    return np.concatenate([pts.reshape(-1, 1, 2), new.astype(np.float32)])
+
+
 def run_bare(camera, images, settings: TrackerSettings) -> tuple[np.ndarray, np.ndarray]:
     """The bare loop: KLT, five-point RANSAC, top up with Shi-Tomasi corners."""
     window = (settings.window_px, settings.window_px)
@@ -86,14 +100,7 @@ def run_bare(camera, images, settings: TrackerSettings) -> tuple[np.ndarray, np.
             pts = p1
         counts.append(len(pts))
         if len(pts) < settings.max_features:
-            mask = np.full(image.shape, 255, np.uint8)
-            for u, v in pts.reshape(-1, 2):
-                cv2.circle(mask, (int(u), int(v)), int(settings.min_distance_px), 0, -1)
-            new = cv2.goodFeaturesToTrack(image, settings.max_features - len(pts),
-                                          settings.quality_level, settings.min_distance_px,
-                                          mask=mask, blockSize=settings.block_size_px)
-            if new is not None:
-                pts = np.concatenate([pts.reshape(-1, 1, 2), new.astype(np.float32)])
+            pts = _refilled(image, pts, settings)
         prev = image
         times.append((time.perf_counter() - start, time.process_time() - cpu))
     return np.array(times), np.array(counts)
@@ -128,14 +135,7 @@ def run_bare_fb(camera, images, settings: TrackerSettings) -> tuple[np.ndarray, 
             pts = p1
         counts.append(len(pts))
         if len(pts) < FB_REFILL_BELOW:
-            mask = np.full(image.shape, 255, np.uint8)
-            for u, v in pts.reshape(-1, 2).tolist():
-                cv2.circle(mask, (int(u), int(v)), int(settings.min_distance_px), 0, -1)
-            new = cv2.goodFeaturesToTrack(image, settings.max_features - len(pts),
-                                          settings.quality_level, settings.min_distance_px,
-                                          mask=mask, blockSize=settings.block_size_px)
-            if new is not None:
-                pts = np.concatenate([pts.reshape(-1, 1, 2), new.astype(np.float32)])
+            pts = _refilled(image, pts, settings)
         prev = image
         times.append((time.perf_counter() - start, time.process_time() - cpu))
     return np.array(times), np.array(counts)

@@ -110,18 +110,16 @@ def installed(tmp_path_factory) -> Installed:
     return box
 
 
-def _reuse_compiled_kernels(site: Path) -> int:
+def _reuse_compiled_kernels(site: Path) -> None:
     """Copy the checkout's compiled numba kernels beside the wheel's sources, each source's
     modification time set to the checkout's: numba keys a cached kernel on its source's
     time and size (and the code's hash, the numba version, the CPU), so the wheel's copy
-    of a module the suite has compiled loads them instead of compiling again. Returns the
-    sources so stamped.
+    of a module the suite has compiled loads them instead of compiling again.
 
     Why: what this file tests is the package, not the compiler; a second compilation of
     every kernel was 60-90 s of the suite. Kernels the checkout has not compiled yet (a
     cold cache) are compiled by the wheel's own run, as a user's first run would.
     """
-    stamped = 0
     for package in ("cdtm_graph", "factors"):
         for cache in (ROOT / package).rglob("__pycache__"):
             indices = sorted(cache.glob("*.nbi"))
@@ -138,8 +136,6 @@ def _reuse_compiled_kernels(site: Path) -> int:
                     shutil.copy2(path, installed / path.name)
                 stat = source.stat()
                 os.utime(target, ns=(stat.st_atime_ns, stat.st_mtime_ns))
-                stamped += 1
-    return stamped
 
 
 @pytest.mark.slow
