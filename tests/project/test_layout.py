@@ -15,6 +15,7 @@ section, the map a newcomer reads, is checked to name every module and subpackag
 from __future__ import annotations
 
 import ast
+import functools
 import re
 import subprocess
 import sys
@@ -46,7 +47,7 @@ def _imported_modules(path: Path, type_checking: bool = True) -> set[str]:
     module = _module_name(path)
     package = module if path.name == "__init__.py" else module.rpartition(".")[0]
     found: set[str] = set()
-    tree = ast.parse(path.read_text(), str(path))
+    tree = _parsed(path)
     skipped: set[int] = set()
     if not type_checking:
         for node in ast.walk(tree):
@@ -66,6 +67,13 @@ def _imported_modules(path: Path, type_checking: bool = True) -> set[str]:
             found.add(base)
             found.update(f"{base}.{alias.name}" for alias in node.names)
     return found
+
+
+@functools.cache
+def _parsed(path: Path) -> ast.Module:
+    """The module's syntax tree, parsed once per session (the checks below walk every
+    module several times: parsing them each time cost ~8 s of the suite)."""
+    return ast.parse(path.read_text(), str(path))
 
 
 def _reaches(name: str, prefixes: tuple[str, ...]) -> bool:
@@ -148,6 +156,12 @@ def _import_graph(modules: dict[str, Path]) -> dict[str, set[str]]:
     return graph
 
 
+@functools.cache
+def _package_graph() -> dict[str, set[str]]:
+    """The package's own import graph, built once per session (read, never changed)."""
+    return _import_graph(_modules())
+
+
 def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
     """The strongly connected components of more than one module (Tarjan)."""
     index: dict[str, int] = {}
@@ -185,7 +199,7 @@ def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 
 def test_no_import_cycle():
     """No import cycle among the package's modules, counting imports inside functions."""
-    graph = _import_graph(_modules())
+    graph = _package_graph()
     assert len(graph) > 100 and sum(map(len, graph.values())) > 300  # the graph is read
     assert _cycles(graph) == []
 
@@ -223,7 +237,7 @@ SOLVER_FREE = ("cdtm_graph.robust", "cdtm_graph.verdict", "cdtm_graph.results")
 def test_wings_never_import_the_smoothers(prefix):
     """The defences and the verdict judge what a solver gives them; they never import it
     (nor ``run``, which does)."""
-    graph = _import_graph(_modules())
+    graph = _package_graph()
     bad = {m: sorted(e for e in edges if _reaches(e, ("cdtm_graph.smoother", "cdtm_graph.run")))
            for m, edges in graph.items() if _reaches(m, (prefix,))}
     assert any(_reaches(m, (prefix,)) for m in graph)
@@ -240,7 +254,7 @@ def test_no_class_over_400_lines():
     """A class that outgrows 400 lines does several things: split it."""
     long = {}
     for name, path in _modules().items():
-        for node in ast.walk(ast.parse(path.read_text())):
+        for node in ast.walk(_parsed(path)):
             if isinstance(node, ast.ClassDef) and node.end_lineno - node.lineno + 1 > 400:
                 long[f"{name}.{node.name}"] = node.end_lineno - node.lineno + 1
     assert long == {}
