@@ -18,7 +18,9 @@ from cdtm_graph.smoother import IncrementalSmoother, SmootherMode, SmootherSetti
 from cdtm_graph.studies.robustness import Mode
 from factors import RobustKernel
 
-MAX_RMSE_M = 10.0
+#: Regression bound: 1.3x the fixed lag's per-axis position RMSE (m) on the nominal log,
+#: 0.61 0.75 0.44 measured 2026-11-27 (the issue's acceptance limit was 10 m).
+MAX_RMSE_M = 1.3 * np.array([0.61, 0.75, 0.44])
 #: chi-square(2) has median 2 ln 2 = 1.39; the model is honest to about 15%.
 NIS_MEDIAN_RANGE = (1.15, 1.65)
 GATE_RATE_TOL = 0.03
@@ -127,7 +129,7 @@ def test_fixed_lag_smoother_tracks_the_flight(nominal_log, nominal_runs):
     result = nominal_runs.run(Mode.FIXED_LAG).result
     truth = flight.groundtruth.interpolate(flight.frames.t_ns).position_m
     err = result.estimate.position_m - truth
-    assert np.sqrt(np.mean(err**2, axis=0)).max() <= MAX_RMSE_M
+    assert np.all(np.sqrt(np.mean(err**2, axis=0)) <= MAX_RMSE_M)
     # frames that left the window keep the covariances they left with: SPD, and no
     # smaller than the final smoothed ones of the frames still in the window
     for block in (result.covariances.pose, result.covariances.velocity,

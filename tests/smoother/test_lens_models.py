@@ -29,6 +29,9 @@ SEEDS = (0, 1, 2, 3)
 FRAMES, FEATURES = 12, 80
 #: The equidistant mean may exceed the radtan mean by this factor at most.
 ACCURACY_RATIO = 1.5
+#: Regression bound: 1.3x the worst 3-D RMSE (m) of the eight runs, 4.50 measured
+#: 2026-11-27 (radtan, seed 1).
+MAX_RMSE_M = 1.3 * 4.50
 
 
 def _settings(lens: tuple[str, tuple[float, ...]], seed: int) -> SimulationSettings:
@@ -75,7 +78,7 @@ def test_an_equidistant_log_smooths_as_accurately_as_a_radtan_one(tmp_path):
                                                                             camera=unstated))
                 rmse["unstated"].append(_rmse_3d_m(wrong, result.dtm))
     mean = {name: float(np.mean(values)) for name, values in rmse.items()}
-    assert max(rmse["radtan"] + rmse["equidistant"]) < 10.0, rmse
+    assert max(rmse["radtan"] + rmse["equidistant"]) < MAX_RMSE_M, rmse
     assert mean["equidistant"] <= ACCURACY_RATIO * mean["radtan"], rmse
     assert mean["unstated"] > 20.0 * mean["equidistant"], rmse
 

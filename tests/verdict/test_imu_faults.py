@@ -34,6 +34,12 @@ RATE_HZ = 200.0
 PERIOD_NS = 5_000_000
 #: Position ANEES (3 dof) an honest smoother stays under (the issue's bound).
 ANEES_BOUND = 6.0
+#: Regression bounds: 1.3x the 3-D position RMSE (m) measured 2026-11-27 on the issue's
+#: flight with 5 s of IMU missing across the first turn (batch 3.20, iSAM2 4.03, fixed
+#: lag 3.59); hundreds of metres without the gap model.
+GAP_IN_TURN_MAX_RMSE_M = {(SmootherMode.BATCH, None): 1.3 * 3.20,
+                          (SmootherMode.INCREMENTAL, None): 1.3 * 4.03,
+                          (SmootherMode.INCREMENTAL, 10.0): 1.3 * 3.59}
 
 
 @pytest.fixture(scope="module")
@@ -171,7 +177,7 @@ def test_an_imu_gap_spanning_a_turn_is_honest_and_named():
         out = smooth_and_evaluate(log, dtm, SmootherSettings(mode=mode, lag_s=lag))
         assert out.errors is not None and out.errors.anees_position is not None
         assert out.errors.anees_position <= ANEES_BOUND
-        assert np.linalg.norm(out.errors.rmse_position_m) < 10.0
+        assert np.linalg.norm(out.errors.rmse_position_m) < GAP_IN_TURN_MAX_RMSE_M[mode, lag]
         assert [(f["code"], f["first_frame"], f["last_frame"])
                 for f in out.report["imu_findings"]] == [("imu_gap", 8, 13)]
     unmodelled = SmootherSettings(graph=GraphSettings(imu_gap_noise=None))
