@@ -74,11 +74,10 @@ def test_a_tracks_later_pairs_share_its_ground_points_dtm_error(rng):
     so an m-pair track brings ``2 - 2 / (m + 1)`` DTM samples of information, not m.
 
     Catches ``GraphSettings(shared_dtm_error=...)`` ignored or the rank misread (the whole
-    suite passed with the rule switched off: issue 21). A Monte Carlo cannot: on the
-    robustness study's flight (30 frames at 1 fps and 40 at 4 fps, seeds 1-6) and navsim's
-    3000 m case (seeds 0-5) the
-    position ANEES with and without the rule differ by less than seed to seed (measured
-    2026-11-27), as tracks there are a few pairs long."""
+    suite passed with the rule switched off: issue 21). A Monte Carlo could not tell it:
+    on the robustness study's flight (30 frames at 1 fps, 40 at 4 fps; seeds 1-6) and
+    navsim's 3000 m case (seeds 0-5) the position ANEES with and without the rule differ
+    less than from seed to seed (measured 2026-11-27)."""
     x = np.arange(0.0, 2000.0, 50.0)
     elevation = 30.0 * np.sin(x / 300.0)[None, :] * np.cos(x / 400.0)[:, None]
     dtm = Dtm(elevation, 0.0, 0.0, 50.0, 50.0, sigma_h_m=2.0)
