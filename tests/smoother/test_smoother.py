@@ -45,10 +45,12 @@ def test_batch_accuracy_and_consistency(batch_run):
     assert np.all(e.rmse_position_m <= MAX_RMSE_M), e.rmse_position_m
     ratio = free.max_abs_position_error_m / e.max_abs_position_error_m
     assert np.all(ratio >= MIN_FREE_OVER_COMPENSATED), ratio
-    # inside the chi-square band of this log's 60 frames (2.41-3.65 for 3 dof), the band
-    # for independent frames: this seeded log sits in it (2.63); over many seeds smoothed
-    # errors are correlated and the spread is wider (tests/smoother/test_consistency.py)
-    assert e.position_consistent, (e.anees_position, e.anees_position_band)
+    # the run's own verdict on its covariance (evaluation.covariance_verdict: 80% of the
+    # frames inside chi-square(3)'s 95% bound, the median NEES not implausibly small),
+    # not the ANEES band of 60 independent frames, which a smoothed run's correlated
+    # frames leave by chance (this seed: ANEES 2.63 in 2.41-3.65). Whether the
+    # covariances are right is a question over seeds: tests/smoother/test_consistency.py.
+    assert e.position_consistent, e.anees_position
     assert batch_run.result.stats.converged
 
 
