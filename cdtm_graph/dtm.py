@@ -439,7 +439,7 @@ class Dtm:
 # ---------------------------------------------------------------------------------------
 
 
-@njit(cache=True, parallel=False)
+@njit(cache=True, parallel=False, inline="always")
 def _smallest_root(A: float, B: float, C: float, s_lim: float) -> float:
     """Smallest root in [0, s_lim] of ``A s^2 + B s + C`` with ``C > 0``, or -1.0 if none."""
     if A == 0.0:

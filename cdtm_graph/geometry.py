@@ -244,7 +244,7 @@ def triangulate(track_index: np.ndarray, n_tracks: int, centre_m: np.ndarray,
     return points, cov, chi2_fit
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _well_conditioned(A: np.ndarray) -> bool:
     """Whether a symmetric positive semi-definite 3x3's smallest eigenvalue exceeds 1e-12
     of its largest (in closed form: LAPACK per track cost more than the rest of the
@@ -253,7 +253,7 @@ def _well_conditioned(A: np.ndarray) -> bool:
     return smallest > 1e-12 * max(largest, 1e-300)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _inverse_sym3(A: np.ndarray, out: np.ndarray) -> None:
     """The inverse of a regular symmetric 3x3 (its adjugate over its determinant)."""
     c00 = A[1, 1] * A[2, 2] - A[1, 2] * A[1, 2]

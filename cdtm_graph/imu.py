@@ -277,7 +277,7 @@ def hold_segments(t_ns_samples: np.ndarray, t0_ns: int, t1_ns: int,
     if not isinstance(hold, SampleHold):
         raise ValueError(f"unknown hold {hold!r}")
     a, b = _near(t, t0, t1)
-    index, dt_ns, increasing = _hold_segments_kernel(
+    index, dt_ns, increasing = _hold_segments(
         np.ascontiguousarray(t[a:b], dtype=np.int64), t0, t1, hold is SampleHold.MIDPOINT)
     if not increasing:
         raise ValueError("t_ns_samples must be strictly increasing")
@@ -292,42 +292,34 @@ def _near(t: np.ndarray, t0: int, t1: int) -> tuple[int, int]:
             min(int(np.searchsorted(t, t1, side="left")) + 2, t.shape[0]))
 
 
-@njit(cache=True)
-def _hold_segments_kernel(ts, t0, t1, midpoint):
+def _hold_segments(ts: np.ndarray, t0: int, t1: int, midpoint: bool
+                   ) -> tuple[np.ndarray, np.ndarray, bool]:
     """Pieces of [t0, t1] held by each of the samples ``ts`` (local indices), and whether
     ``ts`` is strictly increasing. ZERO_ORDER: sample j holds [ts[j], ts[j+1]); MIDPOINT:
     from the integer half-way point to its previous neighbour to the one to its next (the
-    first from its own time, the last to its own time), so the pieces telescope exactly."""
-    n = ts.shape[0]
-    index = np.empty(n, np.int64)
-    dt_ns = np.empty(n, np.int64)
-    for j in range(n - 1):
-        if ts[j + 1] <= ts[j]:
-            return index[:0], dt_ns[:0], False
-    m = 0
-    for j in range(n if midpoint else n - 1):
-        if midpoint:
-            lo = ts[j] if j == 0 else ts[j - 1] + (ts[j] - ts[j - 1]) // 2
-            hi = ts[j] if j == n - 1 else ts[j] + (ts[j + 1] - ts[j]) // 2
-        else:
-            lo, hi = ts[j], ts[j + 1]
-        start = max(lo, t0)
-        end = min(hi, t1)
-        if end > start:
-            index[m] = j
-            dt_ns[m] = end - start
-            m += 1
-    return index[:m], dt_ns[:m], True
+    first from its own time, the last to its own time), so the pieces telescope exactly.
+    (numpy, integers only: a few whole-array operations, not worth a kernel's compilation.)
+    """
+    if (ts[1:] <= ts[:-1]).any():
+        return ts[:0], ts[:0], False
+    if midpoint:
+        halfway = ts[:-1] + (ts[1:] - ts[:-1]) // 2
+        lo, hi = np.concatenate((ts[:1], halfway)), np.concatenate((halfway, ts[-1:]))
+    else:
+        lo, hi = ts[:-1], ts[1:]
+    start, end = np.maximum(lo, t0), np.minimum(hi, t1)
+    index = np.flatnonzero(end > start)
+    return index, (end - start)[index], True
 
 
-@njit(cache=True)
-def _interval_measurements(t, gyro, acc, t0, t1, midpoint, b_a, b_g):
+def _interval_measurements(t: np.ndarray, gyro: np.ndarray, acc: np.ndarray, t0: int,
+                           t1: int, midpoint: bool, b_a: np.ndarray, b_g: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
     """``hold_segments`` then ``_held_measurements`` for a covered interval (the samples
-    near it), in one call; ``ok`` is False if they are not strictly increasing."""
-    index, dt_ns, increasing = _hold_segments_kernel(t, t0, t1, midpoint)
+    near it); ``ok`` is False if they are not strictly increasing."""
+    index, dt_ns, increasing = _hold_segments(t, t0, t1, midpoint)
     f, w, dt_s = _held_measurements(gyro, acc, index, dt_ns, midpoint, b_a, b_g)
     return f, w, dt_s, increasing
-
 
 @njit(cache=True)
 def _held_measurements(gyro, acc, index, dt_ns, midpoint, b_a, b_g):
@@ -407,7 +399,7 @@ def integrate_interval(pim: PreintegratedCombined, t_ns_samples: np.ndarray,
         b_a = b_g = np.zeros(3)
     if np.issubdtype(t.dtype, np.integer) and t.shape[0] >= 2 and int(t1_ns) > int(t0_ns) \
             and t[0] <= t0_ns and t1_ns <= t[-1] and isinstance(hold, SampleHold):
-        # the usual case in one numba call; hold_segments explains what is wrong otherwise
+        # the usual case; hold_segments explains what is wrong otherwise
         lo, hi = _near(t, int(t0_ns), int(t1_ns))
         f, w, dt_s, ok = _interval_measurements(
             np.ascontiguousarray(t[lo:hi], dtype=np.int64), gyro[lo:hi], acc[lo:hi],

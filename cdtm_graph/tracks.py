@@ -7,6 +7,11 @@ how many pairs it has made, as arrays sorted by id; a frame's look-up, update an
 grouping by earlier frame take one numba call and a small sort. :class:`TrackObservations`
 holds every sighting that entered the graph, sorted by track then frame, for triangulating
 a track again when it is seen.
+
+numba where it pays per frame (the look-up, the merges and gathers: 5-30x their numpy
+equivalents, ~15 us against ~0.4 ms a call); numpy for the few whole-array steps
+(membership, grouping, appending) that cost a few microseconds more than a kernel and
+no compilation on a fresh install (issue 22; docs/design.md, "The first run").
 """
 
 from __future__ import annotations
@@ -182,7 +187,7 @@ class TrackTable:
     def accept(self, pair: FramePairObservations, accepted: np.ndarray) -> None:
         """Clear the failure count of tracks whose pair passed."""
         if accepted.any():
-            _clear(self.ids, self._fails[:self._n], np.ascontiguousarray(pair.track_id[accepted]))
+            self._fails[np.searchsorted(self.ids, pair.track_id[accepted])] = 0
 
     def forget_before(self, frame: int) -> None:
         """Drop tracks last seen before ``frame`` (they can only pair with older frames)."""
@@ -231,14 +236,12 @@ def pairs_without(pairs: list[FramePairObservations], track_ids: np.ndarray, k: 
     return kept
 
 
-@njit(cache=True)
-def _in_sorted(ids, sorted_ids):
+def _in_sorted(ids: np.ndarray, sorted_ids: np.ndarray) -> np.ndarray:
     """(n,) whether each id is one of ``sorted_ids`` (sorted, unique): ``np.isin`` by
     binary search, which a frame's few hundred ids against a long list want."""
     at = np.searchsorted(sorted_ids, ids)
-    found = np.zeros(ids.shape[0], np.bool_)
-    for i in range(ids.shape[0]):
-        found[i] = at[i] < sorted_ids.shape[0] and sorted_ids[at[i]] == ids[i]
+    found = at < sorted_ids.shape[0]
+    found[found] = sorted_ids[at[found]] == ids[found]
     return found
 
 
@@ -252,25 +255,12 @@ def frames_seen(frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return _frames_seen(frame)
 
 
-@njit(cache=True)
-def _frames_seen(frame):
-    first, last = frame.min(), frame.max()
-    index = np.full(last - first + 1, -1)
-    for f in frame:
-        index[f - first] = 0
-    n = 0
-    for f in range(index.shape[0]):
-        if index[f] == 0:
-            index[f] = n
-            n += 1
-    frames = np.empty(n, np.int64)
-    at = np.empty(frame.shape[0], np.int64)
-    for f in range(index.shape[0]):
-        if index[f] >= 0:
-            frames[index[f]] = first + f
-    for m in range(frame.shape[0]):
-        at[m] = index[frame[m] - first]
-    return frames, at
+def _frames_seen(frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    first = int(frame.min())
+    present = np.zeros(int(frame.max()) - first + 1, np.bool_)
+    present[frame - first] = True
+    index = np.cumsum(present) - 1  # each frame's rank among those present
+    return np.flatnonzero(present) + first, index[frame - first]
 
 
 def track_groups(track_id: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -278,29 +268,15 @@ def track_groups(track_id: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     and their counts: what ``np.unique(track_id, return_inverse=True, return_counts=True)``
     gives, in one pass where the observations come sorted by track (they mostly do)."""
     track_id = np.ascontiguousarray(track_id, dtype=np.int64)
-    ids, index, counts, is_sorted = _sorted_groups(track_id)
-    if is_sorted:
-        return ids, index, counts
+    if not (track_id[1:] < track_id[:-1]).any():  # sorted: the groups are runs
+        new = np.empty(track_id.size, np.bool_)
+        new[:1] = True
+        np.not_equal(track_id[1:], track_id[:-1], out=new[1:])
+        starts = np.flatnonzero(new)
+        return (track_id[starts], np.cumsum(new) - 1,
+                np.diff(np.append(starts, track_id.size)))
     ids, index, counts = np.unique(track_id, return_inverse=True, return_counts=True)
     return ids, index.reshape(-1), counts
-
-
-@njit(cache=True)
-def _sorted_groups(track_id):
-    n = track_id.shape[0]
-    index = np.empty(n, np.int64)
-    counts = np.zeros(n, np.int64)
-    ids = np.empty(n, np.int64)
-    t = -1
-    for i in range(n):
-        if i and track_id[i] < track_id[i - 1]:
-            return ids[:0], index[:0], counts[:0], False
-        if i == 0 or track_id[i] != track_id[i - 1]:
-            t += 1
-            ids[t] = track_id[i]
-        index[i] = t
-        counts[t] += 1
-    return ids[:t + 1], index, counts[:t + 1], True
 
 
 def first_sightings(track_id: np.ndarray, frame: np.ndarray) -> np.ndarray:
@@ -545,30 +521,21 @@ def _reject(ids, frame, q_seen, pairs, fails, track_id, frame_a, q_a, patience):
         _copy_row(q_seen, at, q_a, i)
 
 
-@njit(cache=True)
-def _clear(ids, fails, track_id):
-    for i in range(track_id.shape[0]):
-        fails[np.searchsorted(ids, track_id[i])] = 0
-
-
-@njit(cache=True)
-def _append(ids, frame, q_seen, pairs, fails, n, new_ids, q_new, k):
+def _append(ids: np.ndarray, frame: np.ndarray, q_seen: np.ndarray, pairs: np.ndarray,
+            fails: np.ndarray, n: int, new_ids: np.ndarray, q_new: np.ndarray, k: int
+            ) -> int:
     """Append tracks whose ids are increasing and above every known id, in place, if the
-    buffers have room: the new length, else -1."""
+    buffers have room: the new length, else -1. (numpy: a few slice stores.)"""
     m = new_ids.shape[0]
     if n + m > ids.shape[0]:
         return -1
-    last = ids[n - 1] if n > 0 else new_ids[0] - 1
-    for i in range(m):
-        if new_ids[i] <= last:
-            return -1
-        last = new_ids[i]
-    for i in range(m):
-        ids[n + i] = new_ids[i]
-        frame[n + i] = k
-        _copy_row(q_seen, n + i, q_new, i)
-        pairs[n + i] = 0
-        fails[n + i] = 0
+    if m and ((n > 0 and new_ids[0] <= ids[n - 1]) or (new_ids[1:] <= new_ids[:-1]).any()):
+        return -1
+    ids[n:n + m] = new_ids
+    frame[n:n + m] = k
+    q_seen[n:n + m] = q_new
+    pairs[n:n + m] = 0
+    fails[n:n + m] = 0
     return n + m
 
 

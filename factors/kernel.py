@@ -303,7 +303,7 @@ def triangularize(e, Ha, Hb, work, Ja_out, Jb_out, z_out):
         _householder_triangle(e, Ha, Hb, work, Ja_out, Jb_out, z_out)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _gram_triangle(e, Ha, Hb, Ja_out, Jb_out, z_out):
     """Upper Cholesky factor of the Gram matrix; False if a pose column lost its pivot."""
     c = COMPRESSED_ROWS
@@ -344,7 +344,7 @@ def _gram_triangle(e, Ha, Hb, Ja_out, Jb_out, z_out):
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _householder_triangle(e, Ha, Hb, work, Ja_out, Jb_out, z_out):
     """Householder QR of the stacked rows (their columns held as rows of ``work``)."""
     n = e.shape[0]
@@ -387,7 +387,7 @@ def _householder_triangle(e, Ha, Hb, work, Ja_out, Jb_out, z_out):
         z_out[r] = work[12, r]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _np_apply(q, qq, g, gn, x, out):
     """out = N_P(q, g) x = P(q, q) P(g, g) x / |g| (eq. 14)."""
     gx = (g[0] * x[0] + g[1] * x[1] + g[2] * x[2]) / (gn * gn)

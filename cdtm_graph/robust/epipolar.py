@@ -64,7 +64,7 @@ class EpipolarCheck:
     angle_to_prior_rad: float
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _sampson_terms(q_a: np.ndarray, q_b: np.ndarray, R_ba: np.ndarray) -> np.ndarray:
     """(n, 12) per feature, what the Sampson distance of ``q_b^T [t]x R q_a = 0`` needs of
     it for any direction t: ``R q_a``, ``R q_a x q_b`` and ``R_col0 x q_b``, ``R_col1 x
