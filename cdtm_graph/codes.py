@@ -103,6 +103,10 @@ class Code(enum.StrEnum):
                               "cannot check it")
     CALIBRATION_HELD = ("calibration_held", Kind.NOTE,
                         "a significant correction the positions do not feel")
+    CALIBRATION_CONFOUNDED = ("calibration_confounded", Kind.NOTE,
+                              "a correction that another fault explains as well: the map's "
+                              "shared error, the residuals' scatter, or a fault the verdict "
+                              "names")
 
     @classmethod
     def of(cls, value: str) -> Code | None:

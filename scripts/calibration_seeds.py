@@ -1,8 +1,9 @@
 """Clean flights over seeds with the default settings, every mode: the verdicts and the
 calibration check's findings (issue 10: clean flights stay trusted on 95% of the seeds).
 
-Run: ``python scripts/calibration_seeds.py [--frames N] [--seeds A B]`` (default: the
-issue's 90-frame flight, seeds 1-20).
+Run: ``python scripts/calibration_seeds.py [--frames N] [--seeds A B] [--scenario NAME]``
+(default: the issue's 90-frame flight, seeds 1-20, clean; ``--scenario detail_waves``:
+the same flights over ground detail the DTM lacks, issue 21).
 """
 
 from __future__ import annotations
@@ -21,10 +22,11 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=BASE.frames)
     parser.add_argument("--seeds", type=int, nargs=2, default=(1, 20), metavar=("FIRST", "LAST"))
+    parser.add_argument("--scenario", default="clean", choices=sorted(SCENARIOS))
     args = parser.parse_args(argv)
     rows: dict[Mode, list[tuple]] = {mode: [] for mode in Mode}
     for seed in range(args.seeds[0], args.seeds[1] + 1):
-        flight, dtm = SCENARIOS["clean"].flight(dataclasses.replace(BASE, frames=args.frames,
+        flight, dtm = SCENARIOS[args.scenario].flight(dataclasses.replace(BASE, frames=args.frames,
                                                                     seed=seed))
         line = f"seed {seed:3d}"
         for mode in Mode:
@@ -37,7 +39,8 @@ def main(argv: list[str] | None = None) -> None:
             reasons = "".join(f" {r.code}" for r in out.verdict.reasons)
             line += (f" | {mode.value} {out.verdict.status.value} {rmse:.2f} m "
                      f"{e.anees_position:.2f} drop {check.cost_drop:.1f} nees "
-                     f"{check.position_nees:.1f}{reasons}")
+                     f"{check.position_nees:.1f} scatter {check.residual_scatter:.2f} wald "
+                     f"{check.wald:.1f}{reasons}")
         print(line, flush=True)
     for mode, r in rows.items():
         drops = [x[4] for x in r]

@@ -44,16 +44,19 @@ def noise_gradient(factors: Sequence[CdtmPairFactor], values: gtsam.Values
 
 
 def debiased(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
-             factors: Sequence[CdtmPairFactor]) -> gtsam.Values:
+             factors: Sequence[CdtmPairFactor], noise_scale: float = 1.0) -> gtsam.Values:
     """``values`` moved by one corrected-score step: the Gauss-Newton step of ``graph``
     at ``values`` with the noise's expected gradient taken out of its gradient.
 
     Args:
         graph: the whole graph (``factors`` among its factors). values: its solution.
         factors: the C-DTM pair factors.
+        noise_scale: the noise's variance over the model's (the expected gradient grows
+            with it: :func:`cdtm_graph.calibration.clustered.residual_scatter`).
     """
     linear = graph.linearize(values)
     for key, g in noise_gradient(factors, values).items():
+        g = noise_scale * g
         # a zero Hessian and the linear term: the step solves H d = -grad + g
         linear.push_back(gtsam.HessianFactor(key, np.zeros((g.size, g.size)), g, 0.0))
     try:

@@ -30,7 +30,7 @@ def innovation_mahalanobis(e: np.ndarray, H_a: np.ndarray, H_b: np.ndarray, P: n
     joint tangent of ``(X(a), X(b))``, whose prior covariance is ``P`` (12, 12), into the
     residual. Chi-square with 2 degrees of freedom for an inlier whose prior is honest.
     """
-    return _mahalanobis(e, innovation_covariance(H_a, H_b, P, R))
+    return mahalanobis_2d(e, innovation_covariance(H_a, H_b, P, R))
 
 
 def innovation_covariance(H_a: np.ndarray, H_b: np.ndarray, P: np.ndarray,
@@ -69,7 +69,7 @@ def _innovation_covariance(H_a, H_b, P, R):
     return S
 
 
-def _mahalanobis(e: np.ndarray, S: np.ndarray) -> np.ndarray:
+def mahalanobis_2d(e: np.ndarray, S: np.ndarray) -> np.ndarray:
     """``e_i^T S_i^-1 e_i`` for (n, 2) ``e`` and symmetric (n, 2, 2) ``S`` (the inverse
     written out: numpy's stacked 2x2 solve costs more than the rest of a gate)."""
     s00, s01, s11 = S[:, 0, 0], 0.5 * (S[:, 0, 1] + S[:, 1, 0]), S[:, 1, 1]
@@ -82,6 +82,14 @@ OUTLIER_TEST_PROBABILITY = 0.999
 #: Inlier gate without a robust kernel: chi-square with 2 dof, 99.9%.
 CHI2_2DOF_999 = chi2_2dof_quantile(OUTLIER_TEST_PROBABILITY)
 CHI2_2DOF_MEDIAN = chi2_2dof_quantile(0.5)  # 2 ln 2
+
+
+def truncated_chi2_2dof_mean(probability: float) -> float:
+    """Mean of chi-square(2) truncated at its ``probability`` quantile ``c``:
+    ``2 - c (1 - p) / p`` (1.986 at 0.999), the expected residual of a feature within the
+    test of :func:`residual_test`."""
+    c = chi2_2dof_quantile(probability)
+    return 2.0 - c * (1.0 - probability) / probability
 
 
 @dataclass(frozen=True)
@@ -206,7 +214,7 @@ class InnovationGate:
             e, H_a, H_b = f.innovations(pose(a), pose_k)
             S = innovation_covariance(H_a, H_b, P, f.features.whitened_full_covariance())
             scaled.append(f.with_robust_scale(np.sqrt(0.5 * (S[:, 0, 0] + S[:, 1, 1]))))
-            distances.append(_mahalanobis(e, S))
+            distances.append(mahalanobis_2d(e, S))
             # the DTM plane at the guess means nothing a cell away: no judging there
             judged.append(test and self.threshold is not None
                           and _sigmas_within(P[9:, 9:], self._spacing_m))

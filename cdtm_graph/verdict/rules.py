@@ -70,7 +70,7 @@ import numpy as np
 from cdtm_graph.codes import FAILING, Code
 from cdtm_graph.constants import NS_PER_S, chi2_2dof_quantile, chi2_quantile
 from cdtm_graph.results import Rejection, SmootherResult
-from cdtm_graph.robust.gating import OUTLIER_TEST_PROBABILITY
+from cdtm_graph.robust.gating import OUTLIER_TEST_PROBABILITY, truncated_chi2_2dof_mean
 from cdtm_graph.verdict.evaluation import (
     POSITION_DOF,
     ConsistencyBounds,
@@ -87,14 +87,6 @@ from cdtm_graph.verdict.fix_geometry import (
 )
 from cdtm_graph.verdict.imu_faults import MeasuredImuNoise, imu_gaps
 from cdtm_graph.verdict.outcome import Reason, SelfChecks, Status, Verdict
-
-
-def truncated_chi2_2dof_mean(probability: float) -> float:
-    """Mean of chi-square(2) truncated at its ``probability`` quantile ``c``:
-    ``2 - c (1 - p) / p`` (1.986 at 0.999), the expected residual of a feature within the
-    test of :func:`cdtm_graph.robust.gating.residual_test`."""
-    c = chi2_2dof_quantile(probability)
-    return 2.0 - c * (1.0 - probability) / probability
 
 
 @dataclass(frozen=True)
@@ -559,8 +551,7 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
                  for code, message in rejection_failures + failures]
     run_wide += [reason(code, message, a, b)
                  for code, message, a, b in _groundtruth_checks(errors, settings)]
-    calibration_reasons, calibration_notes = _calibration_check(result)
-    run_wide += [reason(code, message, 0, last) for code, message in calibration_reasons]
+    calibration_at = len(run_wide)  # its place (judged last: it hears the others)
     run_wide += [reason(code, message, a, b)
                  for code, message, a, b in _bias_check(result, f.t_s, settings)]
     run_wide += [reason(code, message, 0, last)
@@ -578,6 +569,10 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
             if test.any_length or long_enough:
                 stretches.append(reason(test.code, test.describe(a, b), a, b))
     stretches.sort(key=lambda r: (r.first_frame, r.last_frame, r.code))
+    calibration_reasons, calibration_notes = _calibration_check(
+        result, {r.code for r in run_wide + stretches})
+    run_wide[calibration_at:calibration_at] = [reason(code, message, 0, last)
+                                               for code, message in calibration_reasons]
     reasons = tuple(run_wide + stretches)
     if any(r.status is Status.FAILED for r in reasons):
         status = Status.FAILED
@@ -710,15 +705,41 @@ def _calibration_notes(result: SmootherResult) -> list[str]:
             "near flight.yaml's value, with the prior's uncertainty in the covariances"]
 
 
-def _calibration_check(result: SmootherResult) -> tuple[list[tuple[Code, str]], list[str]]:
+#: Reasons that name a fault which moves the side solve's calibration as a wrong one
+#: would (the focal scale trades with the map's height, the time offset with the
+#: sightings along the track): with one of them the calibration check is a note
+#: (``calibration_confounded``), not a reason. Not among them: what a calibration fault
+#: itself does to the run (``not_converged``; the errors ground truth shows; an IMU bias
+#: taking a height error), so that a real fault is still named.
+CALIBRATION_RIVALS = frozenset({
+    Code.MAP_MISMATCH, Code.CLUTTER, Code.WRONG_FIX, Code.HEAVY_REJECTION, Code.OUTLIERS,
+    Code.MISFIT, Code.RESIDUAL_CHI2, Code.RESIDUAL_MISFIT, Code.INNOVATION_NIS,
+    Code.IMU_GAP, Code.NO_FEATURES, Code.OFF_DTM, Code.FEW_FEATURES, Code.FLAT_TERRAIN,
+    Code.NARROW_FOV, Code.NO_FIX})
+
+
+def _calibration_check(result: SmootherResult, named: set[str]
+                       ) -> tuple[list[tuple[Code, str]], list[str]]:
     """``calibration_suspect`` (a reason): the run held flight.yaml's calibration, and a
-    batch side solve that estimates it finds it wrong beyond the run's covariance
-    (:mod:`cdtm_graph.calibration.check`). Notes: ``calibration_held`` (a
-    significant correction the positions do not feel), ``calibration_unresolved`` (a side
-    solve that tells the calibration poorly: the flight cannot check it)."""
+    batch side solve that estimates it finds it wrong beyond the run's covariance, beyond
+    what the map's shared error and the residuals' scatter explain, and the verdict names
+    no rival fault (``named``: the other reasons' codes; :data:`CALIBRATION_RIVALS`)
+    (:mod:`cdtm_graph.calibration.check`). Notes: ``calibration_confounded`` (a
+    correction another fault explains as well), ``calibration_held`` (a significant
+    correction the positions do not feel), ``calibration_unresolved`` (a side solve that
+    tells the calibration poorly: the flight cannot check it)."""
     check = result.calibration_check
     if check is None or not check.significant:
         return [], []
+    rivals = sorted(CALIBRATION_RIVALS & named)
+    if check.suspect and rivals:
+        return [], [f"calibration_confounded: {check.describe()}; but the verdict names "
+                    f"{', '.join(rivals)}, which moves the side solve alike: not named as a "
+                    "reason; held as flight.yaml writes it"]
+    if check.confounded:
+        return [], [f"calibration_confounded: {check.describe()}; but the map's shared error "
+                    "and the residuals' scatter explain it as well: not named as a reason; "
+                    "held as flight.yaml writes it"]
     if check.suspect:
         return [(Code.CALIBRATION_SUSPECT, (
             f"the run held flight.yaml's camera calibration, which the flight contradicts: "

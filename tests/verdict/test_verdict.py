@@ -525,28 +525,65 @@ def _calibration(observable: bool = True):
         np.eye(5) * 1e-6, {"time_offset": True, "mount": observable, "focal_scale": True})
 
 
-@pytest.mark.parametrize("cost_drop, position_nees, conclusive, code, note", [
-    (100.0, 50.0, True, "calibration_suspect", None),
-    (100.0, 50.0, False, None, "calibration_unresolved"),
-    (100.0, 1.0, True, None, "calibration_held"),
-    (10.0, 50.0, True, None, None)])
-def test_the_calibration_check_is_a_reason_or_a_note(cost_drop, position_nees, conclusive,
-                                                     code, note):
-    """The side solve's findings (:class:`~cdtm_graph.calibration.check.CalibrationCheck`)
-    as the verdict reads them: significant, far from the run and conclusive is
-    ``calibration_suspect`` (degraded); not conclusive a note ``calibration_unresolved``;
-    within the run's covariance a note ``calibration_held``; not significant nothing.
-    Mutations: each of the three switched off -> its case: fails."""
-    from cdtm_graph.calibration.check import SUSPECT_COST_DROP, SUSPECT_NEES, CalibrationCheck
+def _check(cost_drop: float, position_nees: float, conclusive: bool = True,
+           wald: float = 1e3):
+    """A calibration check's findings, ``suspect`` as the check decides it."""
+    from cdtm_graph.calibration.check import (
+        SUSPECT_COST_DROP,
+        SUSPECT_NEES,
+        SUSPECT_WALD,
+        CalibrationCheck,
+    )
 
-    suspect = cost_drop > SUSPECT_COST_DROP and position_nees > SUSPECT_NEES and conclusive
-    check = CalibrationCheck(_calibration(), np.zeros(5), position_nees, cost_drop,
-                             conclusive, suspect, 0.1, 30)
-    verdict = assess(dataclasses.replace(_result(), calibration_check=check))
+    suspect = (cost_drop > SUSPECT_COST_DROP and position_nees > SUSPECT_NEES and conclusive
+               and wald > SUSPECT_WALD)
+    return CalibrationCheck(_calibration(), np.zeros(5), position_nees, cost_drop,
+                            conclusive, suspect, 0.1, 30, 2.0, wald)
+
+
+@pytest.mark.parametrize("cost_drop, position_nees, conclusive, wald, code, note", [
+    (100.0, 50.0, True, 1e3, "calibration_suspect", None),
+    (100.0, 50.0, False, 1e3, None, "calibration_unresolved"),
+    (100.0, 1.0, True, 1e3, None, "calibration_held"),
+    (100.0, 50.0, True, 20.0, None, "calibration_confounded"),
+    (10.0, 50.0, True, 1e3, None, None)])
+def test_the_calibration_check_is_a_reason_or_a_note(cost_drop, position_nees, conclusive,
+                                                     wald, code, note):
+    """The side solve's findings (:class:`~cdtm_graph.calibration.check.CalibrationCheck`)
+    as the verdict reads them: significant, far from the run, conclusive and specific is
+    ``calibration_suspect`` (degraded); not conclusive a note ``calibration_unresolved``;
+    within the run's covariance a note ``calibration_held``; not specific (the map's
+    shared error and the residuals' scatter explain it: Wald below ``SUSPECT_WALD``) a
+    note ``calibration_confounded``; not significant nothing. Mutations: each of the four
+    switched off -> its case: fails."""
+    verdict = assess(dataclasses.replace(_result(), calibration_check=_check(
+        cost_drop, position_nees, conclusive, wald)))
     assert _codes(verdict) == ([code] if code else []), verdict.lines()
     assert verdict.status is (Status.DEGRADED if code else Status.TRUSTED)
     named = [n.split(":")[0] for n in verdict.notes if n.startswith("calibration")]
     assert named == ([note] if note else [])
+
+
+def test_a_calibration_finding_beside_a_rival_fault_is_a_note():
+    """Issue 21: a suspect calibration beside a reason that moves the side solve alike
+    (here ``outliers``: wrong matches) is a note ``calibration_confounded`` naming it, the
+    run degraded by its own reason alone; beside a reason a calibration fault itself
+    causes (``confidently_wrong``) it is still named. Mutation: the rivals' test in
+    ``_calibration_check`` switched off -> ``calibration_suspect`` beside ``outliers``:
+    fails."""
+    check = _check(100.0, 50.0)
+    result = _result()
+    outliers = np.where(np.arange(result.counts.n_frames) >= 1, 3, 0)  # 2%: outliers
+    counts = dataclasses.replace(result.counts, n_outliers=int(outliers.sum()),
+                                 outliers_per_frame=outliers)
+    verdict = assess(dataclasses.replace(result, calibration_check=check, counts=counts))
+    assert "outliers" in _codes(verdict) and "calibration_suspect" not in _codes(verdict)
+    notes = [n for n in verdict.notes if n.startswith("calibration_confounded: ")]
+    assert len(notes) == 1 and "outliers" in notes[0], verdict.lines()
+    result = dataclasses.replace(_result(), calibration_check=check)
+    offset = np.full(result.counts.n_frames, 5.0)  # NEES 25 everywhere: confidently wrong
+    faulty = assess(result, _errors_of(result, offset))
+    assert sorted(_codes(faulty)) == ["calibration_suspect", "confidently_wrong"]
 
 
 def test_a_calibration_part_the_flight_did_not_tell_is_a_note():
