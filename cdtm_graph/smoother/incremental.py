@@ -16,13 +16,20 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
+from gtsam.symbol_shorthand import X
 
 from cdtm_graph.codes import Code
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import CdtmError, FlightLogError
 from cdtm_graph.flightlog import FlightConfig, FlightLog
 from cdtm_graph.graph import feature_noise, imu_factor, insert_state, prior_factors
-from cdtm_graph.imu import ImuArrays, ImuFeed, initial_bias, navstate_predict
+from cdtm_graph.imu import (
+    ImuArrays,
+    ImuFeed,
+    initial_bias,
+    navstate_predict,
+    propagate_covariance,
+)
 from cdtm_graph.replay import replay
 from cdtm_graph.results import (
     GraphCounts,
@@ -69,6 +76,11 @@ class FrameUpdate:
         n_features: C-DTM features that arrived with it. update_time_s: the update's cost.
         imu_time_s: time spent preintegrating this frame's interval as its IMU samples
             arrived (``add_imu``), before this update.
+        converged: whether the estimate had settled under the C-DTM factors (a
+            relinearizing step moved the frame by less than its 1-sigma). While it has not
+            (from the prior, an acquired fix, an IMU gap), ``pose_covariance`` is the last
+            settled covariance (at first the prior's) carried to this frame by the IMU
+            alone, not the marginal at a linearization point the estimate is still leaving.
     """
 
     frame: int
@@ -79,6 +91,7 @@ class FrameUpdate:
     n_features: int
     update_time_s: float
     imu_time_s: float = 0.0
+    converged: bool = True
 
 
 #: The track tests' rounds over many frames, charged apart from the frames' stages.
@@ -114,6 +127,10 @@ class IncrementalSmoother:
     #: While the estimate moves to an acquired fix, the first window frame is held there by
     #: a temporary prior this tight (rad, m, m/s).
     ANCHOR_SIGMAS = (np.radians(0.2), 2.0, 0.2)
+    #: Settling (:meth:`_settle`): the estimate has converged when one relinearizing step
+    #: moves the newest frame's position by less than this NEES (3 dof) against its
+    #: marginal, i.e. by less than its 1-sigma ellipsoid.
+    SETTLED_STEP_NEES = 1.0
 
     def __init__(self, config: FlightConfig, dtm: Dtm, settings: SmootherSettings | None = None,
                  imu: ImuArrays | None = None, frame_interval_s: float | None = None):
@@ -157,6 +174,13 @@ class IncrementalSmoother:
         # from the prediction, until one does not; nothing is judged meanwhile. Not a test
         # per update: outliers that moved one would switch off the tests that stop them.
         self.converging = True
+        # Settling: from the prior (an acquired fix, an IMU gap) the estimate is not yet
+        # where the C-DTM factors put it, and their marginal at that linearization point is
+        # not its uncertainty. Until a relinearizing step leaves the newest frame where it
+        # is, each update iterates and reports the last honest covariance carried by the
+        # IMU (``_carried_cov``: 15x15, the newest frame's; None: its marginal is honest).
+        self._settling = True
+        self._carried_cov: np.ndarray | None = None
         self._features_per_frame: dict[int, int] = {}
         self.n_features = self.n_cdtm_factors = 0
         self.update_times_s: list[float] = []
@@ -213,12 +237,14 @@ class IncrementalSmoother:
             bias = w.biases[k - 1]  # the IMU feed's linearization point too
             pim = self._imu.finish(int(t_ns), (w.poses[k - 1], w.velocities[k - 1]))
             if pim.spans_gap:  # predicted across an IMU gap: a guess, judge nothing by it
-                self.converging = True
+                self.converging = self._settling = True
             link = imu_factor(k - 1, pim)
             graph.add(link)
             predicted, velocity = navstate_predict(pim, w.poses[k - 1], w.velocities[k - 1],
                                                    bias)
         insert_state(values, k, predicted, velocity, bias)
+        if k and self._settling:
+            self._carry_covariance(k, link, values)
         w.t_ns.append(int(t_ns))
         w.poses[k], w.velocities[k], w.biases[k] = predicted, velocity, bias
         if k:
@@ -247,13 +273,61 @@ class IncrementalSmoother:
         if self._search is not None and self._search.active:
             with self.stages.charged(HoldForFix.name, HoldForFix.rejects):
                 self._try_acquisition(k)
+        converged = self._settled_at(k)
         self._imu.start(int(t_ns), w.biases[k])
-        pose_cov = self._map_offset.added_to_pose(w.state_cov[:6, :6], w.poses[k])
+        reported = w.state_cov if converged else self._carried_cov
+        assert reported is not None
+        pose_cov = self._map_offset.added_to_pose(reported[:6, :6], w.poses[k])
         elapsed = time.perf_counter() - start
         self.update_times_s.append(elapsed)
         self.imu_times_s.append(self._imu.take_time_s())
         return FrameUpdate(k, int(t_ns), w.poses[k], w.velocities[k], pose_cov, work.n_features,
-                           elapsed, self.imu_times_s[-1])
+                           elapsed, self.imu_times_s[-1], converged)
+
+    # -- settling: the live estimate's covariance honest from frame 1 -------------------
+
+    def _carry_covariance(self, k: int, link: gtsam.CombinedImuFactor,
+                          values: gtsam.Values) -> None:
+        """While settling: the last honest covariance (frame k-1's marginal, or what was
+        carried to it) carried to frame k through the IMU factor (a Kalman prediction)."""
+        w = self._window
+        at = gtsam.Values(values)
+        insert_state(at, k - 1, w.poses[k - 1], w.velocities[k - 1], w.biases[k - 1])
+        earlier = w.state_cov if self._carried_cov is None else self._carried_cov
+        self._carried_cov, _ = propagate_covariance(link, at, earlier)
+
+    def _settled_at(self, k: int) -> bool:
+        """Whether frame k's marginal is honest: no C-DTM factor has entered since the
+        settling began (the marginal is then the carried covariance), or the estimate has
+        converged (:meth:`_settle`, which iterates). Settled stays settled until an
+        acquired fix or an IMU gap starts settling again."""
+        if self._settling and self.n_cdtm_factors and not self._settle(k):
+            return False
+        if self.n_cdtm_factors:
+            self._settling = False
+        self._carried_cov = None
+        return True
+
+    def _settle(self, k: int) -> bool:
+        """Relinearizing steps (at most ``final_iterations``) until one moves frame k's
+        position by less than its 1-sigma (``SETTLED_STEP_NEES``): the linearization
+        point is then the estimate, and the marginal there its covariance. Updates
+        frame k's estimate and ``state_cov``; returns whether it settled."""
+        w = self._window
+        settled = False
+        for _ in range(self.settings.final_iterations):
+            before = w.poses[k][:3, 3].copy()
+            w.backend.step()
+            w.fetch(k)
+            pose = w.poses[k]
+            step_body_m = pose[:3, :3].T @ (pose[:3, 3] - before)
+            position_cov = w.backend.marginal(X(k))[3:, 3:]
+            if float(step_body_m @ np.linalg.solve(position_cov, step_body_m)) \
+                    <= self.SETTLED_STEP_NEES:
+                settled = True
+                break
+        w.state_cov = w.backend.joint_marginal(list(frame_keys(k)))
+        return settled
 
     # -- what the stages ask (robust.stages.SolverView) --------------------------------
 
@@ -314,6 +388,8 @@ class IncrementalSmoother:
         the held sightings, their factors built at the corrected poses (the stages up to
         the factors: the fix is what they were held for), and release the anchor."""
         w = self._window
+        if not self._settling:  # settling again, from frame k's covariance without the fix
+            self._settling, self._carried_cov = True, w.state_cov
         j0 = held[0][0]
         pose, velocity = correction.apply_to_state(w.poses[j0], w.velocities[j0])
         anchor = w.anchor(j0, pose, velocity, k, self.ANCHOR_SIGMAS,
