@@ -296,9 +296,16 @@ def test_a_fixed_lag_too_short_for_the_fix_search_is_refused_or_said(seed):
 FAR_START_M = (120.0, -90.0, 0.0)
 
 
+@pytest.fixture(scope="module")
+def far_start(seed):
+    """8 frames of the paper's flight (1000 m, 200 m/s), the prior's mean ``FAR_START_M``
+    off (log, DTM)."""
+    return simulate_flight(SimulationSettings(frames=8, seed=seed, initial_error_m=FAR_START_M))
+
+
 @pytest.mark.parametrize(("lag_s", "iterations"), [(None, 5), (10.0, 5), (None, 1)],
                          ids=["isam2", "fixed_lag", "isam2_one_step"])
-def test_the_live_covariance_is_honest_from_the_first_frame(seed, lag_s, iterations):
+def test_the_live_covariance_is_honest_from_the_first_frame(far_start, lag_s, iterations):
     """From a far start within the prior, every frame ``add_frame`` returns (the live
     path: scripts/live_tracking.py, isam2_incremental.py) has its position error inside 3
     sigma of the covariance returned with it (chi-square(3), 99.73%), frame 1 (the first
@@ -311,8 +318,7 @@ def test_the_live_covariance_is_honest_from_the_first_frame(seed, lag_s, iterati
     NEES 1391, 1-2 of 8 frames inside in every case; ``_settled_at`` settling but returning
     True (the marginal reported before the estimate settled): iSAM2 with one step, frames
     1-4 at NEES 55-776 (the default 5 steps settle at once on this flight and pass)."""
-    flight, dtm = simulate_flight(SimulationSettings(frames=8, seed=seed,
-                                                     initial_error_m=FAR_START_M))
+    flight, dtm = far_start
     settings = SmootherSettings(lag_s=lag_s, keep_exit_covariances=False,
                                 final_iterations=iterations)
     smoother = IncrementalSmoother(flight.config, dtm, settings, frame_interval_s=1.0)
