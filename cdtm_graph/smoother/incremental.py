@@ -16,20 +16,13 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import X
 
 from cdtm_graph.codes import Code
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import CdtmError, FlightLogError
 from cdtm_graph.flightlog import FlightConfig, FlightLog
 from cdtm_graph.graph import feature_noise, imu_factor, insert_state, prior_factors
-from cdtm_graph.imu import (
-    ImuArrays,
-    ImuFeed,
-    initial_bias,
-    navstate_predict,
-    propagate_covariance,
-)
+from cdtm_graph.imu import ImuArrays, ImuFeed, initial_bias, navstate_predict
 from cdtm_graph.replay import replay
 from cdtm_graph.results import (
     GraphCounts,
@@ -58,6 +51,7 @@ from cdtm_graph.robust.track_judge import TrackJudge
 from cdtm_graph.smoother.assembly import ClutterOutcome, assemble_result
 from cdtm_graph.smoother.backends import frame_keys
 from cdtm_graph.smoother.settings import Progress, SmootherSettings
+from cdtm_graph.smoother.settling import Settling
 from cdtm_graph.smoother.window import SolverWindow
 from cdtm_graph.tracks import SightingPairs, checked_sightings
 from factors import CdtmPairFactor
@@ -108,8 +102,7 @@ class IncrementalSmoother:
         update = smoother.add_frame(t_ns, track_ids, uv_px, closing_imu_samples)
 
     Args:
-        config: the log's flight.yaml (camera, IMU noise, initial state).
-        dtm: the terrain.
+        config: the log's flight.yaml (camera, IMU noise, initial state). dtm: the terrain.
         settings: the run's settings; the incremental smoother uses ``graph``, ``lag_s``
             (a fixed lag instead of the full history), ``keep_exit_covariances``,
             ``innovation_gate``, ``acquisition`` and ``final_iterations``.
@@ -127,15 +120,10 @@ class IncrementalSmoother:
     #: While the estimate moves to an acquired fix, the first window frame is held there by
     #: a temporary prior this tight (rad, m, m/s).
     ANCHOR_SIGMAS = (np.radians(0.2), 2.0, 0.2)
-    #: Settling (:meth:`_settle`): the estimate has converged when one relinearizing step
-    #: moves the newest frame's position by less than this NEES (3 dof) against its
-    #: marginal, i.e. by less than its 1-sigma ellipsoid.
-    SETTLED_STEP_NEES = 1.0
 
     def __init__(self, config: FlightConfig, dtm: Dtm, settings: SmootherSettings | None = None,
                  imu: ImuArrays | None = None, frame_interval_s: float | None = None):
-        self.config = config
-        self.dtm = dtm
+        self.config, self.dtm = config, dtm
         self.settings = settings = settings or SmootherSettings()
         graph = settings.graph
         noise = feature_noise(config, dtm, graph)
@@ -154,10 +142,9 @@ class IncrementalSmoother:
         # sightings are held back until a search over the newest frames finds the fix
         self._search = (None if settings.acquisition is None else
                         FixSearch(settings.acquisition, config, dtm, self.rejections))
-        self._frame_interval_s = frame_interval_s
+        self._frame_interval_s, search = frame_interval_s, self._search
         self._window = w = SolverWindow(settings.lag_s, frame_interval_s,
                                         settings.keep_exit_covariances)
-        search = self._search
         self.stages = incremental_stages(
             self._pairing, BuildFactors(camera.body_T_cam, dtm, noise, graph, self.rejections),
             None if search is None else HoldForFix(
@@ -174,19 +161,12 @@ class IncrementalSmoother:
         # from the prediction, until one does not; nothing is judged meanwhile. Not a test
         # per update: outliers that moved one would switch off the tests that stop them.
         self.converging = True
-        # Settling: from the prior (an acquired fix, an IMU gap) the estimate is not yet
-        # where the C-DTM factors put it, and their marginal at that linearization point is
-        # not its uncertainty. Until a relinearizing step leaves the newest frame where it
-        # is, each update iterates and reports the last honest covariance carried by the
-        # IMU (``_carried_cov``: 15x15, the newest frame's; None: its marginal is honest).
-        self._settling = True
-        self._carried_cov: np.ndarray | None = None
+        self._settling = Settling(w, settings.final_iterations)  # the live covariance honest
         self._features_per_frame: dict[int, int] = {}
         self.n_features = self.n_cdtm_factors = 0
         self.update_times_s: list[float] = []
         self.imu_times_s: list[float] = []
-        self.final_error = float("nan")
-        self.converged = False
+        self.final_error, self.converged = float("nan"), False
 
     # -- input ------------------------------------------------------------------------
 
@@ -219,8 +199,7 @@ class IncrementalSmoother:
                 missing samples and retry the frame) or the system is unsolvable.
         """
         start = time.perf_counter()
-        w = self._window
-        k = len(w.t_ns)
+        w, k = self._window, len(self._window.t_ns)
         if k and t_ns <= w.t_ns[-1]:
             raise FlightLogError(f"frame {k}: time {t_ns} ns is not after the previous frame")
         seen = checked_sightings(k, track_id, uv_px)  # before anything changes
@@ -237,14 +216,14 @@ class IncrementalSmoother:
             bias = w.biases[k - 1]  # the IMU feed's linearization point too
             pim = self._imu.finish(int(t_ns), (w.poses[k - 1], w.velocities[k - 1]))
             if pim.spans_gap:  # predicted across an IMU gap: a guess, judge nothing by it
-                self.converging = self._settling = True
+                self.converging = self._settling.active = True
             link = imu_factor(k - 1, pim)
             graph.add(link)
             predicted, velocity = navstate_predict(pim, w.poses[k - 1], w.velocities[k - 1],
                                                    bias)
         insert_state(values, k, predicted, velocity, bias)
-        if k and self._settling:
-            self._carry_covariance(k, link, values)
+        if k:
+            self._settling.carry(k, link, values)
         w.t_ns.append(int(t_ns))
         w.poses[k], w.velocities[k], w.biases[k] = predicted, velocity, bias
         if k:
@@ -273,61 +252,14 @@ class IncrementalSmoother:
         if self._search is not None and self._search.active:
             with self.stages.charged(HoldForFix.name, HoldForFix.rejects):
                 self._try_acquisition(k)
-        converged = self._settled_at(k)
+        converged, reported = self._settling.reported(k, self.n_cdtm_factors > 0)
         self._imu.start(int(t_ns), w.biases[k])
-        reported = w.state_cov if converged else self._carried_cov
-        assert reported is not None
         pose_cov = self._map_offset.added_to_pose(reported[:6, :6], w.poses[k])
         elapsed = time.perf_counter() - start
         self.update_times_s.append(elapsed)
         self.imu_times_s.append(self._imu.take_time_s())
         return FrameUpdate(k, int(t_ns), w.poses[k], w.velocities[k], pose_cov, work.n_features,
                            elapsed, self.imu_times_s[-1], converged)
-
-    # -- settling: the live estimate's covariance honest from frame 1 -------------------
-
-    def _carry_covariance(self, k: int, link: gtsam.CombinedImuFactor,
-                          values: gtsam.Values) -> None:
-        """While settling: the last honest covariance (frame k-1's marginal, or what was
-        carried to it) carried to frame k through the IMU factor (a Kalman prediction)."""
-        w = self._window
-        at = gtsam.Values(values)
-        insert_state(at, k - 1, w.poses[k - 1], w.velocities[k - 1], w.biases[k - 1])
-        earlier = w.state_cov if self._carried_cov is None else self._carried_cov
-        self._carried_cov, _ = propagate_covariance(link, at, earlier)
-
-    def _settled_at(self, k: int) -> bool:
-        """Whether frame k's marginal is honest: no C-DTM factor has entered since the
-        settling began (the marginal is then the carried covariance), or the estimate has
-        converged (:meth:`_settle`, which iterates). Settled stays settled until an
-        acquired fix or an IMU gap starts settling again."""
-        if self._settling and self.n_cdtm_factors and not self._settle(k):
-            return False
-        if self.n_cdtm_factors:
-            self._settling = False
-        self._carried_cov = None
-        return True
-
-    def _settle(self, k: int) -> bool:
-        """Relinearizing steps (at most ``final_iterations``) until one moves frame k's
-        position by less than its 1-sigma (``SETTLED_STEP_NEES``): the linearization
-        point is then the estimate, and the marginal there its covariance. Updates
-        frame k's estimate and ``state_cov``; returns whether it settled."""
-        w = self._window
-        settled = False
-        for _ in range(self.settings.final_iterations):
-            before = w.poses[k][:3, 3].copy()
-            w.backend.step()
-            w.fetch(k)
-            pose = w.poses[k]
-            step_body_m = pose[:3, :3].T @ (pose[:3, 3] - before)
-            position_cov = w.backend.marginal(X(k))[3:, 3:]
-            if float(step_body_m @ np.linalg.solve(position_cov, step_body_m)) \
-                    <= self.SETTLED_STEP_NEES:
-                settled = True
-                break
-        w.state_cov = w.backend.joint_marginal(list(frame_keys(k)))
-        return settled
 
     # -- what the stages ask (robust.stages.SolverView) --------------------------------
 
@@ -388,8 +320,7 @@ class IncrementalSmoother:
         the held sightings, their factors built at the corrected poses (the stages up to
         the factors: the fix is what they were held for), and release the anchor."""
         w = self._window
-        if not self._settling:  # settling again, from frame k's covariance without the fix
-            self._settling, self._carried_cov = True, w.state_cov
+        self._settling.restart()  # from frame k's covariance without the fix
         j0 = held[0][0]
         pose, velocity = correction.apply_to_state(w.poses[j0], w.velocities[j0])
         anchor = w.anchor(j0, pose, velocity, k, self.ANCHOR_SIGMAS,

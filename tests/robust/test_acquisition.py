@@ -321,7 +321,7 @@ def test_the_demo_acquires_then_every_mode_smooths_as_from_a_clean_prior():
     incremental modes settle their estimate from the prior (issue 21, build 5; measured
     2026-11-27: iSAM2 4.51 m at ANEES 1.89, fixed lag 5.25 m at 2.52, where iSAM2 ended
     324 m and the fixed lag 345 m off at ANEES ~10^4). Mutation: no settling
-    (``IncrementalSmoother._settled_at`` returning True) -> this test fails."""
+    (``Settling.reported`` returning the marginal at once) -> this test fails."""
     demo = runpy.run_path(str(ROOT / "scripts" / "acquisition_demo.py"))["demo"]
     result, rows = demo("far300", frames=15)
     assert result.verdict is FixVerdict.ACQUIRED, result.reason

@@ -313,11 +313,11 @@ def test_the_live_covariance_is_honest_from_the_first_frame(far_start, lag_s, it
     estimate settles only at frame 6: the frames before report the prior's covariance
     carried by the IMU.
 
-    Mutations tried 2026-11-27: ``IncrementalSmoother._settled_at`` returning True (no
-    settling, the update's marginal reported at once, as before): frame 1 120 m off at
-    NEES 1391, 1-2 of 8 frames inside in every case; ``_settled_at`` settling but returning
-    True (the marginal reported before the estimate settled): iSAM2 with one step, frames
-    1-4 at NEES 55-776 (the default 5 steps settle at once on this flight and pass)."""
+    Mutations tried 2026-11-27: ``Settling.reported`` returning the marginal at once, no
+    settling (as before): frame 1 120 m off at NEES 1391, 1-2 of 8 frames inside in every
+    case; ``Settling.reported`` settling but returning the marginal before the estimate
+    settled: iSAM2 with one step, frames 1-4 at NEES 55-776 (the default 5 steps settle at
+    once on this flight and pass)."""
     flight, dtm = far_start
     settings = SmootherSettings(lag_s=lag_s, keep_exit_covariances=False,
                                 final_iterations=iterations)
