@@ -51,6 +51,7 @@ from cdtm_graph.robust.track_judge import TrackJudge
 from cdtm_graph.smoother.assembly import ClutterOutcome, assemble_result
 from cdtm_graph.smoother.backends import frame_keys
 from cdtm_graph.smoother.settings import Progress, SmootherSettings
+from cdtm_graph.smoother.settling import Settling
 from cdtm_graph.smoother.window import SolverWindow
 from cdtm_graph.tracks import SightingPairs, checked_sightings
 from factors import CdtmPairFactor
@@ -69,6 +70,11 @@ class FrameUpdate:
         n_features: C-DTM features that arrived with it. update_time_s: the update's cost.
         imu_time_s: time spent preintegrating this frame's interval as its IMU samples
             arrived (``add_imu``), before this update.
+        converged: whether the estimate had settled under the C-DTM factors (a
+            relinearizing step moved the frame by less than its 1-sigma). While it has not
+            (from the prior, an acquired fix, an IMU gap), ``pose_covariance`` is the last
+            settled covariance (at first the prior's) carried to this frame by the IMU
+            alone, not the marginal at a linearization point the estimate is still leaving.
     """
 
     frame: int
@@ -79,6 +85,7 @@ class FrameUpdate:
     n_features: int
     update_time_s: float
     imu_time_s: float = 0.0
+    converged: bool = True
 
 
 #: The track tests' rounds over many frames, charged apart from the frames' stages.
@@ -95,8 +102,7 @@ class IncrementalSmoother:
         update = smoother.add_frame(t_ns, track_ids, uv_px, closing_imu_samples)
 
     Args:
-        config: the log's flight.yaml (camera, IMU noise, initial state).
-        dtm: the terrain.
+        config: the log's flight.yaml (camera, IMU noise, initial state). dtm: the terrain.
         settings: the run's settings; the incremental smoother uses ``graph``, ``lag_s``
             (a fixed lag instead of the full history), ``keep_exit_covariances``,
             ``innovation_gate``, ``acquisition`` and ``final_iterations``.
@@ -117,8 +123,7 @@ class IncrementalSmoother:
 
     def __init__(self, config: FlightConfig, dtm: Dtm, settings: SmootherSettings | None = None,
                  imu: ImuArrays | None = None, frame_interval_s: float | None = None):
-        self.config = config
-        self.dtm = dtm
+        self.config, self.dtm = config, dtm
         self.settings = settings = settings or SmootherSettings()
         graph = settings.graph
         noise = feature_noise(config, dtm, graph)
@@ -137,10 +142,9 @@ class IncrementalSmoother:
         # sightings are held back until a search over the newest frames finds the fix
         self._search = (None if settings.acquisition is None else
                         FixSearch(settings.acquisition, config, dtm, self.rejections))
-        self._frame_interval_s = frame_interval_s
+        self._frame_interval_s, search = frame_interval_s, self._search
         self._window = w = SolverWindow(settings.lag_s, frame_interval_s,
                                         settings.keep_exit_covariances)
-        search = self._search
         self.stages = incremental_stages(
             self._pairing, BuildFactors(camera.body_T_cam, dtm, noise, graph, self.rejections),
             None if search is None else HoldForFix(
@@ -157,12 +161,12 @@ class IncrementalSmoother:
         # from the prediction, until one does not; nothing is judged meanwhile. Not a test
         # per update: outliers that moved one would switch off the tests that stop them.
         self.converging = True
+        self._settling = Settling(w, settings.final_iterations)  # the live covariance honest
         self._features_per_frame: dict[int, int] = {}
         self.n_features = self.n_cdtm_factors = 0
         self.update_times_s: list[float] = []
         self.imu_times_s: list[float] = []
-        self.final_error = float("nan")
-        self.converged = False
+        self.final_error, self.converged = float("nan"), False
 
     # -- input ------------------------------------------------------------------------
 
@@ -195,8 +199,7 @@ class IncrementalSmoother:
                 missing samples and retry the frame) or the system is unsolvable.
         """
         start = time.perf_counter()
-        w = self._window
-        k = len(w.t_ns)
+        w, k = self._window, len(self._window.t_ns)
         if k and t_ns <= w.t_ns[-1]:
             raise FlightLogError(f"frame {k}: time {t_ns} ns is not after the previous frame")
         seen = checked_sightings(k, track_id, uv_px)  # before anything changes
@@ -213,12 +216,14 @@ class IncrementalSmoother:
             bias = w.biases[k - 1]  # the IMU feed's linearization point too
             pim = self._imu.finish(int(t_ns), (w.poses[k - 1], w.velocities[k - 1]))
             if pim.spans_gap:  # predicted across an IMU gap: a guess, judge nothing by it
-                self.converging = True
+                self.converging = self._settling.active = True
             link = imu_factor(k - 1, pim)
             graph.add(link)
             predicted, velocity = navstate_predict(pim, w.poses[k - 1], w.velocities[k - 1],
                                                    bias)
         insert_state(values, k, predicted, velocity, bias)
+        if k:
+            self._settling.carry(k, link, values)
         w.t_ns.append(int(t_ns))
         w.poses[k], w.velocities[k], w.biases[k] = predicted, velocity, bias
         if k:
@@ -247,13 +252,14 @@ class IncrementalSmoother:
         if self._search is not None and self._search.active:
             with self.stages.charged(HoldForFix.name, HoldForFix.rejects):
                 self._try_acquisition(k)
+        converged, reported = self._settling.reported(k, self.n_cdtm_factors > 0)
         self._imu.start(int(t_ns), w.biases[k])
-        pose_cov = self._map_offset.added_to_pose(w.state_cov[:6, :6], w.poses[k])
+        pose_cov = self._map_offset.added_to_pose(reported[:6, :6], w.poses[k])
         elapsed = time.perf_counter() - start
         self.update_times_s.append(elapsed)
         self.imu_times_s.append(self._imu.take_time_s())
         return FrameUpdate(k, int(t_ns), w.poses[k], w.velocities[k], pose_cov, work.n_features,
-                           elapsed, self.imu_times_s[-1])
+                           elapsed, self.imu_times_s[-1], converged)
 
     # -- what the stages ask (robust.stages.SolverView) --------------------------------
 
@@ -314,6 +320,7 @@ class IncrementalSmoother:
         the held sightings, their factors built at the corrected poses (the stages up to
         the factors: the fix is what they were held for), and release the anchor."""
         w = self._window
+        self._settling.restart()  # from frame k's covariance without the fix
         j0 = held[0][0]
         pose, velocity = correction.apply_to_state(w.poses[j0], w.velocities[j0])
         anchor = w.anchor(j0, pose, velocity, k, self.ANCHOR_SIGMAS,

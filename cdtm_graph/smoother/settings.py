@@ -27,7 +27,10 @@ class SmootherSettings:
         lag_s: incremental only: a fixed-lag smoother of this lag (seconds); ``None``
             keeps the full history in iSAM2.
         final_iterations: incremental only: relinearizing updates after the last frame
-            (``IncrementalSmoother.finalize``) so the final estimate reaches the optimum.
+            (``IncrementalSmoother.finalize``) so the final estimate reaches the optimum;
+            also the most a frame makes while the estimate settles from the prior (an
+            acquired fix, an IMU gap) before its marginal is reported (0: it never
+            settles, and every frame reports the prior's covariance carried by the IMU).
         marginals: compute per-frame marginal covariances (batch).
         keep_exit_covariances: fixed lag: keep each frame's pose, velocity and bias
             covariances as it leaves the window (about 1 ms per frame; an offline run

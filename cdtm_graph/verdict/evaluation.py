@@ -49,6 +49,9 @@ POSITION_DOF = 3
 POSE_DOF = 6
 #: Probability of the per-frame NEES bound of :class:`NeesConsistency`.
 NEES_BOUND_PROBABILITY = 0.95
+#: Probability of "inside 3 sigma" for a d-dof NEES: the chi-square(d) quantile at the
+#: two-sided 3-sigma probability of one Gaussian (14.16 for 3 dof), the live scripts' bound.
+THREE_SIGMA_PROBABILITY = 0.9973
 #: Percentiles of the per-frame NEES reported beside their chi-square values.
 NEES_PERCENTILES = (50.0, 90.0, 99.0)
 
@@ -382,6 +385,23 @@ def _floats(values: Any) -> Any:
 
 def _rmse(e: np.ndarray, axis: int = 0) -> np.ndarray:
     return np.sqrt(np.mean(e * e, axis=axis)) if e.shape[0] else np.full(e.shape[1:], np.nan)
+
+
+def position_nees(world_T_body: np.ndarray, pose_cov: np.ndarray,
+                  position_error_world_m: np.ndarray) -> np.ndarray:
+    """Position NEES (3 dof) of (K,) frames: (K, 4, 4) estimates, their (K, 6, 6) GTSAM pose
+    covariances (body frame, [rot, trans]) and (K, 3) errors ``p_est - p_true`` (world)."""
+    _, position_cov = pose_covariance_in_world(world_T_body, pose_cov)
+    return _nees(np.asarray(position_error_world_m, float), position_cov)
+
+
+def share_inside_three_sigma(world_T_body: np.ndarray, pose_cov: np.ndarray,
+                             position_error_world_m: np.ndarray) -> float:
+    """Share of the frames (arguments as :func:`position_nees`) whose position error lies
+    inside 3 sigma: NEES within chi-square(3)'s ``THREE_SIGMA_PROBABILITY`` quantile (a
+    frame without a positive-definite covariance counts as outside)."""
+    nees = position_nees(world_T_body, pose_cov, position_error_world_m)
+    return float(np.mean(nees <= nees_bound(POSITION_DOF, THREE_SIGMA_PROBABILITY)))
 
 
 def _nees(err: np.ndarray, cov: np.ndarray) -> np.ndarray:

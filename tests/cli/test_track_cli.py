@@ -322,6 +322,7 @@ def test_live_tracking_script_feeds_the_incremental_smoother(image_log, capsys):
                              run_name="not_main")["main"]([str(image_log)])
     assert summary["frames"] == 4
     assert summary["smoothed_rms_error_m"] < 10.0
+    assert summary["filter_inside_3_sigma"] == 1.0  # (issue 21; 1.0 measured 2026-11-27)
 
 
 def test_a_log_without_images_is_named(tmp_path, capsys):

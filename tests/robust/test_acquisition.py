@@ -315,17 +315,19 @@ def test_identity_correction_changes_nothing(far_flight):
 
 @pytest.mark.slow
 def test_the_demo_acquires_then_every_mode_smooths_as_from_a_clean_prior():
-    """scripts/acquisition_demo.py on a short far300 flight: without a search iSAM2 ends
-    hundreds of metres off; acquired up front, or by the smoothers' own search on the
-    log as it is, every mode is within 1.5x of the clean prior's error, with a
-    consistent covariance."""
+    """scripts/acquisition_demo.py on a short far300 flight: acquired up front, or by the
+    smoothers' own search on the log as it is, every mode is within 1.5x of the clean
+    prior's error, with a consistent covariance. Without a search too, since the
+    incremental modes settle their estimate from the prior (issue 21, build 5; measured
+    2026-11-27: iSAM2 4.51 m at ANEES 1.89, fixed lag 5.25 m at 2.52, where iSAM2 ended
+    324 m and the fixed lag 345 m off at ANEES ~10^4). Mutation: no settling
+    (``Settling.reported`` returning the marginal at once) -> this test fails."""
     demo = runpy.run_path(str(ROOT / "scripts" / "acquisition_demo.py"))["demo"]
     result, rows = demo("far300", frames=15)
     assert result.verdict is FixVerdict.ACQUIRED, result.reason
     by = {(r.label, r.mode.value): r for r in rows}
-    assert by[("no search", "isam2")].rmse_3d_m > 100.0  # what acquisition prevents
     for mode in ("batch", "isam2", "fixed_lag"):
         clean = by[("clean prior", mode)]
-        for label in ("acquired", "as logged"):
+        for label in ("acquired", "as logged", "no search"):
             assert by[(label, mode)].rmse_3d_m <= 1.5 * clean.rmse_3d_m, (label, mode)
             assert by[(label, mode)].anees <= 6.0, (label, mode)

@@ -183,7 +183,9 @@ def test_an_imu_gap_spanning_a_turn_is_honest_and_named():
     unmodelled = SmootherSettings(graph=GraphSettings(imu_gap_noise=None))
     errors = smooth_and_evaluate(log, dtm, unmodelled).errors
     assert errors is not None and errors.anees_position is not None
-    assert errors.anees_position > 3 * ANEES_BOUND  # measured 65 (and 200-240000 on BASE)
+    # measured 11.0 on 2026-11-27 (65 before the batch's incremental pass settled its
+    # estimate after the gap, issue 21 build 5; 200-240000 on BASE): still overconfident
+    assert errors.anees_position > 1.5 * ANEES_BOUND
 
 
 @pytest.mark.slow

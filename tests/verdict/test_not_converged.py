@@ -48,8 +48,10 @@ def test_an_accurate_run_that_did_not_report_convergence_is_not_failed(clean_fli
     result = _unconverged(out.result, *clean_flights.flight(SEED, FRAMES))
     check = result.convergence_check
     assert check is not None and np.isfinite(check.move_nees).all()
-    # measured 2026-11-27: moves up to 0.46 m (median 0.19), the move's NEES up to 0.027
-    assert float(np.max(check.move_m)) < 0.6 and float(np.max(check.move_nees)) < 0.035
+    # measured 2026-11-27: moves up to 0.81 m (median 0.36), the move's NEES up to 0.10
+    # (0.46 m and 0.027 before the live estimate settled from the prior, issue 21 build 5:
+    # the run's own RMSE 2.11 -> 2.33 m, ANEES 1.35 -> 1.73)
+    assert float(np.max(check.move_m)) < 1.0 and float(np.max(check.move_nees)) < 0.13
     verdict = assess(result)
     assert verdict.status is Status.TRUSTED, verdict.lines()
     assert "the estimate stands" in _note(verdict)
