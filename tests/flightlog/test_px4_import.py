@@ -167,7 +167,7 @@ def test_the_imported_px4_log_smooths_as_well_as_its_native_log(flight, imported
     (imported / "tracks.csv").unlink()
     native_rmse, imported_rmse = rmse
     assert imported_rmse <= RMSE_FACTOR * native_rmse, rmse
-    assert imported_rmse < 1.3 * 1.57  # measured 2026-11-27 (native: 1.61 m)
+    assert imported_rmse < 1.3 * 1.62  # measured 2026-11-27 (native: 1.62 m)
 
 
 def test_frd_axes_keep_px4_s_samples_and_the_camera_must_look_down(flight, imported, tmp_path,
