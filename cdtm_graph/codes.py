@@ -103,6 +103,9 @@ class Code(enum.StrEnum):
                               "cannot check it")
     CALIBRATION_HELD = ("calibration_held", Kind.NOTE,
                         "a significant correction the positions do not feel")
+    MAP_ERROR_GROWN = ("map_error_grown", Kind.NOTE,
+                       "the tracks show the DTM's heights worse than its stated sigma_h: "
+                       "the run used theirs")
 
     @classmethod
     def of(cls, value: str) -> Code | None:
