@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import brentq
+from scipy.special import gammainc
 
 from cdtm_graph.constants import chi2_quantile
 from cdtm_graph.dtm import Dtm
@@ -41,8 +42,8 @@ from cdtm_graph.results import MapErrorEstimate, TrajectoryEstimate
 from cdtm_graph.robust.mismatch import MismatchSettings, TrackHeights, heights_at, inconsistent
 from factors import FeatureNoise
 
-#: chi-square(1)'s median: the median of ``dh^2 / var`` for tracks whose variance is right.
-CHI2_1DOF_MEDIAN = float(chi2_quantile(0.5, 1))
+#: Rounds of "leave out the tracks beyond the gate, estimate again" (it settles in 3-6).
+TRIM_ROUNDS = 20
 
 
 @dataclass(frozen=True)
@@ -85,18 +86,37 @@ def estimate_map_error(heights: TrackHeights, sigma_h_m: float,
     if n < s.min_tracks:
         return MapErrorEstimate(sigma_h_m, float("nan"), n, sigma_h_m)
     dh2, v = heights.dh_m[use] ** 2, np.maximum(other_var[use], 0.0)
-
-    def excess(map_sigma_m: float) -> float:
-        return float(np.median(dh2 / (v + map_sigma_m**2))) - CHI2_1DOF_MEDIAN
-
-    if excess(0.0) <= 0.0:
-        estimated = 0.0
-    else:
-        high = 10.0 * max(sigma_h_m, float(np.sqrt(np.median(dh2))))
-        estimated = float(brentq(excess, 0.0, high, xtol=1e-3)) if excess(high) < 0 else high
+    estimated = _trimmed_sigma(dh2, v, m.gate)
     grown = s.grow_ratio * sigma_h_m < estimated <= s.max_ratio * sigma_h_m
     used = estimated if grown else sigma_h_m
     return MapErrorEstimate(sigma_h_m, estimated, n, used)
+
+
+def _median_excess(map_sigma_m: float, dh2: np.ndarray, v: np.ndarray, target: float
+                   ) -> float:
+    return float(np.median(dh2 / (v + map_sigma_m**2))) - target
+
+
+def _trimmed_sigma(dh2: np.ndarray, v: np.ndarray, gate: float) -> float:
+    """The map sigma ``s`` at which the median of ``dh^2 / (v + s^2)`` over the tracks
+    inside ``gate`` (at that ``s``) is chi-square(1)'s median truncated at the gate: the
+    tracks a mismatch test would drop (buildings, trees, a pit) do not count, whatever
+    their share, and ``s`` is found again without them until it settles."""
+    target = float(chi2_quantile(0.5 * float(gammainc(0.5, 0.5 * gate)), 1))  # (cdf)
+    inside = np.ones(dh2.size, bool)
+    estimated = 0.0
+    for _ in range(TRIM_ROUNDS):
+        d, w = dh2[inside], v[inside]
+        if _median_excess(0.0, d, w, target) <= 0.0:
+            estimated = 0.0
+        else:
+            high = float(np.sqrt(np.max(d) / target))  # the median is below target there
+            estimated = float(brentq(_median_excess, 0.0, high, (d, w, target), xtol=1e-4))
+        now = dh2 / (v + estimated**2) <= gate
+        if np.array_equal(now, inside) or now.sum() < dh2.size // 2:
+            break
+        inside = now
+    return estimated
 
 
 def run_heights(flight: FlightLog, dtm: Dtm, noise: FeatureNoise,
