@@ -21,8 +21,9 @@ the track tests drop anyway, do not inflate it (25% of tracks 15-30 m up: 3.49 m
 3.84 m, where the plain median read 5.16 m). Only tracks whose other variance ``v`` is below
 the stated map variance count: a short track's height is mostly triangulation noise.
 
-When the estimate exceeds the stated sigma by :attr:`MapErrorSettings.grow_ratio` (a
-margin clean flights stay under: their map error is what ``sigma_h`` was fitted to), the
+When the estimate exceeds the stated sigma by :attr:`MapErrorSettings.grow_ratio` and
+beyond its own spread over that many tracks (a margin clean flights stay under: their map
+error is what ``sigma_h`` was fitted to), the
 run is made again with ``sigma_h`` grown to it (:func:`cdtm_graph.smoother.smooth`): the
 features then weigh what the map is worth, the covariance holds the real map error, and
 the track tests judge the ground against it. A run whose map is as good as stated is not
@@ -54,7 +55,13 @@ class MapErrorSettings:
 
     Attributes:
         grow_ratio: the estimate must exceed the stated sigma_h by this factor for the run
-            to be made again with it (clean flights of the robustness study: 0.8-1.1).
+            to be made again with it (clean 90-frame flights of the robustness study:
+            0.76-1.13)...
+        spread_z: ...and by ``1 + spread_z / sqrt(n)`` over ``n`` tracks, when more: a
+            short flight's estimate scatters more (the 20 clean 30-frame flights, ~130
+            tracks each: 0.47-1.30x; the map's own correlation makes the tracks' errors
+            far from independent, so the spread is about twice the independent tracks'
+            ``~1.2 / sqrt(n)``).
         min_tracks: fewer well-triangulated tracks than this: no estimate.
         max_ratio: an estimate beyond this many times the stated sigma_h is not grown to:
             the map is then not "worse than stated" but wrong (a DTM of another place, a
@@ -63,6 +70,7 @@ class MapErrorSettings:
     """
 
     grow_ratio: float = 1.25
+    spread_z: float = 4.5
     min_tracks: int = 50
     max_ratio: float = 3.0
 
@@ -89,7 +97,8 @@ def estimate_map_error(heights: TrackHeights, sigma_h_m: float,
         return MapErrorEstimate(sigma_h_m, float("nan"), n, sigma_h_m)
     dh2, v = heights.dh_m[use] ** 2, np.maximum(other_var[use], 0.0)
     estimated = _trimmed_sigma(dh2, v, m.gate)
-    grown = s.grow_ratio * sigma_h_m < estimated <= s.max_ratio * sigma_h_m
+    ratio = max(s.grow_ratio, 1.0 + s.spread_z / np.sqrt(n))
+    grown = ratio * sigma_h_m < estimated <= s.max_ratio * sigma_h_m
     used = estimated if grown else sigma_h_m
     return MapErrorEstimate(sigma_h_m, estimated, n, used)
 

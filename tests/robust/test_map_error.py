@@ -81,12 +81,14 @@ def test_a_map_worse_than_stated_grows_the_covariance():
 
 def test_clean_flights_keep_their_stated_map_error(clean_flights):
     """The 20 clean 30-frame flights the verdict tests read: none grown (their runs are
-    then bit for bit what they were without the mechanism). Catches a grow ratio at 1 (or
-    an estimate biased up: the tracks' own variance left out)."""
+    then bit for bit what they were without the mechanism). Catches a margin without the
+    spread of a short flight's estimate (``spread_z = 0``: seeds 4 and 5 grow), or an
+    estimate biased up (the tracks' own variance left out)."""
     ratios = []
     for out in clean_flights.runs_of(range(1, 21), 30):
         me = out.result.map_error
         assert me is not None and not me.grown
         ratios.append(me.estimated_m / me.stated_m)
-    # measured 2026-11-27: XXX
-    assert max(ratios) < 1.25
+    # measured 2026-11-27: 0.47-1.30 (seeds 4 and 5: 1.28 and 1.30 over 145 and 132 tracks,
+    # under their 1 + 4.5 / sqrt(n) = 1.37 and 1.39)
+    assert max(ratios) < 1.35
