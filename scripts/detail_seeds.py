@@ -46,20 +46,25 @@ def main(argv: list[str] | None = None) -> None:
             assert e is not None
             rmse = float(np.linalg.norm(e.rmse_position_m))
             codes = tuple(str(r.code) for r in out.verdict.reasons)
-            rows[mode].append((out.verdict.status.value, rmse, float(e.anees_position), codes))
+            # the product's own word on the covariance (evaluation.covariance_verdict)
+            word = (e.position_consistency.verdict.value if e.position_consistency
+                    else "none")
+            rows[mode].append((out.verdict.status.value, rmse, float(e.anees_position), codes,
+                               word))
             line += (f" | {mode.value} {out.verdict.status.value} {rmse:.2f} m "
-                     f"{e.anees_position:.2f} {' '.join(codes)}")
+                     f"{e.anees_position:.2f} [{word}] {' '.join(codes)}")
         print(line, flush=True)
     for mode, r in rows.items():
         anees = np.array([x[2] for x in r])
         rmse = np.array([x[1] for x in r])
         reasons = collections.Counter(c for x in r for c in x[3])
         accurate_failed = sum(x[0] == "failed" and x[2] <= ACCURATE_ANEES for x in r)
+        words = collections.Counter(x[4] for x in r)
         print(f"{mode.value:9} trusted {sum(x[0] == 'trusted' for x in r)}/{len(r)}, failed "
               f"{sum(x[0] == 'failed' for x in r)} (accurate {accurate_failed}), rmse_3d "
               f"mean {rmse.mean():.2f} m, anees mean {anees.mean():.2f} median "
               f"{np.median(anees):.2f} max {anees.max():.2f}, > 6: {(anees > 6).sum()}; "
-              f"reasons {dict(reasons)}", flush=True)
+              f"covariance {dict(words)}; reasons {dict(reasons)}", flush=True)
 
 
 if __name__ == "__main__":
