@@ -347,22 +347,31 @@ class MapErrorEstimate:
         estimated_m: the tracks' estimate (NaN with too few well-triangulated tracks).
         n_tracks: the well-triangulated tracks it rests on.
         used_m: the sigma_h the run was made with: the stated one, or the estimate when
-            it exceeded it beyond chance (the run then made again with it).
+            it exceeded it beyond chance (the run then made again with it), or the bound.
+        bound_m: the most a run is grown to (``MapErrorSettings.max_ratio`` times the
+            stated).
     """
 
     stated_m: float
     estimated_m: float
     n_tracks: int
     used_m: float
+    bound_m: float = float("inf")
 
     @property
     def grown(self) -> bool:
         return self.used_m > self.stated_m
 
+    @property
+    def beyond(self) -> bool:
+        """The tracks read the map beyond the bound a run is grown to."""
+        return self.estimated_m > self.bound_m
+
     def to_dict(self) -> dict:
         return {"stated_m": self.stated_m,
                 "estimated_m": None if math.isnan(self.estimated_m) else self.estimated_m,
-                "n_tracks": self.n_tracks, "used_m": self.used_m, "grown": self.grown}
+                "n_tracks": self.n_tracks, "used_m": self.used_m, "grown": self.grown,
+                "bound_m": self.bound_m}
 
 
 @dataclass(frozen=True)

@@ -93,14 +93,15 @@ def estimate_map_error(heights: TrackHeights, sigma_h_m: float,
            & (heights.n_observations >= m.min_observations) & ~inconsistent(heights, m)
            & (other_var <= sigma_h_m**2))
     n = int(use.sum())
+    bound = s.max_ratio * sigma_h_m
     if n < s.min_tracks:
-        return MapErrorEstimate(sigma_h_m, float("nan"), n, sigma_h_m)
+        return MapErrorEstimate(sigma_h_m, float("nan"), n, sigma_h_m, bound)
     dh2, v = heights.dh_m[use] ** 2, np.maximum(other_var[use], 0.0)
     estimated = _trimmed_sigma(dh2, v, m.gate)
     ratio = max(s.grow_ratio, 1.0 + s.spread_z / np.sqrt(n))
-    grown = ratio * sigma_h_m < estimated <= s.max_ratio * sigma_h_m
+    grown = ratio * sigma_h_m < estimated <= bound
     used = estimated if grown else sigma_h_m
-    return MapErrorEstimate(sigma_h_m, estimated, n, used)
+    return MapErrorEstimate(sigma_h_m, estimated, n, used, bound)
 
 
 def _median_excess(map_sigma_m: float, dh2: np.ndarray, v: np.ndarray, target: float

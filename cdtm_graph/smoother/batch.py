@@ -9,6 +9,7 @@ values, which makes an iteration quadratic in the flight length.
 from __future__ import annotations
 
 import contextlib
+import logging
 import time
 from dataclasses import dataclass, replace
 
@@ -44,6 +45,8 @@ from cdtm_graph.smoother.incremental import IncrementalSmoother
 from cdtm_graph.smoother.settings import Progress, SmootherMode, SmootherSettings
 from cdtm_graph.verdict.preflight import check_constraints
 from factors.calibration import CALIBRATION_DIM
+
+logger = logging.getLogger(__name__)
 
 #: Rounds of "drop the tracks off the DTM, solve again" (each finds what the last one's
 #: estimate, no longer pulled by the worst, reveals).
@@ -134,6 +137,21 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
         if map_error.grown:
             flight = with_sigma_h(flight, map_error.used_m)
             run = _smooth_once(flight, dtm, settings, progress)
+        elif map_error.beyond:
+            # beyond the bound: a map wrong (a fault), or a run the stated sigma_h drove off
+            # (the ground dropped as off the map until the estimate drifted, which the
+            # tracks then read as map error). Once more at the bound: kept only if the
+            # tracks then read the map within it.
+            capped = with_sigma_h(flight, map_error.bound_m)
+            again = _smooth_once(capped, dtm, settings, progress)
+            second = estimate_map_error(
+                run_heights(capped, dtm, noise, again.result.estimate), noise.sigma_h_m,
+                settings.graph.map_error, settings.graph.mismatch)
+            logger.info("map error %.2f m beyond its bound %.2f m; at the bound: %.2f m",
+                        map_error.estimated_m, map_error.bound_m, second.estimated_m)
+            if second.estimated_m <= map_error.bound_m:
+                flight, run = capped, again
+                map_error = replace(second, used_m=map_error.bound_m)
     result = run.result
     if run.checked:
         result = _checked(flight, dtm, settings, result, run.left_out, run.unfixed_frames)
