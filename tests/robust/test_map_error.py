@@ -52,7 +52,7 @@ def test_the_estimate_recovers_the_map_error_the_tracks_show(rng, outliers):
     assert stated.estimated_m == pytest.approx(SIGMA_H_M, rel=0.15)
     # a map off by far more than stated is a fault for the track tests, not a noise level
     wrong = estimate_map_error(_heights(rng, 5 * SIGMA_H_M), SIGMA_H_M)
-    assert not wrong.grown
+    assert not wrong.grown and wrong.beyond and wrong.bound_m == 3 * SIGMA_H_M
 
 
 def test_a_map_worse_than_stated_grows_the_covariance():
