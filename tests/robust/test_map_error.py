@@ -58,25 +58,22 @@ def test_the_estimate_recovers_the_map_error_the_tracks_show(rng, outliers):
 def test_a_map_worse_than_stated_grows_the_covariance():
     """A 25-frame flight over 3 m rms of waves the DTM lacks (issue 21), iSAM2: the run is
     made with the map error the tracks show and its covariance grows. Catches the
-    mechanism switched off (``GraphSettings.map_error=None`` by default, or the second run
-    made with flight.yaml's sigma_h: the covariance then stays the same)."""
+    mechanism switched off (``GraphSettings.map_error=None`` by default: no estimate), or
+    the second run made with flight.yaml's sigma_h (the height's 1-sigma then stays at
+    the stated map's 1.72 m; tried once, 2026-11-27)."""
     seed = 1  # a flight whose estimate (3.97 m) grows (seed 2: 2.76 m, not grown)
     detail = MapDetail(DetailShape.WAVES, DETAIL_RMS_M, (40.0, 300.0), seed=seed)
     flight = simulate_flight(dataclasses.replace(BASE, frames=25, seed=seed, map_detail=detail))
-    settings = Mode.ISAM2.settings(SmootherSettings())
-    grown = smooth_and_evaluate(*flight, settings)
-    off = smooth_and_evaluate(*flight, dataclasses.replace(
-        settings, graph=dataclasses.replace(settings.graph, map_error=None)))
-    me = grown.result.map_error
-    assert me is not None and me.grown and off.result.map_error is None
+    out = smooth_and_evaluate(*flight, Mode.ISAM2.settings(SmootherSettings()))
+    me = out.result.map_error
+    assert me is not None and me.grown
     assert me.used_m == pytest.approx(TRUE_MAP_M, rel=0.1)  # measured 3.97 m
-    assert any(n.startswith("map_error_grown") for n in grown.verdict.notes)
-    # the height's 1-sigma, which the map's error feeds most: measured 2026-11-27 1.07x
-    # (1.84 against 1.72 m median; the horizontal ones 1.05-1.06x)
-    up = [np.sqrt(pose_covariance_in_world(o.result.estimate.world_T_body,
-                                           o.result.covariances.pose)[1][:, 2, 2])
-          for o in (grown, off)]
-    assert np.median(up[0] / up[1]) > 1.04
+    assert any(n.startswith("map_error_grown") for n in out.verdict.notes)
+    # the height's 1-sigma, which the map's error feeds most: measured 2026-11-27 median
+    # 1.84 m grown, 1.72 m with sigma_h as stated (the horizontal ones grow 1.05-1.06x)
+    up = np.sqrt(pose_covariance_in_world(out.result.estimate.world_T_body,
+                                          out.result.covariances.pose)[1][:, 2, 2])
+    assert 1.78 < np.median(up) < 1.84 * 1.3
 
 
 def test_clean_flights_keep_their_stated_map_error(clean_flights):
