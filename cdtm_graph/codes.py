@@ -107,6 +107,9 @@ class Code(enum.StrEnum):
                               "a correction that another fault explains as well: the map's "
                               "shared error, the residuals' scatter, or a fault the verdict "
                               "names")
+    MAP_ERROR_GROWN = ("map_error_grown", Kind.NOTE,
+                       "the tracks show the DTM's heights worse than its stated sigma_h: "
+                       "the run used theirs")
 
     @classmethod
     def of(cls, value: str) -> Code | None:

@@ -8,6 +8,7 @@ that need world-frame blocks rotate them with :func:`pose_covariance_in_world`.
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -337,6 +338,43 @@ def position_move_nees(world_T_body: np.ndarray, pose_cov: np.ndarray,
 
 
 @dataclass(frozen=True)
+class MapErrorEstimate:
+    """The DTM's height error the tracks show, beside the stated one
+    (:mod:`cdtm_graph.robust.map_error`).
+
+    Attributes:
+        stated_m: flight.yaml's (or the spacing model's) sigma_h.
+        estimated_m: the tracks' estimate (NaN with too few well-triangulated tracks).
+        n_tracks: the well-triangulated tracks it rests on.
+        used_m: the sigma_h the run was made with: the stated one, or the estimate when
+            it exceeded it beyond chance (the run then made again with it), or the bound.
+        bound_m: the most a run is grown to (``MapErrorSettings.max_ratio`` times the
+            stated).
+    """
+
+    stated_m: float
+    estimated_m: float
+    n_tracks: int
+    used_m: float
+    bound_m: float = float("inf")
+
+    @property
+    def grown(self) -> bool:
+        return self.used_m > self.stated_m
+
+    @property
+    def beyond(self) -> bool:
+        """The tracks read the map beyond the bound a run is grown to."""
+        return self.estimated_m > self.bound_m
+
+    def to_dict(self) -> dict:
+        return {"stated_m": self.stated_m,
+                "estimated_m": None if math.isnan(self.estimated_m) else self.estimated_m,
+                "n_tracks": self.n_tracks, "used_m": self.used_m, "grown": self.grown,
+                "bound_m": self.bound_m}
+
+
+@dataclass(frozen=True)
 class ConvergenceCheck:
     """One more solve from a run's estimate: how far it moves the positions against the
     run's own covariance (:func:`cdtm_graph.smoother.convergence.check_convergence`; made
@@ -405,6 +443,9 @@ class SmootherResult:
             (:meth:`cdtm_graph.robust.stages.Stages.summary`).
         convergence_check: a run whose solver did not report convergence: how far one
             more batch solve from its estimate moves it (:class:`ConvergenceCheck`).
+        map_error: the DTM's height error the tracks showed at the run's estimate, and
+            the sigma_h the run was made with (:class:`MapErrorEstimate`); None when not
+            estimated.
     """
 
     estimate: TrajectoryEstimate
@@ -421,6 +462,7 @@ class SmootherResult:
     bias_prior: BiasPrior | None = None
     stages: tuple[dict, ...] = ()
     convergence_check: ConvergenceCheck | None = None
+    map_error: MapErrorEstimate | None = None
 
 
 def frame_flags(counts: GraphCounts, extra: dict[int, list[str]] | None = None

@@ -21,6 +21,7 @@ from cdtm_graph.imu import GapNoise, SampleHold, initial_bias
 from cdtm_graph.results import Rejection, Rejections
 from cdtm_graph.robust.clutter import ClutterSettings
 from cdtm_graph.robust.epipolar import EpipolarSettings
+from cdtm_graph.robust.map_error import MapErrorSettings
 from cdtm_graph.robust.mismatch import MismatchSettings
 from cdtm_graph.tracks import FramePairObservations, first_sightings
 from factors import CdtmPairFactor, FeatureNoise, PairFeatures, PlaneMode, RobustKernel
@@ -86,6 +87,10 @@ class GraphSettings:
             ``None``: held as flight.yaml writes it, unchecked (unless flight.yaml asks).
         calibration_online: the batch estimates the calibration (off by default: on
             short flights the focal scale trades with the height, docs/design.md).
+        map_error: after the run, the DTM's height error is estimated from the tracks at
+            its estimate; when it exceeds the stated sigma_h beyond chance, the run is
+            made again with it (:mod:`cdtm_graph.robust.map_error`). ``None``: sigma_h
+            as stated, always.
     """
 
     plane_mode: PlaneMode = PlaneMode.REINTERSECT
@@ -103,6 +108,7 @@ class GraphSettings:
     calibration: CalibrationSigmas | None = field(
         default_factory=lambda: DEFAULT_CALIBRATION_SIGMAS)
     calibration_online: bool = False
+    map_error: MapErrorSettings | None = field(default_factory=MapErrorSettings)
 
 
 def dtm_ray_caster(dtm: Dtm):

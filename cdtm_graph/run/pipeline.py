@@ -93,5 +93,7 @@ def smooth_and_evaluate(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
         report["calibration_check"] = result.calibration_check.to_dict()
     if result.convergence_check is not None:
         report["convergence_check"] = result.convergence_check.to_dict()
+    if result.map_error is not None:
+        report["map_error"] = result.map_error.to_dict()
     report["timings_s"]["total"] = time.perf_counter() - start
     return RunOutput(result, errors, free, free_errors, report, verdict)

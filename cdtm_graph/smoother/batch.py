@@ -9,6 +9,7 @@ values, which makes an iteration quadratic in the flight length.
 from __future__ import annotations
 
 import contextlib
+import logging
 import time
 from dataclasses import dataclass, replace
 
@@ -36,6 +37,7 @@ from cdtm_graph.results import (
     TrajectoryEstimate,
 )
 from cdtm_graph.robust.clutter import considered_offsets
+from cdtm_graph.robust.map_error import estimate_map_error, run_heights
 from cdtm_graph.robust.track_tests import BatchTrackTests
 from cdtm_graph.smoother.assembly import ClutterOutcome, assemble_result
 from cdtm_graph.smoother.convergence import check_convergence
@@ -43,6 +45,8 @@ from cdtm_graph.smoother.incremental import IncrementalSmoother
 from cdtm_graph.smoother.settings import Progress, SmootherMode, SmootherSettings
 from cdtm_graph.verdict.preflight import check_constraints
 from factors.calibration import CALIBRATION_DIM
+
+logger = logging.getLogger(__name__)
 
 #: Rounds of "drop the tracks off the DTM, solve again" (each finds what the last one's
 #: estimate, no longer pulled by the worst, reveals).
@@ -104,6 +108,11 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
         flight: the log (``read_flightlog``). dtm: its terrain (``load_dtm``).
         settings: solver settings. progress: per-frame callback on long runs.
 
+    When the tracks show the DTM's height error beyond its stated sigma_h (ground detail
+    the map lacks, :mod:`cdtm_graph.robust.map_error`), the run is made again with the
+    sigma_h they show (``settings.graph.map_error``; ``result.map_error`` says what was
+    estimated and used; ``progress`` then runs through the frames twice).
+
     Returns:
         Smoothed states, per-frame covariances, statistics and counts.
 
@@ -117,14 +126,64 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
         raise FlightLogError(f"{flight.root / 'frames.csv'}: {len(flight.frames)} frame(s); "
                              "expected at least 2")
     check_constraints(flight, dtm)  # no camera/DTM constraint at all: refuse, not IMU-only
+    run = _smooth_once(flight, dtm, settings, progress)
+    map_error = None
+    if settings.graph.map_error is not None and run.checked:
+        # the map worse than it says: the run again with the sigma_h the tracks show
+        noise = feature_noise(flight.config, dtm, settings.graph)
+        map_error = estimate_map_error(run_heights(flight, dtm, noise, run.result.estimate),
+                                       noise.sigma_h_m, settings.graph.map_error,
+                                       settings.graph.mismatch)
+        if map_error.grown:
+            flight = with_sigma_h(flight, map_error.used_m)
+            run = _smooth_once(flight, dtm, settings, progress)
+        elif map_error.beyond:
+            # beyond the bound: a map wrong (a fault), or a run the stated sigma_h drove off
+            # (the ground dropped as off the map until the estimate drifted, which the
+            # tracks then read as map error). Once more at the bound: kept only if the
+            # tracks then read the map within it.
+            capped = with_sigma_h(flight, map_error.bound_m)
+            again = _smooth_once(capped, dtm, settings, progress)
+            second = estimate_map_error(
+                run_heights(capped, dtm, noise, again.result.estimate), noise.sigma_h_m,
+                settings.graph.map_error, settings.graph.mismatch)
+            logger.info("map error %.2f m beyond its bound %.2f m; at the bound: %.2f m",
+                        map_error.estimated_m, map_error.bound_m, second.estimated_m)
+            if second.estimated_m <= map_error.bound_m:
+                flight, run = capped, again
+                map_error = replace(second, used_m=map_error.bound_m)
+    result = run.result
+    if run.checked:
+        result = _checked(flight, dtm, settings, result, run.left_out, run.unfixed_frames)
+    return result if map_error is None else replace(result, map_error=map_error)
+
+
+@dataclass
+class _Run:
+    """One smoothing of a log, before the checks of its result (:func:`_checked`)."""
+
+    result: SmootherResult
+    left_out: np.ndarray  # tracks left out (off the map, wrong matches)
+    unfixed_frames: np.ndarray
+    checked: bool  # the calibration was held (not estimated online): check the result
+
+
+def with_sigma_h(flight: FlightLog, sigma_h_m: float) -> FlightLog:
+    """``flight`` whose flight.yaml states the DTM's height 1-sigma as ``sigma_h_m``."""
+    config = flight.config
+    return replace(flight, config=replace(config, dtm=replace(config.dtm, sigma_h_m=sigma_h_m)))
+
+
+def _smooth_once(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
+                 progress: Progress | None) -> _Run:
+    """:func:`smooth`'s run, without the checks of its result."""
     if settings.mode is SmootherMode.INCREMENTAL:
         # the expected interval, not the longest: one dropped stretch of frames must not
         # stand for the log (the fix search's window, the relinearization rate)
         dt_s = float(np.median(np.diff(flight.frames.t_ns))) * 1e-9
         smoother = IncrementalSmoother(flight.config, dtm, settings, frame_interval_s=dt_s)
-        result = smoother.run(flight, progress)
-        return _checked(flight, dtm, settings, result, smoother.mismatched_tracks,
-                        smoother.unfixed_frames)
+        return _Run(smoother.run(flight, progress), smoother.mismatched_tracks,
+                    smoother.unfixed_frames, True)
     guess = _initial_values(flight, dtm, settings, progress)
     initial = guess.values
     calibration = _online_calibration(flight, settings)
@@ -180,11 +239,9 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     result = assemble_result(flight.config, estimate, covariances, stats, counts, settings_dict,
                              guess.frame_flags, built.at_calibration(values), clutter,
                              calibrated, stages=built.stages.summary() if built.stages else [])
-    if calibrated is not None:
-        return result
     found_off = np.zeros(0, np.int64) if tests is None else tests.found_off
-    return _checked(flight, dtm, settings, result, np.union1d(guess.off_map, found_off),
-                    guess.unfixed_frames)
+    return _Run(result, np.union1d(guess.off_map, found_off), guess.unfixed_frames,
+                calibrated is None)
 
 
 def _solve(built: LogGraph, initial: gtsam.Values, settings: SmootherSettings,

@@ -582,7 +582,8 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
         status = Status.TRUSTED
     return Verdict(status, reasons, flags, checks,
                    tuple(convergence_notes + notes + _calibration_notes(result)
-                         + calibration_notes + _map_offset_notes(result)))
+                         + calibration_notes + _map_offset_notes(result)
+                         + _map_error_notes(result)))
 
 
 def _convergence_check(result: SmootherResult, settings: VerdictSettings
@@ -631,6 +632,21 @@ def _map_offset_notes(result: SmootherResult) -> list[str]:
             "far the whole map may be off (its registration, its vertical datum: a DEM "
             "product's absolute accuracy); the camera and the DTM cannot see such an offset, "
             "every position takes it one for one, and the covariances hold none of it"]
+
+
+def _map_error_notes(result: SmootherResult) -> list[str]:
+    """``map_error_grown``: the tracks showed the DTM's height error beyond its stated
+    sigma_h, and the run was made again with theirs (:mod:`cdtm_graph.robust.map_error`).
+    A note, not a reason: the covariances then hold the map's real error; but the user's
+    map is worse than flight.yaml says, which they should hear."""
+    me = result.map_error
+    if me is None or not me.grown:
+        return []
+    return [f"{Code.MAP_ERROR_GROWN}: the tracks show the DTM's heights off by "
+            f"{me.estimated_m:.2f} m rms ({me.n_tracks} well-triangulated tracks), beyond "
+            f"its stated sigma_h of {me.stated_m:.2f} m (flight.yaml dtm.sigma_h_m, or the "
+            f"model of its spacing): the run was made with {me.used_m:.2f} m, its "
+            "covariances hold it"]
 
 
 def _bias_check(result: SmootherResult, t_s: np.ndarray, settings: VerdictSettings
