@@ -40,7 +40,7 @@ from scipy.special import gammainc
 
 from cdtm_graph.constants import chi2_quantile
 from cdtm_graph.dtm import Dtm
-from cdtm_graph.flightlog import FlightLog
+from cdtm_graph.flightlog import FlightLog, Tracks
 from cdtm_graph.results import MapErrorEstimate, TrajectoryEstimate
 from cdtm_graph.robust.mismatch import MismatchSettings, TrackHeights, heights_at, inconsistent
 from factors import FeatureNoise
@@ -132,13 +132,21 @@ def _trimmed_sigma(dh2: np.ndarray, v: np.ndarray, gate: float) -> float:
 
 
 def run_heights(flight: FlightLog, dtm: Dtm, noise: FeatureNoise,
-                estimate: TrajectoryEstimate) -> TrackHeights:
-    """Every track of the log triangulated at a run's estimate, against the DTM.
+                estimate: TrajectoryEstimate,
+                unfixed_frames: np.ndarray | None = None) -> TrackHeights:
+    """Every track of the log triangulated at a run's estimate, against the DTM, but for
+    the sightings in ``unfixed_frames`` (they waited for a fix never found: the run did
+    not place those frames by the ground, and a map read from them is the search's
+    ambiguity, not the map's error; measured: a 1000 m start over terrain repeating every
+    3 km read "beyond the bound" and was smoothed twice more for nothing).
 
     The cameras are taken as exact: the estimate's own position error then counts as map
     error (cautious: on clean flights the estimate stays near the stated sigma_h, 0.76-1.13
     of it, the robustness flight's seeds 1-4)."""
     tracks = flight.tracks
+    if tracks is not None and unfixed_frames is not None and len(unfixed_frames):
+        kept = ~np.isin(tracks.frame, unfixed_frames)
+        tracks = Tracks(tracks.frame[kept], tracks.track_id[kept], tracks.uv_px[kept])
     if tracks is None or len(tracks) == 0:
         return TrackHeights.empty()
     camera = flight.config.camera

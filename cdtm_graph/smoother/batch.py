@@ -131,7 +131,8 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     if settings.graph.map_error is not None and run.checked:
         # the map worse than it says: the run again with the sigma_h the tracks show
         noise = feature_noise(flight.config, dtm, settings.graph)
-        map_error = estimate_map_error(run_heights(flight, dtm, noise, run.result.estimate),
+        map_error = estimate_map_error(run_heights(flight, dtm, noise, run.result.estimate,
+                                                   run.unfixed_frames),
                                        noise.sigma_h_m, settings.graph.map_error,
                                        settings.graph.mismatch)
         if map_error.grown:
@@ -145,7 +146,8 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
             capped = with_sigma_h(flight, map_error.bound_m)
             again = _smooth_once(capped, dtm, settings, progress)
             second = estimate_map_error(
-                run_heights(capped, dtm, noise, again.result.estimate), noise.sigma_h_m,
+                run_heights(capped, dtm, noise, again.result.estimate, again.unfixed_frames),
+                noise.sigma_h_m,
                 settings.graph.map_error, settings.graph.mismatch)
             logger.info("map error %.2f m beyond its bound %.2f m; at the bound: %.2f m",
                         map_error.estimated_m, map_error.bound_m, second.estimated_m)

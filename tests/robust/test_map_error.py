@@ -10,8 +10,9 @@ import math
 import numpy as np
 import pytest
 
+from cdtm_graph.graph import GraphSettings, feature_noise
 from cdtm_graph.results import pose_covariance_in_world
-from cdtm_graph.robust.map_error import estimate_map_error
+from cdtm_graph.robust.map_error import estimate_map_error, run_heights
 from cdtm_graph.robust.mismatch import TrackHeights
 from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.sim.map_detail import DetailShape, MapDetail
@@ -89,3 +90,20 @@ def test_clean_flights_keep_their_stated_map_error(clean_flights):
     # measured 2026-11-27: 0.47-1.30 (seeds 4 and 5: 1.28 and 1.30 over 145 and 132 tracks,
     # under their 1 + 4.5 / sqrt(n) = 1.37 and 1.39)
     assert max(ratios) < 1.35
+
+
+def test_sightings_that_waited_for_a_fix_are_not_read_as_map_error(clean_flights):
+    """A frame whose sightings waited for a fix never found is not placed by the ground:
+    its tracks say nothing of the map. Catches ``run_heights`` reading them (seen
+    2026-11-27: a 1000 m start over terrain repeating every 3 km, no fix, read "beyond
+    the bound" and was smoothed twice more, 7.5 -> 17.4 s)."""
+    flight, dtm = clean_flights.flight(1, 30)
+    estimate = clean_flights.run(1, 30).result.estimate
+    noise = feature_noise(flight.config, dtm, GraphSettings())
+    every = run_heights(flight, dtm, noise, estimate)
+    assert len(every.dh_m) > 100
+    late = run_heights(flight, dtm, noise, estimate, np.arange(15))
+    assert 0 < len(late.dh_m) < len(every.dh_m)
+    assert len(run_heights(flight, dtm, noise, estimate, np.arange(30)).dh_m) == 0
+    assert np.isnan(estimate_map_error(
+        run_heights(flight, dtm, noise, estimate, np.arange(30)), SIGMA_H_M).estimated_m)
