@@ -8,11 +8,14 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[2]
 #: A file of quick unit tests, many of them.
 SAMPLE = "tests/core/test_atomic.py"
 
 
+@pytest.mark.slow  # a pytest run of its own, on two workers
 def test_a_files_tests_run_on_one_worker():
     """Catches the grouping silently lost (pytest 9.2 with pytest-xdist 3.8: the group no
     longer reaches the scheduler, pytest-xdist#1386; or the conftest hook running after

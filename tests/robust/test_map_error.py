@@ -77,6 +77,7 @@ def test_a_map_worse_than_stated_grows_the_covariance():
     assert 1.78 < np.median(up) < 1.84 * 1.3
 
 
+@pytest.mark.slow
 def test_clean_flights_keep_their_stated_map_error(clean_flights):
     """The 20 clean 30-frame flights the verdict tests read: none grown (their runs are
     then bit for bit what they were without the mechanism). Catches a margin without the
