@@ -26,6 +26,7 @@ from cdtm_graph.graph import cdtm_information, insert_state
 from cdtm_graph.graph.log_graph import build_log_graph
 from cdtm_graph.imu import initial_bias
 from cdtm_graph.results import (
+    BroadMapError,
     GraphCounts,
     SmootherResult,
     Solver,
@@ -645,3 +646,33 @@ def test_a_narrow_footprint_is_named(free_rotation_info, narrow):
     verdict = assess(result)
     assert _codes(verdict) == (["narrow_fov"] if narrow else []), verdict.lines()
     assert verdict.status is (Status.DEGRADED if narrow else Status.TRUSTED)
+
+
+@pytest.mark.parametrize("frames, named", [(range(12, 17), True), (range(12, 14), False),
+                                           ((), False)])
+def test_a_broad_map_error_is_named_over_its_stretch(frames, named):
+    """``broad_map_error`` (issue 21, build 4): the frames whose shape evidence exceeds
+    ``max_broad_map_evidence`` over at least ``min_stretch_s`` are a reason, with the
+    map's tilt and curvature in the message; two frames are a flag only; evidence below
+    the bound (20, as clean flights: 3-23 at their highest frame) is nothing. Mutations:
+    ``_broad_map_test`` left out of ``assess`` -> the reason is missing: fails; the
+    comparison turned (``evidence < max``) -> clean frames named: fails (both tried,
+    2026-11-27)."""
+    result = _result()
+    evidence = np.full(result.counts.n_frames, 20.0)
+    evidence[:7] = evidence[-7:] = np.nan  # windows cut by the flight's ends
+    evidence[list(frames)] = 40.0
+    k = evidence.size
+    verdict = assess(dataclasses.replace(result, broad_map_error=BroadMapError(
+        evidence, evidence, np.full(k, 3.2), np.full(k, 5.9), np.full(k, 230))))
+    assert (_codes(verdict) == ["broad_map_error"]) is named, verdict.lines()
+    if named:
+        reason = _only(verdict, "broad_map_error")
+        assert (reason.first_frame, reason.last_frame) == (12, 16)
+        assert reason.status is Status.DEGRADED
+        assert "tilt by 3.2 m and curve by 5.9 m over a kilometre" in reason.message
+        assert "frame 12" in reason.message
+    else:
+        assert verdict.status is Status.TRUSTED
+    flagged = sorted(k for k, v in verdict.flags.items() if "broad_map_error" in v)
+    assert flagged == list(frames)
