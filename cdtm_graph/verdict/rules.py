@@ -194,7 +194,7 @@ class VerdictSettings:
             the map's tilt and curvature under the footprint, a 5 s mean) exceeds this, a
             reason over ``min_stretch_s`` (fitted 2026-11-27 on the issue's 90-frame
             flight: 10 clean seeds in batch and fixed lag and 20 of 3 m waves, 40-200 m,
-            reach 3-23; a 15 m hill of 1 km sigma 36-41; docs/design.md has the table).
+            reach 3-22; a 15 m hill of 1 km sigma 36-41; docs/design.md has the table).
         min_moved_inside_fraction: a run whose solver did not report convergence is
             FAILED (``not_converged``) when one more solve from its estimate moves fewer
             frames than this share less than the chi-square(3) 95% bound of their

@@ -169,7 +169,7 @@ EVIDENCE_BOUND = 28.0
 def test_a_smooth_hill_shapes_the_tracks_beyond_ground_detail(rng, blocks):
     """The shape evidence over 40 s of the issue's footprint: ground detail (3 m rms of
     waves, 40-200 m) with the triangulation's scatter stays under the verdict's 28 (as the
-    clean and detail flights: 3-23); a 15 m hill of 1 km sigma the estimate half absorbs
+    clean and detail flights: 3-22); a 15 m hill of 1 km sigma the estimate half absorbs
     (its mean over each window taken off, as the estimate flies low) goes beyond it at the
     frames over the hill, and reads its curvature (15 m / (1 km)^2: 7.5 m over a
     kilometre); 15% of the tracks on blocks 15-30 m up (a town) change neither. Mutations:

@@ -654,7 +654,7 @@ def test_a_broad_map_error_is_named_over_its_stretch(frames, named):
     """``broad_map_error`` (issue 21, build 4): the frames whose shape evidence exceeds
     ``max_broad_map_evidence`` over at least ``min_stretch_s`` are a reason, with the
     map's tilt and curvature in the message; two frames are a flag only; evidence below
-    the bound (20, as clean flights: 3-23 at their highest frame) is nothing. Mutations:
+    the bound (20, as clean flights: 3-22 at their highest frame) is nothing. Mutations:
     ``_broad_map_test`` left out of ``assess`` -> the reason is missing: fails; the
     comparison turned (``evidence < max``) -> clean frames named: fails (both tried,
     2026-11-27)."""
