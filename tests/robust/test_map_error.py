@@ -16,6 +16,7 @@ from cdtm_graph.robust.map_error import (
     BroadErrorSettings,
     attitude_tilt_covariance,
     broad_map_error,
+    curvature_test,
     estimate_map_error,
     run_heights,
 )
@@ -238,3 +239,14 @@ def test_a_hill_the_dtm_lacks_is_named_without_ground_truth():
     assert named[0].first_frame <= 25 <= named[0].last_frame
     broad = out.result.broad_map_error
     assert broad is not None and 28.0 < np.nanmax(broad.evidence) < 60.0
+
+
+def test_ground_points_on_a_line_leave_the_shape_unknown_not_an_error(rng):
+    """A window whose ground points lie on one line (a footprint a few pixels wide) cannot
+    tell a curvature across it: the statistic is finite, never an exception. Mutation:
+    ``np.linalg.solve`` for the final ``pinv`` -> LinAlgError: fails (tried, 2026-11-27)."""
+    x = rng.uniform(-1000.0, 1000.0, 200)
+    xy = np.column_stack([x, np.zeros_like(x)])
+    chi2, tilt_m, bend_m, kept = curvature_test(xy, rng.normal(0.0, 2.0, 200), np.full(200, 2.0),
+                                                np.zeros((2, 2)), BroadErrorSettings())
+    assert np.isfinite(chi2) and np.isfinite(tilt_m) and np.isfinite(bend_m) and kept > 150
