@@ -205,8 +205,8 @@ MAD_TO_SIGMA = 1.4826
 #: What the map's error over kilometres shows in ``a + b x + c y + d x^2 + e xy + f y^2``:
 #: its tilt (b, c) and its isotropic curvature d + f, a dome or a bowl. The offset a is the
 #: estimate's own height error, the saddle terms let ground detail's chance shapes in (the
-#: three quadratic terms together: the clean and detail flights' highest 5 s mean 18-32
-#: against a hill's 37-49). A tilt is also what an attitude error makes of the ground
+#: three quadratic terms alone, 5 s means: clean and detail runs up to 22 against hill15's
+#: 37-49, docs/design.md). A tilt is also what an attitude error makes of the ground
 #: triangulated from its cameras, counted with the run's attitude covariance
 #: (:func:`attitude_tilt_covariance`).
 _SHAPE = np.array([[0.0, 1.0, 0.0, 0.0, 0.0, 0.0],
@@ -217,9 +217,9 @@ _SHAPE = np.array([[0.0, 1.0, 0.0, 0.0, 0.0, 0.0],
 def attitude_tilt_covariance(world_R_body: np.ndarray, rotation_cov: np.ndarray,
                              scale_m: float) -> np.ndarray:
     """(2, 2) covariance of the tilt ``(b, c)`` (m per ``scale_m``) an attitude error
-    gives the ground triangulated from a camera: a rotation ``(ex, ey, ez)`` (rad, world)
-    about the camera moves a point ``d`` away by ``ez x d``, its height by ``ex dy - ey
-    dx``: ``b = -ey scale_m``, ``c = ex scale_m``.
+    gives the ground triangulated from a camera: a rotation ``e = (ex, ey, ez)`` (rad,
+    world) about the camera moves a point ``d`` away by ``e x d``, its height by
+    ``ex dy - ey dx``: ``b = -ey scale_m``, ``c = ex scale_m``.
 
     Args:
         world_R_body: (3, 3) the frame's attitude. rotation_cov: (3, 3) its covariance
