@@ -162,15 +162,16 @@ def _broad(xy, t_s, frame_t_s, dh, sigma_m: float = 3.0, tilt_sigma_m: float = A
     return broad_map_error(heights, t_s, frame_t_s, tilt_cov, BroadErrorSettings(**settings))
 
 
-#: The verdict's bound on the shape evidence (``VerdictSettings.max_broad_map_evidence``).
-EVIDENCE_BOUND = 28.0
+#: The verdict's bound on the shape evidence in batch and iSAM2
+#: (``VerdictSettings.max_broad_map_evidence``).
+EVIDENCE_BOUND = 20.0
 
 
 @pytest.mark.parametrize("blocks", [0.0, 0.15])
 def test_a_smooth_hill_shapes_the_tracks_beyond_ground_detail(rng, blocks):
     """The shape evidence over 40 s of the issue's footprint: ground detail (3 m rms of
-    waves, 40-200 m) with the triangulation's scatter stays under the verdict's 28 (as the
-    clean and detail flights: 3-22); a 15 m hill of 1 km sigma the estimate half absorbs
+    waves, 40-200 m) with the triangulation's scatter stays under the verdict's 20 (as the
+    clean and detail batch runs: 3.4-14.5); a 15 m hill of 1 km sigma the estimate half absorbs
     (its mean over each window taken off, as the estimate flies low) goes beyond it at the
     frames over the hill, and reads its curvature (15 m / (1 km)^2: 7.5 m over a
     kilometre); 15% of the tracks on blocks 15-30 m up (a town) change neither. Mutations:
@@ -185,6 +186,8 @@ def test_a_smooth_hill_shapes_the_tracks_beyond_ground_detail(rng, blocks):
     flat = _broad(xy, t_s, frame_t_s, detail)
     judged = np.isfinite(flat.evidence)
     assert judged.sum() == frame_t_s.size - 14  # windows cut by the ends are not judged
+    # measured 2026-11-27: 8.2 and, the blocks' tracks all kept (the run's track tests
+    # drop most of them before), 17.8; 1.6-6.3 and 2.7-12.2 over 18 other seeds
     assert np.nanmax(flat.evidence) < EVIDENCE_BOUND, np.nanmax(flat.evidence)
     centre = np.array([SPEED_MPS * 20.0, 0.0])
     hill = 15.0 * np.exp(-0.5 * np.sum((xy - centre) ** 2, axis=1) / 1000.0**2)
@@ -225,7 +228,7 @@ def test_a_hill_the_dtm_lacks_is_named_without_ground_truth():
     frames, batch, default settings): the run flies low at a small covariance (measured
     2026-11-27: RMSE 6.7 m, ANEES 27.5; ``trusted`` before build 4), and the verdict
     without ground truth names ``broad_map_error`` over the frames near the hill (23-29;
-    shape evidence 38 against the bound 28). Mutation: the look switched off by default
+    shape evidence 38 against the bound 20). Mutation: the look switched off by default
     (``GraphSettings.broad_map_error = None``) -> no reason: fails (tried, 2026-11-27)."""
     hill = TerrainMismatch(MismatchKind.HILL, depth_m=15.0, radius_m=1000.0, at_s=25.0)
     # seed 1: the robustness study's flight (docs/design.md's table)
@@ -238,7 +241,7 @@ def test_a_hill_the_dtm_lacks_is_named_without_ground_truth():
     assert len(named) == 1, verdict.lines()
     assert named[0].first_frame <= 25 <= named[0].last_frame
     broad = out.result.broad_map_error
-    assert broad is not None and 28.0 < np.nanmax(broad.evidence) < 60.0
+    assert broad is not None and EVIDENCE_BOUND < np.nanmax(broad.evidence) < 60.0
 
 
 def test_ground_points_on_a_line_leave_the_shape_unknown_not_an_error(rng):
