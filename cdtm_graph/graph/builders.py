@@ -21,7 +21,7 @@ from cdtm_graph.imu import GapNoise, SampleHold, initial_bias
 from cdtm_graph.results import Rejection, Rejections
 from cdtm_graph.robust.clutter import ClutterSettings
 from cdtm_graph.robust.epipolar import EpipolarSettings
-from cdtm_graph.robust.map_error import MapErrorSettings
+from cdtm_graph.robust.map_error import BroadErrorSettings, MapErrorSettings
 from cdtm_graph.robust.mismatch import MismatchSettings
 from cdtm_graph.tracks import FramePairObservations, first_sightings
 from factors import CdtmPairFactor, FeatureNoise, PairFeatures, PlaneMode, RobustKernel
@@ -91,6 +91,10 @@ class GraphSettings:
             its estimate; when it exceeds the stated sigma_h beyond chance, the run is
             made again with it (:mod:`cdtm_graph.robust.map_error`). ``None``: sigma_h
             as stated, always.
+        broad_map_error: with ``map_error``, the map's smooth error across each frame's
+            footprint (a hill the DTM lacks) is looked for in the tracks at the final
+            estimate (:func:`cdtm_graph.robust.map_error.broad_map_error`), for the verdict
+            to name (``broad_map_error``). ``None``: not looked for.
     """
 
     plane_mode: PlaneMode = PlaneMode.REINTERSECT
@@ -109,6 +113,7 @@ class GraphSettings:
         default_factory=lambda: DEFAULT_CALIBRATION_SIGMAS)
     calibration_online: bool = False
     map_error: MapErrorSettings | None = field(default_factory=MapErrorSettings)
+    broad_map_error: BroadErrorSettings | None = field(default_factory=BroadErrorSettings)
 
 
 def dtm_ray_caster(dtm: Dtm):
