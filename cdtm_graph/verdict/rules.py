@@ -619,6 +619,9 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
     stretches.sort(key=lambda r: (r.first_frame, r.last_frame, r.code))
     calibration_reasons, calibration_notes = _calibration_check(
         result, {r.code for r in run_wide + stretches})
+    if calibration_reasons:
+        stretches, explained = _explained_by_calibration(stretches)
+        calibration_notes += explained
     run_wide[calibration_at:calibration_at] = [reason(code, message, 0, last)
                                                for code, message in calibration_reasons]
     reasons = tuple(run_wide + stretches)
@@ -774,13 +777,27 @@ def _calibration_notes(result: SmootherResult) -> list[str]:
 #: sightings along the track): with one of them the calibration check is a note
 #: (``calibration_confounded``), not a reason. Not among them: what a calibration fault
 #: itself does to the run (``not_converged``; the errors ground truth shows; an IMU bias
-#: taking a height error), so that a real fault is still named.
+#: taking a height error; the ground its cameras triangulate bent over the footprint,
+#: ``broad_map_error``: a 1% focal error reads 20-40 there), so that a real fault is still
+#: named.
 CALIBRATION_RIVALS = frozenset({
-    Code.MAP_MISMATCH, Code.BROAD_MAP_ERROR, Code.CLUTTER, Code.WRONG_FIX,
+    Code.MAP_MISMATCH, Code.CLUTTER, Code.WRONG_FIX,
     Code.HEAVY_REJECTION, Code.OUTLIERS,
     Code.MISFIT, Code.RESIDUAL_CHI2, Code.RESIDUAL_MISFIT, Code.INNOVATION_NIS,
     Code.IMU_GAP, Code.NO_FEATURES, Code.OFF_DTM, Code.FEW_FEATURES, Code.FLAT_TERRAIN,
     Code.NARROW_FOV, Code.NO_FIX})
+
+
+def _explained_by_calibration(stretches: list[Reason]) -> tuple[list[Reason], list[str]]:
+    """The stretches without ``broad_map_error``'s, which become notes, when the verdict
+    names the calibration: a wrong focal scale or mount bends the ground the cameras
+    triangulate over each footprint as a hill the map lacks would, and the advice is the
+    calibration's (the frames stay flagged)."""
+    kept = [r for r in stretches if r.code != Code.BROAD_MAP_ERROR]
+    notes = [f"{Code.BROAD_MAP_ERROR}: frames {r.first_frame}-{r.last_frame}: the tracks' "
+             "heights bend across the footprint as the calibration named would bend them: "
+             "not named as a reason" for r in stretches if r.code == Code.BROAD_MAP_ERROR]
+    return kept, notes
 
 
 def _calibration_check(result: SmootherResult, named: set[str]

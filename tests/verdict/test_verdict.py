@@ -648,6 +648,32 @@ def test_a_narrow_footprint_is_named(free_rotation_info, narrow):
     assert verdict.status is (Status.DEGRADED if narrow else Status.TRUSTED)
 
 
+def test_a_named_calibration_takes_the_broad_map_error_as_its_own():
+    """A 1% focal error bends the ground the cameras triangulate over each footprint
+    (``focal1pct``, 90 frames: shape evidence 20-40, ``broad_map_error`` over frames 26-28
+    and 58-65 in batch and iSAM2). The calibration check is still named
+    (``calibration_suspect``: broad map error is no rival of it), and the broad map error
+    is then a note, its frames flagged. Mutations: ``Code.BROAD_MAP_ERROR`` back in
+    ``CALIBRATION_RIVALS`` (as merged on 2026-11-27: focal1pct then lost
+    ``calibration_suspect`` in batch and iSAM2) -> fails; ``_explained_by_calibration``
+    not applied -> both named: fails (each tried)."""
+    result = _result()
+    k = result.counts.n_frames
+    evidence = np.full(k, 12.0)
+    evidence[:7] = evidence[-7:] = np.nan
+    evidence[12:17] = 25.0
+    shaped = dataclasses.replace(result, calibration_check=_check(100.0, 50.0),
+                                 broad_map_error=BroadMapError(
+                                     evidence, evidence, np.full(k, 3.2), np.full(k, 5.9),
+                                     np.full(k, 230)))
+    verdict = assess(shaped)
+    assert _codes(verdict) == ["calibration_suspect"], verdict.lines()
+    notes = [n for n in verdict.notes if n.startswith("broad_map_error: frames 12-16")]
+    assert len(notes) == 1, verdict.lines()
+    assert sorted(k for k, v in verdict.flags.items() if "broad_map_error" in v) == list(
+        range(12, 17))
+
+
 @pytest.mark.parametrize("frames, named", [(range(12, 17), True), (range(12, 14), False),
                                            ((), False)])
 def test_a_broad_map_error_is_named_over_its_stretch(frames, named):
