@@ -223,6 +223,7 @@ def test_a_tilt_the_attitude_sigma_allows_is_not_the_maps():
     np.testing.assert_allclose(np.sqrt(np.diag(cov)), 1000.0 * sigma_rad[[0, 1]], rtol=1e-12)
 
 
+@pytest.mark.slow  # a 45-frame flight smoothed (8 s)
 def test_a_hill_the_dtm_lacks_is_named_without_ground_truth():
     """A 15 m hill of 1 km sigma the DTM lacks under the issue's flight at 25 s (45
     frames, batch, default settings): the run flies low at a small covariance (measured
