@@ -20,6 +20,7 @@ from gtsam.symbol_shorthand import X
 from cdtm_graph.calibration.check import estimate_values
 from cdtm_graph.graph.log_graph import build_log_graph
 from cdtm_graph.optimizer import key_marginals
+from cdtm_graph.results import position_move_nees
 from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.sim.simulate import simulate_flight
 from cdtm_graph.smoother import SmootherSettings
@@ -38,13 +39,12 @@ RUNS = {
 
 def world_position_nees_terms(world_T_body: np.ndarray, pose_cov: np.ndarray,
                               truth_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per frame: the position NEES (K,) and error^2 / variance per world axis (K, 3), the
-    pose covariance's translation block (body axes, GTSAM's order) turned to world."""
+    """Per frame: the position NEES (K,) (:func:`cdtm_graph.results.position_move_nees`)
+    and error^2 / variance per world axis (K, 3)."""
     R = world_T_body[:, :3, :3]
-    P = np.einsum("kij,kjl,kml->kim", R, pose_cov[:, 3:, 3:], R)
+    variance = np.einsum("kij,kjl,kil->ki", R, pose_cov[:, 3:, 3:], R)  # diag(R P R^T)
     err = world_T_body[:, :3, 3] - truth_m
-    nees = np.einsum("ki,kij,kj->k", err, np.linalg.inv(P), err)
-    return nees, err**2 / np.einsum("kii->ki", P)
+    return position_move_nees(world_T_body, pose_cov, truth_m), err**2 / variance
 
 
 def main(argv: list[str] | None = None) -> None:
