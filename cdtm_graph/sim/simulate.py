@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import logging
 import math
 from collections.abc import Sequence
@@ -897,20 +898,34 @@ def _fractal_truth(settings: SimulationSettings, region: tuple[float, float, flo
     if spacing * 2 > settings.terrain_cell_m:
         raise SimulationError(f"terrain spacing {spacing:g} m, expected at most half of "
                               f"terrain_cell_m = {settings.terrain_cell_m:g}")
-    cell = fractal_terrain(size_m=settings.terrain_cell_m, spacing_m=spacing,
-                           relief_m=settings.relief_m,
-                           correlation_length_m=settings.correlation_length_m,
-                           seed=seed, origin_xy=(xmin, ymin))
-    cell_rows, cell_cols = cell.shape
-    # fractal_terrain is periodic over its sample count, so plain tiling is seamless.
-    tiled = clone_basic_cell(cell, math.ceil(cols / cell_cols), math.ceil(rows / cell_rows),
-                             mirror=False)
-    truth = Dtm(tiled.elevation[:rows, :cols], xmin, ymin, spacing, spacing)
+    truth = _tiled_fractal(settings.terrain_cell_m, spacing, settings.relief_m,
+                           settings.correlation_length_m, seed, xmin, ymin, rows, cols)
     info = {"kind": "fractal_cloned_cell", "cell_m": settings.terrain_cell_m,
             "spacing_m": spacing, "relief_m": settings.relief_m,
             "correlation_length_m": settings.correlation_length_m, "seed": seed,
             "shape": [rows, cols]}
     return truth, info
+
+
+@functools.lru_cache(maxsize=2)
+def _tiled_fractal(cell_m: float, spacing_m: float, relief_m: float,
+                   correlation_length_m: float, seed: int, xmin: float, ymin: float,
+                   rows: int, cols: int) -> Dtm:
+    """The fractal cell tiled over ``rows`` x ``cols`` samples from ``(xmin, ymin)``.
+
+    Kept for the next flight: the scenarios of a study (and the test suite's flights)
+    share one terrain seed and region, and the cell's FFT and the grid's surface were a
+    tenth of the suite's time. A ``Dtm`` is immutable (its heights are read-only), so
+    sharing it changes nothing downstream.
+    """
+    cell = fractal_terrain(size_m=cell_m, spacing_m=spacing_m, relief_m=relief_m,
+                           correlation_length_m=correlation_length_m, seed=seed,
+                           origin_xy=(xmin, ymin))
+    cell_rows, cell_cols = cell.shape
+    # fractal_terrain is periodic over its sample count, so plain tiling is seamless.
+    tiled = clone_basic_cell(cell, math.ceil(cols / cell_cols), math.ceil(rows / cell_rows),
+                             mirror=False)
+    return Dtm(tiled.elevation[:rows, :cols], xmin, ymin, spacing_m, spacing_m)
 
 
 def _check_clearance(terrain: Dtm, region: tuple[float, float, float, float],

@@ -277,30 +277,39 @@ def test_degree_valued_grids_without_a_crs_are_refused(tmp_path):
 
 # --------------------------------------------------------------------------- memory
 
+#: Imports each tile given, in turn, in one process and prints the peak memory after each
+#: (ru_maxrss, KiB on Linux): a peak only grows, so what the second tile adds over the first
+#: is what it costs beyond it (one interpreter start instead of two).
 _PEAK_SCRIPT = textwrap.dedent("""
     import resource, sys
     from cdtm_graph.dem import import_dem
     from cdtm_graph.geodesy import GeodeticOrigin, LocalFrame, VerticalDatum
     frame = LocalFrame(GeodeticOrigin(36.05, 127.05, 100.0))
-    dtm = import_dem([sys.argv[1]], frame, (-5000.0, 5000.0, -5000.0, 5000.0),
-                     VerticalDatum.EGM96)
-    assert dtm.elevation.size > 100_000, dtm
-    print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)  # KiB on Linux
+    for path in sys.argv[1:]:
+        dtm = import_dem([path], frame, (-5000.0, 5000.0, -5000.0, 5000.0),
+                         VerticalDatum.EGM96)
+        assert dtm.elevation.size > 100_000, dtm
+        del dtm
+        print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
 """)
 
-#: The issue's bound on what a 3601 x 3601 tile may add to the peak memory (MB).
-BIG_TILE_EXTRA_MB = 100.0
+#: What a 3601 x 3601 tile may add to the peak memory over a 720 x 720 crop of it (MB;
+#: the issue's limit is 100). Measured 2026-11-27: 0.0 (the window is all that is read);
+#: the whole band read as float64 and cropped adds 99.5.
+BIG_TILE_EXTRA_MB = 25.0
 
 
-def _peak_kib(path) -> int:
-    out = subprocess.run([sys.executable, "-c", _PEAK_SCRIPT, str(path)], check=True,
+def _peaks_kib(*paths) -> list[int]:
+    out = subprocess.run([sys.executable, "-c", _PEAK_SCRIPT, *map(str, paths)], check=True,
                          capture_output=True, text=True)
-    return int(out.stdout.split()[-1])
+    return [int(v) for v in out.stdout.split()[-len(paths):]]
 
 
 @pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="ru_maxrss in KiB: Linux")
 def test_a_3601_tile_costs_only_the_window_under_the_flight(tmp_path, rng):
+    """Mutation: the whole band read as float64 and then cropped (in place of the windowed
+    ``ds.read`` in ``dem._group_surface``) adds 99.5 MB and fails the bound."""
     # An SRTM 1" tile (N36E127, int16, 25.9 MB on disk; 104 MB as float64) and the same
     # heights cropped to a small tile around the flight, over one of its corners.
     heights = rng.integers(0, 800, size=(3601, 3601), dtype=np.int16)
@@ -311,8 +320,9 @@ def test_a_3601_tile_costs_only_the_window_under_the_flight(tmp_path, rng):
     small = _write_tif(tmp_path / "small.tif", heights[r0:, c0:720], "EPSG:4326",
                        west + c0 * ARCSEC, north - r0 * ARCSEC, ARCSEC, dtype="int16")
     del heights
-    extra_mb = (_peak_kib(big) - _peak_kib(small)) / 1024
-    assert extra_mb < BIG_TILE_EXTRA_MB
+    after_small, after_big = _peaks_kib(small, big)
+    extra_mb = (after_big - after_small) / 1024
+    assert extra_mb < BIG_TILE_EXTRA_MB, (after_small, after_big)
 
 
 # --------------------------------------------------------------------------- smoothing
