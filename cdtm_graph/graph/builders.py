@@ -21,6 +21,7 @@ from cdtm_graph.imu import GapNoise, SampleHold, initial_bias
 from cdtm_graph.results import Rejection, Rejections
 from cdtm_graph.robust.clutter import ClutterSettings
 from cdtm_graph.robust.epipolar import EpipolarSettings
+from cdtm_graph.robust.imu_walk import RandomWalkSettings
 from cdtm_graph.robust.map_error import MapErrorSettings
 from cdtm_graph.robust.mismatch import MismatchSettings
 from cdtm_graph.tracks import FramePairObservations, first_sightings
@@ -91,6 +92,10 @@ class GraphSettings:
             its estimate; when it exceeds the stated sigma_h beyond chance, the run is
             made again with it (:mod:`cdtm_graph.robust.map_error`). ``None``: sigma_h
             as stated, always.
+        imu_random_walk: after the run, a batch side solve tests flight.yaml's IMU bias
+            random walks against the bias steps; when the steps exceed them beyond
+            chance, the walks are grown and the run made again with them
+            (:mod:`cdtm_graph.robust.imu_walk`). ``None``: the walks as stated, always.
     """
 
     plane_mode: PlaneMode = PlaneMode.REINTERSECT
@@ -109,6 +114,7 @@ class GraphSettings:
         default_factory=lambda: DEFAULT_CALIBRATION_SIGMAS)
     calibration_online: bool = False
     map_error: MapErrorSettings | None = field(default_factory=MapErrorSettings)
+    imu_random_walk: RandomWalkSettings | None = field(default_factory=RandomWalkSettings)
 
 
 def dtm_ray_caster(dtm: Dtm):

@@ -37,11 +37,13 @@ from cdtm_graph.results import (
     TrajectoryEstimate,
 )
 from cdtm_graph.robust.clutter import considered_offsets
+from cdtm_graph.robust.imu_walk import with_random_walks
 from cdtm_graph.robust.map_error import estimate_map_error, run_heights
 from cdtm_graph.robust.track_tests import BatchTrackTests
 from cdtm_graph.smoother.assembly import ClutterOutcome, assemble_result
 from cdtm_graph.smoother.convergence import check_convergence
 from cdtm_graph.smoother.incremental import IncrementalSmoother
+from cdtm_graph.smoother.random_walks import check_random_walks
 from cdtm_graph.smoother.settings import Progress, SmootherMode, SmootherSettings
 from cdtm_graph.verdict.preflight import check_constraints
 from factors.calibration import CALIBRATION_DIM
@@ -111,7 +113,9 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     When the tracks show the DTM's height error beyond its stated sigma_h (ground detail
     the map lacks, :mod:`cdtm_graph.robust.map_error`), the run is made again with the
     sigma_h they show (``settings.graph.map_error``; ``result.map_error`` says what was
-    estimated and used; ``progress`` then runs through the frames twice).
+    estimated and used; ``progress`` then runs through the frames twice). Likewise when a
+    side solve's bias steps show the IMU biases wandering beyond flight.yaml's random walks
+    (:mod:`cdtm_graph.robust.imu_walk`; ``result.imu_random_walk``).
 
     Returns:
         Smoothed states, per-frame covariances, statistics and counts.
@@ -154,10 +158,24 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
             if second.estimated_m <= map_error.bound_m:
                 flight, run = capped, again
                 map_error = replace(second, used_m=map_error.bound_m)
+    walks = None
+    if settings.graph.imu_random_walk is not None and run.checked:
+        # the IMU biases wander more than flight.yaml says: the run again with the walks
+        # a side solve's bias steps show
+        walks = check_random_walks(flight, dtm, settings.graph, run.result, run.left_out,
+                                   run.unfixed_frames, settings.graph.imu_random_walk,
+                                   settings.max_iterations, settings.relative_error_tol)
+        if walks.grown:
+            logger.info("IMU random walks grown %.3gx (gyro), %.3gx (accelerometer)",
+                        *walks.scales)
+            flight = with_random_walks(flight, walks.used_gyro, walks.used_accel)
+            run = _smooth_once(flight, dtm, settings, progress)
     result = run.result
     if run.checked:
         result = _checked(flight, dtm, settings, result, run.left_out, run.unfixed_frames)
-    return result if map_error is None else replace(result, map_error=map_error)
+    if map_error is not None:
+        result = replace(result, map_error=map_error)
+    return result if walks is None else replace(result, imu_random_walk=walks)
 
 
 @dataclass

@@ -556,6 +556,7 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
                  for code, message, a, b in _bias_check(result, f.t_s, settings)]
     run_wide += [reason(code, message, 0, last)
                  for code, message in _noise_check(imu_noise, settings)]
+    run_wide += [reason(code, message, 0, last) for code, message in _random_walk_check(result)]
 
     stretches: list[Reason] = []
     known = {t.code for t in tests}
@@ -583,7 +584,7 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
     return Verdict(status, reasons, flags, checks,
                    tuple(convergence_notes + notes + _calibration_notes(result)
                          + calibration_notes + _map_offset_notes(result)
-                         + _map_error_notes(result)))
+                         + _map_error_notes(result) + _random_walk_notes(result)))
 
 
 def _convergence_check(result: SmootherResult, settings: VerdictSettings
@@ -647,6 +648,46 @@ def _map_error_notes(result: SmootherResult) -> list[str]:
             f"its stated sigma_h of {me.stated_m:.2f} m (flight.yaml dtm.sigma_h_m, or the "
             f"model of its spacing): the run was made with {me.used_m:.2f} m, its "
             "covariances hold it"]
+
+
+def _walk_figures(result: SmootherResult) -> str:
+    """The IMU random-walk check's figures, in words (:mod:`cdtm_graph.robust.imu_walk`)."""
+    w = result.imu_random_walk
+    assert w is not None
+    return (f"the bias steps between frames are {w.ratio_gyro:.1f}x (gyro) and "
+            f"{w.ratio_accel:.1f}x (accelerometer) the chi-square flight.yaml's "
+            f"imu.gyroscope_random_walk {w.stated_gyro:.3g} and "
+            f"imu.accelerometer_random_walk {w.stated_accel:.3g} lead to expect at the "
+            f"solution ({w.n_steps} intervals)")
+
+
+def _random_walk_notes(result: SmootherResult) -> list[str]:
+    """``imu_random_walk_grown``: the bias steps showed the IMU biases wandering beyond
+    flight.yaml's random walks, and the run was made again with the walks grown to what
+    they show (:mod:`cdtm_graph.robust.imu_walk`). A note, not a reason: the covariances
+    then hold the real wander; but the user's IMU is worse than flight.yaml says."""
+    w = result.imu_random_walk
+    if w is None or not w.grown or not w.held:
+        return []
+    gyro, accel = w.scales
+    return [f"{Code.IMU_RANDOM_WALK_GROWN}: {_walk_figures(result)}: the run was made with "
+            f"the walks {gyro:.3g}x (gyro, {w.used_gyro:.3g}) and {accel:.3g}x "
+            f"(accelerometer, {w.used_accel:.3g}) flight.yaml's, its covariances hold them"]
+
+
+def _random_walk_check(result: SmootherResult) -> list[tuple[Code, str]]:
+    """``imu_random_walk``: the bias steps exceed what flight.yaml's random walks allow,
+    and still do at the most the run grows them to (``RandomWalkSettings.max_scale``):
+    the IMU is not as stated, beyond what a grown covariance may hold."""
+    w = result.imu_random_walk
+    if w is None or w.held:
+        return []
+    gyro, accel = w.final_ratios
+    return [(Code.IMU_RANDOM_WALK, (
+        f"{_walk_figures(result)}, and still {gyro:.1f}x and {accel:.1f}x with the walks "
+        f"grown {w.bound_scale:g}x: the IMU biases wander beyond what the covariances can "
+        "hold; set imu.gyroscope_random_walk and imu.accelerometer_random_walk to the "
+        "IMU's own (its Allan deviation), or check the IMU"))]
 
 
 def _bias_check(result: SmootherResult, t_s: np.ndarray, settings: VerdictSettings

@@ -1,0 +1,180 @@
+"""How fast the IMU biases really wander: flight.yaml's random walks checked by the run (issue 21).
+
+The IMU factors (``CombinedImuFactor``) let the biases wander between frames by
+flight.yaml's ``imu.gyroscope_random_walk`` and ``imu.accelerometer_random_walk``: a step
+of variance ``q^2 dt``. Stated 10x below the IMU's own, the smoother holds the biases
+nearly constant, ties distant frames through the IMU tighter than it may, and reports a
+covariance the errors exceed (the robustness flight: position ANEES 10.6-15.8 at
+``trusted``; the IMU factors' chi-square per dof 0.17 -> 0.18, the bias steps' own
+whitened chi-square per dof *smaller*, 0.004 against 0.03, since a tight walk holds the
+estimate still). Neither the residuals as a whole nor the bias steps alone tell.
+
+What tells is the bias steps' chi-square against *its own expectation at the solution*,
+a variance-component test (Helmert, Foerstner): for a step ``d_k = b_k+1 - b_k`` of
+prior variance ``Q_k = q^2 dt I`` and posterior covariance ``P_k`` (from the Bayes tree's
+joint of the two bias keys), an honest model gives ``E[d_k^T Q_k^-1 d_k] = tr(I - Q_k^-1
+P_k)``, the share of the step the data (not the walk) decide. On clean flights the data
+decide ~3% of each step (expectation ~5 accelerometer, ~9.5 gyro over 90 frames) and
+the ratio measured / expected is 0.5-1.8; with the walks stated 10x low the data decide
+0.1% (expectation ~0.26) and the ratio is 4-14: the data move the biases far more than
+the stated walk allows them to. Gyro and accelerometer are tested apart.
+
+The test runs in a batch side solve from the run's estimate
+(:func:`cdtm_graph.smoother.random_walks.check_random_walks`) (as the calibration check:
+the run's tracks left out stay out; every n-th frame of a long log), so all modes share
+it. When a ratio exceeds :attr:`RandomWalkSettings.grow_ratio`, the walks' variances are
+multiplied by their ratios and the side solve made again, until the ratios settle below
+:attr:`RandomWalkSettings.settle_ratio` (the variance component iterated to its fixed
+point) or the walks reach :attr:`RandomWalkSettings.max_scale` times the stated. The run
+is then made again with the walks found (:func:`cdtm_graph.smoother.smooth`): the
+covariance holds the real wander. Intervals with an IMU gap are left out (the gap's noise
+model, not the walk, covers them). A run whose IMU is as stated is not touched (bit for
+bit); the verdict notes a grown walk (``imu_random_walk_grown``) and names one the bound
+cannot hold (``imu_random_walk``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import gtsam
+import numpy as np
+import scipy.linalg
+import scipy.stats
+from gtsam.symbol_shorthand import B
+
+from cdtm_graph.constants import NS_PER_S
+from cdtm_graph.flightlog import FlightLog
+from cdtm_graph.optimizer import explain_indeterminant
+
+#: ``ConstantBias``'s tangent order: accelerometer (3), then gyro (3).
+ACCEL, GYRO = slice(0, 3), slice(3, 6)
+
+
+@dataclass(frozen=True)
+class RandomWalkSettings:
+    """When flight.yaml's IMU bias random walks are grown to what the run shows.
+
+    Attributes:
+        grow_ratio: a sensor's bias steps' chi-square over its expectation above this
+            makes the run again with grown walks (clean 90-frame flights of the
+            robustness study, seeds 1-10: 0.49-1.82; walks stated 10x low: 1.2-14).
+        probability: ...and the chi-square must lie beyond this quantile of its
+            distribution under the stated walks (:meth:`BiasSteps.bounds`): a test resting
+            on a few steps the data decide scatters widely (the 20 clean 30-frame flights'
+            accelerometer expectation ~0.8: a ratio up to 3.3).
+        settle_ratio: the growth stops when every ratio is at or below this.
+        max_scale: the walks are grown at most this many times the stated (a variance of
+            its square); a ratio still above ``grow_ratio`` there is a reason
+            (``imu_random_walk``), not a note.
+        max_rounds: side solves of the growth (each multiplies the variances by their
+            ratios).
+    """
+
+    grow_ratio: float = 3.0
+    probability: float = 0.99
+    settle_ratio: float = 1.5
+    max_scale: float = 30.0
+    max_rounds: int = 8
+
+
+@dataclass(frozen=True)
+class BiasSteps:
+    """The bias steps between consecutive frames at a solution, whitened by the walk.
+
+    Attributes:
+        chi2: (2,) gyro, accelerometer: the sum of ``d^T Q^-1 d`` over the steps.
+        expected: (2,) its expectation at the solution, ``tr(M)``, ``M = I - Q^-1/2 P
+            Q^-1/2`` over the steps (``P`` their joint posterior covariance): the share
+            of the steps the data decide.
+        variance: (2,) its variance, ``2 tr(M^2)`` (the steps' chi-square is a weighted
+            sum of chi-square(1) variables, the eigenvalues of ``M`` their weights).
+        n_steps: the intervals counted (those with an IMU gap left out).
+    """
+
+    chi2: np.ndarray
+    expected: np.ndarray
+    variance: np.ndarray
+    n_steps: int
+
+    @property
+    def ratios(self) -> np.ndarray:
+        """(2,) chi-square over expectation, gyro and accelerometer."""
+        return self.chi2 / np.maximum(self.expected, 1e-300)
+
+    def bounds(self, probability: float) -> np.ndarray:
+        """(2,) the chi-square's ``probability`` quantile under the walks held: the
+        weighted sum as a scaled chi-square of the same mean and variance
+        (Satterthwaite), ``g chi2(h)``, ``g = var / (2 mean)``, ``h = 2 mean^2 / var``."""
+        mean, var = np.maximum(self.expected, 1e-300), np.maximum(self.variance, 1e-300)
+        g, h = var / (2.0 * mean), 2.0 * mean**2 / var
+        return g * scipy.stats.chi2.ppf(probability, h)
+
+
+def bias_steps(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, t_ns: np.ndarray,
+               gyro_walk: float, accel_walk: float,
+               counted: np.ndarray | None = None) -> BiasSteps:
+    """:class:`BiasSteps` of a solved graph (module docstring).
+
+    The biases' joint posterior comes from the graph linearized at the solution with every
+    other variable eliminated by QR (the bias walk's information, ~1e10, beside the pose
+    prior's, ~1e-4): its square-root information ``R`` (upper triangular, the bias keys in
+    order); the steps' whitened covariance is then ``W W^T``, ``W = Q^-1/2 D R^-1`` (``D``
+    the differences), by triangular solves.
+
+    Args:
+        graph, values: the graph and its solution (bias keys ``B(0..K-1)``).
+        t_ns: (K,) the frames' times. gyro_walk, accel_walk: the walks the graph holds
+            (rad/s^2/sqrt(Hz), m/s^3/sqrt(Hz)).
+        counted: (K-1,) bool, which intervals count (None: all).
+    """
+    t_s = np.asarray(t_ns, dtype=np.int64) / NS_PER_S
+    k = t_s.size
+    dt = np.diff(t_s)
+    use = dt > 0 if counted is None else (dt > 0) & np.asarray(counted, bool)
+    order = gtsam.Ordering()
+    for j in range(k):
+        order.push_back(B(j))
+    try:
+        marginal = graph.linearize(values).marginalMultifrontalBayesNet(
+            order, function=gtsam.EliminateQR)
+    except RuntimeError as exc:
+        raise explain_indeterminant(exc) from None
+    R, _ = marginal.matrix()  # (6K, 6K), the bias keys in order
+    biases = np.stack([values.atConstantBias(B(j)).vector() for j in range(k)])
+    steps = np.diff(biases, axis=0)[use]  # (n, 6): accelerometer, gyro
+    walk = np.r_[[accel_walk] * 3, [gyro_walk] * 3]
+    q_sqrt = walk[None, :] * np.sqrt(dt[use])[:, None]  # (n, 6)
+    rows = np.flatnonzero(use)
+    # D: step j's row block is B(j+1) - B(j)
+    D = np.zeros((rows.size * 6, 6 * k))
+    for i, first in enumerate(rows.tolist()):
+        D[6 * i:6 * i + 6, 6 * first:6 * first + 6] = -np.eye(6)
+        D[6 * i:6 * i + 6, 6 * first + 6:6 * first + 12] = np.eye(6)
+    # W = Q^-1/2 D R^-1: solve R^T W^T = D^T Q^-1/2
+    W = scipy.linalg.solve_triangular(R, (D / q_sqrt.reshape(-1)[:, None]).T, trans="T").T
+    whitened = (steps / q_sqrt) ** 2
+    chi2, expected, variance = np.zeros(2), np.zeros(2), np.zeros(2)
+    for s, part in enumerate((GYRO, ACCEL)):
+        sel = (np.arange(rows.size * 6) % 6 >= part.start) & (np.arange(rows.size * 6) % 6
+                                                              < part.stop)
+        Ws = W[sel]
+        M = np.eye(Ws.shape[0]) - Ws @ Ws.T
+        chi2[s] = whitened[:, part].sum()
+        expected[s] = np.trace(M)
+        variance[s] = 2.0 * np.sum(M * M)
+    return BiasSteps(chi2, expected, variance, int(use.sum()))
+
+
+def with_random_walks(flight: FlightLog, gyro_walk: float, accel_walk: float) -> FlightLog:
+    """``flight`` whose flight.yaml states these IMU bias random walks."""
+    config = flight.config
+    imu = replace(config.imu, gyroscope_random_walk=gyro_walk,
+                  accelerometer_random_walk=accel_walk)
+    return replace(flight, config=replace(config, imu=imu))
+
+
+def exceeds(steps: BiasSteps, ratio: float, probability: float) -> bool:
+    """Whether a sensor's bias steps exceed their expectation ``ratio`` times and beyond
+    the ``probability`` quantile of their chi-square under the walks the graph held."""
+    return bool(np.any((steps.ratios > ratio) & (steps.chi2 > steps.bounds(probability))))

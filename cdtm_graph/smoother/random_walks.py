@@ -1,0 +1,97 @@
+"""flight.yaml's IMU bias random walks tested, and grown, in a batch side solve from a run's
+estimate (:mod:`cdtm_graph.robust.imu_walk` has the test and why; the calibration check and
+the convergence check make their side solves alike)."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import gtsam
+import numpy as np
+
+from cdtm_graph.calibration.check import MAX_FRAMES, estimate_values, thinned
+from cdtm_graph.constants import NS_PER_S
+from cdtm_graph.dtm import Dtm
+from cdtm_graph.flightlog import FlightLog
+from cdtm_graph.graph import GraphSettings
+from cdtm_graph.graph.log_graph import build_log_graph
+from cdtm_graph.imu import gap_threshold_ns
+from cdtm_graph.optimizer import LinearSolver, levenberg_marquardt
+from cdtm_graph.results import RandomWalkEstimate, SmootherResult
+from cdtm_graph.robust.imu_walk import (
+    BiasSteps,
+    RandomWalkSettings,
+    bias_steps,
+    exceeds,
+    with_random_walks,
+)
+from cdtm_graph.verdict.imu_faults import imu_gaps
+
+
+def check_random_walks(flight: FlightLog, dtm: Dtm, graph_settings: GraphSettings,
+                       result: SmootherResult,
+                       left_out: np.ndarray | None = None,
+                       unfixed_frames: np.ndarray | None = None,
+                       settings: RandomWalkSettings | None = None, max_iterations: int = 30,
+                       relative_error_tol: float = 1e-6) -> RandomWalkEstimate:
+    """flight.yaml's random walks tested by a batch side solve from ``result``'s estimate,
+    and grown while the bias steps exceed them (module docstring).
+
+    Args:
+        flight, dtm, graph_settings: the run's (how its graph is built).
+        result: the run's result. left_out: tracks the run left out; unfixed_frames:
+            frames whose sightings waited for a fix never found: both stay out.
+        settings: when to grow. max_iterations, relative_error_tol: the side solves'
+            Levenberg-Marquardt limits.
+    """
+    s = settings or RandomWalkSettings()
+    start = time.perf_counter()
+    sub, kept = thinned(flight, MAX_FRAMES)
+    values = estimate_values(result.estimate, kept)
+    if unfixed_frames is not None:  # the kept ones, as the thinned log numbers them
+        unfixed_frames = np.searchsorted(kept, unfixed_frames[np.isin(unfixed_frames, kept)])
+    t_ns = sub.frames.t_ns
+    inside_s, _ = imu_gaps(t_ns, sub.imu.t_ns)
+    counted = inside_s[1:] <= gap_threshold_ns(sub.config.imu.rate_hz) / NS_PER_S
+    stated = np.array([sub.config.imu.gyroscope_random_walk,
+                       sub.config.imu.accelerometer_random_walk])
+
+    def solve(walks: np.ndarray, start_values: gtsam.Values
+              ) -> tuple[gtsam.Values, BiasSteps]:
+        log = with_random_walks(sub, float(walks[0]), float(walks[1]))
+        built = build_log_graph(log, dtm, graph_settings, start_values, left_out,
+                                unfixed_frames)
+        solved, _ = levenberg_marquardt(built.graph, start_values, max_iterations,
+                                        relative_error_tol, solver=LinearSolver())
+        return solved, bias_steps(built.graph, solved, t_ns, float(walks[0]),
+                                  float(walks[1]), counted)
+
+    values, first = solve(stated, values)
+    scale = np.ones(2)  # of the variances
+    steps, rounds = first, 0
+    while exceeds(steps, s.grow_ratio if rounds == 0 else s.settle_ratio,
+                  s.probability if rounds == 0 else 0.0):
+        if rounds == s.max_rounds or np.all(scale >= s.max_scale**2):
+            break
+        scale = np.minimum(scale * np.maximum(steps.ratios, 1.0), s.max_scale**2)
+        values, steps = solve(stated * np.sqrt(scale), values)
+        rounds += 1
+    grown = rounds > 0
+    return RandomWalkEstimate(
+        stated_gyro=float(stated[0]), stated_accel=float(stated[1]),
+        ratio_gyro=float(first.ratios[0]), ratio_accel=float(first.ratios[1]),
+        chi2=_pair(first.chi2), expected=_pair(first.expected),
+        chi2_bound=_pair(first.bounds(s.probability)),
+        n_steps=first.n_steps,
+        used_gyro=float(stated[0] * math.sqrt(scale[0])) if grown else float(stated[0]),
+        used_accel=float(stated[1] * math.sqrt(scale[1])) if grown else float(stated[1]),
+        final_ratios=_pair(steps.ratios),
+        bound_scale=s.max_scale,
+        held=not exceeds(steps, s.grow_ratio, s.probability),
+        rounds=rounds, time_s=time.perf_counter() - start)
+
+
+def _pair(values: np.ndarray) -> tuple[float, float]:
+    """(gyro, accelerometer) as plain floats."""
+    return float(values[0]), float(values[1])
