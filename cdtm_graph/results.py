@@ -391,8 +391,9 @@ class RandomWalkEstimate:
         used_gyro, used_accel: the walks the run was made with (the stated ones, or grown).
         final_ratios: (gyro, accelerometer) the ratios at the walks used.
         bound_scale: the most the walks are grown (times the stated).
-        held: at the walks used, no ratio exceeds the growth threshold (False: the bound
-            could not hold the wander: the verdict's ``imu_random_walk``).
+        held: the walks used hold the bias steps: no ratio beyond the growth threshold,
+            and none still above the settling ratio at the bound (False: the bound
+            stopped the growth, not the data: the verdict's ``imu_random_walk``).
         rounds: side solves of the growth. time_s: the check's cost.
     """
 

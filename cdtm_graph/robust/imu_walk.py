@@ -65,8 +65,10 @@ class RandomWalkSettings:
             accelerometer expectation ~0.8: a ratio up to 3.3).
         settle_ratio: the growth stops when every ratio is at or below this.
         max_scale: the walks are grown at most this many times the stated (a variance of
-            its square); a ratio still above ``grow_ratio`` there is a reason
-            (``imu_random_walk``), not a note.
+            its square); a walk that reaches it with its ratio still above
+            ``settle_ratio`` (the growth stopped by the bound, not by the data) is a
+            reason (``imu_random_walk``), not a note: walks stated 100x low, grown 30x,
+            left ANEES 7.0.
         max_rounds: side solves of the growth (each multiplies the variances by their
             ratios).
     """

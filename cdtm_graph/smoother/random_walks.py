@@ -88,7 +88,8 @@ def check_random_walks(flight: FlightLog, dtm: Dtm, graph_settings: GraphSetting
         used_accel=float(stated[1] * math.sqrt(scale[1])) if grown else float(stated[1]),
         final_ratios=_pair(steps.ratios),
         bound_scale=s.max_scale,
-        held=not exceeds(steps, s.grow_ratio, s.probability),
+        held=not (exceeds(steps, s.grow_ratio, s.probability)
+                  or np.any((scale >= s.max_scale**2) & (steps.ratios > s.settle_ratio))),
         rounds=rounds, time_s=time.perf_counter() - start)
 
 
