@@ -75,7 +75,7 @@ class RandomWalkSettings:
 
     grow_ratio: float = 3.0
     probability: float = 0.99
-    settle_ratio: float = 1.5
+    settle_ratio: float = 1.2
     max_scale: float = 30.0
     max_rounds: int = 8
 

@@ -584,7 +584,8 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
     return Verdict(status, reasons, flags, checks,
                    tuple(convergence_notes + notes + _calibration_notes(result)
                          + calibration_notes + _map_offset_notes(result)
-                         + _map_error_notes(result) + _random_walk_notes(result)))
+                         + _map_error_notes(result)
+                         + _random_walk_notes(result, {r.code for r in reasons})))
 
 
 def _convergence_check(result: SmootherResult, settings: VerdictSettings
@@ -661,18 +662,23 @@ def _walk_figures(result: SmootherResult) -> str:
             f"solution ({w.n_steps} intervals)")
 
 
-def _random_walk_notes(result: SmootherResult) -> list[str]:
+def _random_walk_notes(result: SmootherResult, named: set[str]) -> list[str]:
     """``imu_random_walk_grown``: the bias steps showed the IMU biases wandering beyond
     flight.yaml's random walks, and the run was made again with the walks grown to what
     they show (:mod:`cdtm_graph.robust.imu_walk`). A note, not a reason: the covariances
-    then hold the real wander; but the user's IMU is worse than flight.yaml says."""
+    then hold the real wander; but the user's IMU is worse than flight.yaml says, unless a
+    camera calibration fault the verdict names bends the bias steps (a 1% focal error
+    grew the gyro's walk 9x on a 40-frame flight): the note then says so."""
     w = result.imu_random_walk
     if w is None or not w.grown or not w.held:
         return []
     gyro, accel = w.scales
+    also = (f"; {Code.CALIBRATION_SUSPECT}, named, may bend the bias steps as well"
+            if Code.CALIBRATION_SUSPECT in named else "")
     return [f"{Code.IMU_RANDOM_WALK_GROWN}: {_walk_figures(result)}: the run was made with "
             f"the walks {gyro:.3g}x (gyro, {w.used_gyro:.3g}) and {accel:.3g}x "
-            f"(accelerometer, {w.used_accel:.3g}) flight.yaml's, its covariances hold them"]
+            f"(accelerometer, {w.used_accel:.3g}) flight.yaml's, its covariances hold "
+            f"them{also}"]
 
 
 def _random_walk_check(result: SmootherResult) -> list[tuple[Code, str]]:
