@@ -4,20 +4,23 @@ The IMU factors (``CombinedImuFactor``) let the biases wander between frames by
 flight.yaml's ``imu.gyroscope_random_walk`` and ``imu.accelerometer_random_walk``: a step
 of variance ``q^2 dt``. Stated 10x below the IMU's own, the smoother holds the biases
 nearly constant, ties distant frames through the IMU tighter than it may, and reports a
-covariance the errors exceed (the robustness flight: position ANEES 10.6-15.8 at
-``trusted``; the IMU factors' chi-square per dof 0.17 -> 0.18, the bias steps' own
+covariance the errors exceed (issue 21's flights: position ANEES 10.6-15.8 at
+``trusted``; this simulator's robustness flight, seeds 1, 2, 5: 10.4-16.3; the IMU
+factors' chi-square per dof 0.17 -> 0.18, the bias steps' own
 whitened chi-square per dof *smaller*, 0.004 against 0.03, since a tight walk holds the
 estimate still). Neither the residuals as a whole nor the bias steps alone tell.
 
 What tells is the bias steps' chi-square against *its own expectation at the solution*,
-a variance-component test (Helmert, Foerstner): for a step ``d_k = b_k+1 - b_k`` of
-prior variance ``Q_k = q^2 dt I`` and posterior covariance ``P_k`` (from the Bayes tree's
-joint of the two bias keys), an honest model gives ``E[d_k^T Q_k^-1 d_k] = tr(I - Q_k^-1
-P_k)``, the share of the step the data (not the walk) decide. On clean flights the data
-decide ~3% of each step (expectation ~5 accelerometer, ~9.5 gyro over 90 frames) and
-the ratio measured / expected is 0.5-1.8; with the walks stated 10x low the data decide
-0.1% (expectation ~0.26) and the ratio is 4-14: the data move the biases far more than
-the stated walk allows them to. Gyro and accelerometer are tested apart.
+a variance-component test (Helmert, Foerstner): for the steps ``d = D b`` (``d_k = b_k+1 -
+b_k``) of prior covariance ``Q`` (``q^2 dt I`` each) and joint posterior covariance
+``D P D^T``, an honest model gives ``E[d^T Q^-1 d] = tr(M)``, ``M = I - Q^-1/2 D P D^T
+Q^-1/2``: the share of the steps the data (not the walk) decide. On clean 90-frame
+flights the data decide ~5.4 (accelerometer) and ~9.5 (gyro) of 267 dof each and the
+ratio measured / expected is 0.47-1.82; with the walks stated 10x low they decide ~0.26
+and the ratio is 1.2-16: the data move the biases far more than the stated walk allows.
+Gyro and accelerometer are tested apart. Resting on so little, the chi-square scatters
+(a weighted sum of chi-square(1)s with a few large weights; ``Var = 2 tr(M^2)``): the
+rule also asks it to lie beyond its 99% quantile (:meth:`BiasSteps.bounds`).
 
 The test runs in a batch side solve from the run's estimate
 (:func:`cdtm_graph.smoother.random_walks.check_random_walks`) (as the calibration check:
@@ -119,10 +122,11 @@ def bias_steps(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, t_ns: np
     """:class:`BiasSteps` of a solved graph (module docstring).
 
     The biases' joint posterior comes from the graph linearized at the solution with every
-    other variable eliminated by QR (the bias walk's information, ~1e10, beside the pose
-    prior's, ~1e-4): its square-root information ``R`` (upper triangular, the bias keys in
-    order); the steps' whitened covariance is then ``W W^T``, ``W = Q^-1/2 D R^-1`` (``D``
-    the differences), by triangular solves.
+    other variable eliminated (Cholesky; QR where Cholesky declares the system
+    indeterminant, as :func:`~cdtm_graph.optimizer.marginals`): its square-root
+    information ``R`` (upper triangular, the bias keys in order); the steps' whitened
+    covariance is then ``W W^T``, ``W = Q^-1/2 D R^-1`` (``D`` the differences), by
+    triangular solves.
 
     Args:
         graph, values: the graph and its solution (bias keys ``B(0..K-1)``).
@@ -137,11 +141,14 @@ def bias_steps(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, t_ns: np
     order = gtsam.Ordering()
     for j in range(k):
         order.push_back(B(j))
-    try:
-        marginal = graph.linearize(values).marginalMultifrontalBayesNet(
-            order, function=gtsam.EliminateQR)
-    except RuntimeError as exc:
-        raise explain_indeterminant(exc) from None
+    linear = graph.linearize(values)
+    try:  # Cholesky first (5x faster here, the same figures to 8 digits), QR where it fails
+        marginal = linear.marginalMultifrontalBayesNet(order)
+    except RuntimeError:
+        try:
+            marginal = linear.marginalMultifrontalBayesNet(order, function=gtsam.EliminateQR)
+        except RuntimeError as exc:
+            raise explain_indeterminant(exc) from None
     R, _ = marginal.matrix()  # (6K, 6K), the bias keys in order
     biases = np.stack([values.atConstantBias(B(j)).vector() for j in range(k)])
     steps = np.diff(biases, axis=0)[use]  # (n, 6): accelerometer, gyro
