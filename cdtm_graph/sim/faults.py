@@ -283,6 +283,18 @@ def with_calibration_error(log: FlightLog, focal_scale: float = 1.0,
     return dataclasses.replace(log, config=config, frames=frames, nav=nav)
 
 
+def with_imu_bias_step(log: FlightLog, at_s: float,
+                       accel_mps2: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                       gyro_radps: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> FlightLog:
+    """Every IMU sample from ``t0 + at_s`` on offset by a bias step (a sensor's bias jumping
+    once in flight: a temperature step, a shock), t0 the first frame's time."""
+    imu = log.imu
+    after = (imu.t_ns >= int(log.frames.t_ns[0]) + int(at_s * NS_PER_S))[:, None]
+    return dataclasses.replace(log, imu=ImuSamples(
+        imu.t_ns, imu.gyro_radps + after * np.asarray(gyro_radps),
+        imu.acc_mps2 + after * np.asarray(accel_mps2)))
+
+
 def with_imu_random_walks_stated(log: FlightLog, gyro_scale: float = 1.0,
                                  accel_scale: float = 1.0) -> FlightLog:
     """flight.yaml stating the IMU's bias random walks (``imu.gyroscope_random_walk``,

@@ -29,6 +29,7 @@ from cdtm_graph.sim.faults import (
     TerrainMismatch,
     with_calibration_error,
     with_dtm_ending,
+    with_imu_bias_step,
     with_imu_gap,
     with_imu_random_walks_stated,
     with_wrong_matches,
@@ -156,6 +157,9 @@ SCENARIOS: dict[str, Scenario] = {s.name: s for s in (
     Scenario("imu_rw10", fault=lambda log, rng: with_imu_random_walks_stated(log, 0.1, 0.1)),
     Scenario("imu_rw4", fault=lambda log, rng: with_imu_random_walks_stated(log, 0.25, 0.25)),
     Scenario("imu_rw10_gyro", fault=lambda log, rng: with_imu_random_walks_stated(log, 0.1)),
+    # ...and a bias that steps once mid-flight (10 prior sigmas each), the walks as stated
+    Scenario("imu_bias_step", fault=lambda log, rng: with_imu_bias_step(
+        log, 45.0, accel_mps2=(0.1, 0.0, 0.0), gyro_radps=(0.0, 1e-3, 0.0))),
 )}
 
 
