@@ -668,7 +668,7 @@ def _random_walk_notes(result: SmootherResult, named: set[str]) -> list[str]:
     they show (:mod:`cdtm_graph.robust.imu_walk`). A note, not a reason: the covariances
     then hold the real wander; but the user's IMU is worse than flight.yaml says, unless a
     camera calibration fault the verdict names bends the bias steps (a 1% focal error
-    grew the gyro's walk 9x on a 40-frame flight): the note then says so."""
+    grew the gyro's walk 12.6x on a 40-frame flight): the note then says so."""
     w = result.imu_random_walk
     if w is None or not w.grown or not w.held:
         return []
