@@ -56,6 +56,10 @@ class Code(enum.StrEnum):
     IMU_GAP = ("imu_gap", Kind.FRAME, "IMU samples missing inside the frame's interval")
     RESIDUAL_MISFIT = ("residual_misfit", Kind.FRAME,
                        "the window's residual chi-square outside its band")
+    BROAD_MAP_ERROR = ("broad_map_error", Kind.FRAME,
+                       "the map's heights are off by a smooth surface over kilometres under "
+                       "the footprint (a hill the DTM lacks): the altitude takes part of it, "
+                       "which the covariance does not hold")
     CLUTTER = ("clutter", Kind.FRAME,
                "clutter the DTM lacks (forest, town) may bias the frame's height")
     NO_FIX = ("no_fix", Kind.FRAME,

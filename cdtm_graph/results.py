@@ -434,6 +434,45 @@ class RandomWalkEstimate:
 
 
 @dataclass(frozen=True)
+class BroadMapError:
+    """How far the map's error tilts and curves across each frame's footprint, over
+    kilometres (:func:`cdtm_graph.robust.map_error.broad_map_error`): a hill or a hollow
+    the DTM lacks, whose mean the estimate takes as its own height while the map's
+    sigma_h, counted per feature, averages it away.
+
+    Attributes:
+        shape_chi2: (K,) the Wald statistic (chi-square(3) without such error) of the tilt
+            and the isotropic curvature of a smooth surface fitted to the tracks' heights
+            above the DTM over their ground points, the tracks of the frame's window
+            (scaled by the window's own scatter; the tilt an attitude error gives
+            counted); NaN where not judged (a window cut by the flight's ends, too few
+            tracks).
+        evidence: (K,) its mean over the frames of a few seconds about the frame (NaN
+            unless all were judged): what the verdict reads.
+        tilt_m: (K,) how far the surface's tilt moves the heights 1 km from the window's
+            centre (m).
+        bend_m: (K,) the same of its curvature (m).
+        n_tracks: (K,) the tracks the window's fit rests on.
+    """
+
+    shape_chi2: np.ndarray
+    evidence: np.ndarray
+    tilt_m: np.ndarray
+    bend_m: np.ndarray
+    n_tracks: np.ndarray
+
+    def to_dict(self) -> dict:
+        judged = np.isfinite(self.evidence)
+        if not judged.any():
+            return {"n_frames_judged": 0, "max_evidence": None, "max_evidence_frame": None,
+                    "tilt_m_there": None, "bend_m_there": None}
+        k = int(np.nanargmax(self.evidence))
+        return {"n_frames_judged": int(judged.sum()), "max_evidence": float(self.evidence[k]),
+                "max_evidence_frame": k, "tilt_m_there": float(self.tilt_m[k]),
+                "bend_m_there": float(self.bend_m[k])}
+
+
+@dataclass(frozen=True)
 class ConvergenceCheck:
     """One more solve from a run's estimate: how far it moves the positions against the
     run's own covariance (:func:`cdtm_graph.smoother.convergence.check_convergence`; made
@@ -508,6 +547,8 @@ class SmootherResult:
         imu_random_walk: flight.yaml's IMU bias random walks against the bias steps of a
             side solve, and the walks the run was made with (:class:`RandomWalkEstimate`);
             None when not checked.
+        broad_map_error: the map's smooth error across each frame's footprint, from the
+            tracks at the run's estimate (:class:`BroadMapError`); None when not looked at.
     """
 
     estimate: TrajectoryEstimate
@@ -526,6 +567,7 @@ class SmootherResult:
     convergence_check: ConvergenceCheck | None = None
     map_error: MapErrorEstimate | None = None
     imu_random_walk: RandomWalkEstimate | None = None
+    broad_map_error: BroadMapError | None = None
 
 
 def frame_flags(counts: GraphCounts, extra: dict[int, list[str]] | None = None

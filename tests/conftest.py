@@ -7,15 +7,21 @@ through the fixtures below (tests/README.md lists them).
 
 from __future__ import annotations
 
+import importlib
+from typing import TYPE_CHECKING
+
 import numpy as np
 import pytest
 
-from tests.support import flightlogs as _flightlogs
-from tests.support import flights as _flights
-from tests.support import manifold as _manifold
-from tests.support import sensor_files as _sensor_files
-from tests.support import synthetic as _synthetic
-from tests.support import ulog_files as _ulog_files
+if TYPE_CHECKING:
+    from tests.support import flights as _flights
+
+
+def _support(name: str):
+    """``tests.support.<name>``, imported when a fixture first needs it: the helpers pull
+    in the estimator, GTSAM and SciPy (2 s), which a run of light tests never pays (the
+    scheduling check's own pytest run: tests/project/test_scheduling.py)."""
+    return importlib.import_module(f"tests.support.{name}")
 
 #: One seed for every random generator in the tests.
 TEST_SEED = 20261121
@@ -39,32 +45,32 @@ def rng(seed: int) -> np.random.Generator:
 def manifold():
     """:mod:`tests.support.manifold`: central differences on the manifold, random rotations
     and mountings, a wavy terrain with an exact ray caster, a random C-DTM frame pair."""
-    return _manifold
+    return _support("manifold")
 
 
 @pytest.fixture(scope="session")
 def sensor_files():
     """:mod:`tests.support.sensor_files`: EuRoC, Kalibr and ROS bag writers of a log."""
-    return _sensor_files
+    return _support("sensor_files")
 
 
 @pytest.fixture(scope="session")
 def ulog_files():
     """:mod:`tests.support.ulog_files`: PX4 ULog files written from a simulated log."""
-    return _ulog_files
+    return _support("ulog_files")
 
 
 @pytest.fixture(scope="session")
 def flightlog_files():
     """:mod:`tests.support.flightlogs`: the small log's builder and the line editing of
     the malformed-input tests (``expect_error`` asserts the one-line message)."""
-    return _flightlogs
+    return _support("flightlogs")
 
 
 @pytest.fixture(scope="session")
 def synthetic():
     """:mod:`tests.support.synthetic`: a made-up smoother result, a smooth world DTM."""
-    return _synthetic
+    return _support("synthetic")
 
 
 @pytest.fixture
@@ -73,9 +79,10 @@ def small_log(tmp_path, rng: np.random.Generator):
     its DTM (:func:`tests.support.flightlogs.make_log`)."""
     from cdtm_graph.flightlog import write_flightlog
 
-    the_log = _flightlogs.make_log(tmp_path / "log", rng)
+    flightlogs = _support("flightlogs")
+    the_log = flightlogs.make_log(tmp_path / "log", rng)
     write_flightlog(the_log, the_log.root)
-    _flightlogs.write_dtm(the_log.root / "dtm.npz")
+    flightlogs.write_dtm(the_log.root / "dtm.npz")
     return the_log
 
 
@@ -97,7 +104,7 @@ def nominal_runs(nominal_log) -> _flights.FlightRuns:
     """``nominal_log`` smoothed and judged with default settings, once per mode per session
     (``nominal_runs.run(Mode.BATCH)``): the smoother and incremental tests read the same
     runs."""
-    return _flights.FlightRuns(nominal_log)
+    return _support("flights").FlightRuns(nominal_log)
 
 
 @pytest.fixture(scope="session")
@@ -105,7 +112,7 @@ def clean_flights() -> _flights.CleanFlights:
     """The clean flights of the robustness study's base flight, smoothed once per session
     and shared (:class:`tests.support.flights.CleanFlights`): ``clean_flights.run(seed,
     frames, mode)``. The calibration, verdict and consistency tests read the same runs."""
-    return _flights.CleanFlights()
+    return _support("flights").CleanFlights()
 
 
 # --------------------------------------------------------------------------- scheduling

@@ -22,7 +22,7 @@ from cdtm_graph.results import Rejection, Rejections
 from cdtm_graph.robust.clutter import ClutterSettings
 from cdtm_graph.robust.epipolar import EpipolarSettings
 from cdtm_graph.robust.imu_walk import RandomWalkSettings
-from cdtm_graph.robust.map_error import MapErrorSettings
+from cdtm_graph.robust.map_error import BroadErrorSettings, MapErrorSettings
 from cdtm_graph.robust.mismatch import MismatchSettings
 from cdtm_graph.tracks import FramePairObservations, first_sightings
 from factors import CdtmPairFactor, FeatureNoise, PairFeatures, PlaneMode, RobustKernel
@@ -96,6 +96,10 @@ class GraphSettings:
             random walks against the bias steps; when the steps exceed them beyond
             chance, the walks are grown and the run made again with them
             (:mod:`cdtm_graph.robust.imu_walk`). ``None``: the walks as stated, always.
+        broad_map_error: with ``map_error``, the map's smooth error across each frame's
+            footprint (a hill the DTM lacks) is looked for in the tracks at the final
+            estimate (:func:`cdtm_graph.robust.map_error.broad_map_error`), for the verdict
+            to name (``broad_map_error``). ``None``: not looked for.
     """
 
     plane_mode: PlaneMode = PlaneMode.REINTERSECT
@@ -115,6 +119,7 @@ class GraphSettings:
     calibration_online: bool = False
     map_error: MapErrorSettings | None = field(default_factory=MapErrorSettings)
     imu_random_walk: RandomWalkSettings | None = field(default_factory=RandomWalkSettings)
+    broad_map_error: BroadErrorSettings | None = field(default_factory=BroadErrorSettings)
 
 
 def dtm_ray_caster(dtm: Dtm):

@@ -38,7 +38,11 @@ from cdtm_graph.results import (
 )
 from cdtm_graph.robust.clutter import considered_offsets
 from cdtm_graph.robust.imu_walk import with_random_walks
-from cdtm_graph.robust.map_error import estimate_map_error, run_heights
+from cdtm_graph.robust.map_error import (
+    estimate_map_error,
+    run_broad_map_error,
+    run_heights,
+)
 from cdtm_graph.robust.track_tests import BatchTrackTests
 from cdtm_graph.smoother.assembly import ClutterOutcome, assemble_result
 from cdtm_graph.smoother.convergence import check_convergence
@@ -135,10 +139,10 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     if settings.graph.map_error is not None and run.checked:
         # the map worse than it says: the run again with the sigma_h the tracks show
         noise = feature_noise(flight.config, dtm, settings.graph)
-        map_error = estimate_map_error(run_heights(flight, dtm, noise, run.result.estimate,
-                                                   run.unfixed_frames),
-                                       noise.sigma_h_m, settings.graph.map_error,
+        heights = run_heights(flight, dtm, noise, run.result.estimate, run.unfixed_frames)
+        map_error = estimate_map_error(heights, noise.sigma_h_m, settings.graph.map_error,
                                        settings.graph.mismatch)
+        first = run
         if map_error.grown:
             flight = with_sigma_h(flight, map_error.used_m)
             run = _smooth_once(flight, dtm, settings, progress)
@@ -171,6 +175,11 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
             flight = with_random_walks(flight, walks.used_gyro, walks.used_accel)
             run = _smooth_once(flight, dtm, settings, progress)
     result = run.result
+    if map_error is not None and settings.graph.broad_map_error is not None:
+        result = replace(result, broad_map_error=run_broad_map_error(
+            flight, dtm, noise, result, run.unfixed_frames, run.left_out,
+            heights if run is first else None, settings.graph.broad_map_error,
+            settings.graph.mismatch))
     if run.checked:
         result = _checked(flight, dtm, settings, result, run.left_out, run.unfixed_frames)
     if map_error is not None:

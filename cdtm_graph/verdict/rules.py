@@ -26,6 +26,10 @@ frame, the reasons (stretches of flagged frames and run-wide self-checks) and th
   the last sample across the gap and trusts it as a measurement).
 - ``residual_misfit``: the window's normalized residual chi-square (self-check below)
   outside its band.
+- ``broad_map_error``: the tracks' heights above the DTM, at the estimate, bend across the
+  window's footprint beyond what ground detail does: a smooth error of the map over
+  kilometres (a hill the DTM lacks), whose mean the estimate takes as its own height
+  (``SmootherResult.broad_map_error``, :func:`cdtm_graph.robust.map_error.broad_map_error`).
 - any flag the smoother itself set (``SmootherResult.flags``) is kept.
 
 **Self-checks without ground truth**: the C-DTM features' residuals at the solution,
@@ -185,6 +189,16 @@ class VerdictSettings:
         max_imu_noise_ratio: ``imu_noise`` when the IMU samples' own scatter exceeds
             flight.yaml's noise density by more than this factor
             (:class:`~cdtm_graph.verdict.imu_faults.MeasuredImuNoise`).
+        max_broad_map_evidence: ``broad_map_error`` on the frames whose shape statistic
+            (:class:`~cdtm_graph.results.BroadMapError`'s ``evidence``: chi-square(3) of
+            the map's tilt and curvature under the footprint, a 5 s mean) exceeds this, a
+            reason over ``min_stretch_s``; batch and iSAM2 runs (fitted 2026-11-27 on the
+            issue's 90-frame flight: 20 clean seeds in batch, 10 in iSAM2 and 20 of 3 m
+            waves, 40-200 m, reach 3.4-14.5; a 15 m hill of 1 km sigma 41; docs/design.md
+            has the table).
+        max_broad_map_evidence_fixed_lag: the same for a fixed-lag run (``lag_s`` in its
+            settings), whose frames leave the window before the later ones are seen and
+            read more shape: 20 clean seeds and 20 of waves reach 7-24.6; the hill 36.
         min_moved_inside_fraction: a run whose solver did not report convergence is
             FAILED (``not_converged``) when one more solve from its estimate moves fewer
             frames than this share less than the chi-square(3) 95% bound of their
@@ -209,12 +223,14 @@ class VerdictSettings:
     max_beyond_999_fraction: float = 0.5
     bias_probability: float = 0.999
     max_imu_noise_ratio: float = 1.5
+    max_broad_map_evidence: float = 20.0
+    max_broad_map_evidence_fixed_lag: float = 28.0
     min_moved_inside_fraction: float = ConsistencyBounds().min_inside_fraction
 
 
 #: The per-frame flags :func:`assess` sets itself (besides the rejection rules' codes).
 FRAME_FLAGS = (Code.NO_FEATURES, Code.FEW_FEATURES, Code.FLAT_TERRAIN, Code.NARROW_FOV,
-               Code.IMU_GAP, Code.RESIDUAL_MISFIT)
+               Code.IMU_GAP, Code.RESIDUAL_MISFIT, Code.BROAD_MAP_ERROR)
 
 
 @dataclass(frozen=True)
@@ -369,6 +385,35 @@ def _geometry_tests(f: _Frames, result: SmootherResult, settings: VerdictSetting
     return tests
 
 
+def _broad_map_test(f: _Frames, result: SmootherResult, settings: VerdictSettings
+                    ) -> FrameTest | None:
+    """``broad_map_error``: the frames where the tracks' heights curve over their ground
+    points beyond what ground detail does (:class:`~cdtm_graph.results.BroadMapError`)."""
+    broad = result.broad_map_error
+    if broad is None or np.shape(broad.evidence) != (f.k,):
+        return None
+    evidence = np.asarray(broad.evidence, dtype=float)
+    fixed_lag = (result.settings or {}).get("lag_s") is not None
+    bound = (settings.max_broad_map_evidence_fixed_lag if fixed_lag
+             else settings.max_broad_map_evidence)
+    with np.errstate(invalid="ignore"):
+        flagged = np.isfinite(evidence) & (evidence > bound)
+
+    def describe(a: int, b: int) -> str:
+        k = a + int(np.nanargmax(evidence[a:b + 1]))
+        return (f"the tracks' heights above the DTM tilt by {float(broad.tilt_m[k]):.1f} m and "
+                f"curve by {float(broad.bend_m[k]):.1f} m over a kilometre of the footprint "
+                f"(shape statistic {evidence[k]:.0f} at frame {k}, more than "
+                f"{bound:g}; ground detail and the run's attitude "
+                "sigma give less): the map is off by a smooth error over kilometres here (a "
+                "hill, a hollow, an embankment the DTM lacks), whose mean the estimate takes "
+                "as its own height while the covariance holds none of it: the altitude may "
+                "be off by several metres around these frames (the IMU spreads it over tens "
+                "of seconds); check the DTM here, or use a newer one")
+
+    return FrameTest(Code.BROAD_MAP_ERROR, flagged, describe)
+
+
 def _imu_test(frame_t_ns: np.ndarray, imu_t_ns: np.ndarray | None,
               settings: VerdictSettings) -> FrameTest | None:
     if imu_t_ns is None or np.size(imu_t_ns) < 2:
@@ -514,6 +559,9 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
     imu = _imu_test(result.estimate.t_ns, imu_t_ns, settings)
     if imu is not None:
         tests.append(imu)
+    broad = _broad_map_test(f, result, settings)
+    if broad is not None:
+        tests.append(broad)
     checks, residual_test, failures, notes = _residual_checks(f, result, settings)
     if residual_test is not None:
         tests.append(residual_test)
@@ -572,6 +620,9 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
     stretches.sort(key=lambda r: (r.first_frame, r.last_frame, r.code))
     calibration_reasons, calibration_notes = _calibration_check(
         result, {r.code for r in run_wide + stretches})
+    if calibration_reasons:
+        stretches, explained = _explained_by_calibration(stretches)
+        calibration_notes += explained
     run_wide[calibration_at:calibration_at] = [reason(code, message, 0, last)
                                                for code, message in calibration_reasons]
     reasons = tuple(run_wide + stretches)
@@ -773,12 +824,27 @@ def _calibration_notes(result: SmootherResult) -> list[str]:
 #: sightings along the track): with one of them the calibration check is a note
 #: (``calibration_confounded``), not a reason. Not among them: what a calibration fault
 #: itself does to the run (``not_converged``; the errors ground truth shows; an IMU bias
-#: taking a height error), so that a real fault is still named.
+#: taking a height error; the ground its cameras triangulate bent over the footprint,
+#: ``broad_map_error``: a 1% focal error reads 20-40 there), so that a real fault is still
+#: named.
 CALIBRATION_RIVALS = frozenset({
-    Code.MAP_MISMATCH, Code.CLUTTER, Code.WRONG_FIX, Code.HEAVY_REJECTION, Code.OUTLIERS,
+    Code.MAP_MISMATCH, Code.CLUTTER, Code.WRONG_FIX,
+    Code.HEAVY_REJECTION, Code.OUTLIERS,
     Code.MISFIT, Code.RESIDUAL_CHI2, Code.RESIDUAL_MISFIT, Code.INNOVATION_NIS,
     Code.IMU_GAP, Code.NO_FEATURES, Code.OFF_DTM, Code.FEW_FEATURES, Code.FLAT_TERRAIN,
     Code.NARROW_FOV, Code.NO_FIX})
+
+
+def _explained_by_calibration(stretches: list[Reason]) -> tuple[list[Reason], list[str]]:
+    """The stretches without ``broad_map_error``'s, which become notes, when the verdict
+    names the calibration: a wrong focal scale or mount bends the ground the cameras
+    triangulate over each footprint as a hill the map lacks would, and the advice is the
+    calibration's (the frames stay flagged)."""
+    kept = [r for r in stretches if r.code != Code.BROAD_MAP_ERROR]
+    notes = [f"{Code.BROAD_MAP_ERROR}: frames {r.first_frame}-{r.last_frame}: the tracks' "
+             "heights bend across the footprint as the calibration named would bend them: "
+             "not named as a reason" for r in stretches if r.code == Code.BROAD_MAP_ERROR]
+    return kept, notes
 
 
 def _calibration_check(result: SmootherResult, named: set[str]

@@ -102,15 +102,19 @@ def test_the_rule_reads_the_share_of_frames_moved_inside_their_bound(clean_fligh
 
 @pytest.mark.slow
 def test_a_fixed_lag_run_its_solver_calls_unconverged_stays_degraded_not_failed():
-    """The robustness study's 30% wrong matches, fixed lag, 40 frames (seed 1, the
-    flight the fingerprint of 2026-11-27 runs: its solver reports no convergence):
-    ANEES 4.8, RMSE 5.1 m; one more solve moves it at most 4.8 m, NEES at most 2.9:
-    ``degraded: heavy_rejection`` with a note, no longer ``failed: not_converged``.
-    Mutation: the effect check switched off -> FAILED: this test fails."""
+    """The robustness study's 30% wrong matches, fixed lag, 40 frames (seed 1), stopped
+    one relinearizing step after its last frame (``final_iterations=1``: its solver then
+    reports no convergence; with the default 5 it now converges, so the case is made,
+    not waited for). Measured 2026-11-27: ANEES 4.84, RMSE 5.06 m; one more solve moves
+    it at most 4.2 m, NEES at most 2.3: ``degraded: heavy_rejection`` with a note, not
+    ``failed: not_converged``. Mutation: the effect check switched off
+    (``_convergence_check`` returning NOT_CONVERGED for any unconverged run) -> FAILED:
+    this test fails."""
     flight, dtm = SCENARIOS["wrong30"].flight(dataclasses.replace(BASE, frames=40))
-    out = smooth_and_evaluate(flight, dtm, Mode.FIXED_LAG.settings(SmootherSettings()))
-    if out.result.stats.converged:
-        pytest.skip("the fixed lag now reports convergence on this flight: nothing to judge")
+    settings = dataclasses.replace(Mode.FIXED_LAG.settings(SmootherSettings()),
+                                   final_iterations=1)
+    out = smooth_and_evaluate(flight, dtm, settings)
+    assert not out.result.stats.converged
     assert out.result.convergence_check is not None
     assert out.errors is not None and out.errors.anees_position < 6.0
     assert out.verdict.status is Status.DEGRADED, out.verdict.lines()

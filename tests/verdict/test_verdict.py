@@ -26,6 +26,7 @@ from cdtm_graph.graph import cdtm_information, insert_state
 from cdtm_graph.graph.log_graph import build_log_graph
 from cdtm_graph.imu import initial_bias
 from cdtm_graph.results import (
+    BroadMapError,
     GraphCounts,
     RandomWalkEstimate,
     SmootherResult,
@@ -678,3 +679,65 @@ def test_a_narrow_footprint_is_named(free_rotation_info, narrow):
     verdict = assess(result)
     assert _codes(verdict) == (["narrow_fov"] if narrow else []), verdict.lines()
     assert verdict.status is (Status.DEGRADED if narrow else Status.TRUSTED)
+
+
+def test_a_named_calibration_takes_the_broad_map_error_as_its_own():
+    """A 1% focal error bends the ground the cameras triangulate over each footprint
+    (``focal1pct``, 90 frames: shape evidence 20-40, ``broad_map_error`` over frames 26-28
+    and 58-65 in batch and iSAM2). The calibration check is still named
+    (``calibration_suspect``: broad map error is no rival of it), and the broad map error
+    is then a note, its frames flagged. Mutations: ``Code.BROAD_MAP_ERROR`` back in
+    ``CALIBRATION_RIVALS`` (as merged on 2026-11-27: focal1pct then lost
+    ``calibration_suspect`` in batch and iSAM2) -> fails; ``_explained_by_calibration``
+    not applied -> both named: fails (each tried)."""
+    result = _result()
+    k = result.counts.n_frames
+    evidence = np.full(k, 12.0)
+    evidence[:7] = evidence[-7:] = np.nan
+    evidence[12:17] = 25.0
+    shaped = dataclasses.replace(result, calibration_check=_check(100.0, 50.0),
+                                 broad_map_error=BroadMapError(
+                                     evidence, evidence, np.full(k, 3.2), np.full(k, 5.9),
+                                     np.full(k, 230)))
+    verdict = assess(shaped)
+    assert _codes(verdict) == ["calibration_suspect"], verdict.lines()
+    notes = [n for n in verdict.notes if n.startswith("broad_map_error: frames 12-16")]
+    assert len(notes) == 1, verdict.lines()
+    assert sorted(k for k, v in verdict.flags.items() if "broad_map_error" in v) == list(
+        range(12, 17))
+
+
+@pytest.mark.parametrize("frames, named", [(range(12, 17), True), (range(12, 14), False),
+                                           ((), False)])
+def test_a_broad_map_error_is_named_over_its_stretch(frames, named):
+    """``broad_map_error`` (issue 21, build 4): the frames whose shape evidence exceeds
+    ``max_broad_map_evidence`` (20) over at least ``min_stretch_s`` are a reason, with the
+    map's tilt and curvature in the message; two frames are a flag only; evidence below
+    the bound (12, as clean batch runs: 3.4-14.5 at their highest frame) is nothing; a
+    fixed-lag run is held to ``max_broad_map_evidence_fixed_lag`` (28: its clean runs read
+    up to 24.6), the same 25 nothing there. Mutations: ``_broad_map_test`` left out of
+    ``assess`` -> the reason is missing: fails; the comparison turned (``evidence <
+    bound``) -> clean frames named: fails; the fixed lag held to the batch's bound ->
+    named there: fails (each tried, 2026-11-27)."""
+    result = _result()
+    evidence = np.full(result.counts.n_frames, 12.0)
+    evidence[:7] = evidence[-7:] = np.nan  # windows cut by the flight's ends
+    evidence[list(frames)] = 25.0
+    k = evidence.size
+    shaped = dataclasses.replace(result, broad_map_error=BroadMapError(
+        evidence, evidence, np.full(k, 3.2), np.full(k, 5.9), np.full(k, 230)))
+    verdict = assess(shaped)
+    assert (_codes(verdict) == ["broad_map_error"]) is named, verdict.lines()
+    if named:
+        reason = _only(verdict, "broad_map_error")
+        assert (reason.first_frame, reason.last_frame) == (12, 16)
+        assert reason.status is Status.DEGRADED
+        assert "tilt by 3.2 m and curve by 5.9 m over a kilometre" in reason.message
+        assert "frame 12" in reason.message and "more than 20;" in reason.message
+    else:
+        assert verdict.status is Status.TRUSTED
+    flagged = sorted(k for k, v in verdict.flags.items() if "broad_map_error" in v)
+    assert flagged == list(frames)
+    fixed_lag = assess(dataclasses.replace(shaped, settings={"mode": "incremental",
+                                                             "lag_s": 10.0}))
+    assert fixed_lag.status is Status.TRUSTED and not fixed_lag.flags, fixed_lag.lines()
