@@ -383,18 +383,23 @@ class RandomWalkEstimate:
         stated_gyro, stated_accel: flight.yaml's ``imu.gyroscope_random_walk``
             (rad/s^2/sqrt(Hz)) and ``imu.accelerometer_random_walk`` (m/s^3/sqrt(Hz)).
         ratio_gyro, ratio_accel: the bias steps' chi-square over its expectation at the
-            stated walks (~1 when they hold).
+            stated walks, each step less its segment's mean rate, over the lower half of
+            the flight's segments (the spread: ~1 or less when they hold;
+            :class:`~cdtm_graph.robust.imu_walk.BiasSteps`).
         chi2, expected: (gyro, accelerometer) that chi-square and its expectation.
         chi2_bound: (gyro, accelerometer) the chi-square's quantile beyond which the walks
             are grown (``RandomWalkSettings.probability``).
         n_steps: the frame intervals counted (those with an IMU gap left out).
         used_gyro, used_accel: the walks the run was made with (the stated ones, or grown).
-        final_ratios: (gyro, accelerometer) the ratios at the walks used.
+        final_ratios: (gyro, accelerometer) the ratios over every segment at the walks
+            used (what the growth settles).
         bound_scale: the most the walks are grown (times the stated).
         held: the walks used hold the bias steps: no ratio beyond the growth threshold,
             and none still above the settling ratio at the bound (False: the bound
             stopped the growth, not the data: the verdict's ``imu_random_walk``).
         rounds: side solves of the growth. time_s: the check's cost.
+        yielded: the steps exceeded the walks, but a bias estimate lies beyond
+            flight.yaml's prior (the verdict's ``imu_bias``, which names it): not grown.
     """
 
     stated_gyro: float
@@ -412,6 +417,7 @@ class RandomWalkEstimate:
     held: bool
     rounds: int
     time_s: float
+    yielded: bool = False
 
     @property
     def grown(self) -> bool:
@@ -430,7 +436,8 @@ class RandomWalkEstimate:
                 "n_steps": self.n_steps, "used_gyro": self.used_gyro,
                 "used_accel": self.used_accel, "grown": self.grown,
                 "final_ratios": list(self.final_ratios), "bound_scale": self.bound_scale,
-                "held": self.held, "rounds": self.rounds, "time_s": self.time_s}
+                "held": self.held, "rounds": self.rounds, "time_s": self.time_s,
+                "yielded_to_imu_bias": self.yielded}
 
 
 @dataclass(frozen=True)

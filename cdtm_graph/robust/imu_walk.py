@@ -81,19 +81,29 @@ class RandomWalkSettings:
     settle_ratio: float = 1.2
     max_scale: float = 30.0
     max_rounds: int = 8
+    segments: int = 6
+    min_segment_steps: int = 5
 
 
 @dataclass(frozen=True)
 class BiasSteps:
-    """The bias steps between consecutive frames at a solution, whitened by the walk.
+    """The bias steps between consecutive frames at a solution, whitened by the walk, in
+    segments of the flight, each step less its segment's mean rate.
+
+    A walk's steps have no mean: a bias the run pulls from its prior toward a constant
+    offset (``imu_bias``'s case) moves it the same way frame after frame, which the
+    segment's mean rate takes. A walk wanders everywhere: a few frames bent by a fault
+    put their excess in one segment, which the spread (:attr:`ratios`) leaves out.
 
     Attributes:
-        chi2: (2,) gyro, accelerometer: the sum of ``d^T Q^-1 d`` over the steps.
-        expected: (2,) its expectation at the solution, ``tr(M)``, ``M = I - Q^-1/2 P
-            Q^-1/2`` over the steps (``P`` their joint posterior covariance): the share
-            of the steps the data decide.
-        variance: (2,) its variance, ``2 tr(M^2)`` (the steps' chi-square is a weighted
-            sum of chi-square(1) variables, the eigenvalues of ``M`` their weights).
+        chi2: (S, 2) per segment, gyro and accelerometer: the sum of ``d^T Q^-1 d`` over
+            its steps, each axis's whitened steps less their mean rate (``sqrt(dt)``
+            weighted).
+        expected: (S, 2) its expectation at the solution, ``tr(M)``, ``M = A (I - Q^-1/2 P
+            Q^-1/2) A`` over the segment's steps (``P`` their joint posterior covariance,
+            ``A`` the mean rate's removal): the share of the steps the data decide.
+        variance: (S, 2) its variance, ``2 tr(M^2)`` (a weighted sum of chi-square(1)
+            variables, the eigenvalues of ``M`` their weights).
         n_steps: the intervals counted (those with an IMU gap left out).
     """
 
@@ -103,22 +113,60 @@ class BiasSteps:
     n_steps: int
 
     @property
+    def spread(self) -> np.ndarray:
+        """(S, 2) bool: per sensor, the segments the spread counts: the lower half by
+        ratio (the larger half left out), so that the excess must be in most of the
+        flight, not carried by a few frames."""
+        ratio = self.chi2 / np.maximum(self.expected, 1e-300)
+        n_kept = self.chi2.shape[0] - self.chi2.shape[0] // 2
+        rank = np.argsort(np.argsort(ratio, axis=0, kind="stable"), axis=0)
+        return rank < n_kept
+
+    def _sums(self, which: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return ((self.chi2 * which).sum(0), (self.expected * which).sum(0),
+                (self.variance * which).sum(0))
+
+    @property
     def ratios(self) -> np.ndarray:
-        """(2,) chi-square over expectation, gyro and accelerometer."""
-        return self.chi2 / np.maximum(self.expected, 1e-300)
+        """(2,) gyro, accelerometer: the spread's chi-square over its expectation (the
+        lower half of the segments, :attr:`spread`)."""
+        chi2, expected, _ = self._sums(self.spread)
+        return chi2 / np.maximum(expected, 1e-300)
+
+    @property
+    def whole_ratios(self) -> np.ndarray:
+        """(2,) the same over every segment: what the growth settles."""
+        chi2, expected, _ = self._sums(np.ones_like(self.spread))
+        return chi2 / np.maximum(expected, 1e-300)
+
+    @property
+    def spread_chi2(self) -> np.ndarray:
+        """(2,) the spread's chi-square (the lower half of the segments)."""
+        return self._sums(self.spread)[0]
 
     def bounds(self, probability: float) -> np.ndarray:
-        """(2,) the chi-square's ``probability`` quantile under the walks held: the
-        weighted sum as a scaled chi-square of the same mean and variance
-        (Satterthwaite), ``g chi2(h)``, ``g = var / (2 mean)``, ``h = 2 mean^2 / var``."""
-        mean, var = np.maximum(self.expected, 1e-300), np.maximum(self.variance, 1e-300)
+        """(2,) the spread's chi-square's ``probability`` quantile under the walks held:
+        the weighted sum as a scaled chi-square of the same mean and variance
+        (Satterthwaite), ``g chi2(h)``, ``g = var / (2 mean)``, ``h = 2 mean^2 / var``
+        (the segments taken as independent; the lower half of them lies below it more
+        often than ``probability``: the test errs toward the walks as stated)."""
+        _, expected, variance = self._sums(self.spread)
+        mean, var = np.maximum(expected, 1e-300), np.maximum(variance, 1e-300)
         g, h = var / (2.0 * mean), 2.0 * mean**2 / var
         return g * scipy.stats.chi2.ppf(probability, h)
 
 
-def bias_steps(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, t_ns: np.ndarray,
-               gyro_walk: float, accel_walk: float,
-               counted: np.ndarray | None = None) -> BiasSteps:
+def segments_of(n_steps: int, settings: RandomWalkSettings) -> list[np.ndarray]:
+    """The counted steps' indices cut into contiguous segments: ``settings.segments``, or
+    fewer so that each has at least ``settings.min_segment_steps`` (one, on a short
+    flight)."""
+    count = max(1, min(settings.segments, n_steps // settings.min_segment_steps))
+    return np.array_split(np.arange(n_steps), count)
+
+
+def bias_steps(linear: gtsam.GaussianFactorGraph, values: gtsam.Values, t_ns: np.ndarray,
+               gyro_walk: float, accel_walk: float, counted: np.ndarray | None = None,
+               settings: RandomWalkSettings | None = None) -> BiasSteps:
     """:class:`BiasSteps` of a solved graph (module docstring).
 
     The biases' joint posterior comes from the graph linearized at the solution with every
@@ -129,11 +177,14 @@ def bias_steps(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, t_ns: np
     triangular solves.
 
     Args:
-        graph, values: the graph and its solution (bias keys ``B(0..K-1)``).
+        linear: the graph linearized at its solution ``values`` (bias keys
+            ``B(0..K-1)``): the solve's own (``LinearSolver.linearized_at``).
         t_ns: (K,) the frames' times. gyro_walk, accel_walk: the walks the graph holds
             (rad/s^2/sqrt(Hz), m/s^3/sqrt(Hz)).
         counted: (K-1,) bool, which intervals count (None: all).
+        settings: the segments (:func:`segments_of`).
     """
+    s = settings or RandomWalkSettings()
     t_s = np.asarray(t_ns, dtype=np.int64) / NS_PER_S
     k = t_s.size
     dt = np.diff(t_s)
@@ -141,7 +192,6 @@ def bias_steps(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, t_ns: np
     order = gtsam.Ordering()
     for j in range(k):
         order.push_back(B(j))
-    linear = graph.linearize(values)
     try:  # Cholesky first (5x faster here, the same figures to 8 digits), QR where it fails
         marginal = linear.marginalMultifrontalBayesNet(order)
     except RuntimeError:
@@ -151,28 +201,30 @@ def bias_steps(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, t_ns: np
             raise explain_indeterminant(exc) from None
     R, _ = marginal.matrix()  # (6K, 6K), the bias keys in order
     biases = np.stack([values.atConstantBias(B(j)).vector() for j in range(k)])
-    steps = np.diff(biases, axis=0)[use]  # (n, 6): accelerometer, gyro
-    walk = np.r_[[accel_walk] * 3, [gyro_walk] * 3]
-    q_sqrt = walk[None, :] * np.sqrt(dt[use])[:, None]  # (n, 6)
     rows = np.flatnonzero(use)
-    # D: step j's row block is B(j+1) - B(j)
-    D = np.zeros((rows.size * 6, 6 * k))
+    n = rows.size
+    walk = np.r_[[accel_walk] * 3, [gyro_walk] * 3]
+    q_sqrt = walk[None, :] * np.sqrt(dt[rows])[:, None]  # (n, 6)
+    whitened = np.diff(biases, axis=0)[rows] / q_sqrt  # (n, 6): accelerometer, gyro
+    # W = Q^-1/2 D R^-1 (D: step i's block is B(first+1) - B(first)): solve R^T W^T = D^T Q^-1/2
+    Dt = np.zeros((6 * k, 6 * n))
     for i, first in enumerate(rows.tolist()):
-        D[6 * i:6 * i + 6, 6 * first:6 * first + 6] = -np.eye(6)
-        D[6 * i:6 * i + 6, 6 * first + 6:6 * first + 12] = np.eye(6)
-    # W = Q^-1/2 D R^-1: solve R^T W^T = D^T Q^-1/2
-    W = scipy.linalg.solve_triangular(R, (D / q_sqrt.reshape(-1)[:, None]).T, trans="T").T
-    whitened = (steps / q_sqrt) ** 2
-    chi2, expected, variance = np.zeros(2), np.zeros(2), np.zeros(2)
-    for s, part in enumerate((GYRO, ACCEL)):
-        sel = (np.arange(rows.size * 6) % 6 >= part.start) & (np.arange(rows.size * 6) % 6
-                                                              < part.stop)
-        Ws = W[sel]
-        M = np.eye(Ws.shape[0]) - Ws @ Ws.T
-        chi2[s] = whitened[:, part].sum()
-        expected[s] = np.trace(M)
-        variance[s] = 2.0 * np.sum(M * M)
-    return BiasSteps(chi2, expected, variance, int(use.sum()))
+        Dt[6 * first:6 * first + 6, 6 * i:6 * i + 6] = -np.diag(1.0 / q_sqrt[i])
+        Dt[6 * first + 6:6 * first + 12, 6 * i:6 * i + 6] = np.diag(1.0 / q_sqrt[i])
+    W = scipy.linalg.solve_triangular(R, Dt, trans="T").T.reshape(n, 6, 6 * k)
+    parts = segments_of(n, s)
+    chi2, expected, variance = (np.zeros((len(parts), 2)) for _ in range(3))
+    for g, idx in enumerate(parts):
+        for c, part in enumerate((GYRO, ACCEL)):
+            w = whitened[idx, part]  # (n_s, 3)
+            Ws = W[idx, part].reshape(-1, 6 * k)  # (3 n_s, 6K): the steps' posterior root
+            # (einsum, not BLAS: a small product that a threaded BLAS on a busy machine
+            # made 30x slower, 0.3 s a 90-frame flight)
+            M = np.eye(Ws.shape[0]) - np.einsum("ik,jk->ij", Ws, Ws)
+            chi2[g, c] = float(np.sum(w * w))
+            expected[g, c] = float(np.trace(M))
+            variance[g, c] = 2.0 * float(np.sum(M * M))
+    return BiasSteps(chi2, expected, variance, int(n))
 
 
 def with_random_walks(flight: FlightLog, gyro_walk: float, accel_walk: float) -> FlightLog:
@@ -186,4 +238,5 @@ def with_random_walks(flight: FlightLog, gyro_walk: float, accel_walk: float) ->
 def exceeds(steps: BiasSteps, ratio: float, probability: float) -> bool:
     """Whether a sensor's bias steps exceed their expectation ``ratio`` times and beyond
     the ``probability`` quantile of their chi-square under the walks the graph held."""
-    return bool(np.any((steps.ratios > ratio) & (steps.chi2 > steps.bounds(probability))))
+    return bool(np.any((steps.ratios > ratio)
+                       & (steps.spread_chi2 > steps.bounds(probability))))

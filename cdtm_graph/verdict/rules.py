@@ -747,6 +747,24 @@ def _random_walk_check(result: SmootherResult) -> list[tuple[Code, str]]:
         "IMU's own (its Allan deviation), or check the IMU"))]
 
 
+def _bias_limit(settings: VerdictSettings) -> float:
+    """``imu_bias``'s bound on a bias estimate's excess over its prior (chi-square(3))."""
+    return float(chi2_quantile(settings.bias_probability, 3))
+
+
+def bias_beyond_prior(result: SmootherResult, settings: VerdictSettings | None = None
+                      ) -> bool:
+    """Whether :func:`_bias_check` names ``imu_bias`` for the run: a bias estimate beyond
+    flight.yaml's prior (the IMU random-walk check yields to it,
+    :func:`cdtm_graph.smoother.random_walks.check_random_walks`)."""
+    prior, est = result.bias_prior, result.estimate
+    if prior is None or len(est) == 0:
+        return False
+    limit = _bias_limit(settings or VerdictSettings())
+    return any(bool(np.any(excess > limit))
+               for excess in prior.excess(est.t_ns, est.accel_bias, est.gyro_bias))
+
+
 def _bias_check(result: SmootherResult, t_s: np.ndarray, settings: VerdictSettings
                 ) -> list[tuple[Code, str, int, int]]:
     """``imu_bias``: an IMU bias the run estimates lies beyond flight.yaml's prior. The
@@ -757,7 +775,7 @@ def _bias_check(result: SmootherResult, t_s: np.ndarray, settings: VerdictSettin
     prior, est = result.bias_prior, result.estimate
     if prior is None or len(est) == 0:
         return []
-    limit = float(chi2_quantile(settings.bias_probability, 3))
+    limit = _bias_limit(settings)
     out = []
     for name, key, walk, excess in zip(
             ("accelerometer", "gyro"), ("accel_bias", "gyro_bias"),
