@@ -231,10 +231,13 @@ class PinnedSolve:
     Attributes:
         linear: the graph linearized at ``values``. values: its solution (``X, V, B`` of
             the thinned log's frames, and the calibration ``C(0)`` pinned at zero).
+        log: the thinned log. kept: its frames' indices in the run's log.
     """
 
     linear: gtsam.GaussianFactorGraph
     values: gtsam.Values
+    log: FlightLog
+    kept: np.ndarray
 
 
 def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
@@ -276,7 +279,7 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
     held_error = built.graph.error(values)
     if on_pinned is not None:
         on_pinned(PinnedSolve(solver.linearized_at(values) or pinned.linearize(values),
-                              values))
+                              values, sub, kept))
     values, _ = levenberg_marquardt(built.graph, values, max_iterations,
                                     relative_error_tol, solver=solver)
     graph = built.graph

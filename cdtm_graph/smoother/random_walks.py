@@ -11,6 +11,7 @@ import gtsam
 import numpy as np
 
 from cdtm_graph.calibration.check import MAX_FRAMES, PinnedSolve, estimate_values, thinned
+from cdtm_graph.calibration.online import CALIBRATION_KEY
 from cdtm_graph.constants import NS_PER_S
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.flightlog import FlightLog
@@ -54,7 +55,8 @@ def check_random_walks(flight: FlightLog, dtm: Dtm, graph_settings: GraphSetting
     start = time.perf_counter()
     stated = np.array([flight.config.imu.gyroscope_random_walk,
                        flight.config.imu.accelerometer_random_walk])
-    sub, kept = thinned(flight, MAX_FRAMES)
+    # (the pinned solve's own thinning: the side solves count the same frames)
+    sub, kept = thinned(flight, MAX_FRAMES) if pinned is None else (pinned.log, pinned.kept)
     values = estimate_values(result.estimate, kept)
     if unfixed_frames is not None:  # the kept ones, as the thinned log numbers them
         unfixed_frames = np.searchsorted(kept, unfixed_frames[np.isin(unfixed_frames, kept)])
@@ -75,9 +77,10 @@ def check_random_walks(flight: FlightLog, dtm: Dtm, graph_settings: GraphSetting
                                   counted, s)
 
     if pinned is not None:
-        values = pinned.values
-        first = bias_steps(pinned.linear, values, t_ns, float(stated[0]), float(stated[1]),
-                           counted, s)
+        first = bias_steps(pinned.linear, pinned.values, t_ns, float(stated[0]),
+                           float(stated[1]), counted, s)
+        values = gtsam.Values(pinned.values)  # the growth's start: its states, no C(0)
+        values.erase(CALIBRATION_KEY)
     else:
         values, first = solve(stated, values)
     scale = np.ones(2)  # of the variances
