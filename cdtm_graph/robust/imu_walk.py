@@ -59,14 +59,17 @@ class RandomWalkSettings:
     """When flight.yaml's IMU bias random walks are grown to what the run shows.
 
     Attributes:
-        grow_ratio: a sensor's bias steps' chi-square over its expectation above this
-            makes the run again with grown walks (clean 90-frame flights of the
-            robustness study, seeds 1-10: 0.49-1.82; walks stated 10x low: 1.2-14).
-        probability: ...and the chi-square must lie beyond this quantile of its
+        grow_ratio: a sensor's spread (the lower half of the segments' chi-square over
+            its expectation, :attr:`BiasSteps.ratios`) above this makes the run again
+            with grown walks (clean 90-frame flights of the robustness study, seeds 1-10,
+            every mode: at most 1.23; the 20 clean 30-frame ones: at most 2.41; walks
+            stated 10x low, 90 frames, seeds 1, 2, 5: 3.3-8.7 for the larger sensor;
+            4x low: 2.2-2.6, not grown).
+        probability: ...and the spread's chi-square must lie beyond this quantile of its
             distribution under the stated walks (:meth:`BiasSteps.bounds`): a test resting
-            on a few steps the data decide scatters widely (the 20 clean 30-frame flights'
-            accelerometer expectation ~0.8: a ratio up to 3.3).
-        settle_ratio: the growth stops when every ratio is at or below this.
+            on a few steps the data decide scatters widely.
+        settle_ratio: the growth stops when every ratio over the whole flight
+            (:attr:`BiasSteps.whole_ratios`) is at or below this.
         max_scale: the walks are grown at most this many times the stated (a variance of
             its square); a walk that reaches it with its ratio still above
             ``settle_ratio`` (the growth stopped by the bound, not by the data) is a
@@ -74,6 +77,12 @@ class RandomWalkSettings:
             left ANEES 7.0.
         max_rounds: side solves of the growth (each multiplies the variances by their
             ratios).
+        segments: the flight's steps are cut in this many segments
+            (:meth:`BiasSteps.spread`), or fewer so that each has ``min_segment_steps``.
+        min_segments: a flight with fewer segments (under 20 steps) is not judged: too
+            short to tell a wander through it from a few bent frames (a 12-frame flight,
+            two segments, grew its accelerometer walk 16x and lost accuracy, RMSE 4.3 ->
+            5.7 m: ``tests/smoother/test_lens_models.py``'s seed 1).
     """
 
     grow_ratio: float = 3.0
@@ -83,6 +92,7 @@ class RandomWalkSettings:
     max_rounds: int = 8
     segments: int = 6
     min_segment_steps: int = 5
+    min_segments: int = 4
 
 
 @dataclass(frozen=True)

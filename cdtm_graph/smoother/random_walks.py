@@ -88,7 +88,9 @@ def check_random_walks(flight: FlightLog, dtm: Dtm, graph_settings: GraphSetting
     # a bias beyond its prior is imu_bias's (a constant offset the prior holds back, which
     # grown walks would hide by widening the prior's spread over the flight): not grown
     yielded = bool(beyond_prior(result) and exceeds(first, s.grow_ratio, s.probability))
-    grow = not yielded and exceeds(first, s.grow_ratio, s.probability)
+    # too short a flight to tell a wander through it from a few bent frames: not judged
+    judged = first.chi2.shape[0] >= s.min_segments
+    grow = judged and not yielded and exceeds(first, s.grow_ratio, s.probability)
     while grow and rounds < s.max_rounds and np.any(scale < s.max_scale**2):
         # (the spread decided; the growth settles the whole, each sensor by its ratio)
         scale = np.minimum(scale * np.maximum(steps.whole_ratios, 1.0), s.max_scale**2)
@@ -108,8 +110,8 @@ def check_random_walks(flight: FlightLog, dtm: Dtm, graph_settings: GraphSetting
         used_accel=float(stated[1] * math.sqrt(scale[1])) if grown else float(stated[1]),
         final_ratios=_pair(steps.whole_ratios),
         bound_scale=s.max_scale,
-        held=yielded or not (exceeds(steps, s.grow_ratio, s.probability)
-                             or bool(np.any(at_bound))),
+        held=not judged or yielded or not (exceeds(steps, s.grow_ratio, s.probability)
+                                           or bool(np.any(at_bound))),
         rounds=rounds, time_s=time.perf_counter() - start, yielded=yielded)
 
 
