@@ -92,9 +92,10 @@ class GraphSettings:
             its estimate; when it exceeds the stated sigma_h beyond chance, the run is
             made again with it (:mod:`cdtm_graph.robust.map_error`). ``None``: sigma_h
             as stated, always.
-        imu_random_walk: after the run, a batch side solve tests flight.yaml's IMU bias
-            random walks against the bias steps; when the steps exceed them beyond
-            chance, the walks are grown and the run made again with them
+        imu_random_walk: after the run, the calibration check's first solve tests
+            flight.yaml's IMU bias random walks against the bias steps; when the steps
+            exceed them beyond chance through most of the flight (and no bias lies beyond
+            its prior), the walks are grown and the run made again with them
             (:mod:`cdtm_graph.robust.imu_walk`). ``None``: the walks as stated, always.
         broad_map_error: with ``map_error``, the map's smooth error across each frame's
             footprint (a hill the DTM lacks) is looked for in the tracks at the final

@@ -1,6 +1,7 @@
-"""flight.yaml's IMU bias random walks tested, and grown, in a batch side solve from a run's
-estimate (:mod:`cdtm_graph.robust.imu_walk` has the test and why; the calibration check and
-the convergence check make their side solves alike)."""
+"""flight.yaml's IMU bias random walks tested at the calibration check's first solve (the
+run's graph at its optimum), and grown in side solves of their own
+(:mod:`cdtm_graph.robust.imu_walk` has the test and why; the calibration check and the
+convergence check make their side solves alike)."""
 
 from __future__ import annotations
 
