@@ -95,6 +95,9 @@ class Code(enum.StrEnum):
                 "an IMU bias the run estimates lies beyond flight.yaml's prior")
     IMU_NOISE = ("imu_noise", Kind.RUN,
                  "the IMU samples scatter more than flight.yaml's noise densities")
+    IMU_RANDOM_WALK = ("imu_random_walk", Kind.RUN,
+                       "the IMU biases wander beyond flight.yaml's random walks, more than "
+                       "the run may grow them")
     CALIBRATION_SUSPECT = ("calibration_suspect", Kind.RUN,
                            "the flight contradicts flight.yaml's camera calibration")
     # -- notes ----------------------------------------------------------------------------
@@ -114,6 +117,9 @@ class Code(enum.StrEnum):
     MAP_ERROR_GROWN = ("map_error_grown", Kind.NOTE,
                        "the tracks show the DTM's heights worse than its stated sigma_h: "
                        "the run used theirs")
+    IMU_RANDOM_WALK_GROWN = ("imu_random_walk_grown", Kind.NOTE,
+                             "the bias steps show the IMU biases wandering beyond "
+                             "flight.yaml's random walks: the run used grown ones")
 
     @classmethod
     def of(cls, value: str) -> Code | None:

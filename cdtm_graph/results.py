@@ -375,6 +375,72 @@ class MapErrorEstimate:
 
 
 @dataclass(frozen=True)
+class RandomWalkEstimate:
+    """flight.yaml's IMU bias random walks against the wander the run's bias steps show,
+    and the walks the run was made with (:mod:`cdtm_graph.robust.imu_walk`).
+
+    Attributes:
+        stated_gyro, stated_accel: flight.yaml's ``imu.gyroscope_random_walk``
+            (rad/s^2/sqrt(Hz)) and ``imu.accelerometer_random_walk`` (m/s^3/sqrt(Hz)).
+        ratio_gyro, ratio_accel: the bias steps' chi-square over its expectation at the
+            stated walks, each step less its segment's mean rate, over the lower half of
+            the flight's segments (the spread: ~1 or less when they hold;
+            :class:`~cdtm_graph.robust.imu_walk.BiasSteps`).
+        chi2, expected: (gyro, accelerometer) that chi-square and its expectation.
+        chi2_bound: (gyro, accelerometer) the chi-square's quantile beyond which the walks
+            are grown (``RandomWalkSettings.probability``).
+        n_steps: the frame intervals counted (those with an IMU gap left out).
+        used_gyro, used_accel: the walks the run was made with (the stated ones, or grown).
+        final_ratios: (gyro, accelerometer) the ratios over every segment at the walks
+            used (what the growth settles).
+        bound_scale: the most the walks are grown (times the stated).
+        held: the walks used hold the bias steps: no ratio beyond the growth threshold,
+            and none still above the settling ratio at the bound (False: the bound
+            stopped the growth, not the data: the verdict's ``imu_random_walk``).
+        rounds: side solves of the growth. time_s: the check's cost.
+        yielded: the steps exceeded the walks, but a bias estimate lies beyond
+            flight.yaml's prior (the verdict's ``imu_bias``, which names it): not grown.
+    """
+
+    stated_gyro: float
+    stated_accel: float
+    ratio_gyro: float
+    ratio_accel: float
+    chi2: tuple[float, float]
+    expected: tuple[float, float]
+    chi2_bound: tuple[float, float]
+    n_steps: int
+    used_gyro: float
+    used_accel: float
+    final_ratios: tuple[float, float]
+    bound_scale: float
+    held: bool
+    rounds: int
+    time_s: float
+    yielded: bool = False
+
+    @property
+    def grown(self) -> bool:
+        return self.used_gyro > self.stated_gyro or self.used_accel > self.stated_accel
+
+    @property
+    def scales(self) -> tuple[float, float]:
+        """(gyro, accelerometer) the walks used over the stated."""
+        return self.used_gyro / self.stated_gyro, self.used_accel / self.stated_accel
+
+    def to_dict(self) -> dict:
+        return {"stated_gyro": self.stated_gyro, "stated_accel": self.stated_accel,
+                "ratio_gyro": self.ratio_gyro, "ratio_accel": self.ratio_accel,
+                "chi2": list(self.chi2), "expected": list(self.expected),
+                "chi2_bound": list(self.chi2_bound),
+                "n_steps": self.n_steps, "used_gyro": self.used_gyro,
+                "used_accel": self.used_accel, "grown": self.grown,
+                "final_ratios": list(self.final_ratios), "bound_scale": self.bound_scale,
+                "held": self.held, "rounds": self.rounds, "time_s": self.time_s,
+                "yielded_to_imu_bias": self.yielded}
+
+
+@dataclass(frozen=True)
 class BroadMapError:
     """How far the map's error tilts and curves across each frame's footprint, over
     kilometres (:func:`cdtm_graph.robust.map_error.broad_map_error`): a hill or a hollow
@@ -485,6 +551,9 @@ class SmootherResult:
         map_error: the DTM's height error the tracks showed at the run's estimate, and
             the sigma_h the run was made with (:class:`MapErrorEstimate`); None when not
             estimated.
+        imu_random_walk: flight.yaml's IMU bias random walks against the bias steps of a
+            side solve, and the walks the run was made with (:class:`RandomWalkEstimate`);
+            None when not checked.
         broad_map_error: the map's smooth error across each frame's footprint, from the
             tracks at the run's estimate (:class:`BroadMapError`); None when not looked at.
     """
@@ -504,6 +573,7 @@ class SmootherResult:
     stages: tuple[dict, ...] = ()
     convergence_check: ConvergenceCheck | None = None
     map_error: MapErrorEstimate | None = None
+    imu_random_walk: RandomWalkEstimate | None = None
     broad_map_error: BroadMapError | None = None
 
 

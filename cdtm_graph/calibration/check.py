@@ -38,6 +38,7 @@ made only when it decides, 27% more (the 1% focal error; interleaved medians of 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import gtsam
@@ -220,11 +221,32 @@ class CalibrationCheck:
                 "wald": self.wald if np.isfinite(self.wald) else None}
 
 
+@dataclass(frozen=True)
+class PinnedSolve:
+    """The side solve's first solve, flight.yaml's calibration held: the run's graph (of
+    the thinned log, :func:`thinned`) at its optimum, which the IMU random-walk check
+    reads (:func:`cdtm_graph.smoother.random_walks.check_random_walks`) instead of a
+    graph of its own.
+
+    Attributes:
+        linear: the graph linearized at ``values``. values: its solution (``X, V, B`` of
+            the thinned log's frames, and the calibration ``C(0)`` pinned at zero).
+        log: the thinned log. kept: its frames' indices in the run's log.
+    """
+
+    linear: gtsam.GaussianFactorGraph
+    values: gtsam.Values
+    log: FlightLog
+    kept: np.ndarray
+
+
 def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
                       result: SmootherResult, sigmas: CalibrationSigmas,
                       left_out: np.ndarray | None = None,
                       unfixed_frames: np.ndarray | None = None, max_iterations: int = 30,
-                      relative_error_tol: float = 1e-6) -> CalibrationCheck:
+                      relative_error_tol: float = 1e-6,
+                      on_pinned: Callable[[PinnedSolve], None] | None = None
+                      ) -> CalibrationCheck:
     """Estimate the calibration from ``result``'s estimate in a batch side solve.
 
     Args:
@@ -235,6 +257,7 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
             never found: both stay out of the side solve too.
         max_iterations, relative_error_tol: the side solve's Levenberg-Marquardt limits
             (the run's ``SmootherSettings``).
+        on_pinned: given the first solve (:class:`PinnedSolve`), when it is made.
     """
     start = time.perf_counter()
     sub, kept = thinned(flight, MAX_FRAMES)
@@ -254,6 +277,9 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
     values, _ = levenberg_marquardt(pinned, values, max_iterations,
                                     relative_error_tol, solver=solver)
     held_error = built.graph.error(values)
+    if on_pinned is not None:
+        on_pinned(PinnedSolve(solver.linearized_at(values) or pinned.linearize(values),
+                              values, sub, kept))
     values, _ = levenberg_marquardt(built.graph, values, max_iterations,
                                     relative_error_tol, solver=solver)
     graph = built.graph

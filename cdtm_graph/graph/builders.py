@@ -21,6 +21,7 @@ from cdtm_graph.imu import GapNoise, SampleHold, initial_bias
 from cdtm_graph.results import Rejection, Rejections
 from cdtm_graph.robust.clutter import ClutterSettings
 from cdtm_graph.robust.epipolar import EpipolarSettings
+from cdtm_graph.robust.imu_walk import RandomWalkSettings
 from cdtm_graph.robust.map_error import BroadErrorSettings, MapErrorSettings
 from cdtm_graph.robust.mismatch import MismatchSettings
 from cdtm_graph.tracks import FramePairObservations, first_sightings
@@ -91,6 +92,11 @@ class GraphSettings:
             its estimate; when it exceeds the stated sigma_h beyond chance, the run is
             made again with it (:mod:`cdtm_graph.robust.map_error`). ``None``: sigma_h
             as stated, always.
+        imu_random_walk: after the run, the calibration check's first solve tests
+            flight.yaml's IMU bias random walks against the bias steps; when the steps
+            exceed them beyond chance through most of the flight (and no bias lies beyond
+            its prior), the walks are grown and the run made again with them
+            (:mod:`cdtm_graph.robust.imu_walk`). ``None``: the walks as stated, always.
         broad_map_error: with ``map_error``, the map's smooth error across each frame's
             footprint (a hill the DTM lacks) is looked for in the tracks at the final
             estimate (:func:`cdtm_graph.robust.map_error.broad_map_error`), for the verdict
@@ -113,6 +119,7 @@ class GraphSettings:
         default_factory=lambda: DEFAULT_CALIBRATION_SIGMAS)
     calibration_online: bool = False
     map_error: MapErrorSettings | None = field(default_factory=MapErrorSettings)
+    imu_random_walk: RandomWalkSettings | None = field(default_factory=RandomWalkSettings)
     broad_map_error: BroadErrorSettings | None = field(default_factory=BroadErrorSettings)
 
 

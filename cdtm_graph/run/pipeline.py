@@ -95,6 +95,8 @@ def smooth_and_evaluate(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
         report["convergence_check"] = result.convergence_check.to_dict()
     if result.map_error is not None:
         report["map_error"] = result.map_error.to_dict()
+    if result.imu_random_walk is not None:
+        report["imu_random_walk"] = result.imu_random_walk.to_dict()
     if result.broad_map_error is not None:
         report["broad_map_error"] = result.broad_map_error.to_dict()
     report["timings_s"]["total"] = time.perf_counter() - start

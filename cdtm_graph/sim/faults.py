@@ -281,3 +281,29 @@ def with_calibration_error(log: FlightLog, focal_scale: float = 1.0,
     if nav is not None and shift:
         nav = dataclasses.replace(nav, t_ns=nav.t_ns + shift)
     return dataclasses.replace(log, config=config, frames=frames, nav=nav)
+
+
+def with_imu_bias_step(log: FlightLog, at_s: float,
+                       accel_mps2: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                       gyro_radps: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> FlightLog:
+    """Every IMU sample from ``t0 + at_s`` on offset by a bias step (a sensor's bias jumping
+    once in flight: a temperature step, a shock), t0 the first frame's time."""
+    imu = log.imu
+    after = (imu.t_ns >= int(log.frames.t_ns[0]) + int(at_s * NS_PER_S))[:, None]
+    return dataclasses.replace(log, imu=ImuSamples(
+        imu.t_ns, imu.gyro_radps + after * np.asarray(gyro_radps),
+        imu.acc_mps2 + after * np.asarray(accel_mps2)))
+
+
+def with_imu_random_walks_stated(log: FlightLog, gyro_scale: float = 1.0,
+                                 accel_scale: float = 1.0) -> FlightLog:
+    """flight.yaml stating the IMU's bias random walks (``imu.gyroscope_random_walk``,
+    ``imu.accelerometer_random_walk``) as ``scale`` times those of the IMU that made the
+    samples: ``0.1`` states them 10x below the truth (a datasheet's in-run stability
+    copied for the random walk, an IMU aged or warmer than its specification). The
+    samples are untouched."""
+    cfg = log.config
+    imu = dataclasses.replace(
+        cfg.imu, gyroscope_random_walk=cfg.imu.gyroscope_random_walk * gyro_scale,
+        accelerometer_random_walk=cfg.imu.accelerometer_random_walk * accel_scale)
+    return dataclasses.replace(log, config=dataclasses.replace(cfg, imu=imu))

@@ -11,13 +11,14 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 
-from cdtm_graph.calibration.check import check_calibration
+from cdtm_graph.calibration.check import CalibrationCheck, PinnedSolve, check_calibration
 from cdtm_graph.calibration.noise_bias import debiased
 from cdtm_graph.calibration.online import CALIBRATION_KEY
 from cdtm_graph.calibration.online import estimate as calibration_estimate
@@ -37,6 +38,7 @@ from cdtm_graph.results import (
     TrajectoryEstimate,
 )
 from cdtm_graph.robust.clutter import considered_offsets
+from cdtm_graph.robust.imu_walk import with_random_walks
 from cdtm_graph.robust.map_error import (
     estimate_map_error,
     run_broad_map_error,
@@ -46,6 +48,7 @@ from cdtm_graph.robust.track_tests import BatchTrackTests
 from cdtm_graph.smoother.assembly import ClutterOutcome, assemble_result
 from cdtm_graph.smoother.convergence import check_convergence
 from cdtm_graph.smoother.incremental import IncrementalSmoother
+from cdtm_graph.smoother.random_walks import check_random_walks
 from cdtm_graph.smoother.settings import Progress, SmootherMode, SmootherSettings
 from cdtm_graph.verdict.preflight import check_constraints
 from factors.calibration import CALIBRATION_DIM
@@ -115,7 +118,9 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     When the tracks show the DTM's height error beyond its stated sigma_h (ground detail
     the map lacks, :mod:`cdtm_graph.robust.map_error`), the run is made again with the
     sigma_h they show (``settings.graph.map_error``; ``result.map_error`` says what was
-    estimated and used; ``progress`` then runs through the frames twice).
+    estimated and used; ``progress`` then runs through the frames twice). Likewise when a
+    side solve's bias steps show the IMU biases wandering beyond flight.yaml's random walks
+    (:mod:`cdtm_graph.robust.imu_walk`; ``result.imu_random_walk``).
 
     Returns:
         Smoothed states, per-frame covariances, statistics and counts.
@@ -158,6 +163,24 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
             if second.estimated_m <= map_error.bound_m:
                 flight, run = capped, again
                 map_error = replace(second, used_m=map_error.bound_m)
+    walks, calibration = None, None
+    if settings.graph.imu_random_walk is not None and run.checked:
+        # the IMU biases wander more than flight.yaml says: the run again with the walks
+        # the bias steps show, read at the calibration check's first solve (the run's
+        # graph at its optimum, flight.yaml's calibration held)
+        pinned: list[PinnedSolve] = []
+        calibration = _calibration_check(flight, dtm, settings, run.result, run.left_out,
+                                         run.unfixed_frames, pinned.append)
+        walks = check_random_walks(flight, dtm, settings.graph, run.result, run.left_out,
+                                   run.unfixed_frames, settings.graph.imu_random_walk,
+                                   settings.max_iterations, settings.relative_error_tol,
+                                   pinned[0] if pinned else None)
+        if walks.grown:
+            logger.info("IMU random walks grown %.3gx (gyro), %.3gx (accelerometer)",
+                        *walks.scales)
+            flight = with_random_walks(flight, walks.used_gyro, walks.used_accel)
+            run = _smooth_once(flight, dtm, settings, progress)
+            calibration = None  # of the run before
     result = run.result
     if map_error is not None and settings.graph.broad_map_error is not None:
         result = replace(result, broad_map_error=run_broad_map_error(
@@ -165,8 +188,11 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
             heights if run is first else None, settings.graph.broad_map_error,
             settings.graph.mismatch))
     if run.checked:
-        result = _checked(flight, dtm, settings, result, run.left_out, run.unfixed_frames)
-    return result if map_error is None else replace(result, map_error=map_error)
+        result = _checked(flight, dtm, settings, result, run.left_out, run.unfixed_frames,
+                          calibration)
+    if map_error is not None:
+        result = replace(result, map_error=map_error)
+    return result if walks is None else replace(result, imu_random_walk=walks)
 
 
 @dataclass
@@ -321,18 +347,32 @@ def _online_calibration(flight: FlightLog, settings: SmootherSettings
 
 
 def _checked(flight: FlightLog, dtm: Dtm, settings: SmootherSettings, result: SmootherResult,
-             left_out: np.ndarray, unfixed_frames: np.ndarray) -> SmootherResult:
+             left_out: np.ndarray, unfixed_frames: np.ndarray,
+             calibration: CalibrationCheck | None = None) -> SmootherResult:
     """``result`` (which held flight.yaml's calibration) with the side solve's check of it
-    (:mod:`cdtm_graph.calibration.check`), unless the settings hold it unchecked; and, if
-    its solver did not report convergence, with one more solve's move
-    (:mod:`cdtm_graph.smoother.convergence`)."""
+    (:mod:`cdtm_graph.calibration.check`; ``calibration``: made already), unless the
+    settings hold it unchecked; and, if its solver did not report convergence, with one
+    more solve's move (:mod:`cdtm_graph.smoother.convergence`)."""
     if not result.stats.converged:
         result = replace(result, convergence_check=check_convergence(
             flight, dtm, settings.graph, result, left_out, unfixed_frames,
             settings.max_iterations, settings.relative_error_tol))
+    if calibration is None:
+        calibration = _calibration_check(flight, dtm, settings, result, left_out,
+                                         unfixed_frames)
+    return result if calibration is None else replace(result, calibration_check=calibration)
+
+
+def _calibration_check(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
+                       result: SmootherResult, left_out: np.ndarray,
+                       unfixed_frames: np.ndarray,
+                       on_pinned: Callable[[PinnedSolve], None] | None = None
+                       ) -> CalibrationCheck | None:
+    """The calibration check's side solve of ``result`` (None: the settings hold it
+    unchecked); ``on_pinned`` given its first solve."""
     sigmas = flight.config.camera.calibration or settings.graph.calibration
     if sigmas is None:
-        return result
-    return replace(result, calibration_check=check_calibration(
-        flight, dtm, settings.graph, result, sigmas, left_out, unfixed_frames,
-        settings.max_iterations, settings.relative_error_tol))
+        return None
+    return check_calibration(flight, dtm, settings.graph, result, sigmas, left_out,
+                             unfixed_frames, settings.max_iterations,
+                             settings.relative_error_tol, on_pinned)

@@ -604,6 +604,7 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
                  for code, message, a, b in _bias_check(result, f.t_s, settings)]
     run_wide += [reason(code, message, 0, last)
                  for code, message in _noise_check(imu_noise, settings)]
+    run_wide += [reason(code, message, 0, last) for code, message in _random_walk_check(result)]
 
     stretches: list[Reason] = []
     known = {t.code for t in tests}
@@ -634,7 +635,8 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
     return Verdict(status, reasons, flags, checks,
                    tuple(convergence_notes + notes + _calibration_notes(result)
                          + calibration_notes + _map_offset_notes(result)
-                         + _map_error_notes(result)))
+                         + _map_error_notes(result)
+                         + _random_walk_notes(result, {r.code for r in reasons})))
 
 
 def _convergence_check(result: SmootherResult, settings: VerdictSettings
@@ -700,6 +702,69 @@ def _map_error_notes(result: SmootherResult) -> list[str]:
             "covariances hold it"]
 
 
+def _walk_figures(result: SmootherResult) -> str:
+    """The IMU random-walk check's figures, in words (:mod:`cdtm_graph.robust.imu_walk`)."""
+    w = result.imu_random_walk
+    assert w is not None
+    return (f"the bias steps between frames are {w.ratio_gyro:.1f}x (gyro) and "
+            f"{w.ratio_accel:.1f}x (accelerometer) the chi-square flight.yaml's "
+            f"imu.gyroscope_random_walk {w.stated_gyro:.3g} and "
+            f"imu.accelerometer_random_walk {w.stated_accel:.3g} lead to expect at the "
+            f"solution ({w.n_steps} intervals)")
+
+
+def _random_walk_notes(result: SmootherResult, named: set[str]) -> list[str]:
+    """``imu_random_walk_grown``: the bias steps showed the IMU biases wandering beyond
+    flight.yaml's random walks, and the run was made again with the walks grown to what
+    they show (:mod:`cdtm_graph.robust.imu_walk`). A note, not a reason: the covariances
+    then hold the real wander; but the user's IMU is worse than flight.yaml says, unless a
+    camera calibration fault the verdict names bends the bias steps (a 1% focal error
+    grew the gyro's walk 12.6x on a 40-frame flight): the note then says so."""
+    w = result.imu_random_walk
+    if w is None or not w.grown or not w.held:
+        return []
+    gyro, accel = w.scales
+    also = (f"; {Code.CALIBRATION_SUSPECT}, named, may bend the bias steps as well"
+            if Code.CALIBRATION_SUSPECT in named else "")
+    return [f"{Code.IMU_RANDOM_WALK_GROWN}: {_walk_figures(result)}: the run was made with "
+            f"the walks {gyro:.3g}x (gyro, {w.used_gyro:.3g}) and {accel:.3g}x "
+            f"(accelerometer, {w.used_accel:.3g}) flight.yaml's, its covariances hold "
+            f"them{also}"]
+
+
+def _random_walk_check(result: SmootherResult) -> list[tuple[Code, str]]:
+    """``imu_random_walk``: the bias steps exceed what flight.yaml's random walks allow,
+    and still do at the most the run grows them to (``RandomWalkSettings.max_scale``):
+    the IMU is not as stated, beyond what a grown covariance may hold."""
+    w = result.imu_random_walk
+    if w is None or w.held:
+        return []
+    gyro, accel = w.final_ratios
+    return [(Code.IMU_RANDOM_WALK, (
+        f"{_walk_figures(result)}, and still {gyro:.1f}x and {accel:.1f}x with the walks "
+        f"grown {w.bound_scale:g}x: the IMU biases wander beyond what the covariances can "
+        "hold; set imu.gyroscope_random_walk and imu.accelerometer_random_walk to the "
+        "IMU's own (its Allan deviation), or check the IMU"))]
+
+
+def _bias_limit(settings: VerdictSettings) -> float:
+    """``imu_bias``'s bound on a bias estimate's excess over its prior (chi-square(3))."""
+    return float(chi2_quantile(settings.bias_probability, 3))
+
+
+def bias_beyond_prior(result: SmootherResult, settings: VerdictSettings | None = None
+                      ) -> bool:
+    """Whether :func:`_bias_check` names ``imu_bias`` for the run: a bias estimate beyond
+    flight.yaml's prior (the IMU random-walk check yields to it,
+    :func:`cdtm_graph.smoother.random_walks.check_random_walks`)."""
+    prior, est = result.bias_prior, result.estimate
+    if prior is None or len(est) == 0:
+        return False
+    limit = _bias_limit(settings or VerdictSettings())
+    return any(bool(np.any(excess > limit))
+               for excess in prior.excess(est.t_ns, est.accel_bias, est.gyro_bias))
+
+
 def _bias_check(result: SmootherResult, t_s: np.ndarray, settings: VerdictSettings
                 ) -> list[tuple[Code, str, int, int]]:
     """``imu_bias``: an IMU bias the run estimates lies beyond flight.yaml's prior. The
@@ -710,7 +775,7 @@ def _bias_check(result: SmootherResult, t_s: np.ndarray, settings: VerdictSettin
     prior, est = result.bias_prior, result.estimate
     if prior is None or len(est) == 0:
         return []
-    limit = float(chi2_quantile(settings.bias_probability, 3))
+    limit = _bias_limit(settings)
     out = []
     for name, key, walk, excess in zip(
             ("accelerometer", "gyro"), ("accel_bias", "gyro_bias"),

@@ -28,6 +28,7 @@ from cdtm_graph.imu import initial_bias
 from cdtm_graph.results import (
     BroadMapError,
     GraphCounts,
+    RandomWalkEstimate,
     SmootherResult,
     Solver,
     SolverStats,
@@ -306,6 +307,38 @@ def test_window_is_set_in_seconds():
     assert window_half_width(np.arange(10) * NS, 10.0) == 5
     assert window_half_width(np.arange(10) * NS // 2, 10.0) == 10  # 2 fps
     assert window_half_width(np.arange(10) * 30 * NS, 10.0) == 1  # at least one
+
+
+def _walks(grown: bool, held: bool) -> RandomWalkEstimate:
+    """The random-walk check of a flight.yaml stating the walks 10x low (the robustness
+    flight's seed 1: ratios 4.3 and 4.7), grown 7x and 5x, or not grown, or held only at
+    the bound (30x) with the ratios still 4."""
+    used = (7.0, 5.0) if grown and held else (30.0, 30.0) if grown else (1.0, 1.0)
+    final = (1.2, 1.1) if held else (4.0, 4.0)
+    return RandomWalkEstimate(1.9e-6, 3e-4, 4.33, 4.66, (1.14, 1.23), (0.26, 0.26),
+                              (0.64, 0.89), 89, 1.9e-6 * used[0], 3e-4 * used[1], final,
+                              30.0, held, 4 if grown else 0, 1.0)
+
+
+@pytest.mark.parametrize("grown, held", [(True, True), (True, False), (False, True)])
+def test_random_walks_grown_are_a_note_and_beyond_the_bound_a_reason(grown, held):
+    """Walks the run grew and that then hold the bias steps: the note
+    ``imu_random_walk_grown`` with the figures, the run trusted; still exceeded at the
+    bound: ``imu_random_walk`` (degraded) with the advice; as stated: nothing. Catches
+    the rule switched off (``_random_walk_check`` returning ``[]``) and the note given
+    for walks not grown; each tried once, 2026-11-27."""
+    verdict = assess(dataclasses.replace(_result(), imu_random_walk=_walks(grown, held)))
+    notes = [n for n in verdict.notes if n.startswith("imu_random_walk_grown")]
+    if not held:
+        reason = _only(verdict, "imu_random_walk")
+        assert verdict.status is Status.DEGRADED and notes == []
+        assert "4.3x (gyro)" in reason.message and "grown 30x" in reason.message
+        assert "imu.gyroscope_random_walk" in reason.message  # the advice
+    elif grown:
+        assert verdict.status is Status.TRUSTED and len(notes) == 1
+        assert "7x (gyro" in notes[0] and "5x (accelerometer" in notes[0]
+    else:
+        assert verdict.status is Status.TRUSTED and notes == []
 
 
 # --------------------------------------------------------------------------- consistency
