@@ -51,10 +51,9 @@ from dataclasses import dataclass, replace
 import gtsam
 import numpy as np
 import scipy.linalg
-import scipy.stats
 from gtsam.symbol_shorthand import B
 
-from cdtm_graph.constants import NS_PER_S
+from cdtm_graph.constants import NS_PER_S, chi2_quantile
 from cdtm_graph.flightlog import FlightLog
 from cdtm_graph.optimizer import explain_indeterminant
 
@@ -172,7 +171,7 @@ class BiasSteps:
         _, expected, variance = self._sums(self.spread)
         mean, var = np.maximum(expected, 1e-300), np.maximum(variance, 1e-300)
         g, h = var / (2.0 * mean), 2.0 * mean**2 / var
-        return g * scipy.stats.chi2.ppf(probability, h)
+        return g * chi2_quantile(probability, h)
 
 
 def segments_of(n_steps: int, settings: RandomWalkSettings) -> list[np.ndarray]:
