@@ -134,7 +134,6 @@ def test_walks_stated_10x_low_are_grown_and_the_covariance_holds_the_errors():
     assert np.linalg.norm(out.errors.rmse_position_m) < 1.3 * 2.61
 
 
-@pytest.mark.slow
 def test_walks_stated_4x_low_are_grown_and_the_covariance_holds_the_errors():
     """Walks stated 4x below the IMU's (``imu_rw4``, 90 frames, seed 2: a seed the
     threshold was not fitted on), batch: without growth ANEES 10.47, ``degraded:
