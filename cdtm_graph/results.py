@@ -383,8 +383,8 @@ class RandomWalkEstimate:
         stated_gyro, stated_accel: flight.yaml's ``imu.gyroscope_random_walk``
             (rad/s^2/sqrt(Hz)) and ``imu.accelerometer_random_walk`` (m/s^3/sqrt(Hz)).
         ratio_gyro, ratio_accel: the bias steps' chi-square over its expectation at the
-            stated walks, each step less its segment's mean rate, over the lower half of
-            the flight's segments (the spread: ~1 or less when they hold;
+            stated walks, over the lower half of the flight's segments (the spread: ~1 or
+            less when they hold;
             :class:`~cdtm_graph.robust.imu_walk.BiasSteps`).
         chi2, expected: (gyro, accelerometer) that chi-square and its expectation.
         chi2_bound: (gyro, accelerometer) the chi-square's quantile beyond which the walks
@@ -398,8 +398,10 @@ class RandomWalkEstimate:
             and none still above the settling ratio at the bound (False: the bound
             stopped the growth, not the data: the verdict's ``imu_random_walk``).
         rounds: side solves of the growth. time_s: the check's cost.
-        yielded: the steps exceeded the walks, but a bias estimate lies beyond
-            flight.yaml's prior (the verdict's ``imu_bias``, which names it): not grown.
+        yielded_to: the steps exceeded the walks, but the verdict names these reasons
+            of another fault that bends them (``verdict.rules.WALK_CONFOUNDERS``: a bias
+            beyond flight.yaml's prior, a calibration the flight contradicts, outliers...):
+            not grown; empty when it did not yield.
     """
 
     stated_gyro: float
@@ -417,7 +419,13 @@ class RandomWalkEstimate:
     held: bool
     rounds: int
     time_s: float
-    yielded: bool = False
+    yielded_to: tuple[str, ...] = ()
+
+    @property
+    def yielded(self) -> bool:
+        """The steps exceeded the walks, but another fault the verdict names may bend
+        them (:attr:`yielded_to`): not grown."""
+        return bool(self.yielded_to)
 
     @property
     def grown(self) -> bool:
@@ -437,7 +445,8 @@ class RandomWalkEstimate:
                 "used_accel": self.used_accel, "grown": self.grown,
                 "final_ratios": list(self.final_ratios), "bound_scale": self.bound_scale,
                 "held": self.held, "rounds": self.rounds, "time_s": self.time_s,
-                "yielded_to_imu_bias": self.yielded}
+                "yielded_to_imu_bias": "imu_bias" in self.yielded_to,
+                "yielded_to": [str(code) for code in self.yielded_to]}
 
 
 @dataclass(frozen=True)

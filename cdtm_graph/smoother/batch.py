@@ -174,7 +174,7 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
         walks = check_random_walks(flight, dtm, settings.graph, run.result, run.left_out,
                                    run.unfixed_frames, settings.graph.imu_random_walk,
                                    settings.max_iterations, settings.relative_error_tol,
-                                   pinned[0] if pinned else None)
+                                   pinned[0] if pinned else None, calibration)
         if walks.grown:
             logger.info("IMU random walks grown %.3gx (gyro), %.3gx (accelerometer)",
                         *walks.scales)

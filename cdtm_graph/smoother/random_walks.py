@@ -7,11 +7,18 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 
 import gtsam
 import numpy as np
 
-from cdtm_graph.calibration.check import MAX_FRAMES, PinnedSolve, estimate_values, thinned
+from cdtm_graph.calibration.check import (
+    MAX_FRAMES,
+    CalibrationCheck,
+    PinnedSolve,
+    estimate_values,
+    thinned,
+)
 from cdtm_graph.calibration.online import CALIBRATION_KEY
 from cdtm_graph.constants import NS_PER_S
 from cdtm_graph.dtm import Dtm
@@ -29,7 +36,7 @@ from cdtm_graph.robust.imu_walk import (
     with_random_walks,
 )
 from cdtm_graph.verdict.imu_faults import imu_gaps
-from cdtm_graph.verdict.rules import bias_beyond_prior
+from cdtm_graph.verdict.rules import walk_confounders
 
 
 def check_random_walks(flight: FlightLog, dtm: Dtm, graph_settings: GraphSettings,
@@ -38,7 +45,8 @@ def check_random_walks(flight: FlightLog, dtm: Dtm, graph_settings: GraphSetting
                        unfixed_frames: np.ndarray | None = None,
                        settings: RandomWalkSettings | None = None, max_iterations: int = 30,
                        relative_error_tol: float = 1e-6,
-                       pinned: PinnedSolve | None = None) -> RandomWalkEstimate:
+                       pinned: PinnedSolve | None = None,
+                       calibration: CalibrationCheck | None = None) -> RandomWalkEstimate:
     """flight.yaml's random walks tested at a batch solve of the run's graph, and grown
     while the bias steps exceed them (module docstring).
 
@@ -51,6 +59,8 @@ def check_random_walks(flight: FlightLog, dtm: Dtm, graph_settings: GraphSetting
         pinned: the calibration check's first solve (flight.yaml's calibration held: the
             run's graph at its optimum), whose linearization the test reads; None: a side
             solve of its own. The growth's rounds are side solves of their own.
+        calibration: the run's calibration check, made already: a ``calibration_suspect``
+            it leads the verdict to name is a fault the test yields to.
     """
     s = settings or RandomWalkSettings()
     start = time.perf_counter()
@@ -86,12 +96,14 @@ def check_random_walks(flight: FlightLog, dtm: Dtm, graph_settings: GraphSetting
         values, first = solve(stated, values)
     scale = np.ones(2)  # of the variances
     steps, rounds = first, 0
-    # a bias beyond its prior is imu_bias's (a constant offset the prior holds back, which
-    # grown walks would hide by widening the prior's spread over the flight): not grown
-    yielded = bool(beyond_prior(result) and exceeds(first, s.grow_ratio, s.probability))
     # too short a flight to tell a wander through it from a few bent frames: not judged
     judged = first.chi2.shape[0] >= s.min_segments
-    grow = judged and not yielded and exceeds(first, s.grow_ratio, s.probability)
+    exceeded = judged and exceeds(first, s.grow_ratio, s.probability)
+    # another fault the verdict names bends the steps too (a bias beyond its prior, which
+    # grown walks would hide by widening the prior's spread over the flight; a calibration
+    # the flight contradicts; outliers...): not grown, that fault is named
+    yielded_to = confounders(result, calibration) if exceeded else ()
+    grow = exceeded and not yielded_to
     while grow and rounds < s.max_rounds and np.any(scale < s.max_scale**2):
         # (the spread decided; the growth settles the whole, each sensor by its ratio)
         scale = np.minimum(scale * np.maximum(steps.whole_ratios, 1.0), s.max_scale**2)
@@ -111,15 +123,19 @@ def check_random_walks(flight: FlightLog, dtm: Dtm, graph_settings: GraphSetting
         used_accel=float(stated[1] * math.sqrt(scale[1])) if grown else float(stated[1]),
         final_ratios=_pair(steps.whole_ratios),
         bound_scale=s.max_scale,
-        held=not judged or yielded or not (exceeds(steps, s.grow_ratio, s.probability)
-                                           or bool(np.any(at_bound))),
-        rounds=rounds, time_s=time.perf_counter() - start, yielded=yielded)
+        held=not exceeded or bool(yielded_to) or not (
+            exceeds(steps, s.grow_ratio, s.probability) or bool(np.any(at_bound))),
+        rounds=rounds, time_s=time.perf_counter() - start,
+        yielded_to=tuple(str(code) for code in yielded_to))
 
 
-def beyond_prior(result: SmootherResult) -> bool:
-    """Whether an IMU bias the run estimates lies beyond flight.yaml's prior, as the
-    verdict's ``imu_bias`` judges it (:func:`cdtm_graph.verdict.rules.bias_beyond_prior`)."""
-    return bias_beyond_prior(result)
+def confounders(result: SmootherResult, calibration: CalibrationCheck | None = None
+                ) -> tuple[str, ...]:
+    """The reasons the verdict names for the run that bend the bias steps as well
+    (:data:`cdtm_graph.verdict.rules.WALK_CONFOUNDERS`; the run's calibration check, made
+    already, counted)."""
+    judged = result if calibration is None else replace(result, calibration_check=calibration)
+    return tuple(str(code) for code in walk_confounders(judged))
 
 
 def _pair(values: np.ndarray) -> tuple[float, float]:

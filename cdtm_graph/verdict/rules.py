@@ -752,17 +752,28 @@ def _bias_limit(settings: VerdictSettings) -> float:
     return float(chi2_quantile(settings.bias_probability, 3))
 
 
-def bias_beyond_prior(result: SmootherResult, settings: VerdictSettings | None = None
-                      ) -> bool:
-    """Whether :func:`_bias_check` names ``imu_bias`` for the run: a bias estimate beyond
-    flight.yaml's prior (the IMU random-walk check yields to it,
-    :func:`cdtm_graph.smoother.random_walks.check_random_walks`)."""
-    prior, est = result.bias_prior, result.estimate
-    if prior is None or len(est) == 0:
-        return False
-    limit = _bias_limit(settings or VerdictSettings())
-    return any(bool(np.any(excess > limit))
-               for excess in prior.excess(est.t_ns, est.accel_bias, est.gyro_bias))
+#: The reasons naming a fault that bends the IMU bias steps as a wander of the biases
+#: would: the IMU random-walk check yields to them
+#: (:func:`cdtm_graph.smoother.random_walks.check_random_walks`). A bias beyond its prior
+#: (grown walks would widen the prior's spread and hide it), a camera calibration the
+#: flight contradicts (a 1% focal error reads a gyro spread of 2.03-2.05 on the 90-frame
+#: flight), and the camera's or the map's data not fitting the run's model: gross
+#: outliers (the gate test's 2% moved 15-25 px read 2.28-2.41), residuals, rejections,
+#: innovations, terrain the map lacks. Named, the run is not trusted for that fault;
+#: grown walks would take part of its misfit as a wander and cover it.
+WALK_CONFOUNDERS = frozenset({
+    Code.IMU_BIAS, Code.CALIBRATION_SUSPECT, Code.OUTLIERS, Code.RESIDUAL_CHI2, Code.MISFIT,
+    Code.RESIDUAL_MISFIT, Code.INNOVATION_NIS, Code.HEAVY_REJECTION, Code.MAP_MISMATCH,
+    Code.WRONG_FIX, Code.CLUTTER})
+
+
+def walk_confounders(result: SmootherResult, settings: VerdictSettings | None = None
+                     ) -> tuple[Code, ...]:
+    """The reasons of :data:`WALK_CONFOUNDERS` the verdict names for the run, without
+    ground truth (:func:`assess` of ``result`` as it stands: a calibration check the
+    result holds counts), in :class:`~cdtm_graph.codes.Code` order."""
+    named = {r.code for r in assess(result, settings=settings).reasons}
+    return tuple(code for code in Code if code in WALK_CONFOUNDERS and code in named)
 
 
 def _bias_check(result: SmootherResult, t_s: np.ndarray, settings: VerdictSettings
