@@ -14,7 +14,7 @@ import pytest
 from gtsam.symbol_shorthand import B
 
 from cdtm_graph.constants import NS_PER_S
-from cdtm_graph.robust.imu_walk import RandomWalkSettings, bias_steps, exceeds
+from cdtm_graph.robust.imu_walk import BiasSteps, RandomWalkSettings, bias_steps, exceeds
 from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.sim.faults import with_imu_random_walks_stated
 from cdtm_graph.smoother import SmootherSettings
@@ -101,6 +101,24 @@ def test_an_excess_a_few_frames_carry_is_not_a_walk(rng):
     assert np.all(steps.whole_ratios > s.grow_ratio)
     assert np.all(steps.ratios < 1.5)
     assert not exceeds(steps, s.grow_ratio, s.probability)
+
+
+def test_steps_the_data_decide_nothing_of_are_not_judged():
+    """Every sighting waiting for a fix (``far1000_periodic``): only the walk moved the
+    biases, ``tr(M)`` is round-off (2.3e-9 and -6.7e-9 measured 2026-11-27) and so is the
+    ratio (1e-19, 2e270). Not judged. Mutation tried: ``decided`` left out of
+    ``exceeds`` -> grown on round-off (the ratio and the Satterthwaite bound of a 1e-9
+    expectation both pass)."""
+    segments = 6
+    expected = np.full((segments, 2), 2.3e-9 / 3)
+    steps = BiasSteps(chi2=np.full((segments, 2), 1e-3), expected=expected,
+                      variance=2 * expected, n_steps=89)
+    assert np.all(steps.ratios > 1e3)
+    assert not exceeds(steps, RandomWalkSettings().grow_ratio, RandomWalkSettings().probability)
+    # the same steps decided by the data (the least measured: 0.08 in the spread) are judged
+    decided = dataclasses.replace(steps, chi2=np.full((segments, 2), 5.0),
+                                  expected=expected * 1e8, variance=2 * expected * 1e8)
+    assert exceeds(decided, RandomWalkSettings().grow_ratio, RandomWalkSettings().probability)
 
 
 def _run(scenario: str, frames: int, seed: int, mode: Mode = Mode.BATCH, **graph):
