@@ -719,13 +719,20 @@ def _random_walk_notes(result: SmootherResult, named: set[str]) -> list[str]:
     they show (:mod:`cdtm_graph.robust.imu_walk`). A note, not a reason: the covariances
     then hold the real wander; but the user's IMU is worse than flight.yaml says, unless a
     camera calibration fault the verdict names bends the bias steps (a 1% focal error
-    grew the gyro's walk 12.6x on a 40-frame flight): the note then says so."""
+    grew the gyro's walk 12.6x on a 40-frame flight): the note then says so. So it does
+    when the calibration is held unchecked (``--calibration held``): nothing then tells a
+    calibration fault from a walk (the 1% focal error grew the gyro's walk, its spread
+    2.11, 2026-11-27)."""
     w = result.imu_random_walk
     if w is None or not w.grown or not w.held:
         return []
     gyro, accel = w.scales
-    also = (f"; {Code.CALIBRATION_SUSPECT}, named, may bend the bias steps as well"
-            if Code.CALIBRATION_SUSPECT in named else "")
+    also = ""
+    if Code.CALIBRATION_SUSPECT in named:
+        also = f"; {Code.CALIBRATION_SUSPECT}, named, may bend the bias steps as well"
+    elif result.calibration_check is None and result.calibration is None:
+        also = ("; the camera calibration is held unchecked (--calibration held), and a "
+                "calibration fault bends the bias steps as well: check it before the IMU")
     return [f"{Code.IMU_RANDOM_WALK_GROWN}: {_walk_figures(result)}: the run was made with "
             f"the walks {gyro:.3g}x (gyro, {w.used_gyro:.3g}) and {accel:.3g}x "
             f"(accelerometer, {w.used_accel:.3g}) flight.yaml's, its covariances hold "

@@ -325,11 +325,16 @@ def test_a_focal_error_is_flagged_by_a_thinned_side_solve(monkeypatch):
 @pytest.mark.slow
 def test_a_focal_error_held_unchecked_is_caught_only_by_ground_truth():
     """``--calibration held``: the 1% focal error goes into the height, which no
-    self-check sees; only ground truth shows it (why the check is on by default)."""
+    self-check sees; only ground truth shows it (why the check is on by default). It
+    bends the IMU bias steps as a walk stated too small does (the gyro's spread 2.11,
+    grown, 2026-11-27): the note says the calibration is unchecked. Mutation tried: that
+    clause left out of ``verdict.rules._random_walk_notes`` fails the last assertion."""
     flight, dtm = SCENARIOS["focal1pct"].flight(FLIGHT)
     out = smooth_and_evaluate(flight, dtm, SmootherSettings(graph=GraphSettings(calibration=None)))
     assert out.result.calibration is None and out.result.calibration_check is None
     assert [r.code for r in out.verdict.reasons] == ["confidently_wrong"]
+    grown = [n for n in out.verdict.notes if n.startswith("imu_random_walk_grown")]
+    assert grown and all("calibration is held unchecked" in n for n in grown)
 
 
 #: Clean short flights of the issue's camera, many seeds, default settings: the verdicts,
