@@ -100,6 +100,13 @@ def nominal_log():
 
 
 @pytest.fixture(scope="session")
+def gross_outliers() -> _flights.GrossOutliers:
+    """:func:`tests.support.flights.gross_outliers`: the innovation gate test's flight with
+    2% of its observations moved 15-25 px (``clean``, ``corrupted``, ``bad``, ``dtm``)."""
+    return _support("flights").gross_outliers()
+
+
+@pytest.fixture(scope="session")
 def nominal_runs(nominal_log) -> _flights.FlightRuns:
     """``nominal_log`` smoothed and judged with default settings, once per mode per session
     (``nominal_runs.run(Mode.BATCH)``): the smoother and incremental tests read the same

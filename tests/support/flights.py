@@ -12,11 +12,14 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Iterable
+from typing import NamedTuple
+
+import numpy as np
 
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.flightlog import FlightLog
 from cdtm_graph.run import RunOutput, smooth_and_evaluate
-from cdtm_graph.sim.simulate import simulate_flight
+from cdtm_graph.sim.simulate import SimulationSettings, simulate_flight
 from cdtm_graph.smoother import SmootherSettings
 from cdtm_graph.studies.robustness import BASE, Mode
 
@@ -72,3 +75,27 @@ def smoothed(flight: tuple[FlightLog, Dtm], mode: Mode) -> RunOutput:
     (``Mode.BATCH``: ``SmootherSettings()``; ``ISAM2``: ``mode=INCREMENTAL``; ``FIXED_LAG``:
     ``lag_s=10``)."""
     return smooth_and_evaluate(*flight, mode.settings(SmootherSettings()))
+
+
+class GrossOutliers(NamedTuple):
+    """A flight with 2% of its observations moved 15-25 px (:func:`gross_outliers`)."""
+
+    clean: FlightLog
+    corrupted: FlightLog
+    bad: np.ndarray  # (N,) bool: the moved rows of ``clean.tracks``
+    dtm: Dtm
+
+
+def gross_outliers() -> GrossOutliers:
+    """The innovation gate test's flight: 30 frames, 80 features, 2% of the observations
+    moved 15-25 px in a random direction. Its literal seeds are the point (the gate test's
+    measured counts, and the IMU walk check's bias steps bent by these outliers)."""
+    flight, dtm = simulate_flight(SimulationSettings(frames=30, n_features=80, seed=6))
+    rng = np.random.default_rng(8)
+    uv = flight.tracks.uv_px.copy()
+    bad = rng.random(len(uv)) < 0.02
+    angle = rng.uniform(0, 2 * np.pi, int(bad.sum()))
+    shift = rng.uniform(15, 25, angle.size)[:, None] * np.c_[np.cos(angle), np.sin(angle)]
+    uv[bad] = np.clip(uv[bad] + shift, 0, 399)
+    corrupted = dataclasses.replace(flight, tracks=dataclasses.replace(flight.tracks, uv_px=uv))
+    return GrossOutliers(flight, corrupted, bad, dtm)
