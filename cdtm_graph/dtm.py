@@ -199,8 +199,9 @@ class Dtm:
         self.sigma_h_m = sigma_h_m
         # A bilinear patch lies between its corner extremes, so the corner max bounds the
         # cell: a ray above it can skip the cell exactly. NaN marks a no-data cell.
-        corners = np.stack([elev[:-1, :-1], elev[:-1, 1:], elev[1:, :-1], elev[1:, 1:]])
-        self._cell_max = np.ascontiguousarray(np.max(corners, axis=0))
+        # (pairwise maxima, not a max over a stack of the four: no 4x copy of the grid)
+        self._cell_max = np.maximum(np.maximum(elev[:-1, :-1], elev[:-1, 1:]),
+                                    np.maximum(elev[1:, :-1], elev[1:, 1:]))
         if np.isnan(self._cell_max).all():
             raise DtmError("no cell has four valid corners, expected at least one valid cell")
         self._z_top = float(np.nanmax(elev))

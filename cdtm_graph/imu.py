@@ -70,8 +70,12 @@ position: the factor's covariance stays honest where its mean is a guess.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
+import hashlib
 import math
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from enum import Enum
 from typing import NamedTuple, Protocol
@@ -504,6 +508,32 @@ class EarthImu:
             start)
 
 
+#: The preintegrations :func:`shared_preintegrations` keeps (None: outside it).
+_SHARED: contextvars.ContextVar[dict | None] = contextvars.ContextVar(
+    "shared_preintegrations", default=None)
+
+
+@contextlib.contextmanager
+def shared_preintegrations() -> Iterator[None]:
+    """Within the block, each frame interval is preintegrated once (:meth:`ImuIntervals.
+    preintegrate`).
+
+    A run builds the same flight's IMU factors more than once (the graph, the calibration
+    check's side graph, the dead reckoning it is compared with), each a ~5 us GTSAM call
+    per sample. A preintegration is not changed once made (the flat model: the Earth
+    model places each one, and is never shared), and a factor copies it, so one object
+    serves them all. Kept for the block only (nested blocks share the outer one's).
+    """
+    if _SHARED.get() is not None:
+        yield
+        return
+    token = _SHARED.set({})
+    try:
+        yield
+    finally:
+        _SHARED.reset(token)
+
+
 class ImuIntervals:
     """Preintegrates the IMU over frame intervals of one flight.
 
@@ -521,6 +551,7 @@ class ImuIntervals:
                  earth: bool = True, gap_noise: GapNoise | None = GapNoise()):
         noise = imu_noise(config)
         self.params = preintegration_params(noise, config.gravity_mps2, config.imu.rate_hz)
+        self._params_key = (noise, float(config.gravity_mps2), float(config.imu.rate_hz))
         self.imu = imu
         self.hold = hold
         frame = config.local_frame if earth else None
@@ -538,6 +569,9 @@ class ImuIntervals:
                      start: tuple[np.ndarray, np.ndarray] | None = None) -> Preintegration:
         """IMU over exactly [t0, t1], linearized at ``bias``, placed (:meth:`place`).
 
+        Inside :func:`shared_preintegrations`, an interval already integrated alike (same
+        samples, parameters, hold and bias; flat model, no gap) is handed back as it was.
+
         Args:
             start: ``(world_T_body (4, 4), velocity_mps (3,))`` at t0: where the interval
                 is on the Earth; needed by the Earth model (ignored by the flat one).
@@ -546,10 +580,33 @@ class ImuIntervals:
             SolverError: the samples do not cover the interval.
             ValueError: Earth model without ``start``.
         """
+        memo = _SHARED.get()
+        key = self._shared_key(int(t0_ns), int(t1_ns), bias) if memo is not None else None
+        if key is not None and key in memo:  # type: ignore[operator]
+            return memo[key]  # type: ignore[index]
         pim = self.new_preintegration(bias)
         self.integrate(pim, t0_ns, t1_ns)
         self.place(pim, start)
+        if key is not None and not pim.spans_gap:
+            memo[key] = pim  # type: ignore[index]
         return pim
+
+    def _shared_key(self, t0_ns: int, t1_ns: int,
+                    bias: gtsam.imuBias.ConstantBias) -> tuple | None:
+        """What makes an interval's preintegration what it is (None: never shared: the
+        Earth model places each interval from a start state)."""
+        if self.earth is not None:
+            return None
+        t = np.asarray(self.imu.t_ns)
+        if t.ndim != 1 or t.shape[0] < 2:
+            return None
+        lo, hi = _near(t, t0_ns, t1_ns)
+        lo, hi = max(lo - 1, 0), min(hi + 1, t.shape[0])  # the gap test's samples too
+        samples = hashlib.blake2b(digest_size=16)
+        for array in (t, self.imu.gyro_radps, self.imu.acc_mps2):
+            samples.update(np.ascontiguousarray(np.asarray(array)[lo:hi]).tobytes())
+        return (t0_ns, t1_ns, samples.digest(), bias.vector().tobytes(), self._params_key,
+                self.hold, self.gap_noise)
 
     def place(self, pim: Preintegration, start: tuple[np.ndarray, np.ndarray] | None) -> None:
         """Fix an integrated interval's gravity from its start state (Earth model; the

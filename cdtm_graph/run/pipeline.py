@@ -12,7 +12,7 @@ from dataclasses import dataclass, replace
 
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.flightlog import FlightLog
-from cdtm_graph.imu import dead_reckoning
+from cdtm_graph.imu import dead_reckoning, shared_preintegrations
 from cdtm_graph.results import SmootherResult, TrajectoryEstimate
 from cdtm_graph.smoother import Progress, SmootherSettings, smooth
 from cdtm_graph.verdict.evaluation import ErrorReport, free_vs_compensated, trajectory_errors
@@ -45,6 +45,7 @@ class RunOutput:
     verdict: Verdict
 
 
+@shared_preintegrations()  # the smoothing and the dead reckoning: one IMU pass
 def smooth_and_evaluate(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
                         progress: Progress | None = None,
                         verdict_settings: VerdictSettings | None = None) -> RunOutput:

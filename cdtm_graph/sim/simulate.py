@@ -92,7 +92,7 @@ from cdtm_graph.sim.settings import (
     NOMINAL_SPEED_MPS,
     NavMode,
 )
-from cdtm_graph.sim.terrain import NOMINAL_CORRELATION_LENGTH_M, clone_basic_cell, fractal_terrain
+from cdtm_graph.sim.terrain import NOMINAL_CORRELATION_LENGTH_M, fractal_terrain
 from cdtm_graph.sim.trajectory import STANDARD_GRAVITY_MPS2, FlightPlan, Trajectory, evaluate
 
 logger = logging.getLogger(__name__)
@@ -922,10 +922,10 @@ def _tiled_fractal(cell_m: float, spacing_m: float, relief_m: float,
                            correlation_length_m=correlation_length_m, seed=seed,
                            origin_xy=(xmin, ymin))
     cell_rows, cell_cols = cell.shape
-    # fractal_terrain is periodic over its sample count, so plain tiling is seamless.
-    tiled = clone_basic_cell(cell, math.ceil(cols / cell_cols), math.ceil(rows / cell_rows),
-                             mirror=False)
-    return Dtm(tiled.elevation[:rows, :cols], xmin, ymin, spacing_m, spacing_m)
+    # fractal_terrain is periodic over its sample count, so plain tiling is seamless
+    # (clone_basic_cell's mirror=False, without making a Dtm of the uncropped tiling).
+    tiled = np.tile(cell.elevation, (math.ceil(rows / cell_rows), math.ceil(cols / cell_cols)))
+    return Dtm(tiled[:rows, :cols], xmin, ymin, spacing_m, spacing_m)
 
 
 def _check_clearance(terrain: Dtm, region: tuple[float, float, float, float],

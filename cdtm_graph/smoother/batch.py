@@ -28,7 +28,7 @@ from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import CalibrationSigmas, FlightLog
 from cdtm_graph.graph import feature_noise, insert_state
 from cdtm_graph.graph.log_graph import LogGraph, build_log_graph
-from cdtm_graph.imu import initial_bias
+from cdtm_graph.imu import initial_bias, shared_preintegrations
 from cdtm_graph.optimizer import LinearSolver, key_marginals, levenberg_marquardt, marginals
 from cdtm_graph.results import (
     Rejection,
@@ -107,6 +107,7 @@ def _initial_values(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
                         {k: v for k, v in flags.items() if v})
 
 
+@shared_preintegrations()  # the graph, its side solves and re-runs: one IMU pass
 def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None,
            progress: Progress | None = None) -> SmootherResult:
     """Smooth a flight log (batch LM, or the incremental smoother's pass).
