@@ -129,12 +129,24 @@ def clean_flights() -> _flights.CleanFlights:
 SHARED_FIXTURES = ("clean_flights", "nominal_runs")
 
 
+#: Test files that never call a numba kernel (a py-spy profile of the whole suite,
+#: 2026-11-28). They go out right after the clean flights (:func:`_start_order`).
+KERNEL_FREE = ("tests.frontend.test_frontend_real", "tests.plots.test_plots",
+               "tests.project.test_layout", "tests.project.test_kernels",
+               "tests.sim.test_trajectory", "tests.flightlog.test_flightlog",
+               "tests.project.test_scheduling", "tests.cli.test_startup",
+               "tests.core.test_atomic", "tests.core.test_geodesy", "tests.core.test_optimizer")
+#: The longest file of its own (the robustness scenarios, 80-90 s of one worker).
+LONGEST_FILE = "tests.robust.test_robustness"
+
+
 @pytest.hookimpl(tryfirst=True)  # before xdist's, which reads the groups into node ids
 def pytest_collection_modifyitems(config, items):
     """Keep work shared under pytest-xdist (``-n auto --dist loadgroup`` in pyproject.toml):
     each test file runs whole on one worker, so its module fixtures are made once, and the
     files that read one of :data:`SHARED_FIXTURES` run on one worker together, so its
-    flights are smoothed once. Without xdist the groups are only labels."""
+    flights are smoothed once. Without xdist the groups are only labels. The groups go
+    out in :func:`_start_order`."""
     group = {}
     for fixture in SHARED_FIXTURES:
         group.update({item.module.__name__: fixture for item in items
@@ -143,3 +155,25 @@ def pytest_collection_modifyitems(config, items):
         if item.get_closest_marker("xdist_group") is None:
             name = item.module.__name__
             item.add_marker(pytest.mark.xdist_group(group.get(name, name)))
+    items.sort(key=lambda item: _start_order(item.module.__name__,
+                                             group.get(item.module.__name__)))
+
+
+def _start_order(module: str, group: str | None) -> int:
+    """Where a file's group stands in the queue (``--no-loadscope-reorder``: xdist hands
+    out the groups in collection order, two to each worker first; it used to order them by
+    their count of tests).
+
+    The clean flights first: the longest group, and on a cold numba cache (a fresh clone)
+    its first test compiles the kernels every smoothing test needs. Then the files that
+    call no kernel, about 30 s of the other worker's time: the other worker started
+    compiling the same kernels at the same moment before (a cold run's compilation CPU
+    that both workers spent on the same kernels: ~15 s -> 9.8 s, 2026-11-28). Then the
+    longest file, so that it does not end the run on one worker. A file missing from the
+    lists only runs later; nothing else depends on the order.
+    """
+    if group == "clean_flights":
+        return 0
+    if module in KERNEL_FREE:
+        return 1
+    return 2 if module == LONGEST_FILE else 3
