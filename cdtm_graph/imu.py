@@ -509,7 +509,7 @@ class EarthImu:
 
 
 #: The preintegrations :func:`shared_preintegrations` keeps (None: outside it).
-_SHARED: contextvars.ContextVar[dict | None] = contextvars.ContextVar(
+_SHARED: contextvars.ContextVar[dict[tuple, Preintegration] | None] = contextvars.ContextVar(
     "shared_preintegrations", default=None)
 
 
@@ -581,14 +581,14 @@ class ImuIntervals:
             ValueError: Earth model without ``start``.
         """
         memo = _SHARED.get()
-        key = self._shared_key(int(t0_ns), int(t1_ns), bias) if memo is not None else None
-        if key is not None and key in memo:  # type: ignore[operator]
-            return memo[key]  # type: ignore[index]
+        key = None if memo is None else self._shared_key(int(t0_ns), int(t1_ns), bias)
+        if memo is not None and key in memo:
+            return memo[key]
         pim = self.new_preintegration(bias)
         self.integrate(pim, t0_ns, t1_ns)
         self.place(pim, start)
-        if key is not None and not pim.spans_gap:
-            memo[key] = pim  # type: ignore[index]
+        if memo is not None and key is not None and not pim.spans_gap:
+            memo[key] = pim
         return pim
 
     def _shared_key(self, t0_ns: int, t1_ns: int,
