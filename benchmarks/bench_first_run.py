@@ -1,10 +1,14 @@
 """What the first `cdtm demo` after an install costs beside the second: numba's compilation.
 
-Run: ``python benchmarks/bench_first_run.py [--repeats 2] [--kernels] [--images]``. Each
-repeat runs ``python -m cdtm_graph demo --out TMP/out`` twice in fresh processes with one
-new, empty ``NUMBA_CACHE_DIR`` (as a fresh install has: nothing compiled), so the first run
-compiles every kernel it calls and the second loads them from the cache. Prints each pair's
-wall times (s) and their ratio, then the medians; issue 22 asks for first/second <= 2.
+Run: ``python benchmarks/bench_first_run.py [--repeats 2] [--kernels] [--images]
+[--compile]``. Each repeat runs ``python -m cdtm_graph demo --out TMP/out`` twice in fresh
+processes with one new, empty ``NUMBA_CACHE_DIR`` (as a fresh install has: nothing
+compiled), so the first run loads every kernel it calls from the package's prebuilt copies
+(:mod:`factors.jit`), or compiles those it has none of, and the second loads them from
+numba's cache or the prebuilt copies. Prints each pair's wall times (s) and their ratio,
+then the medians; issue 22 asks for first/second <= 2. ``--compile``: the prebuilt kernels
+off (``CDTM_COMPILE_KERNELS=1``), so the first run compiles every kernel it calls: what a
+platform without prebuilt kernels pays (another Python, numba or CPU architecture).
 
 ``--kernels``: the first run also lists what it compiled, from numba's ``numba:compile``
 events (the ones ``cdtm_graph/cli/compiling.py`` announces): per kernel the CPU time spent
@@ -31,6 +35,8 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from factors.jit import COMPILE_ALL  # noqa: E402  (the checkout beside this file)
 
 # Run inside the child with --kernels: the demo under a listener of numba's compile events.
 _PROFILED = r"""
@@ -59,12 +65,15 @@ sys.exit(code)
 """
 
 
-def run_demo(out: Path, cache: Path, images: bool, profile: Path | None
+def run_demo(out: Path, cache: Path, images: bool, profile: Path | None, compile_all: bool
              ) -> tuple[float, float]:
     """One ``cdtm demo`` in a fresh process with numba's cache in ``cache``: its wall time
     and its CPU time (user + system, s; what a loaded machine does not inflate)."""
     env = {**os.environ, "NUMBA_CACHE_DIR": str(cache),
            "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    env.pop(COMPILE_ALL, None)
+    if compile_all:
+        env[COMPILE_ALL] = "1"
     demo = ["demo", "--out", str(out)] + (["--images"] if images else [])
     if profile is None:
         command = [sys.executable, "-m", "cdtm_graph", *demo]
@@ -102,6 +111,8 @@ def main() -> None:
     parser.add_argument("--kernels", action="store_true",
                         help="list what the first run compiled (first repeat)")
     parser.add_argument("--images", action="store_true", help="cdtm demo --images")
+    parser.add_argument("--compile", action="store_true",
+                        help="the prebuilt kernels off: the first run compiles them")
     args = parser.parse_args()
     first: list[tuple[float, float]] = []
     second: list[tuple[float, float]] = []
@@ -110,8 +121,8 @@ def main() -> None:
             cache = Path(tmp) / "numba-cache"
             cache.mkdir()
             profile = Path(tmp) / "kernels.json" if args.kernels and repeat == 0 else None
-            first.append(run_demo(Path(tmp) / "out", cache, args.images, profile))
-            second.append(run_demo(Path(tmp) / "out", cache, args.images, None))
+            first.append(run_demo(Path(tmp) / "out", cache, args.images, profile, args.compile))
+            second.append(run_demo(Path(tmp) / "out", cache, args.images, None, args.compile))
             (wall_1, cpu_1), (wall_2, cpu_2) = first[-1], second[-1]
             print(f"first {wall_1:.1f} s (CPU {cpu_1:.1f} s), second {wall_2:.1f} s "
                   f"(CPU {cpu_2:.1f} s): ratio {wall_1 / wall_2:.2f} (CPU {cpu_1 / cpu_2:.2f})",

@@ -36,9 +36,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from numba import njit
 
 from cdtm_graph.errors import DtmError, why_not_a_file
+from factors.jit import njit
 
 if TYPE_CHECKING:  # trimesh is imported lazily: it is slow to import and only to_trimesh needs it
     import trimesh

@@ -10,7 +10,8 @@ body-frame vectors into the world frame; a pose ``a_T_b`` is a 4x4 matrix with
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from factors.jit import njit
 
 
 def quat_wxyz_to_rotation(quat_wxyz: np.ndarray) -> np.ndarray:

@@ -82,13 +82,13 @@ from typing import NamedTuple, Protocol
 
 import gtsam
 import numpy as np
-from numba import njit
 
 from cdtm_graph.constants import NS_PER_S
 from cdtm_graph.errors import FlightLogError, SolverError
 from cdtm_graph.flightlog import FlightConfig, InitialState
 from cdtm_graph.geodesy import LocalFrame
 from cdtm_graph.results import TrajectoryEstimate
+from factors.jit import njit
 
 #: A gap: consecutive samples more than this many nominal periods apart. One or two
 #: dropped samples (2 or 3 periods) are routine on a busy bus and cost nothing measurable

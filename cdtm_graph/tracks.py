@@ -20,7 +20,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from cdtm_graph.camera import PinholeCamera
 from cdtm_graph.dtm import Dtm
@@ -28,6 +27,7 @@ from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import Tracks
 from cdtm_graph.results import Rejection, Rejections
 from cdtm_graph.robust.epipolar import EpipolarSettings, check_pair
+from factors.jit import njit
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,8 @@ with ``de/dg = B^T (I - g g^T/|g|^2) / |g|`` and ``P(r, N) = I - r N^T / N.r``.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from factors.jit import njit
 
 # Robust kernels, numbered for the kernel; names and defaults in factors.robust.
 KERNEL_NONE = 0

@@ -31,12 +31,12 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
-from numba import njit
 
 from cdtm_graph.codes import Code
 from cdtm_graph.results import StateCovariances, TerrainFindings
 from cdtm_graph.robust.mismatch import MismatchSettings, TrackHeights, TrackJudgement, judge
 from cdtm_graph.robust.neighbours import ball_sums
+from factors.jit import njit
 
 #: Clutter heights the expectation-maximization starts from (pits and objects), m.
 _STARTS_M = (-30.0, -15.0, 15.0, 30.0)

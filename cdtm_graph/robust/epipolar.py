@@ -20,7 +20,8 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+
+from factors.jit import njit
 
 #: Inlier test: chi-square(1) at 99.9% on the Sampson distance in sigmas.
 CHI2_1DOF_999 = 10.827566170662733

@@ -12,12 +12,12 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
-from numba import njit
 
 from cdtm_graph.constants import chi2_2dof_quantile
 from cdtm_graph.geometry import largest_eigenvalue_sym3
 from cdtm_graph.results import Rejection, Rejections
 from factors import CdtmPairFactor
+from factors.jit import njit
 
 
 def innovation_mahalanobis(e: np.ndarray, H_a: np.ndarray, H_b: np.ndarray, P: np.ndarray,

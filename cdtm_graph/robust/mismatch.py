@@ -36,7 +36,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from cdtm_graph.constants import chi2_quantile
 from cdtm_graph.dtm import Dtm
@@ -44,6 +43,7 @@ from cdtm_graph.geometry import rays_in_world, triangulate
 from cdtm_graph.robust.neighbours import ball_sums, near_any
 from cdtm_graph.tracks import frames_seen, track_groups
 from factors import FeatureNoise
+from factors.jit import njit
 
 #: chi-square(1) at 99.9%.
 CHI2_1DOF_999 = 10.827566170662733

@@ -11,7 +11,8 @@ hundred tracks or a flight's tens of thousands alike.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from factors.jit import njit
 
 
 def ball_sums(query_xy: np.ndarray, ref_xy: np.ndarray, ref_values: np.ndarray,

@@ -37,12 +37,13 @@ from typing import TYPE_CHECKING, Protocol
 
 import cv2
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
 from cdtm_graph.camera import PinholeCamera
 from cdtm_graph.dtm import Dtm, visible_from
 from cdtm_graph.errors import SimulationError
 from cdtm_graph.sim.settings import RenderSettings
+from factors.jit import njit
 
 if TYPE_CHECKING:
     from cdtm_graph.sim.simulate import SimulationResult

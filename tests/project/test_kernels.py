@@ -3,7 +3,18 @@
 from __future__ import annotations
 
 import ast
+import hashlib
+import json
+import os
+import pickle
+import platform
+import subprocess
+import sys
 from pathlib import Path
+
+import pytest
+
+from factors.jit import COMPILE_ALL, GENERIC_CPU, PACKAGES, PREBUILT
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -40,3 +51,159 @@ def test_no_more_kernels_compile_on_a_first_run_than_counted():
     ``geometry._well_conditioned``), each a second or so more on every fresh install."""
     kernels = own_kernels()
     assert len(kernels) <= KERNEL_BUDGET, "\n".join(kernels)
+
+
+# The kernels shipped compiled (factors/jit.py)
+
+
+def _prebuilt_indices() -> list[Path]:
+    return sorted(p for package in PACKAGES for p in (ROOT / package / PREBUILT).rglob("*.nbi"))
+
+
+def _read_index(path: Path) -> tuple[str, bytes, dict]:
+    """numba's index file: its numba version, the source stamp it holds, its entries."""
+    with path.open("rb") as f:
+        version = pickle.load(f)
+        stamp, overloads = pickle.loads(f.read())
+    return version, stamp, overloads
+
+
+def _source_of(index: Path) -> Path:
+    """The module an index's kernel is in (``<package>/_prebuilt/<below>/<module>.<kernel>
+    -<line>.py311.nbi`` -> ``<package>/<below>/<module>.py``)."""
+    package, _prebuilt, *below = index.parent.relative_to(ROOT).parts
+    return ROOT.joinpath(package, *below, index.name.split(".", 1)[0] + ".py")
+
+
+def test_every_prebuilt_kernel_is_of_its_source_as_it_is():
+    """Each prebuilt index holds the content hash of its module as it is now, for this numba,
+    compiled for the generic CPU only.
+
+    Catches a kernel module changed without ``python scripts/prebuild_kernels.py``
+    (mutation tried: a comment added to ``factors/kernel.py``: 7 stale indices named). Not
+    a wrong result (numba compiles a stale kernel instead of loading it) but every fresh
+    install paying its compilation again. Also a build for the host's CPU, which no other
+    machine would load (mutation tried: ``NUMBA_CPU_NAME`` left out of the build)."""
+    import numba
+
+    indices = _prebuilt_indices()
+    assert len(indices) >= KERNEL_BUDGET, f"{len(indices)} prebuilt kernels"
+    versions = {_read_index(i)[0] for i in indices}
+    if versions != {numba.__version__}:
+        pytest.skip(f"prebuilt for numba {sorted(versions)}, this is {numba.__version__}")
+    stale, specific = [], []
+    for index in indices:
+        _version, stamp, overloads = _read_index(index)
+        if stamp != hashlib.sha256(_source_of(index).read_bytes()).digest():
+            stale.append(str(index.relative_to(ROOT)))
+        specific += [index.name for (_sig, (_triple, *cpu), _code) in overloads
+                     if tuple(cpu) != GENERIC_CPU]
+    assert not stale, "stale (run python scripts/prebuild_kernels.py):\n" + "\n".join(stale)
+    assert not specific, specific
+
+
+_COMPILED_BY_THE_DEMO = r"""
+import json, sys
+from numba.core import event
+from cdtm_graph.cli import main
+
+compiled = []
+
+class Listener(event.Listener):
+    def on_start(self, ev):
+        function = ev.data["dispatcher"].py_func
+        compiled.append(f"{function.__module__}.{function.__qualname__}")
+    def on_end(self, ev):
+        pass
+
+event.register("numba:compile", Listener())
+code = main(["demo", "--out", sys.argv[1]])
+print(json.dumps({"code": code, "compiled": compiled}))
+"""
+
+
+@pytest.mark.slow
+def test_a_first_run_loads_the_packages_kernels_and_compiles_none(tmp_path):
+    """``cdtm demo`` with an empty numba cache (a fresh install) compiles none of the
+    packages' kernels: each loads from its prebuilt copy (issue 22, "First run").
+
+    Catches the fallback switched off (mutation tried: ``_load_overload`` returning numba's
+    miss: 54 kernels compiled) and a kernel the build did not run (mutation tried: the
+    ``_prebuilt`` index of ``factors.kernel.cdtm_linearize`` removed: it is named)."""
+    import numba
+
+    indices = _prebuilt_indices()
+    if platform.machine() != "x86_64" or not indices:
+        pytest.skip("the kernels are prebuilt for x86-64")
+    if _read_index(indices[0])[0] != numba.__version__:
+        pytest.skip("the kernels are prebuilt for another numba")
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "empty-cache")}
+    env.pop(COMPILE_ALL, None)
+    done = subprocess.run([sys.executable, "-c", _COMPILED_BY_THE_DEMO, str(tmp_path / "out")],
+                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    run = json.loads(done.stdout.strip().splitlines()[-1])
+    assert run["code"] == 0
+    ours = [name for name in run["compiled"] if name.split(".")[0] in PACKAGES]
+    assert not ours, ours
+
+
+_KERNEL_MODULE = '''
+from factors.jit import njit
+
+@njit(cache=True)
+def triple(x):
+    return 3.0 * x
+'''
+
+_CALL = r"""
+import json, sys
+from pathlib import Path
+from numba.core import event
+from factors.jit import use_prebuilt
+
+compiled = []
+
+class Listener(event.Listener):
+    def on_start(self, ev):
+        compiled.append(ev.data["dispatcher"].py_func.__qualname__)
+    def on_end(self, ev):
+        pass
+
+event.register("numba:compile", Listener())
+sys.path.insert(0, str(Path(sys.argv[1]).parent))
+import probe as module
+if len(sys.argv) > 2:
+    use_prebuilt(module.triple, Path(sys.argv[2]))
+print(json.dumps({"value": module.triple(2.0), "compiled": compiled}))
+"""
+
+
+def test_a_prebuilt_kernel_loads_on_this_cpu_only_while_its_source_is_unchanged(tmp_path):
+    """A kernel compiled for the generic CPU (another numba cache, as the build does) loads
+    through the fallback on this machine's CPU without compiling; once its module is
+    edited, it is compiled and the new code runs.
+
+    Catches the fallback asking for the host's key (nothing would ever load; mutation
+    tried: ``GENERIC_CPU`` in place of the host's dropped from ``_load_overload``) and a
+    stale kernel loaded (mutation tried: the prebuilt index read with its own stamp in
+    place of the module's: ``triple`` returns 6.0 after the edit to ``4.0 * x``)."""
+    module = tmp_path / "probe.py"
+    module.write_text(_KERNEL_MODULE)
+    base = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CPU_NAME", COMPILE_ALL)}
+
+    def call(cache: str, *extra: str, **env: str) -> dict:
+        done = subprocess.run([sys.executable, "-c", _CALL, str(module), *extra],
+                              env={**base, "NUMBA_CACHE_DIR": str(tmp_path / cache), **env},
+                              cwd=ROOT, capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr[-2000:]
+        return json.loads(done.stdout.strip().splitlines()[-1])
+
+    built = call("build", NUMBA_CPU_NAME="generic")
+    assert built == {"value": 6.0, "compiled": ["triple"]}
+    shipped = next((tmp_path / "build").iterdir())  # numba's folder for the module's
+    assert call("user", str(shipped)) == {"value": 6.0, "compiled": []}
+    assert call("other-user")["compiled"] == ["triple"]  # without the fallback: compiled
+
+    module.write_text(_KERNEL_MODULE.replace("3.0 * x", "4.0 * x"))
+    assert call("new-user", str(shipped)) == {"value": 8.0, "compiled": ["triple"]}

@@ -10,10 +10,9 @@ the checkout's editable finder among them, are not run). Every process runs in a
 temporary working directory without ``PYTHONPATH``, and the first asserts that
 ``cdtm_graph`` is the wheel's copy.
 
-The wheel's runs load the numba kernels the checkout has compiled
-(:func:`_reuse_compiled_kernels`): a user's first run compiles them, and what that costs is
-``benchmarks/bench_first_run.py``'s to measure, not this file's. The wheel's contents are
-checked fast, without installing it.
+The wheel's runs load the numba kernels it ships prebuilt (``_prebuilt/``, :mod:`factors.jit`),
+as a user's first run does; ``benchmarks/bench_first_run.py`` measures what that saves. The
+wheel's contents are checked fast, without installing it.
 """
 
 from __future__ import annotations
@@ -62,7 +61,8 @@ class Installed:
 def _build_wheel(work: Path) -> Path:
     src = work / "src"
     src.mkdir()
-    ignore = shutil.ignore_patterns("__pycache__", "*.pyc", "*.egg-info", "*.nbi", "*.nbc")
+    # (numba's own cache is in __pycache__; the prebuilt kernels in _prebuilt/ go in)
+    ignore = shutil.ignore_patterns("__pycache__", "*.pyc", "*.egg-info")
     for name in SOURCES:
         path = ROOT / name
         if path.is_dir():
@@ -82,14 +82,17 @@ def _build_wheel(work: Path) -> Path:
 
 def test_the_wheel_holds_every_data_file(tmp_path):
     """Catches a file the commands read missing from the wheel (a package-data pattern
-    lost or too narrow, e.g. the sample logs' images or their hidden manifests)."""
+    lost or too narrow, e.g. the sample logs' images or their hidden manifests), and the
+    prebuilt kernels left out (mutation tried: their package-data lines removed)."""
     with zipfile.ZipFile(_build_wheel(tmp_path)) as wheel:
-        packed = {name for name in wheel.namelist() if name.startswith("cdtm_graph/data/")}
-    data = ROOT / "cdtm_graph" / "data"
-    expected = {f"cdtm_graph/{p.relative_to(data.parent).as_posix()}" for p in data.rglob("*")
+        packed = set(wheel.namelist())
+    folders = [ROOT / "cdtm_graph" / "data", ROOT / "cdtm_graph" / "_prebuilt",
+               ROOT / "factors" / "_prebuilt"]
+    expected = {p.relative_to(ROOT).as_posix() for folder in folders for p in folder.rglob("*")
                 if p.is_file() and "__pycache__" not in p.parts}
     assert {"cdtm_graph/data/geoid/egm96_15.tif",
             "cdtm_graph/data/sample_flight/imu.csv"} <= expected
+    assert any(name.startswith("factors/_prebuilt/kernel.cdtm_linearize-") for name in expected)
     assert expected <= packed, sorted(expected - packed)
 
 
@@ -106,55 +109,7 @@ def installed(tmp_path_factory) -> Installed:
     subprocess.run([sys.executable, "-m", "pip", "--python", str(box.python), "install", "-q",
                     "--no-deps", "--no-index", str(wheel)],
                    check=True, capture_output=True, text=True)
-    _compile_the_demos_kernels_if_cold(work / "warm-up")
-    _reuse_compiled_kernels(site)
     return box
-
-
-def _compile_the_demos_kernels_if_cold(out: Path) -> None:
-    """On a cold numba cache (a fresh clone: CI), run ``cdtm demo`` in this process first,
-    so that :func:`_reuse_compiled_kernels` has the kernels to hand over.
-
-    Why: this worker smooths other flights too and compiles the same kernels for them
-    anyway, where the wheel's compiled copies serve nothing else: the wheel's demo took
-    37.2 s on a cold cache, 5.4 s warm (2026-11-28); on a cold cache with this, 4.4 s (the
-    fixture paying the compilation). With a warm cache (the factor's kernel cached beside
-    its source) or ``NUMBA_CACHE_DIR`` (nothing to hand over) it does nothing.
-    """
-    cached = ROOT / "factors" / "__pycache__"
-    if os.environ.get("NUMBA_CACHE_DIR") or any(cached.glob("kernel.cdtm_linearize-*.nbi")):
-        return
-    from cdtm_graph.cli import main
-
-    assert main(["demo", "--out", str(out)]) == 0
-
-
-def _reuse_compiled_kernels(site: Path) -> None:
-    """Copy the checkout's compiled numba kernels beside the wheel's sources, each source's
-    modification time set to the checkout's: numba keys a cached kernel on its source's
-    time and size (and the code's hash, the numba version, the CPU), so the wheel's copy
-    of a module the suite has compiled loads them instead of compiling again.
-
-    Why: what this file tests is the package, not the compiler; a second compilation of
-    every kernel was 60-90 s of the suite. Kernels the checkout has not compiled yet (a
-    cold cache) are compiled by the wheel's own run, as a user's first run would.
-    """
-    for package in ("cdtm_graph", "factors"):
-        for cache in (ROOT / package).rglob("__pycache__"):
-            indices = sorted(cache.glob("*.nbi"))
-            source_dir = cache.parent
-            installed = site / source_dir.relative_to(ROOT) / "__pycache__"
-            for module in {i.name.split(".", 1)[0] for i in indices}:
-                source = source_dir / f"{module}.py"
-                target = installed.parent / source.name
-                if not (source.is_file() and target.is_file()
-                        and source.stat().st_size == target.stat().st_size):
-                    continue
-                installed.mkdir(exist_ok=True)
-                for path in cache.glob(f"{module}.*.nb[ic]"):
-                    shutil.copy2(path, installed / path.name)
-                stat = source.stat()
-                os.utime(target, ns=(stat.st_atime_ns, stat.st_mtime_ns))
 
 
 @pytest.mark.slow

@@ -13,10 +13,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from cdtm_graph.geometry import so3_exp
 from cdtm_graph.robust.acquisition.window import Correction, Problem
+from factors.jit import njit
 
 
 @njit(cache=True)
