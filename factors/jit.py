@@ -74,8 +74,11 @@ class _PrebuiltFallback(FunctionCache):
             return data
         signature, (triple, _cpu, _features), code = self._index_key(
             sig, target_context.codegen())
-        shipped = self._shipped.load((signature, (triple, *GENERIC_CPU), code))
-        return None if shipped is None else self._impl.rebuild(target_context, shipped)
+        try:
+            shipped = self._shipped.load((signature, (triple, *GENERIC_CPU), code))
+            return None if shipped is None else self._impl.rebuild(target_context, shipped)
+        except Exception:  # (a damaged prebuilt file: numba compiles, as without one)
+            return None
 
 
 def use_prebuilt(dispatcher: Any, shipped: Path) -> None:

@@ -164,12 +164,13 @@ def _start_order(module: str, group: str | None) -> int:
     out the groups in collection order, two to each worker first; it used to order them by
     their count of tests).
 
-    The clean flights first: the longest group, and on a cold numba cache (a fresh clone)
-    its first test compiles the kernels every smoothing test needs. Then the files that
-    call no kernel, about 30 s of the other worker's time: the other worker started
-    compiling the same kernels at the same moment before (a cold run's compilation CPU
-    that both workers spent on the same kernels: ~15 s -> 9.8 s, 2026-11-28). Then the
-    longest file, so that it does not end the run on one worker. A file missing from the
+    The clean flights first: the longest group, and where numba compiles (a platform
+    without prebuilt kernels: :mod:`factors.jit`) its first test compiles the kernels
+    every smoothing test needs. Then the files that call no kernel, about 30 s of the
+    other worker's time: there, the other worker started compiling the same kernels at the
+    same moment before (a cold run's compilation CPU that both workers spent on the same
+    kernels: ~15 s -> 9.8 s, 2026-11-28). Then the longest file, so that it does not end
+    the run on one worker. A file missing from the
     lists only runs later; nothing else depends on the order.
     """
     if group == "clean_flights":

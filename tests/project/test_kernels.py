@@ -8,6 +8,7 @@ import json
 import os
 import pickle
 import platform
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -83,7 +84,8 @@ def test_every_prebuilt_kernel_is_of_its_source_as_it_is():
     (mutation tried: a comment added to ``factors/kernel.py``: 7 stale indices named). Not
     a wrong result (numba compiles a stale kernel instead of loading it) but every fresh
     install paying its compilation again. Also a build for the host's CPU, which no other
-    machine would load (mutation tried: ``NUMBA_CPU_NAME`` left out of the build)."""
+    machine would load (mutation tried: ``triangularize``'s index keyed on this CPU, as
+    a build without ``NUMBA_CPU_NAME`` writes it: named)."""
     import numba
 
     indices = _prebuilt_indices()
@@ -128,7 +130,7 @@ def test_a_first_run_loads_the_packages_kernels_and_compiles_none(tmp_path):
     packages' kernels: each loads from its prebuilt copy (issue 22, "First run").
 
     Catches the fallback switched off (mutation tried: ``_load_overload`` returning numba's
-    miss: 54 kernels compiled) and a kernel the build did not run (mutation tried: the
+    miss: every kernel the demo calls compiled) and a kernel the build did not run (mutation tried: the
     ``_prebuilt`` index of ``factors.kernel.cdtm_linearize`` removed: it is named)."""
     import numba
 
@@ -185,7 +187,9 @@ def test_a_prebuilt_kernel_loads_on_this_cpu_only_while_its_source_is_unchanged(
     edited, it is compiled and the new code runs.
 
     Catches the fallback asking for the host's key (nothing would ever load; mutation
-    tried: ``GENERIC_CPU`` in place of the host's dropped from ``_load_overload``) and a
+    tried: ``GENERIC_CPU`` in place of the host's dropped from ``_load_overload``), a
+    damaged prebuilt file failing the run instead of being compiled (mutation tried: the
+    ``try`` around the prebuilt load removed: the run ends in an unpickling error) and a
     stale kernel loaded (mutation tried: the prebuilt index read with its own stamp in
     place of the module's: ``triple`` returns 6.0 after the edit to ``4.0 * x``)."""
     module = tmp_path / "probe.py"
@@ -204,6 +208,11 @@ def test_a_prebuilt_kernel_loads_on_this_cpu_only_while_its_source_is_unchanged(
     shipped = next((tmp_path / "build").iterdir())  # numba's folder for the module's
     assert call("user", str(shipped)) == {"value": 6.0, "compiled": []}
     assert call("other-user")["compiled"] == ["triple"]  # without the fallback: compiled
+    damaged = tmp_path / "damaged"
+    shutil.copytree(shipped, damaged)
+    for data in damaged.glob("*.nbc"):
+        data.write_bytes(data.read_bytes()[:100])
+    assert call("damaged-user", str(damaged)) == {"value": 6.0, "compiled": ["triple"]}
 
     module.write_text(_KERNEL_MODULE.replace("3.0 * x", "4.0 * x"))
     assert call("new-user", str(shipped)) == {"value": 8.0, "compiled": ["triple"]}
