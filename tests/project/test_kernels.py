@@ -130,8 +130,9 @@ def test_a_first_run_loads_the_packages_kernels_and_compiles_none(tmp_path):
     packages' kernels: each loads from its prebuilt copy (issue 22, "First run").
 
     Catches the fallback switched off (mutation tried: ``_load_overload`` returning numba's
-    miss: every kernel the demo calls compiled) and a kernel the build did not run (mutation tried: the
-    ``_prebuilt`` index of ``factors.kernel.cdtm_linearize`` removed: it is named)."""
+    miss: every kernel the demo calls compiled) and a kernel the build did not run
+    (mutation tried: the ``_prebuilt`` index of ``factors.kernel.cdtm_linearize`` removed:
+    it is named)."""
     import numba
 
     indices = _prebuilt_indices()
