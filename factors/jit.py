@@ -14,11 +14,14 @@ Why it is sound on any machine:
   key in place of the host's.
 - numba still checks everything else: the source file's content hash (a kernel edited
   since the build is compiled, not loaded), the bytecode's hash, the signature, the
-  Python version (in the file name) and numba's version (in the index).
+  Python version (in the file name) and numba's version (in the index). Like numba's own
+  cache, it does not see a global a kernel reads from another module (a constant of
+  :mod:`cdtm_graph.constants` changed needs the kernels rebuilt).
 
-What it does not do: write anything. A kernel numba compiles goes to numba's own cache;
-the prebuilt files are only read. ``CDTM_COMPILE_KERNELS=1`` turns the fallback off (the
-build script runs so, to compile every kernel afresh).
+What it does not do: write anything, or fail a run. A kernel numba compiles goes to
+numba's own cache; the prebuilt files are only read, and one that cannot be read is
+compiled instead. ``CDTM_COMPILE_KERNELS=1`` turns the fallback off (the build script runs
+so, to compile every kernel afresh).
 """
 
 from __future__ import annotations
@@ -30,7 +33,8 @@ from pathlib import Path
 from typing import Any
 
 import numba
-from numba.core.caching import FunctionCache, IndexDataCacheFile
+from numba.core.caching import FunctionCache, IndexDataCacheFile, _cache_log
+from numba.core.dispatcher import Dispatcher
 
 #: The folder of a package's prebuilt kernels, below the package's root.
 PREBUILT = "_prebuilt"
@@ -72,26 +76,35 @@ class _PrebuiltFallback(FunctionCache):
         data = super()._load_overload(sig, target_context)
         if data is not None or not self._enabled:
             return data
-        signature, (triple, _cpu, _features), code = self._index_key(
-            sig, target_context.codegen())
         try:
+            signature, (triple, *_host_cpu), code = self._index_key(
+                sig, target_context.codegen())
             shipped = self._shipped.load((signature, (triple, *GENERIC_CPU), code))
             return None if shipped is None else self._impl.rebuild(target_context, shipped)
-        except Exception:  # (a damaged prebuilt file: numba compiles, as without one)
+        except Exception as error:  # (a damaged file, another numba: compiled, as without)
+            _cache_log("[cache] prebuilt kernel not loaded: %r", error)
             return None
 
 
 def use_prebuilt(dispatcher: Any, shipped: Path) -> None:
-    """Give the numba ``dispatcher`` numba's cache with the fallback on ``shipped``."""
-    dispatcher._cache = _PrebuiltFallback(dispatcher.py_func, shipped)
+    """Give the numba ``dispatcher`` numba's cache with the fallback on ``shipped`` (numba's
+    cache alone if the fallback cannot be made: a numba whose cache differs)."""
+    try:
+        dispatcher._cache = _PrebuiltFallback(dispatcher.py_func, shipped)
+    except Exception as error:
+        _cache_log("[cache] no prebuilt kernels: %r", error)
+        dispatcher.enable_caching()
 
 
 def njit(*args: Any, **options: Any) -> Any:
     """``numba.njit(**options)``; with ``cache=True`` the kernel's cache falls back on its
-    prebuilt copy. Used as ``@njit(cache=True, ...)``, like numba's."""
+    prebuilt copy. Used as ``@njit(cache=True, ...)``, like numba's (no signature: the
+    kernels are compiled for the types they are called with)."""
 
     def decorate(py_func: Callable[..., Any]) -> Any:
         dispatcher = numba.njit(**{**options, "cache": False})(py_func)
+        if not isinstance(dispatcher, Dispatcher):  # NUMBA_DISABLE_JIT: the function itself
+            return dispatcher
         if options.get("cache"):
             shipped = prebuilt_dir(Path(inspect.getfile(py_func)))
             if shipped is None or not shipped.is_dir() or os.environ.get(COMPILE_ALL) == "1":
@@ -102,4 +115,7 @@ def njit(*args: Any, **options: Any) -> Any:
 
     if args and callable(args[0]):
         return decorate(args[0])
+    if args:
+        raise TypeError("factors.jit.njit takes no signature: the kernels are compiled for "
+                        "the types they are called with, the prebuilt ones at the build's")
     return decorate

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ast
 import hashlib
+import importlib
 import json
 import os
 import pickle
@@ -93,15 +94,58 @@ def test_every_prebuilt_kernel_is_of_its_source_as_it_is():
     versions = {_read_index(i)[0] for i in indices}
     if versions != {numba.__version__}:
         pytest.skip(f"prebuilt for numba {sorted(versions)}, this is {numba.__version__}")
-    stale, specific = [], []
+    stale, specific, mismatched, svml = [], [], [], []
     for index in indices:
         _version, stamp, overloads = _read_index(index)
         if stamp != hashlib.sha256(_source_of(index).read_bytes()).digest():
             stale.append(str(index.relative_to(ROOT)))
-        specific += [index.name for (_sig, (_triple, *cpu), _code) in overloads
-                     if tuple(cpu) != GENERIC_CPU]
+        for (signature, (_triple, *cpu), _code), name in overloads.items():
+            specific += [] if tuple(cpu) == GENERIC_CPU else [index.name]
+            data = (index.parent / name).read_bytes()
+            mismatched += [] if pickle.loads(data)[3].args == signature else [name]
+            svml += [name] if b"__svml_" in data else []
     assert not stale, "stale (run python scripts/prebuild_kernels.py):\n" + "\n".join(stale)
     assert not specific, specific
+    assert not mismatched, mismatched  # (two builders writing one index at once)
+    assert not svml, svml  # (Intel's SVML, which a machine without it cannot load)
+
+
+def test_every_kernel_is_prebuilt_under_the_key_its_code_asks_for():
+    """Each kernel of the packages (not inlined) is decorated by :func:`factors.jit.njit`,
+    has a prebuilt index, and every entry there is under the key the kernel's dispatcher
+    computes for it now (its bytecode's hash, this machine's triple) with the generic CPU.
+
+    Catches a kernel decorated with numba's ``njit`` (mutation tried: ``from numba import
+    njit`` back in ``cdtm_graph/robust/gating.py``: named, and no prebuilt fallback), a
+    kernel the build missed (mutation tried: ``gating``'s index removed: named) and keys
+    that the code would never ask for (mutation tried: a byte of the bytecode hash changed
+    in one index: named)."""
+    from numba.core.registry import cpu_target
+
+    from factors.jit import _PrebuiltFallback
+
+    codegen = cpu_target.target_context.codegen()
+    prebuilt = {p.name: p for p in _prebuilt_indices()}
+    unfallen, missing, foreign = [], [], []
+    for name in own_kernels():
+        path, function = name.split(":")
+        module = importlib.import_module(".".join(Path(path).with_suffix("").parts))
+        dispatcher = getattr(module, function)
+        if not isinstance(dispatcher._cache, _PrebuiltFallback):
+            unfallen.append(name)
+            continue
+        index = prebuilt.get(dispatcher._cache._impl.filename_base + ".nbi")
+        if index is None:
+            missing.append(name)
+            continue
+        for signature, (triple, *_cpu), code in _read_index(index)[2]:
+            wanted_signature, (wanted_triple, *_host), wanted_code = \
+                dispatcher._cache._index_key(signature, codegen)
+            if (triple, code) != (wanted_triple, wanted_code):
+                foreign.append(name)
+    assert not unfallen, f"not decorated with factors.jit.njit: {unfallen}"
+    assert not missing, f"not prebuilt (python scripts/prebuild_kernels.py): {missing}"
+    assert not foreign, foreign
 
 
 _COMPILED_BY_THE_DEMO = r"""
@@ -136,10 +180,11 @@ def test_a_first_run_loads_the_packages_kernels_and_compiles_none(tmp_path):
     import numba
 
     indices = _prebuilt_indices()
-    if platform.machine() != "x86_64" or not indices:
-        pytest.skip("the kernels are prebuilt for x86-64")
-    if _read_index(indices[0])[0] != numba.__version__:
-        pytest.skip("the kernels are prebuilt for another numba")
+    tag = f".py{sys.version_info.major}{sys.version_info.minor}."
+    if sys.platform != "linux" or platform.machine() != "x86_64" or not indices:
+        pytest.skip("the kernels are prebuilt for x86-64 Linux")
+    if tag not in indices[0].name or _read_index(indices[0])[0] != numba.__version__:
+        pytest.skip(f"the kernels are prebuilt for another Python or numba ({indices[0].name})")
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "empty-cache")}
     env.pop(COMPILE_ALL, None)
     done = subprocess.run([sys.executable, "-c", _COMPILED_BY_THE_DEMO, str(tmp_path / "out")],
@@ -182,7 +227,7 @@ print(json.dumps({"value": module.triple(2.0), "compiled": compiled}))
 """
 
 
-def test_a_prebuilt_kernel_loads_on_this_cpu_only_while_its_source_is_unchanged(tmp_path):
+def test_a_generic_kernel_loads_here_while_its_source_is_unchanged(tmp_path):
     """A kernel compiled for the generic CPU (another numba cache, as the build does) loads
     through the fallback on this machine's CPU without compiling; once its module is
     edited, it is compiled and the new code runs.

@@ -18,6 +18,8 @@ wheel's contents are checked fast, without installing it.
 from __future__ import annotations
 
 import os
+import pickle
+import platform
 import re
 import shutil
 import subprocess
@@ -27,7 +29,10 @@ import venv
 import zipfile
 from pathlib import Path
 
+import numba
 import pytest
+
+from factors.jit import COMPILE_ALL, PACKAGES, PREBUILT
 
 ROOT = Path(__file__).resolve().parents[2]
 #: What a wheel is built from: the project's metadata and its two packages.
@@ -43,7 +48,9 @@ class Installed:
         self.venv = root / "venv"
         self.cwd = root / "cwd"
         self.cwd.mkdir()
-        self.env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+        self.site = Path()  # the venv's site-packages, once made
+        self.env = {k: v for k, v in os.environ.items()
+                    if k not in ("PYTHONPATH", "PYTHONHOME", "NUMBA_CACHE_DIR", COMPILE_ALL)}
         self.env["MPLBACKEND"] = "Agg"
 
     @property
@@ -106,6 +113,7 @@ def installed(tmp_path_factory) -> Installed:
                         "print(sysconfig.get_paths()['purelib'])").stdout.strip())
     # the dependencies: this environment's site-packages, appended after the venv's own
     (site / "_cdtm_test_dependencies.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
+    box.site = site
     subprocess.run([sys.executable, "-m", "pip", "--python", str(box.python), "install", "-q",
                     "--no-deps", "--no-index", str(wheel)],
                    check=True, capture_output=True, text=True)
@@ -123,14 +131,30 @@ def test_the_wheel_is_what_runs(installed):
     assert not where.is_relative_to(ROOT), where
 
 
+def _numba_of(index: Path) -> str:
+    """The numba version a numba cache index was written by (its first pickle)."""
+    with index.open("rb") as f:
+        return pickle.load(f)
+
+
 @pytest.mark.slow
 def test_demo_runs_from_the_wheel(installed):
     """Catches the sample flight not shipped as package data, or read from a path relative
-    to the repository (a2fce1e: ``.../data/sample_flight:1: not a directory``)."""
+    to the repository (a2fce1e: ``.../data/sample_flight:1: not a directory``); and, on the
+    platform the kernels are prebuilt for, the wheel's demo compiling a kernel of its own
+    (numba's cache beside the installed sources gets an index for each: mutation tried:
+    the wheel built without ``_prebuilt/``: every kernel the demo calls named)."""
     done = installed.cdtm("demo")
     assert done.returncode == 0, done.stderr
     assert "verdict: trusted" in done.stdout
     assert (installed.cwd / "cdtm-demo-out" / "report.json").is_file()
+    prebuilt = sorted((ROOT / "factors" / PREBUILT).glob("*.nbi"))
+    tag = f".py{sys.version_info.major}{sys.version_info.minor}."
+    if platform.machine() == "x86_64" and sys.platform == "linux" and prebuilt \
+            and tag in prebuilt[0].name and _numba_of(prebuilt[0]) == numba.__version__:
+        compiled = [p.name for package in PACKAGES
+                    for p in (installed.site / package).rglob("__pycache__/*.nbi")]
+        assert not compiled, compiled
 
 
 @pytest.mark.slow
