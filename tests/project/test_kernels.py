@@ -124,6 +124,8 @@ def test_every_kernel_is_prebuilt_under_the_key_its_code_asks_for():
 
     from factors.jit import _PrebuiltFallback
 
+    if os.environ.get(COMPILE_ALL) == "1":
+        pytest.skip(f"{COMPILE_ALL}=1: the prebuilt kernels are off (the build runs so)")
     codegen = cpu_target.target_context.codegen()
     prebuilt = {p.name: p for p in _prebuilt_indices()}
     unfallen, missing, foreign = [], [], []
