@@ -3,6 +3,7 @@ module fixtures made once; ``tests/conftest.py``, ``pytest_collection_modifyitem
 
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 import sys
@@ -30,3 +31,13 @@ def test_a_files_tests_run_on_one_worker():
     workers = re.findall(r"^\[(gw\d+)\] .*PASSED .*$", done.stdout, re.M)
     assert len(workers) >= 4, done.stdout[-2000:]
     assert len(set(workers)) == 1, done.stdout[-2000:]
+
+
+def test_a_worker_runs_one_blas_thread(request):
+    """Under xdist, each worker (and the processes it starts) runs OpenBLAS on one thread
+    (``tests/conftest.py``, ``pytest_configure``; 7-9% of the suite's CPU went to BLAS
+    threads spinning while the workers held the cores). Catches the setting lost
+    (mutation tried: the hook's body removed: the variable unset in the workers)."""
+    if not hasattr(request.config, "workerinput"):
+        pytest.skip("not under pytest-xdist: the one process keeps OpenBLAS's threads")
+    assert os.environ.get("OPENBLAS_NUM_THREADS") is not None
