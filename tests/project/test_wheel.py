@@ -141,9 +141,11 @@ def _numba_of(index: Path) -> str:
 def test_demo_runs_from_the_wheel(installed):
     """Catches the sample flight not shipped as package data, or read from a path relative
     to the repository (a2fce1e: ``.../data/sample_flight:1: not a directory``); and, on the
-    platform the kernels are prebuilt for, the wheel's demo compiling a kernel of its own
-    (numba's cache beside the installed sources gets an index for each: mutation tried:
-    the wheel built without ``_prebuilt/``: every kernel the demo calls named)."""
+    platform the kernels are prebuilt for, a first run (numba's cache empty, as after any
+    install) compiling a kernel of the packages: numba's cache beside the installed sources
+    gets an index for each it compiles (issue 22, "First run"; mutations tried: the wheel
+    built without ``_prebuilt/``: every kernel the demo calls named; the fallback off in
+    ``factors/jit.py``: the same; ``cdtm_linearize``'s prebuilt index removed: named)."""
     done = installed.cdtm("demo")
     assert done.returncode == 0, done.stderr
     assert "verdict: trusted" in done.stdout
