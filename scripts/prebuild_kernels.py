@@ -31,7 +31,7 @@ from numba.core.dispatcher import Dispatcher
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from factors.jit import COMPILE_ALL, PACKAGES, PREBUILT  # noqa: E402  (the checkout's)
+from factors.jit import COMPILE_ALL, PACKAGES, PREBUILT, prebuilt_dir  # noqa: E402  (the checkout's)
 
 
 def module_dirs() -> dict[str, Path]:
@@ -87,9 +87,10 @@ def main(argv: list[str] | None = None) -> int:
             if subdir.name not in folders:
                 continue
             source = folders[subdir.name]
+            shipped = prebuilt_dir(source / "__init__.py")  # (where the fallback reads them)
+            assert shipped is not None, source
             for path in sorted(subdir.glob("*.nb[ic]")):
-                package, *below = source.relative_to(ROOT).parts
-                target = staged.joinpath(package, *below, path.name)
+                target = staged / shipped.relative_to(ROOT) / path.name
                 target.parent.mkdir(parents=True, exist_ok=True)
                 shutil.copyfile(path, target)
                 if path.suffix == ".nbi":
@@ -101,8 +102,8 @@ def main(argv: list[str] | None = None) -> int:
             return 1
         for package in PACKAGES:
             shutil.rmtree(ROOT / package / PREBUILT, ignore_errors=True)
-            if (staged / package).is_dir():
-                shutil.copytree(staged / package, ROOT / package / PREBUILT)
+            if (staged / package / PREBUILT).is_dir():
+                shutil.copytree(staged / package / PREBUILT, ROOT / package / PREBUILT)
         size = sum(p.stat().st_size for p in staged.rglob("*.nb[ic]"))
     print(f"prebuild: {len(built)} kernels, {size / 1e6:.1f} MB in "
           + ", ".join(f"{p}/{PREBUILT}" for p in PACKAGES))

@@ -182,8 +182,8 @@ def _start_order(module: str, group: str | None) -> int:
     other worker's time: there, the other worker started compiling the same kernels at the
     same moment before (a cold run's compilation CPU that both workers spent on the same
     kernels: ~15 s -> 9.8 s, 2026-11-28). Then the longest file, so that it does not end
-    the run on one worker. A file missing from the
-    lists only runs later; nothing else depends on the order.
+    the run on one worker. A file missing from the lists only runs later; nothing else
+    depends on the order.
     """
     if group == "clean_flights":
         return 0
