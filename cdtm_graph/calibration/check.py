@@ -287,7 +287,8 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
     # (the noise stays linearized at the run's solution, as the likelihood ratio has it;
     # its bias taken out at the scatter the residuals show with the calibration free)
     scatter = residual_scatter(built.cdtm, values)
-    values = debiased(graph, values, built.cdtm, noise_scale=scatter)
+    values = debiased(graph, values, built.cdtm, noise_scale=scatter,
+                      linear=solver.linearized_at(values))
     c = values.atVector(CALIBRATION_KEY)
     estimate = calibration_estimate(c, key_marginals(graph, values, [CALIBRATION_KEY])[0],
                                     sigmas, flight.config)

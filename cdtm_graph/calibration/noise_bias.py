@@ -44,7 +44,8 @@ def noise_gradient(factors: Sequence[CdtmPairFactor], values: gtsam.Values
 
 
 def debiased(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
-             factors: Sequence[CdtmPairFactor], noise_scale: float = 1.0) -> gtsam.Values:
+             factors: Sequence[CdtmPairFactor], noise_scale: float = 1.0,
+             linear: gtsam.GaussianFactorGraph | None = None) -> gtsam.Values:
     """``values`` moved by one corrected-score step: the Gauss-Newton step of ``graph``
     at ``values`` with the noise's expected gradient taken out of its gradient.
 
@@ -53,8 +54,14 @@ def debiased(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
         factors: the C-DTM pair factors.
         noise_scale: the noise's variance over the model's (the expected gradient grows
             with it: :func:`cdtm_graph.calibration.clustered.residual_scatter`).
+        linear: ``graph`` linearized at ``values``, if the solve has it (``LinearSolver.
+            linearized_at``); it gains the noise's terms here.
     """
-    linear = graph.linearize(values)
+    if linear is None:
+        linear = graph.linearize(values)
+    else:  # (a graph of its own: the solve's stays as it was)
+        given, linear = linear, gtsam.GaussianFactorGraph()
+        linear.push_back(given)
     for key, g in noise_gradient(factors, values).items():
         g = noise_scale * g
         # a zero Hessian and the linear term: the step solves H d = -grad + g

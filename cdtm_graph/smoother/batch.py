@@ -242,7 +242,7 @@ def _smooth_once(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
     solver = LinearSolver()
     values, graph, stats, assessed = _solve(built, initial, settings, tests, solver)
     if calibration is not None:  # the focal scale takes the noise's bias whole
-        values = debiased(graph, values, built.cdtm)
+        values = debiased(graph, values, built.cdtm, linear=solver.linearized_at(values))
     K = len(flight.frames)
     start = time.perf_counter()
     covariances = (marginals(graph, values, K, linear=solver.linearized_at(values))
