@@ -135,8 +135,11 @@ SIGMA_TOL_M = 1e-5
 def _decreasing_root(f: Callable[[float], float], low: float, high: float,
                      tol: float) -> float:
     """The root of a decreasing ``f`` with ``f(low) > 0 >= f(high)``, to ``tol``, by
-    bisection (scipy.optimize's import alone cost every smoothing process 0.25 s)."""
-    while high - low > tol:
+    bisection (scipy.optimize's import alone cost every smoothing process 0.25 s); at most
+    200 halvings (an infinite ``high``, from heights beyond floating point, ends there)."""
+    for _ in range(200):
+        if not high - low > tol:
+            break
         mid = 0.5 * (low + high)
         if f(mid) > 0.0:
             low = mid
