@@ -292,9 +292,9 @@ def curvature_tests(xy_m: np.ndarray, dh_m: np.ndarray, sigma_m: np.ndarray,
     window needs more than six), ``tilt_cov`` (W, 2, 2). Returns (W,) each: the statistic,
     the tilt's and the curvature's height change (m) and the tracks kept.
 
-    The fit is ``pinv(A^T A) A^T b`` (the least-squares solution, the minimum-norm one
-    where the ground points leave the shape unknown) for every window of a round at
-    once: a window's fit took ~1 ms of Python alone, a 1000-frame flight's ~0.8 s."""
+    Every window of a round is fitted at once (:func:`_least_squares`: the minimum-norm
+    solution where the ground points leave the shape unknown), its covariance from
+    ``pinv(A^T A)``: one window at a time took ~1 ms of Python, a 1000-frame flight 0.8 s."""
     n = valid.sum(axis=1)
     centre = np.einsum("wp,wpi->wi", valid.astype(float), xy_m) / n[:, None]
     terms = _surface_terms(xy_m - centre[:, None, :], settings.scale_m)  # (W, P, 6)
@@ -312,9 +312,9 @@ def curvature_tests(xy_m: np.ndarray, dh_m: np.ndarray, sigma_m: np.ndarray,
             break
         kept = keep[active]
         A, b = A_all[active] * kept[..., None], b_all[active] * kept[..., None]
+        coef[active] = _least_squares(A, b, kept.sum(axis=1))
         At = A.transpose(0, 2, 1)
         M_inv[active] = np.linalg.pinv(At @ A)
-        coef[active] = M_inv[active] @ (At @ b)
         dof = np.maximum(kept.sum(axis=1) - dims, 1)
         residual = (b - A @ coef[active])[..., 0]
         scale2[active] = np.maximum(np.einsum("wp,wp->w", residual, residual) / dof, 1e-12)
@@ -335,6 +335,18 @@ def curvature_tests(xy_m: np.ndarray, dh_m: np.ndarray, sigma_m: np.ndarray,
     chi2 = np.einsum("wi,wij,wj->w", shape, np.linalg.pinv(cov), shape)
     return (chi2, np.hypot(shape[:, 0], shape[:, 1]) * per_km,
             0.5 * np.abs(shape[:, 2]) * per_km**2, keep.sum(axis=1))
+
+
+def _least_squares(A: np.ndarray, b: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(W, 6, 1) ``np.linalg.lstsq``'s solutions of (W, P, 6) ``A`` (zero rows padding
+    ``rows`` real ones) and (W, P, 1) ``b``, by one batched SVD: the minimum-norm solution,
+    singular values up to ``eps * max(rows, 6)`` of the largest cut, as lstsq cuts them
+    (the normal equations square the condition number: a window whose ground points lie in
+    a strip a metre wide read a different shape)."""
+    U, sv, Vt = np.linalg.svd(A, full_matrices=False)
+    cut = np.finfo(float).eps * np.maximum(rows, A.shape[2])[:, None] * sv[:, :1]
+    inverse = np.divide(1.0, sv, out=np.zeros_like(sv), where=sv > cut)
+    return Vt.transpose(0, 2, 1) @ (inverse[..., None] * (U.transpose(0, 2, 1) @ b))
 
 
 def _medians(x: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -378,6 +390,8 @@ def broad_map_error(heights: TrackHeights, track_t_s: np.ndarray, frame_t_s: np.
         judged = np.flatnonzero((frame_t_s - half >= frame_t_s[0])
                                 & (frame_t_s + half <= frame_t_s[-1])
                                 & np.isfinite(tilt_cov).all(axis=(1, 2)))
+        if not use.any():  # (every window empty: n stays 0)
+            judged = judged[:0]
         # the tracks in time order: a frame's window is a run of them (widened by a
         # margin, then held to the window exactly)
         order = np.flatnonzero(use)[np.argsort(track_t_s[use], kind="stable")]

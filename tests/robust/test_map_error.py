@@ -13,7 +13,9 @@ import pytest
 from cdtm_graph.graph import GraphSettings, feature_noise
 from cdtm_graph.results import pose_covariance_in_world
 from cdtm_graph.robust.map_error import (
+    SIGMA_TOL_M,
     BroadErrorSettings,
+    _decreasing_root,
     attitude_tilt_covariance,
     broad_map_error,
     curvature_test,
@@ -257,32 +259,107 @@ def test_ground_points_on_a_line_leave_the_shape_unknown_not_an_error(rng):
     assert np.isfinite(chi2) and np.isfinite(tilt_m) and np.isfinite(bend_m) and kept > 150
 
 
-def test_windows_fitted_together_give_each_window_alone(rng):
+def _one_window_reference(xy_m, dh_m, sigma_m, tilt_cov, settings):
+    """The shape fit one window at a time as it was written first (``np.linalg.lstsq``
+    round by round; the covariance from ``pinv(A^T A)``): the reference the batched fit is
+    held to."""
+    xy_m = xy_m - xy_m.mean(axis=0)
+    x, y = xy_m[:, 0] / settings.scale_m, xy_m[:, 1] / settings.scale_m
+    terms = np.column_stack([np.ones_like(x), x, y, x * x, x * y, y * y])
+    root_w = 1.0 / sigma_m
+    keep = np.ones(dh_m.size, bool)
+    for _ in range(settings.rounds):
+        A, b = terms[keep] * root_w[keep, None], dh_m[keep] * root_w[keep]
+        coef = np.linalg.lstsq(A, b, rcond=None)[0]
+        scale2 = max(float(np.sum((b - A @ coef) ** 2)) / max(int(keep.sum()) - 6, 1), 1e-12)
+        off = np.abs(dh_m - terms @ coef) * root_w
+        now = off <= settings.gate * 1.4826 * float(np.median(off))
+        if np.array_equal(now, keep) or now.sum() <= 6:
+            break
+        keep = now
+    shape_of = np.array([[0, 1, 0, 0, 0, 0], [0, 0, 1, 0, 0, 0], [0, 0, 0, 1, 0, 1]], float)
+    cov = shape_of @ np.linalg.pinv(A.T @ A) @ shape_of.T * scale2
+    cov[:2, :2] += tilt_cov
+    shape = shape_of @ coef
+    per_km = 1000.0 / settings.scale_m
+    return (float(shape @ np.linalg.pinv(cov) @ shape), float(np.hypot(*shape[:2])) * per_km,
+            0.5 * abs(float(shape[2])) * per_km**2, int(keep.sum()))
+
+
+@pytest.mark.parametrize("strip_m", [None, 1.0, 0.1])
+def test_windows_fitted_together_give_each_window_alone(rng, strip_m):
     """:func:`curvature_tests` fits a stack of windows padded to one length at once (a
     1000-frame flight's 980 windows took 0.8 s one by one, 2026-11-28): each window's
-    statistic, tilt, bend and kept count are those of the window fitted alone, whatever
-    the padding holds, blocks (gated round by round) and a line of ground points
-    included. Mutations tried: the padding kept in the median (``_medians`` over every
-    row), the padding in the windows' centres (``xy_m.mean(axis=1)``): each fails."""
+    statistic, tilt, bend and kept count are those of the window fitted alone by the
+    first, per-window least squares, whatever the padding holds; blocks (gated round by
+    round), 7 points, windows of ground points in a strip ``strip_m`` wide (nearly
+    degenerate) and on a line included. Mutations tried: the padding kept in the median
+    (``_medians`` over every row), the padding in the windows' centres
+    (``xy_m.mean(axis=1)``), the fit by the normal equations (``pinv(A^T A) A^T b``: a
+    0.1 m strip read chi-square 2e12 against 0.8): each fails."""
     settings = BroadErrorSettings()
-    sizes = [80, 250, 140, 61]
+    sizes = [80, 250, 140, 61, 7]
     P = max(sizes) + 7
-    xy, dh, sigma = np.full((4, P, 2), 9e9), np.full((4, P), -7e3), np.full((4, P), 1e-3)
-    valid = np.zeros((4, P), bool)
-    alone = []
+    xy, dh, sigma = np.full((5, P, 2), 9e9), np.full((5, P), -7e3), np.full((5, P), 1e-3)
+    valid = np.zeros((5, P), bool)
+    alone, tilt_cov = [], np.stack([np.eye(2) * 0.01 * w for w in range(5)])
     for w, n in enumerate(sizes):
-        ground = rng.uniform(-1200.0, 1200.0, (n, 2)) + rng.uniform(-5e4, 5e4, 2)
+        ground = rng.uniform(-1200.0, 1200.0, (n, 2))
+        if strip_m is not None:
+            ground[:, 1] = rng.uniform(-strip_m / 2, strip_m / 2, n)
         if w == 3:
-            ground[:, 1] = ground[0, 1]  # on a line: the curvature across it unknown
+            ground[:, 1] = 0.0  # on a line: the curvature across it unknown
+        turn = rng.uniform(0.0, np.pi)
+        ground = ground @ np.array([[np.cos(turn), np.sin(turn)], [-np.sin(turn), np.cos(turn)]])
+        ground += rng.uniform(-5e4, 5e4, 2)
         s_m = rng.uniform(1.0, 4.0, n)
         height = 2e-6 * w * np.sum((ground - ground.mean(axis=0)) ** 2, axis=1) \
             + rng.normal(0.0, 1.0, n) * s_m
         height[rng.random(n) < 0.2 * (w % 2)] += 25.0  # blocks on a fifth of two windows
         at = rng.permutation(P)[:n]  # (the window's tracks anywhere in its row)
         xy[w, at], dh[w, at], sigma[w, at], valid[w, at] = ground, height, s_m, True
-        alone.append(curvature_test(ground, height, s_m, np.eye(2) * 0.01 * w, settings))
-    tilt_cov = np.stack([np.eye(2) * 0.01 * w for w in range(4)])
+        alone.append(_one_window_reference(ground, height, s_m, tilt_cov[w], settings))
     together = np.column_stack(curvature_tests(xy, dh, sigma, valid, tilt_cov, settings))
-    np.testing.assert_allclose(together[:, :3], np.array(alone)[:, :3], rtol=1e-9, atol=1e-12)
+    # (in a strip the covariance's pinv(A^T A) holds a condition number of ~1e13: the
+    # same formula summed in another order moves the statistic by ~1e-4)
+    rtol = 1e-6 if strip_m is None else 1e-3
+    np.testing.assert_allclose(together[:, :3], np.array(alone)[:, :3], rtol=rtol, atol=1e-9)
     assert together[:, 3].tolist() == [a[3] for a in alone]
-    assert together[1, 3] < sizes[1] and together[3, 3] > 0  # the blocks gated out
+    assert together[1, 3] < sizes[1]  # the blocks gated out
+
+
+def test_each_frame_window_holds_the_tracks_within_half_its_span(rng):
+    """:func:`broad_map_error` takes a frame's window as a run of the tracks sorted by
+    time: it holds exactly the tracks with ``|t - t_frame| <= window_s / 2`` (ties on the
+    edges, equal times, tracks out of order), ``n_tracks`` counts them; with no usable
+    track at all, every window is empty, not an error. Mutations tried: the margin's
+    exact mask dropped (``valid &= ...`` removed) and the empty case unguarded (an
+    IndexError, the review's find, 2026-11-28): each fails."""
+    frame_t_s = np.arange(0.0, 30.01, 0.5)
+    # (7.5 - 1e-9 and 17.5 + 1e-9: just outside frame 12.5's window, inside its margin)
+    t_s = np.r_[np.repeat(np.arange(0.0, 30.01, 0.5), 3), np.full(40, 12.5),
+                7.5 - 1e-9, 17.5 + 1e-9]
+    t_s = t_s[rng.permutation(t_s.size)]
+    xy = rng.uniform(-900.0, 900.0, (t_s.size, 2))
+    out = _broad(xy, t_s, frame_t_s, np.zeros(t_s.size), min_tracks=10**6)
+    half = 0.5 * BroadErrorSettings().window_s
+    judged = (frame_t_s - half >= 0.0) & (frame_t_s + half <= frame_t_s[-1])
+    expected = [int(np.sum(np.abs(t_s - f) <= half)) if j else 0
+                for f, j in zip(frame_t_s, judged)]
+    assert out.n_tracks.tolist() == expected
+    nothing = _broad(xy, t_s, frame_t_s, np.full(t_s.size, np.nan))
+    assert not nothing.n_tracks.any() and np.isnan(nothing.evidence).all()
+
+
+def test_the_map_sigma_is_solved_to_its_tolerance_and_ends_on_any_bound():
+    """The bisection behind the map sigma (:func:`_decreasing_root`, scipy's brentq before
+    2026-11-28): the median of ``d / s^2`` over equal heights at chi-square(1)'s median
+    (``s = sqrt(d / target)``, where brentq raised on the round-off of ``f(high)``), to
+    ``SIGMA_TOL_M``; an infinite bound (heights beyond floating point) ends after its 200
+    halvings. Mutations tried: ``low = mid`` and ``high = mid`` swapped, the cap removed
+    (the second call never returns): each fails."""
+    d, target = np.full(11, 49.51), 0.4549364231195724
+    root = _decreasing_root(lambda s: float(np.median(d / s**2)) - target, 1e-9,
+                            float(np.sqrt(d.max() / target)) * 2, SIGMA_TOL_M)
+    assert abs(root - np.sqrt(49.51 / target)) <= SIGMA_TOL_M
+    assert _decreasing_root(lambda s: -1.0, 0.0, math.inf, SIGMA_TOL_M) == math.inf
