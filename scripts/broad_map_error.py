@@ -1,7 +1,8 @@
 """The map's smooth error over kilometres (issue 21, build 4): each run's RMSE, ANEES,
 verdict and the shape evidence the verdict's ``broad_map_error`` reads (its highest frame,
 the map's tilt and curvature there over a kilometre, and the longest stretch of frames
-above the verdict's sustained bound, in seconds: ``VerdictSettings.broad_map``).
+above the verdict's sustained bound, in seconds: ``VerdictSettings.broad_map``'s, batch
+and iSAM2; the fixed lag has none, its rows show the same count).
 
 Run: ``python scripts/broad_map_error.py RUN...``, each RUN ``scenario/seed/mode[/frames]``:
 a scenario of ``cdtm_graph.studies.robustness.SCENARIOS``, ``waves`` (3 m of waves,

@@ -709,10 +709,11 @@ def test_a_named_calibration_takes_the_broad_map_error_as_its_own():
         range(12, 17))
 
 
-def _shaped(evidence: np.ndarray, lag_s: float | None = None) -> SmootherResult:
+def _shaped(evidence: np.ndarray, lag_s: float | None = None, dt_s: float = 1.0
+            ) -> SmootherResult:
     """A run whose shape evidence is ``evidence`` (NaN on the 7 frames at each end whose
-    windows the flight's ends cut)."""
-    result = _result(k=evidence.size)
+    windows the flight's ends cut), a frame every ``dt_s``."""
+    result = _result(k=evidence.size, dt_s=dt_s)
     evidence = evidence.copy()
     evidence[:7] = evidence[-7:] = np.nan
     k = evidence.size
@@ -731,7 +732,8 @@ def test_a_broad_map_error_is_named_over_its_stretch(frames, named):
     tilt and curvature in the message; two frames are a flag only; evidence at the
     sustained bound (12, as clean batch runs: 3.4-14.5 at their highest frame) is nothing
     however long; a fixed-lag run is held to ``broad_map_fixed_lag.peak`` (28: its clean
-    runs read up to 32 at a frame), the same 25 nothing there. Mutations:
+    and detail runs read 24.6-32 at their highest frame, over less than 3 s), the same 25
+    nothing there. Mutations:
     ``_broad_map_test`` left out of ``assess`` -> the reason is missing: fails; the
     comparison turned (``evidence < bound``) -> clean frames named: fails; the fixed lag
     held to the batch's bounds -> named there: fails (each tried, 2026-11-27)."""
@@ -745,7 +747,7 @@ def test_a_broad_map_error_is_named_over_its_stretch(frames, named):
         assert (reason.first_frame, reason.last_frame) == (12, 16)
         assert reason.status is Status.DEGRADED
         assert "tilt by 3.2 m and curve by 5.9 m over a kilometre" in reason.message
-        assert "frame 12" in reason.message and "more than 20;" in reason.message
+        assert "statistic 25 at frame 12, more than 20;" in reason.message, reason.message
     else:
         assert verdict.status is Status.TRUSTED
     flagged = sorted(k for k, v in verdict.flags.items() if "broad_map_error" in v)
@@ -756,28 +758,39 @@ def test_a_broad_map_error_is_named_over_its_stretch(frames, named):
 
 
 @pytest.mark.parametrize("seconds, named", [(10, True), (14, True), (8, False)])
-def test_a_shape_held_as_long_as_a_hill_is_named_below_the_peak(seconds, named):
+@pytest.mark.parametrize("dt_s", [1.0, 0.5])
+def test_a_shape_held_as_long_as_a_hill_is_named_below_the_peak(seconds, named, dt_s):
     """A hill under the footprint's edge bends it less than the peak bound but for as long
     as the footprint takes to cross it (hill15 seeds 2 and 8: 19-22 at most, above 12 for
     13-18 s, where ground detail held 12 for at most 7 s in batch and iSAM2, 2026-11-28):
-    evidence of 16 over ``broad_map.sustained_s`` (10 s) is ``broad_map_error`` in batch;
-    8 s is not (a chance shape of ground detail), nor 16 interrupted by a frame at 12 (two
-    stretches); a fixed-lag run, whose clean and detail runs hold 12-14 for as long as the
-    hill (``broad_map_fixed_lag``: no sustained bound), is not named by it. Mutations: the
-    sustained rule off (only ``peak``) -> the 10 s and 14 s stretches are not named:
-    fails; the stretch counted in frames less one (``t[b] - t[a]``) -> 10 s is not named:
-    fails; the fixed lag held to the batch's bounds -> named there: fails (each tried,
-    2026-11-28)."""
-    evidence = np.full(40, 6.0)
-    evidence[12:12 + seconds] = 16.0
-    verdict = assess(_shaped(evidence))
+    evidence of 16 over ``broad_map.sustained_s`` (10 s, at a frame a second or two a
+    second) is ``broad_map_error`` in batch; 8 s is not (a chance shape of ground detail),
+    nor 16 interrupted by a frame at 12 (two stretches); a fixed-lag run, whose clean and
+    detail runs hold 12-14 for as long as the hill (``broad_map_fixed_lag``: no sustained
+    bound), is not named by it. A stretch held long with one frame beyond the peak says
+    both. Mutations: the sustained rule off (only ``peak``) -> the 10 s and 14 s stretches
+    are not named: fails; the stretch counted in frames less one (``t[b] - t[a]``) -> 10 s
+    is not named: fails; counted in frames (``b - a + 1``) -> 8 s at two frames a second
+    named: fails; the fixed lag held to the batch's bounds -> named there: fails (each
+    tried, 2026-11-28)."""
+    frames = int(round(seconds / dt_s))
+    evidence = np.full(int(40 / dt_s), 6.0)
+    evidence[12:12 + frames] = 16.0
+    verdict = assess(_shaped(evidence, dt_s=dt_s))
     assert (_codes(verdict) == ["broad_map_error"]) is named, verdict.lines()
     if named:
         reason = _only(verdict, "broad_map_error")
-        assert (reason.first_frame, reason.last_frame) == (12, 11 + seconds)
-        assert f"above 12 for {seconds} s, up to 16" in reason.message, reason.message
-    fixed_lag = assess(_shaped(evidence, lag_s=10.0))
+        assert (reason.first_frame, reason.last_frame) == (12, 11 + frames)
+        assert f"statistic 16 at frame 12, above 12 for {seconds} s:" in reason.message, (
+            reason.message)
+    fixed_lag = assess(_shaped(evidence, lag_s=10.0, dt_s=dt_s))
     assert fixed_lag.status is Status.TRUSTED, fixed_lag.lines()
+    if named:  # one frame beyond the peak inside: both said
+        peaked = evidence.copy()
+        peaked[14] = 25.0
+        reason = _only(assess(_shaped(peaked, dt_s=dt_s)), "broad_map_error")
+        assert (f"statistic 25 at frame 14, more than 20, above 12 for {seconds} s:"
+                in reason.message), reason.message
     broken = evidence.copy()
-    broken[12 + seconds // 2] = 12.0
-    assert assess(_shaped(broken)).status is Status.TRUSTED
+    broken[12 + frames // 2] = 12.0
+    assert assess(_shaped(broken, dt_s=dt_s)).status is Status.TRUSTED
