@@ -22,7 +22,6 @@ from cdtm_graph.calibration.check import CalibrationCheck, PinnedSolve, check_ca
 from cdtm_graph.calibration.noise_bias import debiased
 from cdtm_graph.calibration.online import CALIBRATION_KEY
 from cdtm_graph.calibration.online import estimate as calibration_estimate
-from cdtm_graph.codes import Code
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import CalibrationSigmas, FlightLog
@@ -100,11 +99,9 @@ def _initial_values(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
         return InitialGuess(values, "nav.csv", none, none, [], {})
     incremental = replace(settings, mode=SmootherMode.INCREMENTAL, lag_s=None)
     smoother = IncrementalSmoother(flight.config, dtm, incremental, imu=flight.imu)
-    result = smoother.run(flight, progress)
-    flags = {k: [f for f in v if f == Code.NO_FIX] for k, v in result.flags.items()}
+    smoother.feed(flight, progress)  # (no result: every frame's marginals are not wanted)
     return InitialGuess(smoother.values(), "incremental pass", smoother.mismatched_tracks,
-                        smoother.unfixed_frames, smoother.acquisitions,
-                        {k: v for k, v in flags.items() if v})
+                        smoother.unfixed_frames, smoother.acquisitions, smoother.no_fix_frames)
 
 
 @shared_preintegrations()  # the graph, its side solves and re-runs: one IMU pass
