@@ -22,6 +22,7 @@ from cdtm_graph.calibration.check import CalibrationCheck, PinnedSolve, check_ca
 from cdtm_graph.calibration.noise_bias import debiased
 from cdtm_graph.calibration.online import CALIBRATION_KEY
 from cdtm_graph.calibration.online import estimate as calibration_estimate
+from cdtm_graph.codes import Code
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import CalibrationSigmas, FlightLog
@@ -100,8 +101,9 @@ def _initial_values(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
     incremental = replace(settings, mode=SmootherMode.INCREMENTAL, lag_s=None)
     smoother = IncrementalSmoother(flight.config, dtm, incremental, imu=flight.imu)
     smoother.feed(flight, progress)  # (no result: every frame's marginals are not wanted)
+    unfixed = smoother.unfixed_frames  # (flagged no_fix once each)
     return InitialGuess(smoother.values(), "incremental pass", smoother.mismatched_tracks,
-                        smoother.unfixed_frames, smoother.acquisitions, smoother.no_fix_frames)
+                        unfixed, smoother.acquisitions, {int(k): [Code.NO_FIX] for k in unfixed})
 
 
 @shared_preintegrations()  # the graph, its side solves and re-runs: one IMU pass

@@ -448,14 +448,8 @@ class IncrementalSmoother:
         return self._window.covariances()
 
     def feed(self, flight: FlightLog, progress: Progress | None = None) -> None:
-        """Feed a whole log frame by frame (:func:`~cdtm_graph.replay.replay`) and finalize:
-        :meth:`run` without the result (the batch's first pass reads the estimate, the
-        tracks left out and the frames without a fix from the smoother itself).
-
-        Unless the smoother was given the IMU up front, the log's samples are fed as they
-        would arrive live: those before each frame through :meth:`add_imu`, then the
-        frame with the sample that closes its interval.
-        """
+        """Feed a log frame by frame as it would arrive live (:func:`~cdtm_graph.replay.replay`;
+        the IMU through :meth:`add_imu` unless given up front) and finalize: no result."""
         K = len(flight.frames)
         live_imu = not self._imu.given_up_front
         for frame in replay(flight):
@@ -470,15 +464,8 @@ class IncrementalSmoother:
             with self.stages.charged(HoldForFix.name, HoldForFix.rejects):
                 self._search.give_up()
 
-    @property
-    def no_fix_frames(self) -> dict[int, list[str]]:
-        """The frames flagged ``no_fix`` so far (their sightings held back for a fix)."""
-        flagged = {k: [f for f in v if f == Code.NO_FIX] for k, v in self._frame_flags.items()}
-        return {k: v for k, v in sorted(flagged.items()) if v}
-
     def run(self, flight: FlightLog, progress: Progress | None = None) -> SmootherResult:
-        """:meth:`feed` a whole log and return the result like
-        :func:`~cdtm_graph.smoother.smooth` (every frame's marginals, the residual test)."""
+        """:meth:`feed` a log; the result like :func:`~cdtm_graph.smoother.smooth`'s."""
         start = time.perf_counter()
         K = len(flight.frames)
         self.feed(flight, progress)
