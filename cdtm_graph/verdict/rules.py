@@ -146,24 +146,28 @@ class BroadMapBounds:
     """When the shape evidence (:class:`~cdtm_graph.results.BroadMapError`'s ``evidence``:
     chi-square(3) of the map's tilt and curvature under the footprint, a 5 s mean) names
     ``broad_map_error``: on the frames where it exceeds ``peak``, and on a stretch where it
-    stays above ``sustained`` for at least ``sustained_s`` (None: not judged); either a
-    reason over ``VerdictSettings.min_stretch_s``. A hill lasts as long as the footprint
-    takes to cross it (a 15 m hill of 1 km sigma at 150 m/s: 13-19 s above 12 in batch and
-    iSAM2), ground detail's chance shapes a few seconds; a hill under the footprint's edge
-    bends it less than ``peak`` but for as long (docs/verdict.md, "The sustained bound").
+    stays above ``sustained`` while the aircraft flies at least ``sustained_m`` over the
+    ground (its estimated horizontal speed times the frames' intervals; None: not judged);
+    either a reason over ``VerdictSettings.min_stretch_s``. A hill holds its shape as long
+    as the footprint takes to cross it: a distance, not a time (a 15 m hill of 1 km sigma
+    under the 2 km footprint at 1800 m: 2-3 km above 12), where ground detail's chance
+    shapes last a few hundred metres; a hill under the footprint's edge bends it less than
+    ``peak`` but over as long (docs/verdict.md, "The sustained bound").
 
     The sustained bound, batch and iSAM2 (2026-11-28, the robustness study's 90-frame
-    flight): fitted on clean and 3 m waves (40-200 m), seeds 0-9, where no frame exceeded
-    12; checked on ridges and bumps seeds 0-9 (iSAM2 too), clean and waves 10-19, all four
-    20-29: at most 7 s above 12, against hill15's 13-19 s on seeds 0-9. The fixed lag's
-    evidence holds chance shapes longer: 12 over 12 s named clean seed 15, 14 over 10 s
-    waves seed 29 and ridges seed 26 (11 s each), where hill15 seeds 2 and 8 hold
-    12 for 14 s each and 14 for 6 and 13 s: no sustained bound there.
+    flight at 150 m/s, a frame a second): fitted on clean and 3 m waves (40-200 m), seeds
+    0-9, where no frame exceeded 12; checked on ridges and bumps seeds 0-9 (iSAM2 too),
+    clean and waves 10-19, all four 20-29: at most 7 frames (1.05 km) above 12, against
+    hill15's 13-19 (1.95-2.85 km) on seeds 0-9. 1425 m lies between 9 and 10 frames there.
+    Flown at 60 m/s, ground bumps hold 12 for up to 21 s (1.26 km): a bound in seconds
+    named them. The fixed lag's evidence holds chance shapes longer: 12 over 12 s named
+    clean seed 15, 14 over 10 s waves seed 29 and ridges seed 26 (11 s each), where hill15
+    seeds 2 and 8 hold 12 for 14 s each and 14 for 6 and 13 s: no sustained bound there.
     """
 
     peak: float
     sustained: float | None = None
-    sustained_s: float | None = None
+    sustained_m: float | None = None
 
 
 @dataclass(frozen=True)
@@ -242,7 +246,7 @@ class VerdictSettings:
     max_beyond_999_fraction: float = 0.5
     bias_probability: float = 0.999
     max_imu_noise_ratio: float = 1.5
-    broad_map: BroadMapBounds = BroadMapBounds(peak=20.0, sustained=12.0, sustained_s=10.0)
+    broad_map: BroadMapBounds = BroadMapBounds(peak=20.0, sustained=12.0, sustained_m=1425.0)
     broad_map_fixed_lag: BroadMapBounds = BroadMapBounds(peak=28.0)
     min_moved_inside_fraction: float = ConsistencyBounds().min_inside_fraction
 
@@ -417,24 +421,29 @@ def _broad_map_test(f: _Frames, result: SmootherResult, settings: VerdictSetting
     with np.errstate(invalid="ignore"):
         flagged = np.isfinite(evidence) & (evidence > bounds.peak)
         above = (np.isfinite(evidence) & (evidence > bounds.sustained)
-                 if bounds.sustained is not None and bounds.sustained_s is not None
+                 if bounds.sustained is not None and bounds.sustained_m is not None
                  else np.zeros_like(flagged))
-    held: list[tuple[int, int, float]] = []  # the stretches held long enough, and for how long
+    # the ground flown over each frame's interval (n frames span n intervals)
+    velocity = result.estimate.velocity_mps
+    flown_m = np.hypot(velocity[:, 0], velocity[:, 1]) * _frame_interval_s(f)
+    held: list[tuple[int, int, float]] = []  # the stretches held long enough, and how far
     for a, b in _stretches(above):
-        span_s = f.t_s[b] - f.t_s[a] + _frame_interval_s(f)
-        if span_s >= (bounds.sustained_s or 0.0):
+        span_m = float(flown_m[a:b + 1].sum())
+        if span_m >= (bounds.sustained_m or 0.0):
             flagged[a:b + 1] = True
-            held.append((a, b, span_s))
+            held.append((a, b, span_m))
 
     def describe(a: int, b: int) -> str:
         k = a + int(np.nanargmax(evidence[a:b + 1]))
         how = [f"shape statistic {evidence[k]:.0f} at frame {k}"]
         if evidence[k] > bounds.peak:
             how.append(f"more than {bounds.peak:g}")
-        held_s = max((span for x, y, span in held if a <= x and y <= b), default=0.0)
-        if held_s:
-            how.append(f"above {bounds.sustained:g} for {held_s:.0f} s: longer than ground "
-                       "detail holds a shape")
+        spans = [(x, y, m) for x, y, m in held if a <= x and y <= b]
+        if spans:
+            x, y, span_m = max(spans, key=lambda h: h[2])
+            span_s = f.t_s[y] - f.t_s[x] + _frame_interval_s(f)
+            how.append(f"above {bounds.sustained:g} for {span_s:.0f} s, {span_m / 1000:.1f} km "
+                       "flown: longer than ground detail holds a shape")
         return (f"the tracks' heights above the DTM tilt by {float(broad.tilt_m[k]):.1f} m and "
                 f"curve by {float(broad.bend_m[k]):.1f} m over a kilometre of the footprint "
                 f"({', '.join(how)}; ground detail and the run's attitude "

@@ -268,7 +268,7 @@ def test_a_hill_under_the_footprints_edge_is_named_by_how_long_it_bends_it():
     named = [r for r in verdict.reasons if r.code == "broad_map_error"]
     assert len(named) == 1, verdict.lines()
     assert (named[0].first_frame, named[0].last_frame) == (38, 50), named[0]  # the hill: 45 s
-    assert "at frame 48, above 12 for 13 s:" in named[0].message, named[0].message
+    assert "at frame 48, above 12 for 13 s, " in named[0].message, named[0].message
 
 
 def test_ground_points_on_a_line_leave_the_shape_unknown_not_an_error(rng):

@@ -165,18 +165,21 @@ def test_flat_ground_gives_no_horizontal_fix(flat_and_hilly):
 
 def _result(k: int = 30, features: int = 150, converged: bool = True, flags=None,
             rejected=None, chi2_scale: float = 1.0, nis_median: float = float("nan"),
-            dt_s: float = 1.0) -> SmootherResult:
-    """A synthetic run: K frames on a straight line, ``features`` per frame, residuals at
-    ``chi2_scale`` times their expectation, hilly-terrain-like C-DTM information."""
+            dt_s: float = 1.0, speed_mps: float | None = None) -> SmootherResult:
+    """A synthetic run: K frames on a straight line (150 m apart, or flown at
+    ``speed_mps``), ``features`` per frame, residuals at ``chi2_scale`` times their
+    expectation, hilly-terrain-like C-DTM information."""
     t_ns = (np.arange(k) * dt_s * NS).astype(np.int64)
-    poses = np.stack([make_pose(np.eye(3), [150.0 * i, 0.0, 1800.0]) for i in range(k)])
+    step_m = 150.0 if speed_mps is None else speed_mps * dt_s
+    poses = np.stack([make_pose(np.eye(3), [step_m * i, 0.0, 1800.0]) for i in range(k)])
+    velocity = np.tile([step_m / dt_s, 0.0, 0.0], (k, 1))
     features_per_frame = np.full(k, features)
     features_per_frame[0] = 0
     info = np.zeros((k, 6, 6))
     info[1:] = np.diag([1e6, 1e6, 1e6, 0.2, 0.3, 2.0]) * features / 150.0
     expected = truncated_chi2_2dof_mean(0.999)
     return SmootherResult(
-        TrajectoryEstimate(t_ns, poses, np.zeros((k, 3)), np.zeros((k, 3)), np.zeros((k, 3))),
+        TrajectoryEstimate(t_ns, poses, velocity, np.zeros((k, 3)), np.zeros((k, 3))),
         StateCovariances(np.tile(np.eye(6), (k, 1, 1)), np.tile(np.eye(3), (k, 1, 1)),
                          np.tile(np.eye(6), (k, 1, 1))),
         SolverStats(Solver.LEVENBERG_MARQUARDT, 5, 1e6, 1e3, converged, 1.0,
@@ -709,11 +712,11 @@ def test_a_named_calibration_takes_the_broad_map_error_as_its_own():
         range(12, 17))
 
 
-def _shaped(evidence: np.ndarray, lag_s: float | None = None, dt_s: float = 1.0
-            ) -> SmootherResult:
+def _shaped(evidence: np.ndarray, lag_s: float | None = None, dt_s: float = 1.0,
+            speed_mps: float | None = None) -> SmootherResult:
     """A run whose shape evidence is ``evidence`` (NaN on the 7 frames at each end whose
     windows the flight's ends cut), a frame every ``dt_s``."""
-    result = _result(k=evidence.size, dt_s=dt_s)
+    result = _result(k=evidence.size, dt_s=dt_s, speed_mps=speed_mps)
     evidence = evidence.copy()
     evidence[:7] = evidence[-7:] = np.nan
     k = evidence.size
@@ -757,40 +760,47 @@ def test_a_broad_map_error_is_named_over_its_stretch(frames, named):
     assert fixed_lag.status is Status.TRUSTED and not fixed_lag.flags, fixed_lag.lines()
 
 
-@pytest.mark.parametrize("seconds, named", [(10, True), (14, True), (8, False)])
+@pytest.mark.parametrize("speed_mps, seconds, named", [
+    (150.0, 10, True), (150.0, 14, True), (150.0, 9, False), (60.0, 21, False),
+    (60.0, 24, True)])
 @pytest.mark.parametrize("dt_s", [1.0, 0.5])
-def test_a_shape_held_as_long_as_a_hill_is_named_below_the_peak(seconds, named, dt_s):
+def test_a_shape_held_as_long_as_a_hill_is_named_below_the_peak(speed_mps, seconds, named,
+                                                                 dt_s):
     """A hill under the footprint's edge bends it less than the peak bound but for as long
-    as the footprint takes to cross it (hill15 seeds 2 and 8: 19-22 at most, above 12 for
-    13-18 s, where ground detail held 12 for at most 7 s in batch and iSAM2, 2026-11-28):
-    evidence of 16 over ``broad_map.sustained_s`` (10 s, at a frame a second or two a
-    second) is ``broad_map_error`` in batch; 8 s is not (a chance shape of ground detail),
-    nor 16 interrupted by a frame at 12 (two stretches); a fixed-lag run, whose clean and
-    detail runs hold 12-14 for as long as the hill (``broad_map_fixed_lag``: no sustained
-    bound), is not named by it. A stretch held long with one frame beyond the peak says
-    both. Mutations: the sustained rule off (only ``peak``) -> the 10 s and 14 s stretches
-    are not named: fails; the stretch counted in frames less one (``t[b] - t[a]``) -> 10 s
-    is not named: fails; counted in frames (``b - a + 1``) -> 8 s at two frames a second
-    named: fails; the fixed lag held to the batch's bounds -> named there: fails (each
-    tried, 2026-11-28)."""
+    as the footprint takes to cross it (hill15 seeds 2 and 8 at 150 m/s: 19-22 at most,
+    above 12 for 13-18 s, where ground detail held 12 for at most 7 s in batch and iSAM2,
+    2026-11-28): evidence of 16 while the aircraft flies ``broad_map.sustained_m`` (1425 m:
+    10 s at 150 m/s is, 9 s is not, at a frame a second or two a second) is
+    ``broad_map_error`` in batch; so is 24 s at 60 m/s (1.44 km), not 21 s (1.26 km: ground
+    bumps held 12 that long at 60 m/s), nor 16 interrupted by a frame at 12 (two stretches);
+    a fixed-lag run, whose clean and detail runs hold 12-14 for as long as the hill
+    (``broad_map_fixed_lag``: no sustained bound), is not named by it. A stretch held long
+    with one frame beyond the peak says both. Mutations: the sustained rule off (only
+    ``peak``) -> the long stretches are not named: fails; the distance counted from the
+    second frame (``flown_m[a + 1:b + 1]``) -> 10 s at 150 m/s not named: fails; a bound in
+    seconds (10 s: the first version) -> 21 s at 60 m/s named: fails; in frames (``b - a +
+    1`` frames of 150 m) -> 9 s at two frames a second named: fails; the fixed lag held to
+    the batch's bounds -> named there: fails (each tried, 2026-11-28)."""
     frames = int(round(seconds / dt_s))
-    evidence = np.full(int(40 / dt_s), 6.0)
+    evidence = np.full(int(60 / dt_s), 6.0)
     evidence[12:12 + frames] = 16.0
-    verdict = assess(_shaped(evidence, dt_s=dt_s))
+    verdict = assess(_shaped(evidence, dt_s=dt_s, speed_mps=speed_mps))
     assert (_codes(verdict) == ["broad_map_error"]) is named, verdict.lines()
+    km = speed_mps * seconds / 1000.0
     if named:
         reason = _only(verdict, "broad_map_error")
         assert (reason.first_frame, reason.last_frame) == (12, 11 + frames)
-        assert f"statistic 16 at frame 12, above 12 for {seconds} s:" in reason.message, (
-            reason.message)
-    fixed_lag = assess(_shaped(evidence, lag_s=10.0, dt_s=dt_s))
+        assert (f"statistic 16 at frame 12, above 12 for {seconds} s, {km:.1f} km flown:"
+                in reason.message), reason.message
+    fixed_lag = assess(_shaped(evidence, lag_s=10.0, dt_s=dt_s, speed_mps=speed_mps))
     assert fixed_lag.status is Status.TRUSTED, fixed_lag.lines()
     if named:  # one frame beyond the peak inside: both said
         peaked = evidence.copy()
         peaked[14] = 25.0
-        reason = _only(assess(_shaped(peaked, dt_s=dt_s)), "broad_map_error")
-        assert (f"statistic 25 at frame 14, more than 20, above 12 for {seconds} s:"
-                in reason.message), reason.message
+        reason = _only(assess(_shaped(peaked, dt_s=dt_s, speed_mps=speed_mps)),
+                       "broad_map_error")
+        assert (f"statistic 25 at frame 14, more than 20, above 12 for {seconds} s, "
+                f"{km:.1f} km flown:" in reason.message), reason.message
     broken = evidence.copy()
     broken[12 + frames // 2] = 12.0
-    assert assess(_shaped(broken, dt_s=dt_s)).status is Status.TRUSTED
+    assert assess(_shaped(broken, dt_s=dt_s, speed_mps=speed_mps)).status is Status.TRUSTED
