@@ -1,8 +1,9 @@
 """The map's smooth error over kilometres (issue 21, build 4): each run's RMSE, ANEES,
 verdict and the shape evidence the verdict's ``broad_map_error`` reads (its highest frame,
-the map's tilt and curvature there over a kilometre, and the longest stretch of frames
-above the verdict's sustained bound, in seconds: ``VerdictSettings.broad_map``'s, batch
-and iSAM2; the fixed lag has none, its rows show the same count).
+the map's tilt and curvature there over a kilometre, and the longest stretch above the
+verdict's sustained bound, in km flown, as the verdict counts it:
+``VerdictSettings.broad_map``'s, batch and iSAM2; the fixed lag has none, its rows show
+the same count).
 
 Run: ``python scripts/broad_map_error.py RUN...``, each RUN ``scenario/seed/mode[/frames]``:
 a scenario of ``cdtm_graph.studies.robustness.SCENARIOS``, ``waves`` (3 m of waves,
@@ -19,16 +20,15 @@ import sys
 
 import numpy as np
 
-from cdtm_graph.constants import NS_PER_S
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.flightlog import FlightLog
-from cdtm_graph.results import BroadMapError, SmootherResult
 from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.sim.faults import MismatchKind, TerrainMismatch
 from cdtm_graph.sim.map_detail import DetailShape, MapDetail
 from cdtm_graph.smoother import SmootherSettings
 from cdtm_graph.studies.robustness import BASE, SCENARIOS, Mode, Scenario
 from cdtm_graph.verdict import VerdictSettings
+from cdtm_graph.verdict.rules import sustained_stretches
 
 
 def flight(name: str, seed: int, frames: int) -> tuple[FlightLog, Dtm]:
@@ -44,22 +44,12 @@ def flight(name: str, seed: int, frames: int) -> tuple[FlightLog, Dtm]:
     return SCENARIOS[name].flight(base)
 
 
-def _longest_above_s(result: SmootherResult, broad: BroadMapError, bound: float) -> float:
-    """The longest stretch of frames whose shape evidence exceeds ``bound``, in seconds
-    (n frames span n frame intervals, as the verdict counts them)."""
-    t_s = (result.estimate.t_ns - result.estimate.t_ns[0]) / NS_PER_S
-    above = np.nan_to_num(broad.evidence, nan=-np.inf) > bound
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], above.astype(np.int8), [0]])))
-    dt_s = float(np.median(np.diff(t_s)))
-    return max((t_s[b - 1] - t_s[a] + dt_s for a, b in zip(edges[::2], edges[1::2])),
-               default=0.0)
-
-
 def main(argv: list[str]) -> None:
     bounds = VerdictSettings().broad_map
     sustained = bounds.peak if bounds.sustained is None else bounds.sustained
     print("| run | mode | RMSE 3-D (m) | ANEES | shape evidence, highest (frame) | tilt, bend (m) "
-          f"| above {sustained:g} (s) | verdict: reasons |\n|---|---|---|---|---|---|---|---|")
+          f"| above {sustained:g} (km flown) | verdict: reasons |\n"
+          "|---|---|---|---|---|---|---|---|")
     for spec in argv:
         name, seed, mode, *rest = spec.split("/")
         log, dtm = flight(name, int(seed), int(rest[0]) if rest else BASE.frames)
@@ -70,8 +60,10 @@ def main(argv: list[str]) -> None:
         stat = "- | - | -"
         if broad is not None and np.isfinite(broad.evidence).any():
             k = int(np.nanargmax(broad.evidence))
+            longest_km = max((m for _, _, m in sustained_stretches(out.result, sustained)),
+                             default=0.0) / 1000.0
             stat = (f"{broad.evidence[k]:.1f} ({k}) | {broad.tilt_m[k]:.1f}, "
-                    f"{broad.bend_m[k]:.1f} | {_longest_above_s(out.result, broad, sustained):.0f}")
+                    f"{broad.bend_m[k]:.1f} | {longest_km:.2f}")
         reasons = ", ".join(f"{r.code} {r.first_frame}-{r.last_frame}"
                             for r in out.verdict.reasons)
         print(f"| {name}/{seed} | {mode} | {np.linalg.norm(e.rmse_position_m):.2f} | "

@@ -408,6 +408,23 @@ def _geometry_tests(f: _Frames, result: SmootherResult, settings: VerdictSetting
     return tests
 
 
+def sustained_stretches(result: SmootherResult, bound: float) -> list[tuple[int, int, float]]:
+    """Each stretch of frames whose shape evidence (``result.broad_map_error``) stays above
+    ``bound``: its first and last frame and the ground flown over it (m: the estimate's
+    horizontal speed times the frames' median interval, n frames spanning n intervals),
+    as :class:`BroadMapBounds` judges them."""
+    broad = result.broad_map_error
+    if broad is None or len(result.estimate) < 2:
+        return []
+    evidence = np.asarray(broad.evidence, dtype=float)
+    with np.errstate(invalid="ignore"):
+        above = np.isfinite(evidence) & (evidence > bound)
+    interval_s = float(np.median(np.diff(result.estimate.t_ns))) / NS_PER_S
+    velocity = result.estimate.velocity_mps
+    flown_m = np.hypot(velocity[:, 0], velocity[:, 1]) * interval_s
+    return [(a, b, float(flown_m[a:b + 1].sum())) for a, b in _stretches(above)]
+
+
 def _broad_map_test(f: _Frames, result: SmootherResult, settings: VerdictSettings
                     ) -> FrameTest | None:
     """``broad_map_error``: the frames where the tracks' heights curve over their ground
@@ -420,18 +437,11 @@ def _broad_map_test(f: _Frames, result: SmootherResult, settings: VerdictSetting
     bounds = settings.broad_map_fixed_lag if fixed_lag else settings.broad_map
     with np.errstate(invalid="ignore"):
         flagged = np.isfinite(evidence) & (evidence > bounds.peak)
-        above = (np.isfinite(evidence) & (evidence > bounds.sustained)
-                 if bounds.sustained is not None and bounds.sustained_m is not None
-                 else np.zeros_like(flagged))
-    # the ground flown over each frame's interval (n frames span n intervals)
-    velocity = result.estimate.velocity_mps
-    flown_m = np.hypot(velocity[:, 0], velocity[:, 1]) * _frame_interval_s(f)
-    held: list[tuple[int, int, float]] = []  # the stretches held long enough, and how far
-    for a, b in _stretches(above):
-        span_m = float(flown_m[a:b + 1].sum())
-        if span_m >= (bounds.sustained_m or 0.0):
-            flagged[a:b + 1] = True
-            held.append((a, b, span_m))
+    held = ([(a, b, m) for a, b, m in sustained_stretches(result, bounds.sustained)
+             if m >= bounds.sustained_m]
+            if bounds.sustained is not None and bounds.sustained_m is not None else [])
+    for a, b, _ in held:  # (first, last frame, metres flown)
+        flagged[a:b + 1] = True
 
     def describe(a: int, b: int) -> str:
         k = a + int(np.nanargmax(evidence[a:b + 1]))
