@@ -180,6 +180,7 @@ print(json.dumps({"value": module.triple(2.0), "compiled": compiled}))
 """
 
 
+@pytest.mark.slow  # compiles a kernel three times in subprocesses (5 s)
 def test_a_generic_kernel_loads_here_while_its_source_is_unchanged(tmp_path):
     """A kernel compiled for the generic CPU (another numba cache, as the build does) loads
     through the fallback on this machine's CPU without compiling; once its module is

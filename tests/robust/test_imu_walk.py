@@ -134,6 +134,7 @@ def _run(scenario: str, frames: int, seed: int, mode: Mode = Mode.BATCH, **graph
     return smooth_and_evaluate(flight, dtm, settings)
 
 
+@pytest.mark.slow  # a 90-frame flight smoothed
 def test_walks_stated_10x_low_are_grown_and_the_covariance_holds_the_errors():
     """The robustness flight (90 frames) whose flight.yaml states the IMU's bias random
     walks 10x below the IMU's (``imu_rw10``, seed 2), batch: without the check its
@@ -158,6 +159,7 @@ def test_walks_stated_10x_low_are_grown_and_the_covariance_holds_the_errors():
     assert np.linalg.norm(out.errors.rmse_position_m) < 1.3 * 2.61
 
 
+@pytest.mark.slow  # a 90-frame flight smoothed
 def test_walks_stated_4x_low_are_grown_and_the_covariance_holds_the_errors():
     """Walks stated 4x below the IMU's (``imu_rw4``, 90 frames, seed 2: a seed the
     threshold was not fitted on), batch: without growth ANEES 10.47, ``degraded:
@@ -212,6 +214,7 @@ def test_gross_outliers_are_outliers_not_a_walk(gross_outliers):
     assert not any(n.startswith("imu_random_walk_grown") for n in out.verdict.notes)
 
 
+@pytest.mark.slow  # a 90-frame flight smoothed
 def test_a_calibration_fault_is_named_not_read_as_a_walk():
     """A 1% focal error (``focal1pct``, 90 frames, seed 1, batch) bends the gyro's bias
     steps to 2.04x their expectation, 1.05 of the quantile: beyond the growth; the
@@ -225,6 +228,7 @@ def test_a_calibration_fault_is_named_not_read_as_a_walk():
     _assert_yielded_to(out, "calibration_suspect")
 
 
+@pytest.mark.slow  # a 60-frame flight smoothed
 def test_a_bias_beyond_its_prior_is_imu_bias_not_a_walk():
     """Walks stated 10x low (``imu_rw10``, 60 frames, seed 1) and a constant gyro bias 10
     prior sigmas off (1e-3 rad/s): the bias steps exceed the walks (spread 3.2x gyro,
