@@ -6,7 +6,7 @@ split by noise source").
 
 Run: ``python scripts/map_error_split.py [--frames 30] [--seeds 1 16] [--robust]
 [--scenario detail_waves|detail_ridges|detail_bumps]
-[--exact-dtm] [--no-shared]``.
+[--exact-dtm] [--no-shared] [--track-whitening]``.
 
 The graph of each clean flight is built at its true states (no robust kernel unless
 ``--robust``), linearized there, and one Gauss-Newton step taken from the truth: ``dx =
@@ -27,6 +27,14 @@ features, "track-shared, realized dh^2"); the realized ``dh`` at the features (D
 the true terrain at the true ground point) and the DTM residual's regression on it (1:
 the factor's linear model). And per IMU factor, the whitened residual at the truth per
 row (1 each for an honest IMU model).
+
+``--track-whitening`` solves the same linearized batch (no kernel) three ways instead
+(:func:`track_whitening`): with the pair factors as they are; the same estimate against
+its true first-order covariance (the sandwich); and each track's C-DTM rows whitened
+jointly. Each row's first-order noise comes from the factor's response to one sigma of
+each source (:meth:`factors.CdtmPairFactor.noise_moved`): the two pixel coordinates of
+each sighting, shared by the pairs that hold it, and the track's DTM height, shared by all
+its pairs (docs/verdict.md, "What it would gain").
 """
 
 from __future__ import annotations
@@ -259,6 +267,75 @@ def split_one(sim, robust: RobustKernel, shared_dtm_error: bool = True) -> dict:
     return out
 
 
+def track_whitening(sim) -> dict[str, float]:
+    """One flight's linearized batch solved with independent pairs, against its sandwich
+    covariance, and with each track's rows whitened jointly (module docstring): per
+    estimator its 3-D position RMSE (m), its rms 3-D position sigma (m) and ANEES."""
+    flight = sim.log
+    K = len(flight.frames)
+    values = truth_values(sim)
+    settings = dataclasses.replace(SmootherSettings().graph, robust=RobustKernel.NONE)
+    lg = build_log_graph(flight, sim.dtm, settings, values)
+    cols = _columns(K)
+    n = 15 * K
+    A_base, b_base = _dense(lg.base, values, cols, n)
+    info_base, grad_base = A_base.T @ A_base, A_base.T @ b_base
+    # per track: each row pair's Jacobian (2, n), whitened residual (2,) and its loadings
+    # on the noise it shares: ("q", frame, axis) per sighting, ("h",) the track's height
+    tracks: dict[int, list[tuple[np.ndarray, np.ndarray, dict]]] = defaultdict(list)
+    for f, ids in zip(lg.cdtm, lg.track_ids):
+        a, b = int(gtsam.Symbol(f.key_a).index()), int(gtsam.Symbol(f.key_b).index())
+        Ta, Tb = values.atPose3(X(a)).matrix(), values.atPose3(X(b)).matrix()
+        e, Ha, Hb = f.innovations(Ta, Tb)
+        moved, _, _ = f.noise_moved(Ta, Tb)
+        e_moved = moved.innovations(Ta, Tb)[0].reshape(5, 2, f.features.n, 2)
+        load = 0.5 * (e_moved[:, 0] - e_moved[:, 1])  # (source, feature, 2): +1 sigma
+        for i, t in enumerate(ids.tolist()):
+            H = np.zeros((2, n))
+            H[:, cols[X(a)]:cols[X(a)] + 6] = Ha[i]
+            H[:, cols[X(b)]:cols[X(b)] + 6] = Hb[i]
+            tracks[t].append((H, e[i], {("q", a, 0): load[0, i], ("q", a, 1): load[1, i],
+                                        ("q", b, 0): load[2, i], ("q", b, 1): load[3, i],
+                                        ("h",): load[4, i]}))
+    info_pairs, grad_pairs = info_base.copy(), grad_base.copy()
+    info_joint, grad_joint = info_base.copy(), grad_base.copy()
+    spread = info_base.copy()  # A^T C A of the pairs' estimate
+    for rows in tracks.values():
+        H = np.vstack([r[0] for r in rows])
+        e = np.concatenate([r[1] for r in rows])
+        noise = sorted({key for r in rows for key in r[2]}, key=str)
+        column = {key: j for j, key in enumerate(noise)}
+        L = np.zeros((H.shape[0], len(noise)))
+        for p, (_, _, loads) in enumerate(rows):
+            for key, v in loads.items():
+                L[2 * p:2 * p + 2, column[key]] += v
+        C = L @ L.T  # the track's rows' first-order covariance (whitened by the model)
+        info_pairs += H.T @ H
+        grad_pairs -= H.T @ e
+        C_inv = np.linalg.inv(C)
+        info_joint += H.T @ C_inv @ H
+        grad_joint -= H.T @ C_inv @ e
+        spread += H.T @ C @ H
+    R = np.stack([values.atPose3(X(k)).rotation().matrix() for k in range(K)])
+    idx = np.array([cols[X(k)] + 3 for k in range(K)])[:, None] + np.arange(3)[None]
+
+    def figures(P: np.ndarray, dx: np.ndarray) -> tuple[float, float, float]:
+        d = np.einsum("kij,kj->ki", R, dx[idx])
+        C = R @ P[idx[:, :, None], idx[:, None, :]] @ np.swapaxes(R, 1, 2)
+        nees = np.einsum("ki,kij,kj->k", d, np.linalg.inv(C), d)
+        return (float(np.sqrt(np.mean(np.sum(d**2, axis=1)))),
+                float(np.sqrt(np.mean(np.trace(C, axis1=1, axis2=2)))), float(nees.mean()))
+
+    P_pairs, P_joint = np.linalg.inv(info_pairs), np.linalg.inv(info_joint)
+    dx_pairs = P_pairs @ grad_pairs
+    out = {}
+    for name, P, dx in (("pairs", P_pairs, dx_pairs),
+                        ("sandwich", P_pairs @ spread @ P_pairs, dx_pairs),
+                        ("joint", P_joint, P_joint @ grad_joint)):
+        out[f"{name}_rmse"], out[f"{name}_sigma"], out[f"{name}_anees"] = figures(P, dx)
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=30)
@@ -271,11 +348,27 @@ def main(argv: list[str] | None = None) -> None:
                         help="the simulator's exact DTM (no map error, sigma_h 0.1 m)")
     parser.add_argument("--no-shared", action="store_true",
                         help="shared_dtm_error=False: every pair's DTM variance as stated")
+    parser.add_argument("--track-whitening", action="store_true",
+                        help="the pairs against each track's rows whitened jointly instead")
     args = parser.parse_args(argv)
     robust = SmootherSettings().graph.robust if args.robust else RobustKernel.NONE
     changes = dict(SCENARIOS[args.scenario].simulation) if args.scenario else {}
     if args.exact_dtm:
         changes["exact_dtm"] = True
+    if args.track_whitening:
+        runs = []
+        for seed in range(args.seeds[0], args.seeds[1] + 1):
+            sim = simulate(dataclasses.replace(BASE, frames=args.frames, seed=seed, **changes))
+            runs.append(track_whitening(sim))
+            print(f"seed {seed}: " + " ".join(f"{k} {v:.3f}" for k, v in runs[-1].items()),
+                  flush=True)
+        print(f"\nmean over seeds {args.seeds[0]}-{args.seeds[1]}, {args.frames} frames "
+              "(RMSE 3-D m, rms 3-D sigma m, ANEES):")
+        for name in ("pairs", "sandwich", "joint"):
+            print(f"  {name:9s} " + " ".join(
+                f"{np.mean([r[f'{name}_{c}'] for r in runs]):.3f}"
+                for c in ("rmse", "sigma", "anees")))
+        return
     rows = []
     for seed in range(args.seeds[0], args.seeds[1] + 1):
         sim = simulate(dataclasses.replace(BASE, frames=args.frames, seed=seed, **changes))
