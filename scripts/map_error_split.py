@@ -6,7 +6,7 @@ split by noise source").
 
 Run: ``python scripts/map_error_split.py [--frames 30] [--seeds 1 16] [--robust]
 [--scenario detail_waves|detail_ridges|detail_bumps]
-[--exact-dtm] [--no-shared] [--track-whitening]``.
+[--exact-dtm] [--no-shared] [--track-whitening [--height-scale S]]``.
 
 The graph of each clean flight is built at its true states (no robust kernel unless
 ``--robust``), linearized there, and one Gauss-Newton step taken from the truth: ``dx =
@@ -267,10 +267,12 @@ def split_one(sim, robust: RobustKernel, shared_dtm_error: bool = True) -> dict:
     return out
 
 
-def track_whitening(sim) -> dict[str, float]:
+def track_whitening(sim, height_scale: float = 1.0) -> dict[str, float]:
     """One flight's linearized batch solved with independent pairs, against its sandwich
     covariance, and with each track's rows whitened jointly (module docstring): per
-    estimator its 3-D position RMSE (m), its rms 3-D position sigma (m) and ANEES."""
+    estimator its 3-D position RMSE (m), its rms 3-D position sigma (m) and ANEES. The
+    joint rows take the track's height noise at ``height_scale`` times sigma_h (the pairs'
+    estimate and its sandwich keep the stated one)."""
     flight = sim.log
     K = len(flight.frames)
     values = truth_values(sim)
@@ -290,13 +292,14 @@ def track_whitening(sim) -> dict[str, float]:
         moved, _, _ = f.noise_moved(Ta, Tb)
         e_moved = moved.innovations(Ta, Tb)[0].reshape(5, 2, f.features.n, 2)
         load = 0.5 * (e_moved[:, 0] - e_moved[:, 1])  # (source, feature, 2): +1 sigma
+        load_h = height_scale * load[4]
         for i, t in enumerate(ids.tolist()):
             H = np.zeros((2, n))
             H[:, cols[X(a)]:cols[X(a)] + 6] = Ha[i]
             H[:, cols[X(b)]:cols[X(b)] + 6] = Hb[i]
             tracks[t].append((H, e[i], {("q", a, 0): load[0, i], ("q", a, 1): load[1, i],
                                         ("q", b, 0): load[2, i], ("q", b, 1): load[3, i],
-                                        ("h",): load[4, i]}))
+                                        ("h",): load_h[i]}))
     info_pairs, grad_pairs = info_base.copy(), grad_base.copy()
     info_joint, grad_joint = info_base.copy(), grad_base.copy()
     spread = info_base.copy()  # A^T C A of the pairs' estimate
@@ -315,7 +318,9 @@ def track_whitening(sim) -> dict[str, float]:
         C_inv = np.linalg.inv(C)
         info_joint += H.T @ C_inv @ H
         grad_joint -= H.T @ C_inv @ e
-        spread += H.T @ C @ H
+        stated = L.copy()
+        stated[:, column[("h",)]] /= height_scale
+        spread += H.T @ stated @ stated.T @ H
     R = np.stack([values.atPose3(X(k)).rotation().matrix() for k in range(K)])
     idx = np.array([cols[X(k)] + 3 for k in range(K)])[:, None] + np.arange(3)[None]
 
@@ -350,6 +355,9 @@ def main(argv: list[str] | None = None) -> None:
                         help="shared_dtm_error=False: every pair's DTM variance as stated")
     parser.add_argument("--track-whitening", action="store_true",
                         help="the pairs against each track's rows whitened jointly instead")
+    parser.add_argument("--height-scale", type=float, default=1.0,
+                        help="with --track-whitening: the joint rows' track height noise "
+                             "at this many times sigma_h")
     args = parser.parse_args(argv)
     robust = SmootherSettings().graph.robust if args.robust else RobustKernel.NONE
     changes = dict(SCENARIOS[args.scenario].simulation) if args.scenario else {}
@@ -359,7 +367,7 @@ def main(argv: list[str] | None = None) -> None:
         runs = []
         for seed in range(args.seeds[0], args.seeds[1] + 1):
             sim = simulate(dataclasses.replace(BASE, frames=args.frames, seed=seed, **changes))
-            runs.append(track_whitening(sim))
+            runs.append(track_whitening(sim, args.height_scale))
             print(f"seed {seed}: " + " ".join(f"{k} {v:.3f}" for k, v in runs[-1].items()),
                   flush=True)
         print(f"\nmean over seeds {args.seeds[0]}-{args.seeds[1]}, {args.frames} frames "
