@@ -359,6 +359,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="with --track-whitening: the joint rows' track height noise "
                              "at this many times sigma_h")
     args = parser.parse_args(argv)
+    if not args.height_scale > 0:
+        parser.error(f"--height-scale {args.height_scale:g}: expected a positive factor")
     robust = SmootherSettings().graph.robust if args.robust else RobustKernel.NONE
     changes = dict(SCENARIOS[args.scenario].simulation) if args.scenario else {}
     if args.exact_dtm:
