@@ -105,6 +105,24 @@ def _dense(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, cols: dict[i
     return np.vstack(rows_A), np.concatenate(rows_b)
 
 
+
+def _pair_rows(Ha: np.ndarray, Hb: np.ndarray, a: int, b: int, cols: dict[int, int],
+               n: int) -> np.ndarray:
+    """(F, 2, n) a pair factor's features' rows in the dense system (its Jacobians (F, 2, 6)
+    w.r.t. X(a) and X(b) in their columns)."""
+    H = np.zeros((Ha.shape[0], 2, n))
+    H[:, :, cols[X(a)]:cols[X(a)] + 6] = Ha
+    H[:, :, cols[X(b)]:cols[X(b)] + 6] = Hb
+    return H
+
+
+def _position_blocks(values: gtsam.Values, cols: dict[int, int], K: int
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Each frame's body-to-world rotation (K, 3, 3) at ``values`` and its position's three
+    columns in the dense system (K, 3)."""
+    R = np.stack([values.atPose3(X(k)).rotation().matrix() for k in range(K)])
+    return R, np.array([cols[X(k)] + 3 for k in range(K)])[:, None] + np.arange(3)[None]
+
 def _true_rays(sim) -> dict[tuple[int, int], np.ndarray]:
     """(frame, track id) -> the noise-free normalized ray (z = 1) of that sighting."""
     tracks = sim.log.tracks
@@ -192,10 +210,7 @@ def split_one(sim, robust: RobustKernel, shared_dtm_error: bool = True) -> dict:
         dh_true_all.append(dh_true)
         dh_fit_all.append(dh_fit)
         rank_all.append(np.round((np.sqrt(8 * scale + 1) - 1) / 2))
-        H = np.zeros((feats.n, 2, n))
-        H[:, :, cols[X(a)]:cols[X(a)] + 6] = Ha
-        H[:, :, cols[X(b)]:cols[X(b)] + 6] = Hb
-        H *= w[:, None, None]
+        H = _pair_rows(Ha, Hb, a, b, cols, n) * w[:, None, None]
         # model: the DTM's part of the whitened residual's covariance, v v^T sigma_h^2 scale
         C_dtm = np.einsum("ni,nj->nij", v, v) * (sigma_h**2 * scale)[:, None, None]
         C_pix = np.eye(2)[None] - C_dtm
@@ -217,17 +232,14 @@ def split_one(sim, robust: RobustKernel, shared_dtm_error: bool = True) -> dict:
     A_cdtm_info = sum(info[c] for c in ("cdtm_dtm", "cdtm_qb"))
     Lambda = A_cdtm_info + info["imu"] + info["prior"]
     P = np.linalg.inv(Lambda)
-    truth_T = np.stack([values.atPose3(X(k)).matrix() for k in range(K)])
-    pos = np.array([cols[X(k)] + 3 for k in range(K)])
-    idx = pos[:, None] + np.arange(3)[None]
+    R, idx = _position_blocks(values, cols, K)
 
     def pos_world(dx):  # (K, 3) world-frame position errors
-        return np.einsum("kij,kj->ki", truth_T[:, :3, :3], dx[idx])
+        return np.einsum("kij,kj->ki", R, dx[idx])
 
     def cov_world(M):  # (K, 3, 3)
         C = P @ M @ P if M is not None else P
         blocks = C[idx[:, :, None], idx[:, None, :]]
-        R = truth_T[:, :3, :3]
         return R @ blocks @ np.swapaxes(R, 1, 2)
 
     Ppp = cov_world(None)
@@ -293,11 +305,9 @@ def track_whitening(sim, height_scale: float = 1.0) -> dict[str, float]:
         e_moved = moved.innovations(Ta, Tb)[0].reshape(5, 2, f.features.n, 2)
         load = 0.5 * (e_moved[:, 0] - e_moved[:, 1])  # (source, feature, 2): +1 sigma
         load_h = height_scale * load[4]
+        H = _pair_rows(Ha, Hb, a, b, cols, n)
         for i, t in enumerate(ids.tolist()):
-            H = np.zeros((2, n))
-            H[:, cols[X(a)]:cols[X(a)] + 6] = Ha[i]
-            H[:, cols[X(b)]:cols[X(b)] + 6] = Hb[i]
-            tracks[t].append((H, e[i], {("q", a, 0): load[0, i], ("q", a, 1): load[1, i],
+            tracks[t].append((H[i], e[i], {("q", a, 0): load[0, i], ("q", a, 1): load[1, i],
                                         ("q", b, 0): load[2, i], ("q", b, 1): load[3, i],
                                         ("h",): load_h[i]}))
     info_pairs, grad_pairs = info_base.copy(), grad_base.copy()
@@ -321,8 +331,7 @@ def track_whitening(sim, height_scale: float = 1.0) -> dict[str, float]:
         stated = L.copy()
         stated[:, column[("h",)]] /= height_scale
         spread += H.T @ stated @ stated.T @ H
-    R = np.stack([values.atPose3(X(k)).rotation().matrix() for k in range(K)])
-    idx = np.array([cols[X(k)] + 3 for k in range(K)])[:, None] + np.arange(3)[None]
+    R, idx = _position_blocks(values, cols, K)
 
     def figures(P: np.ndarray, dx: np.ndarray) -> tuple[float, float, float]:
         d = np.einsum("kij,kj->ki", R, dx[idx])
@@ -361,6 +370,9 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     if not args.height_scale > 0:
         parser.error(f"--height-scale {args.height_scale:g}: expected a positive factor")
+    if args.track_whitening and (args.robust or args.no_shared):
+        parser.error("--track-whitening solves without a kernel and with each track's "
+                     "height shared: expected neither --robust nor --no-shared")
     robust = SmootherSettings().graph.robust if args.robust else RobustKernel.NONE
     changes = dict(SCENARIOS[args.scenario].simulation) if args.scenario else {}
     if args.exact_dtm:
