@@ -2,8 +2,8 @@
 verdict and the shape evidence the verdict's ``broad_map_error`` reads (its highest frame,
 the map's tilt and curvature there over a kilometre, and the longest stretch above the
 verdict's sustained bound, in km flown, as the verdict counts it:
-``VerdictSettings.broad_map``'s, batch and iSAM2; the fixed lag has none, its rows show
-the same count).
+``VerdictSettings.broad_map``'s, in every mode: a fixed lag's statistic is the one it took
+as it went, ``map_error.BroadMapWatch``).
 
 Run: ``python scripts/broad_map_error.py RUN...``, each RUN ``scenario/seed/mode[/frames]``:
 a scenario of ``cdtm_graph.studies.robustness.SCENARIOS``, ``waves`` (3 m of waves,

@@ -39,6 +39,12 @@ def _frame(key: int) -> int:
     return int(gtsam.Symbol(key).index())
 
 
+def _frame_sigmas(frame: np.ndarray, position_sigma_of: Callable[[int], float]) -> np.ndarray:
+    """Each frame's own position 1-sigma, one per ``np.unique(frame)``: where features
+    went, the poses are weak."""
+    return np.array([position_sigma_of(int(j)) for j in np.unique(frame)])
+
+
 class TrackJudge:
     """Which tracks to leave out, judged as the flight goes.
 
@@ -75,6 +81,11 @@ class TrackJudge:
     @property
     def judging(self) -> bool:
         return self._judge_from is not None
+
+    @property
+    def judged_from(self) -> int | None:
+        """The first frame whose tracks are judged (the poses settled there), if any."""
+        return self._judge_from
 
     def settle(self, k: int, position_sigma_m: float) -> bool:
         """Whether the poses are known well enough to judge a track's height against the
@@ -160,18 +171,15 @@ class TrackJudge:
         none = np.zeros(0, np.int64)
         if self._judge_from is None:
             return none, none
-        seen = self.observations.since(max(since_frame, self._judge_from))
         # every observation of them, the tracks left out too (crowding, clutter)
-        all_tid, all_frame, all_q = self.observations.of(seen)
-        judged = ~np.isin(all_tid, all_tid[all_frame < self._judge_from])
-        tid, frame, q = all_tid[judged], all_frame[judged], all_q[judged]
+        all_tid, all_frame, all_q = self.observations.of(
+            self.observations.since(max(since_frame, self._judge_from)))
+        tid, frame, q = self._settled(all_tid, all_frame, all_q)
         if tid.size == 0:
             return none, none
-        # each frame's own position uncertainty: where features went, the poses are weak
-        sigma = np.array([position_sigma_of(int(j)) for j in np.unique(frame)])
-        judgement, self.clutter = judge_with_clutter(self._heights(tid, frame, q, pose_of, sigma),
-                                         self.noise.sigma_h_m, self.mismatch,
-                                         self.clutter_settings)
+        judgement, self.clutter = judge_with_clutter(
+            self._heights(tid, frame, q, pose_of, _frame_sigmas(frame, position_sigma_of)),
+            self.noise.sigma_h_m, self.mismatch, self.clutter_settings)
         self._found_off = np.union1d(self._found_off, judgement.off_map)
         off = np.setdiff1d(np.union1d(untrusted(all_tid, all_frame, self._found_off,
                                                 self.mismatch.frame_fraction),
@@ -179,6 +187,31 @@ class TrackJudge:
                            self.left_out)
         wrong = np.setdiff1d(judgement.inconsistent, np.r_[self.left_out, off])
         return off, wrong
+
+    def heights_since(self, since_frame: int, pose_of: PoseOf,
+                      position_sigma_of: Callable[[int], float]
+                      ) -> tuple[TrackHeights, np.ndarray, np.ndarray]:
+        """The tracks seen since ``since_frame`` (after the poses settled) triangulated
+        at the current poses as :meth:`round` has them, but the ones left out; with the
+        (M,) tracks and frames of their observations (their times). Nothing before the
+        poses settled."""
+        none = np.zeros(0, np.int64)
+        if self._judge_from is None:
+            return TrackHeights.empty(), none, none
+        tid, frame, q = self._settled(*self.observations.of(
+            self.observations.since(max(since_frame, self._judge_from))))
+        if tid.size == 0:
+            return TrackHeights.empty(), none, none
+        heights = self._heights(tid, frame, q, pose_of,
+                                _frame_sigmas(frame, position_sigma_of))
+        return heights.subset(~np.isin(heights.track_id, self.left_out)), tid, frame
+
+    def _settled(self, tid: np.ndarray, frame: np.ndarray, q: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """These observations but those of tracks seen before the poses settled."""
+        assert self._judge_from is not None
+        judged = ~np.isin(tid, tid[frame < self._judge_from])
+        return tid[judged], frame[judged], q[judged]
 
     def consider(self, since_frame: int, k: int, factors: Sequence[CdtmPairFactor | None],
                  track_ids: Sequence[np.ndarray]) -> None:

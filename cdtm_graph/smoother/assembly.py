@@ -19,6 +19,7 @@ from cdtm_graph.flightlog import FlightConfig
 from cdtm_graph.graph import cdtm_information
 from cdtm_graph.results import (
     BiasPrior,
+    BroadMapError,
     GraphCounts,
     MapOffset,
     SmootherResult,
@@ -53,7 +54,8 @@ def assemble_result(config: FlightConfig, estimate: TrajectoryEstimate,
                     settings: dict, flags: dict[int, list[str]],
                     factors: Sequence[CdtmPairFactor], clutter: ClutterOutcome | None,
                     calibration: CalibrationEstimate | None = None,
-                    stages: Sequence[dict] = ()) -> SmootherResult:
+                    stages: Sequence[dict] = (),
+                    broad_map_error: BroadMapError | None = None) -> SmootherResult:
     """A run's result from its estimate and what it solved with.
 
     Args:
@@ -67,6 +69,8 @@ def assemble_result(config: FlightConfig, estimate: TrajectoryEstimate,
         clutter: the clutter view's outcome, or None (no clutter view).
         calibration: the online calibration's estimate, when it was estimated.
         stages: what each defence left out, and its time (``Stages.summary``).
+        broad_map_error: the map's shape across the footprints, when the run took it as it
+            went (a fixed lag: :class:`~cdtm_graph.robust.map_error.BroadMapWatch`).
     """
     K = len(estimate)
     residuals = residual_test(factors, estimate.world_T_body, K)
@@ -85,4 +89,5 @@ def assemble_result(config: FlightConfig, estimate: TrajectoryEstimate,
                           stats, counts, settings, frame_flags(counts, flags),
                           cdtm_information(factors, estimate.world_T_body.__getitem__, K),
                           terrain, calibration, map_offset=map_offset,
-                          bias_prior=BiasPrior.of(config), stages=tuple(stages))
+                          bias_prior=BiasPrior.of(config), stages=tuple(stages),
+                          broad_map_error=broad_map_error)

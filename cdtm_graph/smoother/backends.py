@@ -102,12 +102,14 @@ class _Isam2Estimates:
 
     _solver: Any  # gtsam.ISAM2 or gtsam.IncrementalFixedLagSmoother: the same calculate*
     _poses: dict[int, np.ndarray]
+    _marginals: dict[int, np.ndarray]
 
     def _isam2(self) -> gtsam.ISAM2:
         raise NotImplementedError
 
     def _changed(self) -> None:
         self._poses = {}
+        self._marginals = {}
 
     def pose(self, k: int) -> np.ndarray:
         pose = self._poses.get(k)
@@ -126,8 +128,13 @@ class _Isam2Estimates:
         return self._solver.calculateEstimate()
 
     def marginal(self, key: int) -> np.ndarray:
-        with _solvable():
-            return np.asarray(self._solver.marginalCovariance(key))
+        # (kept until the next update: a track round and the shape watch ask for the same)
+        cov = self._marginals.get(key)
+        if cov is None:
+            with _solvable():
+                cov = self._marginals[key] = np.asarray(self._solver.marginalCovariance(key))
+            cov.flags.writeable = False  # shared: callers must not change it in place
+        return cov
 
     def joint_marginal(self, keys: list[int]) -> np.ndarray:
         with _solvable():
@@ -148,6 +155,7 @@ class FullHistory(_Isam2Estimates):
         self.relinearize_skip = params.relinearizeSkip
         self._isam = self._solver = gtsam.ISAM2(params)
         self._poses = {}
+        self._marginals = {}
 
     def _isam2(self) -> gtsam.ISAM2:
         return self._isam
@@ -197,6 +205,7 @@ class FixedLag(_Isam2Estimates):
         self.lag_s = lag_s
         self._fls = self._solver = gtsam.IncrementalFixedLagSmoother(lag_s, params)
         self._poses = {}
+        self._marginals = {}
 
     def _isam2(self) -> gtsam.ISAM2:
         return self._fls.getISAM2()  # by reference

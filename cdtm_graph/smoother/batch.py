@@ -182,7 +182,8 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
             run = _smooth_once(flight, dtm, settings, progress)
             calibration = None  # of the run before
     result = run.result
-    if map_error is not None and settings.graph.broad_map_error is not None:
+    if (map_error is not None and settings.graph.broad_map_error is not None
+            and result.broad_map_error is None):  # (a fixed lag took it as it went)
         result = replace(result, broad_map_error=run_broad_map_error(
             flight, dtm, noise, result, run.unfixed_frames, run.left_out,
             heights if run is first else None, settings.graph.broad_map_error,

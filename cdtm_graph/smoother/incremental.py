@@ -38,6 +38,7 @@ from cdtm_graph.results import (
 from cdtm_graph.robust.acquisition import Correction
 from cdtm_graph.robust.fix_search import FixSearch
 from cdtm_graph.robust.gating import InnovationGate
+from cdtm_graph.robust.map_error import BroadMapWatch
 from cdtm_graph.robust.observations import TieredObservations
 from cdtm_graph.robust.stages import (
     BUILD,
@@ -52,6 +53,7 @@ from cdtm_graph.smoother.assembly import ClutterOutcome, assemble_result
 from cdtm_graph.smoother.backends import frame_keys
 from cdtm_graph.smoother.settings import Progress, SmootherSettings
 from cdtm_graph.smoother.settling import Settling
+from cdtm_graph.smoother.track_rounds import TrackRounds
 from cdtm_graph.smoother.window import SolverWindow
 from cdtm_graph.tracks import SightingPairs, checked_sightings
 from factors import CdtmPairFactor
@@ -86,10 +88,6 @@ class FrameUpdate:
     update_time_s: float
     imu_time_s: float = 0.0
     converged: bool = True
-
-
-#: The track tests' rounds over many frames, charged apart from the frames' stages.
-TRACK_ROUNDS = "track_rounds"
 
 
 class IncrementalSmoother:
@@ -151,6 +149,11 @@ class IncrementalSmoother:
                 search, lambda k: w.needs_fix(search, k),
                 lambda: w.holds_search(search, self._frame_interval_s)),
             self._gate, settings.innovation_gate, self._judge)
+        watch = (BroadMapWatch(graph.broad_map_error, graph.mismatch)  # a fixed lag's map
+                 if settings.lag_s is not None and graph.broad_map_error is not None  # shape
+                 else None)  # as it goes
+        self._rounds = None if self._judge is None else TrackRounds(
+            self._judge, watch, w, self.stages, self.forget_tracks)
         if frame_interval_s is not None and search is not None \
                 and search.needed_at_start() and not w.holds_search(search, frame_interval_s):
             raise _lag_too_short(settings, frame_interval_s)
@@ -342,27 +345,9 @@ class IncrementalSmoother:
         self.converging = True  # judge nothing until the estimate has settled
 
     def _mismatch_round(self, k: int, since_frame: int) -> int:
-        """Judge the tracks seen since ``since_frame`` at the current estimate
-        (:meth:`TrackJudge.round`); take the ones it leaves out of the solver. Returns how
-        many."""
-        if self._judge is None:
-            return 0
-        with self.stages.charged(TRACK_ROUNDS, (Rejection.MAP_MISMATCH, Rejection.WRONG_MATCH)):
-            return self._judged_round(k, since_frame)
-
-    def _judged_round(self, k: int, since_frame: int) -> int:
-        assert self._judge is not None
-        w = self._window
-        off, wrong = self._judge.round(since_frame, w.pose_guess, w.frame_position_sigma_m)
-        if off.size:
-            self.forget_tracks(off, Rejection.MAP_MISMATCH)
-        if wrong.size:
-            self.forget_tracks(wrong, Rejection.WRONG_MATCH)
-        if off.size or wrong.size:
-            w.fetch(k)
-        recent = w.since(since_frame)
-        self._judge.consider(since_frame, k, w.cdtm[recent:], w.ids[recent:])
-        return int(off.size + wrong.size)
+        """A round over the tracks seen since ``since_frame`` (:class:`TrackRounds`): how
+        many it left out."""
+        return 0 if self._rounds is None else self._rounds.run(k, since_frame)
 
     def _commit(self, k: int, factors: list[CdtmPairFactor], track_ids: list[np.ndarray],
                 slots: list[int]) -> None:
@@ -491,7 +476,9 @@ class IncrementalSmoother:
             self._judge.clutter, self._judge.considered(K), clutter_settings)
         return assemble_result(self.config, estimate, covariances, stats, counts, settings,
                                self._frame_flags, self._window.live_factors(), clutter,
-                               stages=self.stages.summary())
+                               stages=self.stages.summary(), broad_map_error=None
+                               if self._rounds is None or self._rounds.watch is None
+                               else self._rounds.watch.result(self._window.t_ns))
 
 
 def _lag_too_short(settings: SmootherSettings, frame_interval_s: float) -> CdtmError:

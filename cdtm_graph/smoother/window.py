@@ -142,12 +142,17 @@ class SolverWindow:
         return largest_position_sigma_m(self.state_cov)
 
     def frame_position_sigma_m(self, j: int) -> float:
-        """Frame j's largest position 1-sigma (m) now (as it left the window, if it has)."""
-        if j < self.settled:
-            cov = self.exit_cov[j][0] if j in self.exit_cov else None
-        else:
-            cov = self.backend.marginal(X(j))
+        """Frame j's largest position 1-sigma (m) now (as it left the window, if it has;
+        the newest frame's where it left without one)."""
+        cov = self.frame_pose_covariance(j)
         return largest_position_sigma_m(self.state_cov if cov is None else cov)
+
+    def frame_pose_covariance(self, j: int) -> np.ndarray | None:
+        """Frame j's (6, 6) pose covariance now; as it left the window, if it has (None
+        where it was not kept)."""
+        if j < self.settled:
+            return self.exit_cov[j][0] if j in self.exit_cov else None
+        return self.backend.marginal(X(j))
 
     def refresh(self, estimate: gtsam.Values) -> None:
         """Every frame's states from ``estimate``."""
