@@ -402,8 +402,7 @@ def shape_windows(heights: TrackHeights, track_t_s: np.ndarray, frame_t_s: np.nd
                & (heights.sigma_m > 0) & np.isfinite(track_t_s)
                & (heights.n_observations >= m.min_observations) & ~inconsistent(heights, m))
         half = 0.5 * s.window_s
-        judged = np.flatnonzero((frame_t_s - half >= frame_t_s[0])
-                                & (frame_t_s + half <= frame_t_s[-1])
+        judged = np.flatnonzero(_inside(frame_t_s, half, frame_t_s[0])
                                 & np.isfinite(tilt_cov).all(axis=(1, 2)))
         if not use.any():  # (every window empty: n stays 0)
             judged = judged[:0]
@@ -429,6 +428,18 @@ def shape_windows(heights: TrackHeights, track_t_s: np.ndarray, frame_t_s: np.nd
     return chi2, tilt, bend, n
 
 
+def _seconds(t_ns: Sequence[int] | np.ndarray) -> np.ndarray:
+    """The frames' times (s) since the first of them."""
+    t = np.asarray(t_ns, dtype=np.int64)
+    return (t - (t[0] if t.size else 0)) / NS_PER_S
+
+
+def _inside(frame_t_s: np.ndarray, half: float, start_s: float) -> np.ndarray:
+    """(K,) whether each frame's window (``half`` each side) lies from ``start_s`` to the
+    last frame: a window the flight's ends cut is not judged."""
+    return (frame_t_s - half >= start_s) & (frame_t_s + half <= frame_t_s[-1])
+
+
 def _evidence(chi2: np.ndarray, frame_t_s: np.ndarray, evidence_s: float) -> np.ndarray:
     """(K,) each frame's mean of ``chi2`` over the frames within half ``evidence_s`` of
     it (``frame_t_s`` increasing), NaN unless every one of them was judged."""
@@ -447,9 +458,14 @@ def _evidence(chi2: np.ndarray, frame_t_s: np.ndarray, evidence_s: float) -> np.
 
 class BroadMapWatch:
     """:func:`broad_map_error` taken while a fixed lag runs: each frame's window judged once
-    it has closed (the newest frame half a window past it), from the tracks the track judge
-    recorded (:class:`~cdtm_graph.robust.track_judge.TrackJudge`) triangulated at the poses
-    the smoother holds then; at the judge's rounds (``smoother.track_rounds``).
+    it has closed (the newest frame half a window past it), at the judge's rounds
+    (``smoother.track_rounds``), from the sightings the track judge holds then
+    (:class:`~cdtm_graph.robust.track_judge.TrackJudge`: those of the frames still in the
+    lag; it forgets the older ones) triangulated at the poses the window holds. A window's
+    first seconds, whose frames have left the lag, are so read from the tracks still seen
+    later and from their later sightings only; a frame without its attitude covariance then
+    (a live lag, ``keep_exit_covariances`` off, shorter than half a window past a round) is
+    not judged.
 
     Why not after the run, as batch and iSAM2 take it: a fixed lag's frames keep the
     estimates they left the window with, each from a window of its own, and a surface
@@ -477,7 +493,7 @@ class BroadMapWatch:
             position_sigma_of: frame -> its position 1-sigma now (m).
             pose_covariance_of: frame -> its (6, 6) pose covariance now, None if not kept.
         """
-        frame_t_s = (np.asarray(t_ns, dtype=np.int64) - int(t_ns[0])) / NS_PER_S
+        frame_t_s = _seconds(t_ns)
         frames = self.due(frame_t_s, judge.judged_from)
         if not frames.size:
             return
@@ -500,9 +516,8 @@ class BroadMapWatch:
         window holding only the later ones would read a part for the whole)."""
         if judged_from is None:
             return np.zeros(0, np.int64)
-        half = 0.5 * self.settings.window_s
-        closed = np.flatnonzero((frame_t_s + half <= frame_t_s[-1])
-                                & (frame_t_s - half >= frame_t_s[judged_from]))
+        closed = np.flatnonzero(_inside(frame_t_s, 0.5 * self.settings.window_s,
+                                        frame_t_s[judged_from]))
         return closed[closed >= self.next_frame]
 
     def judge(self, frames: np.ndarray, heights: TrackHeights, track_t_s: np.ndarray,
@@ -521,8 +536,7 @@ class BroadMapWatch:
 
     def result(self, t_ns: Sequence[int]) -> BroadMapError:
         """What was judged, over the run's frames (``t_ns``: their stamps)."""
-        frame_t_s = (np.asarray(t_ns, dtype=np.int64) - (int(t_ns[0]) if len(t_ns) else 0)
-                     ) / NS_PER_S
+        frame_t_s = _seconds(t_ns)
         K = frame_t_s.size
         chi2, tilt, bend = np.full(K, np.nan), np.full(K, np.nan), np.full(K, np.nan)
         n = np.zeros(K, np.int64)
@@ -571,7 +585,7 @@ def run_broad_map_error(flight: FlightLog, dtm: Dtm, noise: FeatureNoise,
     if heights is None:
         heights = run_heights(flight, dtm, noise, estimate, unfixed_frames)
     heights = heights.subset(~np.isin(heights.track_id, left_out))
-    frame_t_s = (estimate.t_ns - estimate.t_ns[0]) / NS_PER_S
+    frame_t_s = _seconds(estimate.t_ns)
     tracks = _kept_tracks(flight, unfixed_frames)
     track_t_s = (np.full(heights.track_id.size, np.nan) if tracks is None else
                  track_mean_times(tracks.track_id, tracks.frame, frame_t_s, heights.track_id))

@@ -172,8 +172,7 @@ class TrackJudge:
         if self._judge_from is None:
             return none, none
         # every observation of them, the tracks left out too (crowding, clutter)
-        all_tid, all_frame, all_q = self.observations.of(
-            self.observations.since(max(since_frame, self._judge_from)))
+        all_tid, all_frame, all_q = self._seen_since(since_frame)
         tid, frame, q = self._settled(all_tid, all_frame, all_q)
         if tid.size == 0:
             return none, none
@@ -198,13 +197,19 @@ class TrackJudge:
         none = np.zeros(0, np.int64)
         if self._judge_from is None:
             return TrackHeights.empty(), none, none
-        tid, frame, q = self._settled(*self.observations.of(
-            self.observations.since(max(since_frame, self._judge_from))))
+        tid, frame, q = self._settled(*self._seen_since(since_frame))
         if tid.size == 0:
             return TrackHeights.empty(), none, none
         heights = self._heights(tid, frame, q, pose_of,
                                 _frame_sigmas(frame, position_sigma_of))
         return heights.subset(~np.isin(heights.track_id, self.left_out)), tid, frame
+
+    def _seen_since(self, since_frame: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every recorded observation of the tracks seen since ``since_frame`` (and since
+        the poses settled)."""
+        assert self._judge_from is not None
+        return self.observations.of(self.observations.since(max(since_frame,
+                                                                self._judge_from)))
 
     def _settled(self, tid: np.ndarray, frame: np.ndarray, q: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -95,9 +95,10 @@ class Backend(Protocol):
 class _Isam2Estimates:
     """Estimates and marginals read from a solver with iSAM2's calculate* methods.
 
-    Poses are kept until the solver changes (``_changed``, called by every update): a
-    frame's update asks for the same window poses a dozen times (pairing, gate, track
-    tests), each a back-substitution.
+    Poses and marginals are kept until the solver changes (``_changed``, called by every
+    update): a frame's update asks for the same window poses a dozen times (pairing, gate,
+    track tests), each a back-substitution, and a round the same frames' marginals twice
+    (the track tests, the map's shape).
     """
 
     _solver: Any  # gtsam.ISAM2 or gtsam.IncrementalFixedLagSmoother: the same calculate*

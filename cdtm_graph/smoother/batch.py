@@ -183,7 +183,7 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
             calibration = None  # of the run before
     result = run.result
     if (map_error is not None and settings.graph.broad_map_error is not None
-            and result.broad_map_error is None):  # (a fixed lag took it as it went)
+            and settings.lag_s is None):  # (a fixed lag takes it as it goes, or not at all)
         result = replace(result, broad_map_error=run_broad_map_error(
             flight, dtm, noise, result, run.unfixed_frames, run.left_out,
             heights if run is first else None, settings.graph.broad_map_error,

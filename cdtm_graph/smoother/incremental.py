@@ -151,7 +151,7 @@ class IncrementalSmoother:
             self._gate, settings.innovation_gate, self._judge)
         watch = (BroadMapWatch(graph.broad_map_error, graph.mismatch)  # a fixed lag's map
                  if settings.lag_s is not None and graph.broad_map_error is not None  # shape
-                 else None)  # as it goes
+                 and graph.map_error is not None else None)  # as it goes (batch's: both)
         self._rounds = None if self._judge is None else TrackRounds(
             self._judge, watch, w, self.stages, self.forget_tracks)
         if frame_interval_s is not None and search is not None \
