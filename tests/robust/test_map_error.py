@@ -382,8 +382,7 @@ def test_the_watch_judges_each_window_once_it_has_closed(rng):
     what :func:`broad_map_error` reads over the same tracks at once, and the evidence is
     its 5 s mean. Mutations tried (2026-11-28): the settled start dropped from ``due`` ->
     frames 0-9 due: fails; ``next_frame`` not advanced -> frames judged again: fails; the
-    evidence of the rounds' own frames only (``_evidence`` over the round) -> NaN at the
-    rounds' seams: fails."""
+    evidence left as the windows' statistic (no 5 s mean in ``result``): fails."""
     frame_t_s = np.arange(0.0, 40.01, 1.0)
     t_s = rng.uniform(0.0, 40.0, 4000)
     xy = rng.uniform(-900.0, 900.0, (t_s.size, 2))
