@@ -107,7 +107,8 @@ _SMALL_STEP_RELATIVE = 1e-4
 def levenberg_marquardt(
     graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, max_iterations: int,
     relative_error_tol: float, lambda_initial: float = 1e-5,
-    solver: LinearSolver | None = None,
+    solver: LinearSolver | None = None, error_at_start: float | None = None,
+    linear_at_start: gtsam.GaussianFactorGraph | None = None,
 ) -> tuple[gtsam.Values, SolverStats]:
     """Levenberg-Marquardt driven from Python on ``graph.linearize`` (no per-call copies).
 
@@ -116,12 +117,16 @@ def levenberg_marquardt(
     a factor that doubles with each rejection. This rejects far fewer steps than
     multiplying by ten both ways.
 
+    ``error_at_start`` and ``linear_at_start``: ``graph``'s error at ``values`` and its
+    linearization there, when the caller has them (a side solve that continues another
+    on the same factors): not computed again.
+
     Raises:
         SolverError: the linear system is indeterminant (names the variable).
     """
     start = time.perf_counter()
     keys = [(k, _dim_of(k)) for k in values.keys()]
-    error = graph.error(values)
+    error = graph.error(values) if error_at_start is None else error_at_start
     initial_error = error
     lam, nu = lambda_initial, 2.0
     solve = solver or LinearSolver()  # pass one along to keep its Cholesky/QR verdict
@@ -131,7 +136,10 @@ def levenberg_marquardt(
     try:
         while iterations < max_iterations:
             iterations += 1
-            linear = graph.linearize(values)
+            if iterations == 1 and linear_at_start is not None:
+                linear = linear_at_start
+            else:
+                linear = graph.linearize(values)
             linear_error_at_zero = None
             accepted = False
             while lam < 1e12:

@@ -276,14 +276,17 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
                                            PIN * prior_sigmas(sigmas))))
     values, _ = levenberg_marquardt(pinned, values, max_iterations,
                                     relative_error_tol, solver=solver)
-    held_error = built.graph.error(values)
-    if on_pinned is not None:
-        on_pinned(PinnedSolve(solver.linearized_at(values) or pinned.linearize(values),
-                              values, sub, kept))
-    values, _ = levenberg_marquardt(built.graph, values, max_iterations,
-                                    relative_error_tol, solver=solver)
     graph = built.graph
-    cost_drop = held_error - graph.error(values)
+    held_error = graph.error(values)
+    pinned_linear = solver.linearized_at(values)
+    if on_pinned is not None:
+        on_pinned(PinnedSolve(pinned_linear or pinned.linearize(values), values, sub, kept))
+    # (the free solve starts where the pinned one ended: its error there, and the pinned
+    # solve's last linearization without the pin, the last factor)
+    values, free = levenberg_marquardt(graph, values, max_iterations, relative_error_tol,
+                                       solver=solver, error_at_start=held_error,
+                                       linear_at_start=_without_pin(pinned_linear))
+    cost_drop = held_error - free.final_error
     # (the noise stays linearized at the run's solution, as the likelihood ratio has it;
     # its bias taken out at the scatter the residuals show with the calibration free)
     scatter = residual_scatter(built.cdtm, values)
@@ -305,6 +308,18 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
                    and wald > SUSPECT_WALD)
     return CalibrationCheck(estimate, z, nees, float(cost_drop), conclusive, suspect,
                             time.perf_counter() - start, int(kept.size), scatter, wald)
+
+
+def _without_pin(linear: gtsam.GaussianFactorGraph | None
+                 ) -> gtsam.GaussianFactorGraph | None:
+    """The pinned graph's linearization without the pin, its last factor (the same
+    factor objects); None without one."""
+    if linear is None or list(linear.at(linear.size() - 1).keys()) != [CALIBRATION_KEY]:
+        return None
+    rest = gtsam.GaussianFactorGraph()
+    for i in range(linear.size() - 1):
+        rest.push_back(linear.at(i))
+    return rest
 
 
 def _matters(position_nees: float) -> bool:

@@ -160,6 +160,24 @@ def test_a_converged_solve_keeps_its_final_linearization_for_the_marginals(rng):
 # -- damping, iterations, convergence --------------------------------------------------
 
 
+def test_a_solve_given_its_start_error_and_linearization_is_the_solve_that_makes_them(rng):
+    """``error_at_start`` and ``linear_at_start`` (the calibration check's free solve
+    continuing its pinned one) save their computation and change nothing: the same values
+    and statistics, bit for bit, as a solve that makes them itself. Mutation tried: the
+    linearization used at every iteration, not only the first (the solve then stops on
+    the start's step: the values differ)."""
+    graph, initial, _ = _pose_chain(rng, loop_noise=0.05)
+    values, stats = levenberg_marquardt(graph, initial, max_iterations=100,
+                                        relative_error_tol=1e-14)
+    given, given_stats = levenberg_marquardt(
+        graph, initial, max_iterations=100, relative_error_tol=1e-14,
+        error_at_start=graph.error(initial), linear_at_start=graph.linearize(initial))
+    assert given_stats.iterations == stats.iterations > 2
+    assert given_stats.final_error == stats.final_error
+    for k in range(5):
+        np.testing.assert_array_equal(given.atPose3(X(k)).matrix(), values.atPose3(X(k)).matrix())
+
+
 def test_a_rejected_step_doubles_the_growth_of_lambda():
     """From (-1.2, 1) the Gauss-Newton step raises the error 100-fold: the first trial
     at the initial lambda is rejected and lambda grows by 2, then 4, ... until a step
