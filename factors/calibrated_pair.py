@@ -140,21 +140,36 @@ class CalibratedPair:
         e, Ha, Hb = np.empty((n, 2)), np.empty((n, 2, 6)), np.empty((n, 2, 6))
         Ad = self._calibrated_kernel(world_T_body_a, world_T_body_b, c, kernel,
                                      want_jacobians, e, Ha, Hb)
-        Hc = np.zeros((n, 2, CALIBRATION_DIM))
         if not want_jacobians:
-            return e, Ha, Hb, Hc
-        dt = float(c[TIME_OFFSET])
+            return e, Ha, Hb, np.zeros((n, 2, CALIBRATION_DIM))
         # (as (2n, 6) rows: one matrix product each, not n small ones)
-        rows_a, rows_b = Ha.reshape(-1, 6), Hb.reshape(-1, 6)
-        Hc[:, :, TIME_OFFSET] = (rows_a @ link.twist_a + rows_b @ link.twist_b).reshape(n, 2)
+        J = self.chained(Ha.reshape(-1, 6), Hb.reshape(-1, 6), self._focal_scale_column(
+            world_T_body_a, world_T_body_b, c, kernel).reshape(-1), c, Ad)
+        return e, J[:, :6].reshape(n, 2, 6), J[:, 6:12].reshape(n, 2, 6), J[:, 12:].reshape(
+            n, 2, CALIBRATION_DIM)
+
+    def chained(self, rows_a: np.ndarray, rows_b: np.ndarray, focal: np.ndarray,
+                calibration: np.ndarray, Ad: np.ndarray) -> np.ndarray:
+        """Rows of Jacobians w.r.t. the shifted bodies, ``rows_a``, ``rows_b`` (m, 6), and
+        the focal scale ``focal`` (m,), chained to ``[X(a), X(b), calibration]``: (m, 17).
+
+        Linear in the rows, so a sum of rows chains as the rows do (the noise's expected
+        gradient sums before it chains: :meth:`~factors.CdtmPairFactor.
+        noise_cost_gradient`). ``Ad``: ``Ad(cam_T_body)`` of the corrected mount
+        (:meth:`_calibrated_kernel`'s)."""
+        link = self.calibration
+        assert link is not None
+        dt = float(calibration[TIME_OFFSET])
+        out = np.empty((rows_a.shape[0], 12 + CALIBRATION_DIM))
+        out[:, :6] = rows_a @ shift_adjoint(link.twist_a, dt)
+        out[:, 6:12] = rows_b @ shift_adjoint(link.twist_b, dt)
+        Hc = out[:, 12:]
+        Hc[:, TIME_OFFSET] = rows_a @ link.twist_a + rows_b @ link.twist_b
         Ad_inv = np.linalg.inv(Ad)  # back to camera tangents: the mount turns both cameras
-        Hc[:, :, MOUNT] = (((rows_a @ Ad_inv)[:, :3] + (rows_b @ Ad_inv)[:, :3])
-                           @ mount_jacobian(c[MOUNT])).reshape(n, 2, 3)
-        Hc[:, :, FOCAL_SCALE] = self._focal_scale_column(world_T_body_a, world_T_body_b, c,
-                                                         kernel)
-        Ha = (rows_a @ shift_adjoint(link.twist_a, dt)).reshape(n, 2, 6)
-        Hb = (rows_b @ shift_adjoint(link.twist_b, dt)).reshape(n, 2, 6)
-        return e, Ha, Hb, Hc
+        Hc[:, MOUNT] = (((rows_a @ Ad_inv)[:, :3] + (rows_b @ Ad_inv)[:, :3])
+                        @ mount_jacobian(calibration[MOUNT]))
+        Hc[:, FOCAL_SCALE] = focal
+        return out
 
     def _focal_scale_column(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray,
                             c: np.ndarray, kernel: int) -> np.ndarray:

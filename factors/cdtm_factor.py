@@ -406,21 +406,30 @@ class CdtmPairFactor(CalibratedPair):
         copies of the data (``sum w odd . (J+ - J-)``).
         """
         moved, weight, c = self.noise_moved(world_T_body_a, world_T_body_b, calibration)
-        if moved.calibration is not None:
-            e, Ha, Hb, Hc = moved.evaluate_calibrated(world_T_body_a, world_T_body_b, c,
-                                                      robust=False)
-            J = np.concatenate((Ha, Hb, Hc), axis=2)
+        n = self.features.n
+        calibrated = moved.calibration is not None
+        if n == 0:
+            return np.zeros(12 + CALIBRATION_DIM if calibrated else 12)
+        if calibrated:
+            # the Jacobians w.r.t. the shifted bodies and the focal scale, summed as the
+            # gradient weighs them, then chained once (the chain is linear: ``chained``)
+            m = moved.features.n
+            e, Ha, Hb = np.empty((m, 2)), np.empty((m, 2, 6)), np.empty((m, 2, 6))
+            Ad = moved._calibrated_kernel(world_T_body_a, world_T_body_b, c, KERNEL_NONE,
+                                          True, e, Ha, Hb)
+            focal = moved._focal_scale_column(world_T_body_a, world_T_body_b, c, KERNEL_NONE)
+            J = np.concatenate((Ha, Hb, focal[:, :, None]), axis=2)
         else:
             e, Ha, Hb = moved.innovations(world_T_body_a, world_T_body_b)
             J = np.concatenate((Ha, Hb), axis=2)
-        n = self.features.n
-        if n == 0:
-            return np.zeros(J.shape[2])
         sides_e = e.reshape(-1, 2, n, 2)
         sides_J = J.reshape(-1, 2, n, 2, J.shape[2])
         # d(w |odd|^2) = 2 w odd . d(odd), d(odd) = (J+ - J-) / 2
-        return np.einsum("n,mni,mnij->j", weight, 0.5 * (sides_e[:, 0] - sides_e[:, 1]),
-                         sides_J[:, 0] - sides_J[:, 1])
+        g = np.einsum("n,mni,mnij->j", weight, 0.5 * (sides_e[:, 0] - sides_e[:, 1]),
+                      sides_J[:, 0] - sides_J[:, 1])
+        if not calibrated:
+            return g
+        return moved.chained(g[None, :6], g[None, 6:12], g[12:], c, Ad)[0]
 
     def noise_moved(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray,
                     calibration: np.ndarray | None = None
