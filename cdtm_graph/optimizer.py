@@ -10,6 +10,8 @@ from __future__ import annotations
 import logging
 import re
 import time
+from collections.abc import Callable, Sequence
+from typing import TypeVar
 
 import gtsam
 import numpy as np
@@ -20,6 +22,8 @@ from cdtm_graph.results import Solver, SolverStats, StateCovariances
 from factors.calibration import CALIBRATION_DIM
 
 log = logging.getLogger(__name__)
+
+_T = TypeVar("_T")
 
 
 _SYMBOL = re.compile(r"Symbol:\s*([a-zA-Z])(\d+)")
@@ -212,18 +216,34 @@ def key_marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
     """The marginal covariance of each key (as :func:`marginals`)."""
     if linear is None:
         linear = graph.linearize(values)
+    return _on_bayes_tree(linear, lambda tree, qr: [_marginal(tree, qr, k) for k in keys],
+                          qr_only)
+
+
+def step_and_marginals(linear: gtsam.GaussianFactorGraph, keys: Sequence[int]
+                       ) -> tuple[gtsam.VectorValues, list[np.ndarray]]:
+    """The solution of ``linear`` (its ``optimize()``) and the marginal covariance of each
+    key, from one elimination (Cholesky, QR where it fails)."""
+    return _on_bayes_tree(linear, lambda tree, qr: (tree.optimize(),
+                                                    [_marginal(tree, qr, k) for k in keys]))
+
+
+def _on_bayes_tree(linear: gtsam.GaussianFactorGraph,
+                   use: Callable[[gtsam.GaussianBayesTree, bool], _T], qr_only: bool = False
+                   ) -> _T:
+    """``use(tree, qr)`` of ``linear``'s Bayes tree: Cholesky's, QR's where Cholesky
+    declares the system indeterminant (or ``qr_only``)."""
     for qr in (True,) if qr_only else (False, True):
         try:
             tree = (linear.eliminateMultifrontal(function=gtsam.EliminateQR) if qr
                     else linear.eliminateMultifrontal())
-
-            def cov(key: int, tree=tree, qr=qr) -> np.ndarray:
-                marginal = (tree.marginalFactor(key, gtsam.EliminateQR) if qr
-                            else tree.marginalFactor(key))
-                # information() includes the conditional's noise model (QR leaves sigmas)
-                return np.linalg.inv(marginal.information())
-
-            return [cov(key) for key in keys]
+            return use(tree, qr)
         except RuntimeError as exc:
             error = exc
     raise explain_indeterminant(error) from None
+
+
+def _marginal(tree: gtsam.GaussianBayesTree, qr: bool, key: int) -> np.ndarray:
+    marginal = tree.marginalFactor(key, gtsam.EliminateQR) if qr else tree.marginalFactor(key)
+    # information() includes the conditional's noise model (QR leaves sigmas)
+    return np.linalg.inv(marginal.information())

@@ -28,7 +28,7 @@ def main(argv: list[str] | None = None) -> None:
                         help="leave the noise's bias in (the estimate before the fix)")
     args = parser.parse_args(argv)
     if args.uncorrected:
-        batch.debiased = lambda graph, values, factors: values  # type: ignore[assignment]
+        batch.debiased = lambda graph, values, factors, **_: (values, [])  # type: ignore[assignment]
     online = SmootherSettings(graph=GraphSettings(calibration=DEFAULT_CALIBRATION_SIGMAS,
                                                   calibration_online=True))
     rows = []

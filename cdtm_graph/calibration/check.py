@@ -53,7 +53,7 @@ from cdtm_graph.dtm import Dtm
 from cdtm_graph.flightlog import CalibrationSigmas, FlightLog, Frames, Tracks
 from cdtm_graph.graph import GraphSettings
 from cdtm_graph.graph.log_graph import build_log_graph
-from cdtm_graph.optimizer import LinearSolver, key_marginals, levenberg_marquardt
+from cdtm_graph.optimizer import LinearSolver, levenberg_marquardt
 from cdtm_graph.results import SmootherResult, TrajectoryEstimate, position_move_nees
 from factors.calibration import CALIBRATION_DIM
 
@@ -290,11 +290,11 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
     # (the noise stays linearized at the run's solution, as the likelihood ratio has it;
     # its bias taken out at the scatter the residuals show with the calibration free)
     scatter = residual_scatter(built.cdtm, values)
-    values = debiased(graph, values, built.cdtm, noise_scale=scatter,
-                      linear=solver.linearized_at(values))
+    values, (c_cov,) = debiased(graph, values, built.cdtm, noise_scale=scatter,
+                                linear=solver.linearized_at(values),
+                                marginal_keys=[CALIBRATION_KEY])
     c = values.atVector(CALIBRATION_KEY)
-    estimate = calibration_estimate(c, key_marginals(graph, values, [CALIBRATION_KEY])[0],
-                                    sigmas, flight.config)
+    estimate = calibration_estimate(c, c_cov, sigmas, flight.config)
     posterior = np.sqrt(np.diag(estimate.covariance))
     z = c / posterior
     nees = _position_nees(result, kept, np.stack([values.atPose3(X(j)).translation()

@@ -22,6 +22,7 @@ from collections.abc import Sequence
 import gtsam
 import numpy as np
 
+from cdtm_graph.optimizer import step_and_marginals
 from factors import CdtmPairFactor
 
 
@@ -45,9 +46,11 @@ def noise_gradient(factors: Sequence[CdtmPairFactor], values: gtsam.Values
 
 def debiased(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
              factors: Sequence[CdtmPairFactor], noise_scale: float = 1.0,
-             linear: gtsam.GaussianFactorGraph | None = None) -> gtsam.Values:
+             linear: gtsam.GaussianFactorGraph | None = None,
+             marginal_keys: Sequence[int] = ()) -> tuple[gtsam.Values, list[np.ndarray]]:
     """``values`` moved by one corrected-score step: the Gauss-Newton step of ``graph``
-    at ``values`` with the noise's expected gradient taken out of its gradient.
+    at ``values`` with the noise's expected gradient taken out of its gradient; and the
+    marginal covariance of each of ``marginal_keys``, from the same elimination.
 
     Args:
         graph: the whole graph (``factors`` among its factors). values: its solution.
@@ -56,6 +59,10 @@ def debiased(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
             with it: :func:`cdtm_graph.calibration.clustered.residual_scatter`).
         linear: ``graph`` linearized at ``values``, if the solve has it (``LinearSolver.
             linearized_at``); it gains the noise's terms here.
+        marginal_keys: the keys whose covariance is wanted. They are taken at ``values``
+            (the solve's linearization, which the step needs anyway; the gradient's terms
+            add no information), not at the moved values: one elimination, not a second
+            linearization and elimination. The step is a fraction of a sigma.
     """
     if linear is None:
         linear = graph.linearize(values)
@@ -66,9 +73,5 @@ def debiased(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
         g = noise_scale * g
         # a zero Hessian and the linear term: the step solves H d = -grad + g
         linear.push_back(gtsam.HessianFactor(key, np.zeros((g.size, g.size)), g, 0.0))
-    try:
-        step = linear.optimize()
-    except RuntimeError:
-        step = linear.optimize(gtsam.EliminateQR)
-    return values.retract(step)
-
+    step, covariances = step_and_marginals(linear, marginal_keys)
+    return values.retract(step), covariances

@@ -241,17 +241,21 @@ def _smooth_once(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
         flight.config.camera.body_T_cam, mismatch, settings.graph.clutter)
     solver = LinearSolver()
     values, graph, stats, assessed = _solve(built, initial, settings, tests, solver)
+    linear = solver.linearized_at(values)
     if calibration is not None:  # the focal scale takes the noise's bias whole
-        values = debiased(graph, values, built.cdtm, linear=solver.linearized_at(values))
+        values, _ = debiased(graph, values, built.cdtm, linear=linear)
+        # (the states' and the calibration's marginals at the moved values: one linearization)
+        linear = graph.linearize(values) if settings.marginals else None
     K = len(flight.frames)
     start = time.perf_counter()
-    covariances = (marginals(graph, values, K, linear=solver.linearized_at(values))
+    covariances = (marginals(graph, values, K, linear=linear)
                    if settings.marginals else
                    StateCovariances(np.full((K, 6, 6), np.nan), np.full((K, 3, 3), np.nan),
                                     np.full((K, 6, 6), np.nan)))
     calibrated = None
     if calibration is not None:
-        c_cov = (key_marginals(graph, values, [CALIBRATION_KEY])[0] if settings.marginals
+        c_cov = (key_marginals(graph, values, [CALIBRATION_KEY], linear=linear)[0]
+                 if settings.marginals
                  else np.full((CALIBRATION_DIM, CALIBRATION_DIM), np.nan))
         calibrated = calibration_estimate(values.atVector(CALIBRATION_KEY), c_cov,
                                           calibration, flight.config)

@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 from gtsam.symbol_shorthand import X
 
+from cdtm_graph.calibration.noise_bias import debiased, noise_gradient
 from cdtm_graph.geometry import make_pose
+from cdtm_graph.optimizer import key_marginals
 from factors import (
     CdtmPairFactor,
     FeatureNoise,
@@ -172,3 +174,35 @@ def test_a_factor_without_features_has_no_noise_cost_gradient(noisy_pair, rng, c
     empty = fac.with_features(np.zeros(fac.features.n, dtype=bool))
     gradient = empty.noise_cost_gradient(Ta, Tb, np.zeros(5) if calibrated else None)
     np.testing.assert_array_equal(gradient, np.zeros(17 if calibrated else 12))
+
+
+def test_the_corrected_step_and_its_marginal_come_from_one_elimination(noisy_pair, rng):
+    """``debiased``'s step is the Gauss-Newton step with the noise's expected gradient
+    taken out (the same as eliminating the hand-built system), and the calibration's
+    marginal it hands back is the solve's own at ``values`` (``key_marginals``): the
+    gradient's zero-Hessian terms add no information. Mutations tried: the gradient's
+    Hessian made ``1e6 g g^T`` (the marginal shrinks); the step's sign flipped."""
+    fac, Ta, Tb = noisy_pair(rng, True)
+    key_c = fac.calibration.key
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(fac.factor)
+    pose_prior = gtsam.noiseModel.Isotropic.Sigma(6, 0.5)
+    graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(Ta), pose_prior))
+    graph.add(gtsam.PriorFactorPose3(X(1), gtsam.Pose3(Tb), pose_prior))
+    graph.add(gtsam.PriorFactorVector(key_c, np.zeros(5), gtsam.noiseModel.Isotropic.Sigma(5, 0.1)))
+    values = gtsam.Values()
+    values.insert(X(0), gtsam.Pose3(Ta))
+    values.insert(X(1), gtsam.Pose3(Tb))
+    values.insert(key_c, np.r_[0.001, 0.002, -0.001, 0.0, 0.002])
+    moved, (c_cov,) = debiased(graph, values, [fac], noise_scale=1.5, marginal_keys=[key_c])
+    by_hand = graph.linearize(values)
+    for key, g in noise_gradient([fac], values).items():
+        by_hand.push_back(gtsam.HessianFactor(key, np.zeros((g.size, g.size)), 1.5 * g, 0.0))
+    try:  # (as the product solves: Cholesky, QR where it declares the system indeterminant)
+        step = by_hand.optimize()
+    except RuntimeError:
+        step = by_hand.optimize(gtsam.EliminateQR)
+    np.testing.assert_allclose(moved.atVector(key_c), values.atVector(key_c) + step.at(key_c),
+                               rtol=0, atol=1e-12)
+    assert np.linalg.norm(step.at(key_c)) > 1e-6  # a step that moves
+    np.testing.assert_allclose(c_cov, key_marginals(graph, values, [key_c])[0], rtol=1e-9)
