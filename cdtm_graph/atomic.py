@@ -11,10 +11,11 @@ Every command that writes (``smooth``, ``demo``, ``simulate``, ``navsim``, ``stu
   directory; an earlier cdtm output directory (it has a manifest): the writer's files of
   the earlier run are replaced and those it no longer writes removed (and named to the
   caller, ``on_removed``, so the user hears of them), everything else (notes the user
-  added, other writers' files) is kept. A non-empty directory without a
-  manifest only with ``force``, and then only beside the files already there. Never an
-  existing file, nor a path in, equal to or around a protected input (the input flight
-  log, a terrain file).
+  added, other writers' files) is kept; a name another writer wrote is refused, as a
+  user's file is. A non-empty directory without a manifest only with ``force``, and then
+  only beside the files already there (its sub-directories that are cdtm output
+  directories are cdtm's). Never an existing file, nor a path in, equal to or around a
+  protected input (the input flight log, a terrain file).
 * **Checked before the work.** On entry the rules are checked (:func:`check_output_dir`
   checks them alone, for a command writing several directories) and a staging directory is
   created where the files will be published (inside the target if it exists, else beside
@@ -363,32 +364,50 @@ def _check_protected(real_target: str, protected: Iterable[str | os.PathLike],
 
 def _foreign_entries(directory: Path, ours: Mapping[str, str]) -> list[str]:
     """Entries of ``directory`` cdtm did not write (staging directories aside; a directory
-    holding files cdtm wrote counts as cdtm's)."""
+    holding files cdtm wrote counts as cdtm's, and so does a cdtm output directory of its
+    own: ``smooth-many``'s runs, left by a run that stopped before its evaluation)."""
     folders = {name.split("/", 1)[0] for name in ours if "/" in name}
     return sorted(n for n in os.listdir(directory)
                   if n != MANIFEST_NAME and n not in ours and n not in folders
-                  and not n.startswith(STAGING_TAG))
+                  and not n.startswith(STAGING_TAG)
+                  and not _is_output_dir(directory / n))
+
+
+def _is_output_dir(path: Path) -> bool:
+    """A directory (not a link) holding a cdtm manifest."""
+    return (not path.is_symlink() and path.is_dir()
+            and _is_regular_file(path / MANIFEST_NAME))
 
 
 def _is_regular_file(path: Path) -> bool:
     return not path.is_symlink() and path.is_file()
 
 
-def _clashes(directory: Path, names: Iterable[str], ours: Mapping[str, str]) -> list[str]:
+def _clashes(directory: Path, names: Iterable[str], ours: Mapping[str, str],
+             writer: str | None = None) -> list[str]:
     """Names that would overwrite something cdtm did not write (or that is no longer a
-    file), or whose folder is in the way (a file, or a link)."""
+    file), or another command's file (``writer`` given: a rerun replaces only its own
+    command's), or whose folder is in the way (a file, or a link)."""
     out = []
     for n in names:
         parents = [directory.joinpath(*n.split("/")[:i]) for i in range(1, n.count("/") + 1)]
         if any(os.path.lexists(d) and (d.is_symlink() or not d.is_dir()) for d in parents):
             out.append(n)
-        elif os.path.lexists(directory / n) and (n not in ours
-                                                 or not _is_regular_file(directory / n)):
+        elif os.path.lexists(directory / n) and (
+                n not in ours or not _is_regular_file(directory / n)
+                or (writer is not None and ours[n] != writer)):
             out.append(n)
     return out
 
 
-def _clash_error(shown: str, clashes: list[str]) -> OutputError:
+def _clash_error(shown: str, clashes: list[str], ours: Mapping[str, str] | None = None,
+                 writer: str | None = None) -> OutputError:
+    other = (ours or {}).get(clashes[0])
+    if other is not None and writer is not None and other != writer:
+        return OutputError(
+            f"{shown}: {clashes[0]!r} was written by `cdtm {other}`; expected a directory "
+            f"`cdtm {writer}` may write in (a rerun replaces only its own command's files: "
+            "choose another output directory)")
     return OutputError(f"{shown}: {clashes[0]!r} exists and was not written by cdtm; expected "
                        "no such entry (cdtm never overwrites what it did not write: move it, "
                        "or choose another output directory)")
@@ -463,9 +482,9 @@ def _publish_into(target: Path, staging: _Staging, writer: str, names: list[str]
         manifest = read_manifest(target)
         _check_foreign(target, manifest, force, shown, names)  # again: may have changed
         ours = manifest or {}
-        clashes = _clashes(target, names, ours)
+        clashes = _clashes(target, names, ours, writer)
         if clashes:
-            raise _clash_error(shown, clashes)
+            raise _clash_error(shown, clashes, ours, writer)
         stale = [n for n, w in ours.items()
                  if w == writer and n not in names and _is_regular_file(target / n)]
         kept = {n: w for n, w in ours.items()
@@ -528,7 +547,7 @@ def atomic_output_dir(target: str | os.PathLike, *, writer: str, force: bool = F
     names = list(names)
     created: list[Path] = []
     exists = check_output_dir(target, force=force, protected=protected, names=names,
-                              label=label)
+                              label=label, writer=writer)
     if exists:
         remove_stale_staging(path, STAGING_TAG)
         remove_stale_staging(path.parent, f".{path.name}{STAGING_TAG}")
@@ -573,11 +592,12 @@ def atomic_output_dir(target: str | os.PathLike, *, writer: str, force: bool = F
 
 def check_output_dir(target: str | os.PathLike, *, force: bool = False,
                      protected: Iterable[str | os.PathLike] = (), names: Iterable[str] = (),
-                     label: str = "output directory") -> bool:
+                     label: str = "output directory", writer: str | None = None) -> bool:
     """Check the rules of :func:`atomic_output_dir` for ``target`` without writing anything.
 
     For a command that writes several output directories (one per run, and a summary
-    beside them) and checks them all before any work.
+    beside them) and checks them all before any work. ``writer``: who will write
+    ``names`` (another command's files of those names are then refused).
 
     Returns:
         Whether ``target`` exists (as a directory).
@@ -600,9 +620,9 @@ def check_output_dir(target: str | os.PathLike, *, force: bool = False,
     names = list(names)
     ours = read_manifest(path)
     _check_foreign(path, ours, force, shown, names)
-    clashes = _clashes(path, names, ours or {})
+    clashes = _clashes(path, names, ours or {}, writer)
     if clashes:
-        raise _clash_error(shown, clashes)
+        raise _clash_error(shown, clashes, ours, writer)
     return True
 
 

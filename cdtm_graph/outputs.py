@@ -48,6 +48,7 @@ import enum
 import json
 import math
 import os
+import zipfile
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from decimal import Decimal, InvalidOperation
 from pathlib import Path, PurePath
@@ -683,7 +684,7 @@ def read_run(directory: str | os.PathLike, require_groundtruth: bool = False) ->
     try:
         with np.load(path / COVARIANCES_NPZ, allow_pickle=False) as npz:
             pose_cov, cov_t_ns = np.asarray(npz["pose"], float), np.asarray(npz["t_ns"])
-    except (OSError, KeyError, ValueError) as exc:
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise CdtmError(f"{path / COVARIANCES_NPZ}: cannot read: {exc}; expected the "
                         "covariances cdtm smooth writes") from None
     if pose_cov.shape != (len(t_ns), 6, 6) or not np.array_equal(cov_t_ns, t_ns):

@@ -1,18 +1,21 @@
 """``cdtm smooth-many LOG... --out DIR``: smooth many logs in parallel, then evaluate them.
 
 Each log is smoothed exactly as ``cdtm smooth LOG --out DIR/<log's name>`` would (the same
-function, the same files and manifest), on local processes (all cores) or on the workers
+function, the same files and manifest; logs of one name are told apart by their parent
+folders: ``DIR/d1_log``, ``DIR/d2_log``), on local processes (all cores) or on the workers
 of a Dask cluster (``--scheduler``: they must see the logs and DIR at the same paths);
 then ``cdtm evaluate`` writes the table and figures of all the runs into DIR.
 
-Every output directory (DIR and each run's) is checked before any work. A log that turns
-out bad while smoothing stops the command with its one line (exit 1): the runs finished
-by then stay, each complete under its own manifest; the evaluation is not written.
+Every output directory (DIR and each run's) is checked, and every log read with its DTM,
+before any work. A run that fails while smoothing (a solver error) stops the command with
+its one line (exit 1): the runs finished by then stay, each complete under its own
+manifest; the evaluation is not written, and a rerun into DIR writes it.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -67,6 +70,39 @@ def smooth_task(task: SmoothTask) -> SmoothDone:
                       float(out.report["timings_s"]["total"]))
 
 
+def run_dir_names(logs: list[str]) -> list[str]:
+    """Each log's run directory under DIR: the log's folder name; for logs of one name,
+    with as many of their parent folders (``d1_log``, ``d2_log``) as tell them apart.
+    Always one plain name inside DIR (never ``..``, never a path).
+
+    Raises:
+        CdtmError: a log given twice; a name the evaluation writes into DIR."""
+    paths = [Path(os.path.realpath(log)) for log in logs]
+    for i, path in enumerate(paths):
+        if path in paths[:i]:
+            raise CdtmError(f"{logs[i]}: given twice (as {logs[paths.index(path)]}); "
+                            "expected each log once")
+    parts = [[p for p in path.parts if p not in ("/", "")] or ["log"] for path in paths]
+    depth = [1] * len(paths)
+    while True:
+        names = ["_".join(p[-d:]) for p, d in zip(parts, depth, strict=True)]
+        clashing = [i for i, n in enumerate(names) if names.count(n) > 1
+                    and depth[i] < len(parts[i])]
+        if not clashing:
+            break
+        for i in clashing:
+            depth[i] += 1
+    for log, name in zip(logs, names, strict=True):
+        if names.count(name) > 1:
+            raise CdtmError(f"{log}: its run would be DIR/{name}, as another log's; expected "
+                            "logs whose folders tell them apart (rename or link one)")
+        if name in EVALUATE_FILES:
+            raise CdtmError(f"{log}: its run would be DIR/{name}, a file the evaluation "
+                            f"writes there; expected a log folder named otherwise (not "
+                            f"{', '.join(EVALUATE_FILES)}: rename or link it)")
+    return names
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "smooth-many", help=COMMANDS["smooth-many"].summary,
@@ -91,7 +127,6 @@ def run(args: argparse.Namespace) -> int:
     from cdtm_graph.flightlog import GROUNDTRUTH_CSV
     from cdtm_graph.outputs import ALL_RUN_FILES
     from cdtm_graph.parallel import ParallelSettings, map_tasks
-    from cdtm_graph.verdict.comparison import run_names
 
     settings_from_args(args)  # bad smoothing options: one line before any work
     for log in args.logs:
@@ -104,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
                             "(smooth-many evaluates its runs against it; cdtm smooth runs "
                             "a log without)")
     out_dir = Path(args.out)
-    run_dirs = [out_dir / name for name in run_names(args.logs)]
+    run_dirs = [out_dir / name for name in run_dir_names(args.logs)]
     # Every output directory checked before any work (each run's again as it is written).
     check_output_dir(out_dir, force=args.force, protected=args.logs, names=EVALUATE_FILES,
                      label="--out")
@@ -113,6 +148,11 @@ def run(args: argparse.Namespace) -> int:
     for run_dir in run_dirs:
         check_output_dir(run_dir, force=args.force, protected=args.logs, names=run_files,
                          label="--out")
+    # Every log read (and its DTM) before any work: a bad one is its one line now, not
+    # after the others' runs (which would stay, without their evaluation).
+    from cdtm_graph.run.prepare import load_log_and_dtm
+    for log in args.logs:
+        load_log_and_dtm(log)
     options = {k: getattr(args, k) for k in _TASK_OPTIONS}
     tasks = [SmoothTask(str(log), str(d), options) for log, d in zip(args.logs, run_dirs,
                                                                          strict=True)]

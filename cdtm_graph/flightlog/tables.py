@@ -301,7 +301,8 @@ def _checked_quaternions(problems: _Problems, quat: np.ndarray) -> np.ndarray:
     problems.check(~(off <= QUATERNION_UNIT_TOL),
                    lambda r: f"quaternion qw,qx,qy,qz has norm {norm[r]:.6g}",
                    f"a unit quaternion (|norm - 1| <= {QUATERNION_UNIT_TOL:g})")
-    fix = off > QUATERNION_EXACT_TOL
+    # (only the rows that pass: a zero one is a problem, not a division by zero)
+    fix = (off > QUATERNION_EXACT_TOL) & (off <= QUATERNION_UNIT_TOL)
     if np.any(fix):
         quat = quat.copy()
         quat[fix] /= norm[fix, None]

@@ -158,18 +158,28 @@ def test_files_of_two_runs_mixed_are_named_not_averaged(runs, tmp_path):
     ("not_a_run", ["not a run directory (no report.json)"]),
     ("missing", ["does not exist"]),
     ("no_truth", ["no ground truth", "groundtruth.tum"]),
+    ("truncated_npz", ["covariances.npz: cannot read"]),
+    ("empty_npz", ["covariances.npz: cannot read"]),
 ])
 def test_evaluate_bad_input_is_one_line_and_nothing_written(runs, logs, tmp_path, capsys,
                                                             case, words):
-    """A log instead of a run, a missing directory, a run without ground truth: one line
-    naming it, exit 1, no --out.
+    """A log instead of a run, a missing directory, a run without ground truth, a run whose
+    covariances.npz is cut short or empty: one line naming it, exit 1, no --out.
 
-    Catches: a traceback, or a table written without the run."""
+    Catches: a traceback (the cut npz was zipfile's BadZipFile, the empty one numpy's
+    EOFError: a hostile-input hunt's find, 2026-11-28), or a table written without the
+    run."""
     bad = {"not_a_run": logs[0], "missing": tmp_path / "nothing"}.get(case)
-    if case == "no_truth":
-        bad = tmp_path / "no_truth"
+    if case in ("no_truth", "truncated_npz", "empty_npz"):
+        bad = tmp_path / case
         shutil.copytree(runs[0], bad)
+    if case == "no_truth":
         (bad / "groundtruth.tum").unlink()
+    if case == "truncated_npz":
+        npz = bad / "covariances.npz"
+        npz.write_bytes(npz.read_bytes()[:300])
+    if case == "empty_npz":
+        (bad / "covariances.npz").write_bytes(b"")
     out = tmp_path / "eval"
     assert main(["evaluate", str(runs[0]), str(bad), "--out", str(out)]) == 1
     _one_line(capsys.readouterr().err, str(bad), *words)
@@ -266,3 +276,53 @@ def test_smooth_many_rerun_keeps_what_it_did_not_write(logs, tmp_path, capsys):
     assert (out / "notes.md").read_text() == "mine"
     assert (out / logs[0].name / "seen.txt").read_text() == "mine too"
     assert set(read_manifest(out)) == set(EVALUATE_FILES)
+
+
+def test_smooth_many_writes_logs_of_one_name_inside_out_and_nothing_else(logs, tmp_path,
+                                                                          monkeypatch):
+    """Two logs of one folder name, given as ``../d1/log`` and ``../d2/log``: their runs
+    are ``DIR/d1_log`` and ``DIR/d2_log``, and an earlier run at ``./d1/log`` is left as it
+    was. Mutation tried: the run directories named as the table names runs (the path as
+    given): the runs went to ``./d1/log`` and ``./d2/log``, outside DIR, replacing the
+    earlier run's report.json (a hostile-input hunt's find, 2026-11-28)."""
+    for d in ("d1", "d2"):
+        shutil.copytree(logs[0], tmp_path / d / "log")
+    cwd = tmp_path / "cwd"
+    (cwd / "d1").mkdir(parents=True)
+    assert main(["smooth", str(logs[1]), "--out", str(cwd / "d1" / "log"), "--quiet"]) in \
+        WROTE_OUTPUTS
+    before = {p.name: p.read_bytes() for p in (cwd / "d1" / "log").iterdir()}
+    monkeypatch.chdir(cwd)
+    (cwd / "out").mkdir()
+    assert main(["smooth-many", "../d1/log", "../d2/log", "--out", "out", "--workers", "1",
+                 "--quiet"]) in WROTE_OUTPUTS
+    assert {p.name: p.read_bytes() for p in (cwd / "d1" / "log").iterdir()} == before
+    assert sorted(p.name for p in cwd.iterdir()) == ["d1", "out"]
+    assert (cwd / "out" / "d1_log" / "report.json").is_file()
+    assert (cwd / "out" / "d2_log" / "report.json").is_file()
+
+
+def test_smooth_many_reads_every_log_before_any_work(logs, tmp_path, capsys):
+    """A log whose flight.yaml is bad (an IMU rate of 0) beside a good one: its one line,
+    exit 1, and no run of the good one left in DIR; a log named as an evaluation file and a
+    log given twice are refused alike. Mutation tried: the logs not read before the work
+    (the good log's run was left in DIR without the evaluation)."""
+    bad = tmp_path / "bad"
+    shutil.copytree(logs[0], bad)
+    text = (bad / "flight.yaml").read_text()
+    assert "rate_hz:" in text
+    (bad / "flight.yaml").write_text(
+        "\n".join("  rate_hz: 0" if line.strip().startswith("rate_hz:") else line
+                  for line in text.splitlines()) + "\n")
+    out = tmp_path / "many"
+    assert main(["smooth-many", str(logs[1]), str(bad), "--out", str(out), "--workers",
+                 "1"]) == 1
+    _one_line(capsys.readouterr().err, "rate_hz")
+    assert not out.exists()
+    named = tmp_path / "evaluation.csv"
+    shutil.copytree(logs[0], named)
+    assert main(["smooth-many", str(named), "--out", str(out)]) == 1
+    _one_line(capsys.readouterr().err, "DIR/evaluation.csv")
+    assert main(["smooth-many", str(logs[0]), str(logs[0]) + "/", "--out", str(out)]) == 1
+    _one_line(capsys.readouterr().err, "given twice")
+    assert not out.exists()

@@ -383,3 +383,42 @@ def test_check_output_dir_applies_the_rules_and_writes_nothing(tmp_path: Path):
     assert atomic.check_output_dir(tmp_path / "new" / "run") is False
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mine"]
     assert [p.name for p in mine.iterdir()] == ["notes.md"]
+
+
+def test_another_commands_file_of_the_same_name_is_refused_and_kept(tmp_path: Path):
+    """A rerun replaces only its own command's files: ``simulate`` into a log that
+    ``import euroc`` wrote (and the user edited) is refused, on entry when the names are
+    known and when publishing otherwise, and nothing is replaced. Mutation tried: the
+    writer left out of the clash test (the import's flight.yaml, edits and all, was
+    replaced without a word: a hostile-input hunt's find, 2026-11-28)."""
+    out = tmp_path / "log"
+    with atomic_output_dir(out, writer="import euroc") as staging:
+        _write(staging, **{"flight.yaml": "imported", "imu.csv": "imported"})
+    _write(out, **{"flight.yaml": "imported, then edited by hand"})
+    before = _snapshot(out)
+    with pytest.raises(OutputError, match="'flight.yaml' was written by `cdtm import euroc`"):
+        atomic.check_output_dir(out, names=["flight.yaml"], writer="simulate")
+    with pytest.raises(OutputError, match="'flight.yaml' was written by `cdtm import euroc`"):
+        with atomic_output_dir(out, writer="simulate", names=["flight.yaml"]):
+            pytest.fail("refused on entry when the names are known")
+    with pytest.raises(OutputError, match="was written by `cdtm import euroc`"):
+        with atomic_output_dir(out, writer="simulate") as staging:
+            _write(staging, **{"flight.yaml": "simulated", "frames.csv": "simulated"})
+    assert _snapshot(out) == before
+    with atomic_output_dir(out, writer="import euroc") as staging:  # its own rerun: replaced
+        _write(staging, **{"flight.yaml": "imported again"})
+    assert (out / "flight.yaml").read_text() == "imported again"
+
+
+def test_a_cdtm_output_directory_inside_is_not_a_users_file(tmp_path: Path):
+    """A directory whose sub-directories are cdtm output directories (``smooth-many``'s
+    runs, left by a run stopped before its evaluation) may be written again; a
+    sub-directory without a manifest is still the user's. Mutation tried: the manifest
+    test dropped (the rerun is refused: "holds 'base', not written by cdtm")."""
+    out = tmp_path / "many"
+    with atomic_output_dir(out / "base", writer="smooth") as staging:
+        _write(staging, **{"report.json": "run"})
+    assert atomic.check_output_dir(out, names=["evaluation.csv"]) is True
+    (out / "mine").mkdir()
+    with pytest.raises(OutputError, match="holds 'mine', not written by cdtm"):
+        atomic.check_output_dir(out, names=["evaluation.csv"])

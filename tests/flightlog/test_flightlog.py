@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -967,3 +968,21 @@ def test_dem_margin_and_spacing_out_of_range_name_the_key(
     line = flightlog_files.line_of(path, f"{key}:")
     flightlog_files.set_line(path, line, f"  {key}: {value}")
     flightlog_files.expect_error(the_log.root, "flight.yaml", line, *words)
+
+
+@pytest.mark.parametrize("name", ["groundtruth.csv", "nav.csv"])
+def test_a_zero_quaternion_is_one_line_and_no_warning(flightlog_files, log: FlightLog,
+                                                      name: str) -> None:
+    """A row's qw,qx,qy,qz all 0: the one error line, and no numpy warning before it.
+    Mutation tried: every row off the exact tolerance normalized (as before: "invalid
+    value encountered in divide" printed above the line, a hostile-input hunt's find,
+    2026-11-28)."""
+    path = log.root / name
+    header = [c.strip().lstrip("#").strip() for c in
+              flightlog_files.text_lines(path)[0].split(",")]
+    line = 3
+    for column in ("qw", "qx", "qy", "qz"):
+        flightlog_files.set_value(path, line, header.index(column), "0")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        flightlog_files.expect_error(log.root, name, line, "norm 0")
