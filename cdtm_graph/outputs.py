@@ -668,10 +668,6 @@ def read_run(directory: str | os.PathLike, require_groundtruth: bool = False) ->
         raise CdtmError(f"{path}: not a run directory (no {missing[0]}){hint}; expected "
                         f"{RUN_EXPECTED}")
     has_truth = (path / GROUNDTRUTH_TUM).is_file()
-    if require_groundtruth and not has_truth:
-        raise CdtmError(f"{path}: no ground truth (no {GROUNDTRUTH_TUM}: its log has no "
-                        "groundtruth.csv, or it was smoothed before cdtm wrote one); "
-                        "expected runs of logs with ground truth")
     try:
         report = json.loads((path / REPORT_JSON).read_text())
     except (OSError, UnicodeDecodeError, ValueError) as exc:
@@ -680,6 +676,16 @@ def read_run(directory: str | os.PathLike, require_groundtruth: bool = False) ->
     if not isinstance(report, dict):
         raise CdtmError(f"{path / REPORT_JSON}: not a JSON object; expected the report "
                         "cdtm smooth writes")
+    if require_groundtruth and not has_truth:
+        evaluation = report.get("evaluation")
+        compensated = evaluation.get("compensated") if isinstance(evaluation, dict) else None
+        evaluated = (compensated.get("n_frames_evaluated") if isinstance(compensated, dict)
+                     else None)
+        why = ("its log's groundtruth.csv covered none of its frames: another clock?"
+               if evaluated == 0 else "its log has no groundtruth.csv, or it was smoothed "
+               "before cdtm wrote one")
+        raise CdtmError(f"{path}: no ground truth (no {GROUNDTRUTH_TUM}: {why}); expected "
+                        "runs of logs with ground truth over their frames")
     t_ns, world_T_body = read_tum(path / TRAJECTORY_TUM)
     try:
         with np.load(path / COVARIANCES_NPZ, allow_pickle=False) as npz:

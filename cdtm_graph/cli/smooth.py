@@ -208,7 +208,7 @@ def summary(out: RunOutput, out_dir: Path) -> str:
              f"{'; left out: ' + left_out if left_out else ''}), {r.stats.solver.value} "
              f"smoothing in {total_s:.2f} s -> {out_dir}"]
     e, f = out.errors, out.free_errors
-    if e is not None and f is not None:
+    if e is not None and f is not None and e.n_frames_evaluated:
         fmt = lambda v: " ".join(f"{x:8.2f}" for x in v)  # noqa: E731
         lines += [f"{'':24}{'x':>8} {'y':>8} {'z':>8}   (m, world)",
                   f"{'RMSE compensated':24}{fmt(e.rmse_position_m)}",
@@ -272,5 +272,13 @@ def run(args: argparse.Namespace) -> int:
     out = smooth_log_to_dir(args.log, out_dir, args)
     if not args.quiet:
         print(summary(out, out_dir))
+    if out.errors is not None and out.errors.n_frames_evaluated == 0:
+        print(f"cdtm smooth: warning: {Path(args.log) / 'groundtruth.csv'}: "
+              + GROUNDTRUTH_ELSEWHERE, file=sys.stderr)
     return print_verdict(out)
+
+
+#: A log's ground truth that covers none of its frames (a clock mismatch, most likely).
+GROUNDTRUTH_ELSEWHERE = ("its times cover none of the frames: no error was computed "
+                         "(expected ground truth on the IMU's clock, over the flight)")
 

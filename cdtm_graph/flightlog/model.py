@@ -440,6 +440,14 @@ class States(_ArrayEq):
         T[:, :3, 3] = self.position_m
         return T
 
+    def covers(self, t_ns: np.ndarray) -> np.ndarray:
+        """(Q,) bool: each of the times ``t_ns`` (Q,) lies in the sampled range (where
+        :meth:`interpolate` answers); all False without samples."""
+        t = np.asarray(t_ns, dtype=np.int64)
+        if len(self) == 0:
+            return np.zeros(t.shape, dtype=bool)
+        return (t >= self.t_ns[0]) & (t <= self.t_ns[-1])
+
     def interpolate(self, t_ns: np.ndarray | int) -> States:
         """States at other times: linear in position and velocity, slerp in orientation.
 
@@ -462,7 +470,7 @@ class States(_ArrayEq):
         query = query.astype(np.int64)
         if len(self) == 0:
             raise FlightLogError("States.interpolate: no samples; expected at least one state")
-        outside = (query < self.t_ns[0]) | (query > self.t_ns[-1])
+        outside = ~self.covers(query)
         if np.any(outside):
             bad = int(query[np.flatnonzero(outside)[0]])
             raise FlightLogError(

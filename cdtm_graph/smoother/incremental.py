@@ -154,6 +154,9 @@ class IncrementalSmoother:
                  and graph.map_error is not None else None)  # as it goes (batch's: both)
         self._rounds = None if self._judge is None else TrackRounds(
             self._judge, watch, w, self.stages, self.forget_tracks)
+        if (frame_interval_s is not None and settings.lag_s is not None
+                and settings.lag_s < 2 * frame_interval_s):
+            raise _lag_holds_no_pair(settings.lag_s, frame_interval_s)
         if frame_interval_s is not None and search is not None \
                 and search.needed_at_start() and not w.holds_search(search, frame_interval_s):
             raise _lag_too_short(settings, frame_interval_s)
@@ -479,6 +482,15 @@ class IncrementalSmoother:
                                stages=self.stages.summary(), broad_map_error=None
                                if self._rounds is None or self._rounds.watch is None
                                else self._rounds.watch.result(self._window.t_ns))
+
+
+def _lag_holds_no_pair(lag_s: float, frame_interval_s: float) -> CdtmError:
+    """A lag that cannot hold two frames: no C-DTM pair would ever be in the window (the
+    run would end ``failed`` on IMU alone, naming another cause)."""
+    return CdtmError(
+        f"a fixed lag of {lag_s:g} s holds fewer than two frames ({frame_interval_s:g} s "
+        "apart; a frame leaves the window one interval before the lag): expected a lag of "
+        f"at least {2 * frame_interval_s:g} s")
 
 
 def _lag_too_short(settings: SmootherSettings, frame_interval_s: float) -> CdtmError:

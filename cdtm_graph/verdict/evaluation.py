@@ -435,10 +435,7 @@ def groundtruth_at_frames(t_ns: np.ndarray, groundtruth: States) -> tuple[np.nda
         at those M frames (M may be 0).
     """
     t_all = np.asarray(t_ns, dtype=np.int64)
-    if len(groundtruth):
-        inside = (t_all >= groundtruth.t_ns[0]) & (t_all <= groundtruth.t_ns[-1])
-    else:
-        inside = np.zeros(t_all.shape[0], dtype=bool)
+    inside = groundtruth.covers(t_all)
     if inside.any():
         return inside, groundtruth.interpolate(t_all[inside])
     return inside, States(np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 4)),

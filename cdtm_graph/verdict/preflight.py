@@ -21,8 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from cdtm_graph.dtm import Dtm
-from cdtm_graph.errors import NoConstraintError
-from cdtm_graph.flightlog import FRAMES_CSV, TRACKS_CSV, FlightLog, Tracks
+from cdtm_graph.errors import FlightLogError, NoConstraintError
+from cdtm_graph.flightlog import FRAMES_CSV, IMU_CSV, TRACKS_CSV, FlightLog, Tracks
 from cdtm_graph.imu import dead_reckoning
 
 
@@ -92,6 +92,27 @@ def prior_poses(flight: FlightLog) -> tuple[np.ndarray, str]:
     return free.world_T_body, "IMU dead reckoning from initial_state"
 
 
+def check_imu_span(flight: FlightLog) -> None:
+    """Refuse frames outside the IMU's samples: every frame interval is integrated from
+    them, and a clock mismatch (a camera stamp on another epoch, a wrong
+    ``camera.time_offset_s``) would otherwise surface as a solver error without the file.
+
+    Raises:
+        FlightLogError: the first frame outside, with both spans (one line).
+    """
+    t, imu_t = flight.frames.t_ns, flight.imu.t_ns
+    if len(t) == 0 or len(imu_t) == 0:
+        return
+    outside = np.flatnonzero((t < imu_t[0]) | (t > imu_t[-1]))
+    if outside.size:
+        k = int(outside[0])
+        raise FlightLogError(
+            f"{flight.root / FRAMES_CSV}: frame {k} at {int(t[k])} ns (on the IMU clock) lies "
+            f"outside {IMU_CSV}'s samples, {int(imu_t[0])} to {int(imu_t[-1])} ns; expected "
+            "every frame within the IMU's span (one clock: camera.time_offset_s moves the "
+            "frames onto the IMU's)")
+
+
 def check_constraints(flight: FlightLog, dtm: Dtm) -> DtmCoverage:
     """Refuse a log that would give the smoother no camera or DTM constraint at all.
 
@@ -105,7 +126,10 @@ def check_constraints(flight: FlightLog, dtm: Dtm) -> DtmCoverage:
     Raises:
         NoConstraintError: no tracks.csv, no observation in it, no track seen in two
             frames, or no observed ray meets the DTM; the message says which and where.
+        FlightLogError: a frame outside the IMU's samples (no interval to it could be
+            integrated; :func:`check_imu_span`).
     """
+    check_imu_span(flight)
     root = flight.root
     tracks = flight.tracks
     if tracks is None:

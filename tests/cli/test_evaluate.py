@@ -326,3 +326,28 @@ def test_smooth_many_reads_every_log_before_any_work(logs, tmp_path, capsys):
     assert main(["smooth-many", str(logs[0]), str(logs[0]) + "/", "--out", str(out)]) == 1
     _one_line(capsys.readouterr().err, "given twice")
     assert not out.exists()
+
+
+def test_ground_truth_on_another_clock_is_named_by_smooth_and_evaluate(logs, tmp_path,
+                                                                       capsys):
+    """groundtruth.csv's stamps all moved by 1e12 ns (an epoch against frames from 0): the
+    run is made (ground truth is for evaluation only), `cdtm smooth` says on stderr that
+    it covers none of the frames, and `cdtm evaluate` says so of the run, not that its log
+    had none. Mutation tried: the warning off (the run said `trusted`, RMSE nan, no word:
+    a hostile-input hunt's find, 2026-11-28)."""
+    log = tmp_path / "clock"
+    shutil.copytree(logs[0], log)
+    path = log / "groundtruth.csv"
+    rows = path.read_text().splitlines()
+    path.write_text("\n".join(row if row.startswith("#") or not row else
+                              f"{int(row.split(',', 1)[0]) + 10**12},{row.split(',', 1)[1]}"
+                              for row in rows) + "\n")
+    run = tmp_path / "run"
+    assert main(["smooth", str(log), "--out", str(run)]) in WROTE_OUTPUTS
+    captured = capsys.readouterr()
+    assert "nan" not in captured.out
+    warning = [line for line in captured.err.splitlines() if "warning" in line]
+    assert len(warning) == 1
+    assert "groundtruth.csv: its times cover none of the frames" in warning[0]
+    assert main(["evaluate", str(run), "--out", str(tmp_path / "eval")]) == 1
+    _one_line(capsys.readouterr().err, "covered none of its frames")

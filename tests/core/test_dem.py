@@ -425,3 +425,15 @@ def test_a_dem_tile_without_a_geotransform_is_refused(tmp_path):
         dst.write(np.full((1, 3, 3), 100.0, np.float32))
     with pytest.raises(DtmError, match=r"nogeo\.tif: no georeferencing \(no geotransform\)"):
         import_dem([path], _frame(), REGION, VerticalDatum.ELLIPSOID)
+
+
+def test_a_dem_in_feet_is_refused_naming_the_unit(tmp_path):
+    """A GeoTIFF in a US State Plane CRS (EPSG:2227, US survey feet): refused, naming the
+    unit, since its heights (most often feet) would be read as metres. Mutation tried: the
+    check off (the run failed as map_mismatch and wrong_fix, the unit never named: a
+    hostile-input hunt's find, 2026-11-28)."""
+    feet = _write_tif(tmp_path / "feet.tif", np.full((40, 40), 1000.0), "EPSG:2227",
+                      6_000_000.0, 2_100_000.0, 30.0)
+    with pytest.raises(DtmError, match=r"feet\.tif: its CRS .* is in US survey foot units, and "
+                                       r"the unit of its heights cannot be told"):
+        import_dem([feet], _frame(), REGION, VerticalDatum.ELLIPSOID)

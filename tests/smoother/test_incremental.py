@@ -328,3 +328,21 @@ def test_the_live_covariance_is_honest_from_the_first_frame(far_start, lag_s, it
                                       poses[:, :3, 3] - truth)
     assert inside == 1.0, inside
     assert updates[-1].converged  # settled: the marginal, not the prior's, by the end
+
+
+def test_a_fixed_lag_that_holds_no_pair_of_frames_is_refused(seed):
+    """A lag shorter than two frame intervals never holds a C-DTM pair (a frame leaves
+    one interval before the lag): one line, up front; two intervals is accepted. Mutation
+    tried: the check off (``--lag-s 0.5`` on a 1 fps log ran on the IMU alone and ended
+    ``failed: no_fix``, naming the wrong cause: a hostile-input hunt's find, 2026-11-28)."""
+    from cdtm_graph.errors import CdtmError
+    from cdtm_graph.smoother.settings import SmootherMode, SmootherSettings
+
+    flight, dtm = simulate_flight(SimulationSettings(frames=4, n_features=30, seed=seed))
+    dt_s = float(np.median(np.diff(flight.frames.t_ns))) * 1e-9
+    lag = SmootherSettings(mode=SmootherMode.INCREMENTAL, lag_s=1.9 * dt_s)
+    with pytest.raises(CdtmError, match=rf"a fixed lag of {1.9 * dt_s:g} s holds fewer than "
+                                        r"two frames .* expected a lag of at least"):
+        IncrementalSmoother(flight.config, dtm, lag, imu=flight.imu, frame_interval_s=dt_s)
+    IncrementalSmoother(flight.config, dtm, dataclasses.replace(lag, lag_s=2 * dt_s),
+                        imu=flight.imu, frame_interval_s=dt_s)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cdtm_graph.dtm import Dtm
-from cdtm_graph.errors import NoConstraintError
+from cdtm_graph.errors import FlightLogError, NoConstraintError
 from cdtm_graph.flightlog import FlightLog, Tracks
 from cdtm_graph.sim.simulate import SimulationResult, SimulationSettings, simulate
 from cdtm_graph.smoother import SmootherSettings, smooth
@@ -95,3 +95,23 @@ def test_library_smooth_refuses_a_log_without_constraint(sim, case, words):
     log: FlightLog = dataclasses.replace(sim.log, tracks=changed)
     with pytest.raises(NoConstraintError, match=words):
         smooth(log, sim.dtm, SmootherSettings())
+
+
+@pytest.mark.parametrize("end", ["first", "last"])
+def test_a_frame_outside_the_imus_span_is_one_line_naming_the_log(sim, end):
+    """Frames moved off the IMU's clock (a camera stamp on another epoch, a wrong
+    camera.time_offset_s) so that the first or the last lies outside imu.csv's samples:
+    refused before any solving with frames.csv's path, the frame and both spans. Mutation
+    tried: the check off (a solver error about a frame interval, naming no file: a
+    hostile-input hunt's find, 2026-11-28)."""
+    frames = sim.log.frames
+    imu_t = sim.log.imu.t_ns
+    shift = (imu_t[0] - frames.t_ns[0] - 1) if end == "first" else (imu_t[-1] - frames.t_ns[-1] + 1)
+    moved = dataclasses.replace(sim.log, frames=dataclasses.replace(
+        frames, t_ns=frames.t_ns + shift))
+    with pytest.raises(FlightLogError) as info:
+        smooth(moved, sim.dtm, SmootherSettings())
+    message = str(info.value)
+    k = 0 if end == "first" else len(frames) - 1
+    assert "frames.csv: frame " + str(k) in message and "imu.csv's samples" in message
+    assert "; expected every frame within the IMU's span" in message and "\n" not in message
