@@ -200,15 +200,16 @@ class IncrementalSmoother:
             The newest frame's estimate and covariance.
 
         Raises:
-            FlightLogError: inconsistent input (time order, shapes, repeated ids); nothing
-                changes. SolverError: the IMU does not cover the interval yet (feed the
+            FlightLogError: inconsistent input (time order, shapes, repeated ids, ids that
+                are not integers, pixels that are not finite); nothing changes.
+                SolverError: the IMU does not cover the interval yet (feed the
                 missing samples and retry the frame) or the system is unsolvable.
         """
         start = time.perf_counter()
         w, k = self._window, len(self._window.t_ns)
         if k and t_ns <= w.t_ns[-1]:
             raise FlightLogError(f"frame {k}: time {t_ns} ns is not after the previous frame")
-        seen = checked_sightings(k, track_id, uv_px)  # before anything changes
+        seen = _sightings(k, track_id, uv_px)  # before anything changes
         if imu is not None:
             self._imu.hold(imu)
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
@@ -482,6 +483,26 @@ class IncrementalSmoother:
                                stages=self.stages.summary(), broad_map_error=None
                                if self._rounds is None or self._rounds.watch is None
                                else self._rounds.watch.result(self._window.t_ns))
+
+
+def _sightings(k: int, track_id: np.ndarray | None, uv_px: np.ndarray | None
+               ) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`~cdtm_graph.tracks.checked_sightings`, and ids that are integers (not cut to
+    one: 1.5 is not track 1) and finite pixels (a lost track is left out, not given NaN),
+    as tracks.csv's reader asks."""
+    if track_id is not None and len(track_id):
+        given = np.asarray(track_id)
+        if given.dtype.kind == "f" and not np.all(np.isfinite(given) & (given == np.round(given))):
+            bad = given[~(np.isfinite(given) & (given == np.round(given)))][0]
+            raise FlightLogError(f"frame {k}: track id {float(bad)!r} is not an integer; expected "
+                                 "integer track ids")
+    seen = checked_sightings(k, track_id, uv_px)
+    if seen is not None and not np.isfinite(seen[1]).all():
+        row = int(np.flatnonzero(~np.isfinite(seen[1]).all(axis=1))[0])
+        raise FlightLogError(f"frame {k}: track {int(seen[0][row])} has pixel "
+                             f"{seen[1][row].tolist()}; expected finite pixels (leave a lost "
+                             "track out)")
+    return seen
 
 
 def _lag_holds_no_pair(lag_s: float, frame_interval_s: float) -> CdtmError:

@@ -346,3 +346,23 @@ def test_a_fixed_lag_that_holds_no_pair_of_frames_is_refused(seed):
         IncrementalSmoother(flight.config, dtm, lag, imu=flight.imu, frame_interval_s=dt_s)
     IncrementalSmoother(flight.config, dtm, dataclasses.replace(lag, lag_s=2 * dt_s),
                         imu=flight.imu, frame_interval_s=dt_s)
+
+
+@pytest.mark.parametrize("ids, uv, words", [
+    ([1.5, 2.0], [[10.0, 10.0], [20.0, 20.0]], "track id 1.5 is not an integer"),
+    ([1, 2], [[10.0, np.nan], [20.0, 20.0]], "track 1 has pixel"),
+    ([1, 2], [[10.0, 10.0], [np.inf, 20.0]], "track 2 has pixel"),
+])
+def test_the_live_api_refuses_ids_and_pixels_a_log_could_not_hold(seed, ids, uv, words):
+    """``add_frame`` with a fractional track id or a pixel that is not finite: one
+    FlightLogError, as tracks.csv's reader gives, and nothing changes (the same frame with
+    good sightings goes in after). Mutation tried: the checks off (1.5 was cut to track 1
+    and NaN pixels dropped without a word: a hostile-input hunt's find, 2026-11-28)."""
+    from cdtm_graph.errors import FlightLogError
+
+    flight, dtm = simulate_flight(SimulationSettings(frames=2, n_features=30, seed=seed))
+    smoother = IncrementalSmoother(flight.config, dtm, imu=flight.imu)
+    t0 = int(flight.frames.t_ns[0])
+    with pytest.raises(FlightLogError, match=words):
+        smoother.add_frame(t0, np.array(ids), np.array(uv))
+    assert smoother.add_frame(t0, np.array([1, 2]), np.array([[10.0, 10.0], [20.0, 20.0]]))
