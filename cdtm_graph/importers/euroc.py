@@ -198,11 +198,16 @@ def import_euroc(path: str | os.PathLike, directory: str | os.PathLike,
 def _image_files(folder: EurocFolder, names: tuple[str, ...], first_line: int) -> list[Path]:
     shown = str(folder.frames_csv)
     files = []
+    row_of: dict[str, int] = {}
     for k, name in enumerate(names):
         parts = PurePosixPath(name).parts
         if not name or len(parts) != 1 or name in (".", ".."):
             _fail(shown, first_line + k, f"filename {_show(name)}",
                   f"a file name in {folder.image_dir}")
+        if name in row_of:
+            _fail(shown, first_line + k, f"image {_show(name)} is named again (first on line "
+                  f"{first_line + row_of[name]})", "one image file per row")
+        row_of[name] = k
         path = folder.image_dir / name
         if not path.is_file():
             _fail(shown, first_line + k, f"image {_show(name)} {why_not_a_file(path)} in "

@@ -12,7 +12,9 @@ alike. Two topics are read:
 
 Times are the messages' ``header.stamp`` (the sensor's time), or with ``stamps="bag"`` the
 time each message was recorded. A stamp repeated on a topic (a driver's duplicate) keeps
-the first message and is counted. The bag holds no calibration: a Kalibr camchain gives the
+the first message and is counted; stamps repeated, or much denser than the rest, several
+in a row are two stretches of the recording at once (a clock that jumped back) and refused.
+The bag holds no calibration: a Kalibr camchain gives the
 camera, its mounting (``T_cam_imu``) and clock offset (``timeshift_cam_imu``), and a Kalibr
 IMU file the noise model; their ``rostopic`` keys name the topics when not given.
 """
@@ -153,6 +155,8 @@ def read_bag(bag: str | os.PathLike, topics: BagTopics, images_dir: str | os.Pat
         raise SensorDataError(f"{bag}: topic {topics.imu} has no messages; expected IMU samples")
     if not frame_t:
         raise SensorDataError(f"{bag}: topic {topics.image} has no messages; expected images")
+    _check_clock(np.asarray(imu_t, dtype=np.int64), bag, topics.imu)
+    _check_clock(np.asarray(frame_t, dtype=np.int64), bag, topics.image)
     imu_order = np.argsort(np.asarray(imu_t, dtype=np.int64), kind="stable")
     t_imu = np.asarray(imu_t, dtype=np.int64)[imu_order]
     keep = np.concatenate([[True], np.diff(t_imu) > 0])  # first of each repeated stamp
@@ -166,6 +170,35 @@ def read_bag(bag: str | os.PathLike, topics: BagTopics, images_dir: str | os.Pat
         np.asarray(frame_t, dtype=np.int64)[frame_order],
         tuple(names[i] for i in frame_order),
         int((~keep).sum()), duplicate_frames)
+
+
+#: Sorted by stamp, a topic's samples this much closer than its usual spacing...
+DENSE_SPACING = 0.6
+#: ...this many steps in a row hold two stretches of the recording at once (a clock that
+#: jumped back, a second publisher): jitter makes one short step beside a long one, not
+#: a run of them, and a driver's duplicate is one stamp repeated.
+DENSE_RUN = 3
+
+
+def _check_clock(t_ns: np.ndarray, bag: Path, topic: str) -> None:
+    """Refuse a topic whose stamps hold two stretches of time at once: stamps repeated, or
+    closer than ``DENSE_SPACING`` of the usual spacing, at ``DENSE_RUN`` samples in a row
+    (the messages may be recorded in any order: their stamps are put in order)."""
+    unique, count = np.unique(t_ns, return_counts=True)
+    if unique.size < 2:
+        return
+    step = np.diff(unique)
+    overlap = (count > 1) | np.r_[False, step < DENSE_SPACING * np.median(step)]
+    edges = np.flatnonzero(np.diff(np.r_[0, overlap.astype(np.int64), 0]))
+    starts, ends = edges[::2], edges[1::2]
+    long = np.flatnonzero(ends - starts >= DENSE_RUN)
+    if long.size:
+        a, b = int(starts[long[0]]), int(ends[long[0]]) - 1
+        raise SensorDataError(
+            f"{bag}: topic {topic}: the stamps from {int(unique[a])} to {int(unique[b])} ns "
+            f"come twice, or at least {1 / DENSE_SPACING:.3g} times as dense as the rest: two "
+            "stretches of the recording overlap; expected one clock that does not jump back "
+            "(fix the recording, or --stamps bag for the recording times)")
 
 
 def _connections(reader: Any, bag: Path, topic: str, types: tuple[str, ...],

@@ -495,3 +495,39 @@ def test_an_unreadable_image_met_by_track_is_named_as_the_user_s_file(files, nat
     assert err[0].startswith(f"cdtm import: error: {image}: cannot be read as an image"), err[0]
     assert "staging" not in err[0]
     assert not out.exists()
+
+
+@pytest.mark.parametrize("back_ns", [402_500_000, 400_000_000], ids=["between", "on"])
+def test_an_imu_clock_that_jumps_back_is_refused(sensor_files, native, tmp_path, back_ns):
+    """The IMU driver's clock jumps back 0.4 s a third of the way in: the stamps after the
+    jump fall between the earlier ones (0.4025 s) or on them (0.4 s). Either way two
+    stretches of the flight overlap: one line, nothing imported. Jitter and a lone
+    repeated stamp stay accepted (the other tests' bags, a shuffled one among them).
+    Mutation tried: the check off (the samples were merged in stamp order, exit 0, or
+    read as 80 harmless repeats: a hostile-input hunt's find, 2026-11-28)."""
+    from cdtm_graph.importers import read_bag
+
+    t = native.imu.t_ns.copy()
+    t[len(t) // 3:] -= back_ns
+    jumped = dataclasses.replace(native, imu=dataclasses.replace(native.imu, t_ns=t))
+    sensor_files.write_bag(jumped, tmp_path / "jump.bag", ros=1)
+    with pytest.raises(SensorDataError, match=r"topic /imu0: the stamps from \d+ to \d+ ns "
+                                              r"come twice, or .* two stretches of the "
+                                              r"recording overlap"):
+        read_bag(tmp_path / "jump.bag",
+                 BagTopics(sensor_files.IMU_TOPIC, sensor_files.IMAGE_TOPIC), tmp_path / "images")
+
+
+def test_euroc_names_the_row_of_an_image_named_twice(native, files, tmp_path):
+    """Two rows of cam0/data.csv naming one image file: one line naming both rows.
+    Mutation tried: the check off (a traceback, "Frames: N times but N-1 images": a
+    hostile-input hunt's find, 2026-11-28)."""
+    shutil.copytree(files / "plain" / "mav0", tmp_path / "mav0")
+    csv_path = tmp_path / "mav0" / "cam0" / "data.csv"
+    lines = csv_path.read_text().splitlines()
+    stamp, _ = lines[3].split(",", 1)
+    lines[3] = f"{stamp},{lines[2].split(',', 1)[1]}"  # row 4 names row 3's image
+    csv_path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(FlightLogError, match=r"cam0/data.csv:4: image '.*' is named again "
+                                             r"\(first on line 3\)"):
+        import_euroc(tmp_path / "mav0", tmp_path / "out", tmp_path / "out", _settings(native))
