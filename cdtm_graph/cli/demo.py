@@ -67,40 +67,55 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_images(out_dir: Path, args: argparse.Namespace) -> int:
-    """Simulate, render, track, smooth; OUT/log is the flight log, OUT/run the run."""
+    """Simulate, render, track, smooth; OUT/log is the flight log, OUT/run the run.
+
+    OUT, OUT/log and OUT/run are checked before any work; the log (its rendered images,
+    the tracked tracks.csv and the ray-cast one beside it) is published whole or not at
+    all, so an interrupted demo leaves OUT as it was."""
     from tqdm import tqdm
 
-    from cdtm_graph.cli.smooth import settings_from_args
+    from cdtm_graph.atomic import check_output_dir
+    from cdtm_graph.cli.outdir import output_dir
+    from cdtm_graph.cli.smooth import PLOT_FILES, settings_from_args
     from cdtm_graph.flightlog import TRACKS_CSV, write_tracks
     from cdtm_graph.frontend import track_log
+    from cdtm_graph.outputs import ALL_RUN_FILES
     from cdtm_graph.run import smooth_and_evaluate
     from cdtm_graph.run.prepare import load_log_and_dtm
     from cdtm_graph.sim.render import RenderSettings, render_flight
-    from cdtm_graph.sim.simulate import SimulationSettings, simulate, write_simulation
+    from cdtm_graph.sim.simulate import SimulationSettings, simulate, write_simulation_files
 
+    force = bool(args.force)
+    log_dir, run_dir = out_dir / "log", out_dir / "run"
+    check_output_dir(out_dir, force=force, label="--out")
+    check_output_dir(log_dir, force=force, label="--out", writer=DEMO_LOG_WRITER,
+                     names=[TRACKS_CSV, RAYCAST_TRACKS])
+    check_output_dir(run_dir, force=force, label="--out", protected=[log_dir],
+                     names=[*ALL_RUN_FILES, *PLOT_FILES])
     settings = SimulationSettings(frames=IMAGE_DEMO_FRAMES, resolution_px=IMAGE_DEMO_RESOLUTION_PX)
     result = simulate(settings)
     with tqdm(total=settings.frames, unit="frame", desc="rendering", file=sys.stderr,
               leave=False) as bar:
         rendered = render_flight(result, RenderSettings(),
                                  progress=lambda done, total: bar.update(1))
-    log_dir = write_simulation(result, out_dir / "log", rendered.images)
-    (log_dir / TRACKS_CSV).replace(log_dir / RAYCAST_TRACKS)
-    flight, dtm = load_log_and_dtm(log_dir)  # images, no tracks.csv
-    with tqdm(total=settings.frames, unit="frame", desc="tracking", file=sys.stderr,
-              leave=False) as bar:
-        tracked = track_log(flight, progress=lambda done, total: bar.update(1))
-    write_tracks(tracked.tracks, log_dir / TRACKS_CSV)
+    with output_dir(args, log_dir, DEMO_LOG_WRITER) as staging:
+        write_simulation_files(result, staging, log_dir, rendered.images)
+        (staging / TRACKS_CSV).replace(staging / RAYCAST_TRACKS)
+        flight, dtm = load_log_and_dtm(staging)  # images, no tracks.csv
+        with tqdm(total=settings.frames, unit="frame", desc="tracking", file=sys.stderr,
+                  leave=False) as bar:
+            tracked = track_log(flight, progress=lambda done, total: bar.update(1))
+        write_tracks(tracked.tracks, staging / TRACKS_CSV)
 
     width, height = settings.resolution_px
     print(f"rendered {settings.frames} frames {width}x{height} of a flight at "
           f"{settings.altitude_m:g} m, {settings.speed_mps:g} m/s, {settings.fps:g} fps "
           f"({rendered.seconds_per_frame:.2f} s per frame) -> {log_dir}")
     print(tracked.report.summary())
-    run_dir = out_dir / "run"
     out = smooth_log_to_dir(str(log_dir), run_dir, args)
     print("from the images' tracks:")
     print(summary(out, run_dir))
+    flight, dtm = load_log_and_dtm(log_dir)
     ideal_log = dataclasses.replace(flight, tracks=result.log.tracks)
     ideal = smooth_and_evaluate(ideal_log, dtm, settings_from_args(args)).errors
     e = out.errors
@@ -110,3 +125,7 @@ def run_images(out_dir: Path, args: argparse.Namespace) -> int:
               f"position ANEES {ideal.anees_position:.2f}; images/ideal RMSE ratio "
               f"{e.rmse_position_3d_m / ideal.rmse_position_3d_m:.2f}")
     return print_verdict(out, "cdtm demo")
+
+
+#: Who the rendered log's manifest says wrote it (simulated, rendered and tracked).
+DEMO_LOG_WRITER = "demo --images"

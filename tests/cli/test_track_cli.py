@@ -317,6 +317,38 @@ def test_demo_with_images_runs_the_chain(tmp_path, monkeypatch, capsys):
     assert "images/ideal RMSE ratio" in capsys.readouterr().out
 
 
+
+def test_demo_with_images_checks_out_first_and_leaves_it_as_it_was_when_stopped(
+        tmp_path, monkeypatch, capsys):
+    """--out holding a user's file: refused before any work without --force; with it,
+    written beside. Stopped while tracking (KeyboardInterrupt): --out as it was, no
+    log half written. Mutations tried: the checks after the work (the user's folder was
+    written without --force) and the tracks written after the log was published (a log
+    left without tracks.csv, its manifest crediting simulate: a hostile-input hunt's
+    find, 2026-11-28)."""
+    monkeypatch.setattr("cdtm_graph.cli.demo.IMAGE_DEMO_FRAMES", 3)
+    monkeypatch.setattr("cdtm_graph.cli.demo.IMAGE_DEMO_RESOLUTION_PX", (160, 120))
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("precious")
+    simulated = []
+    monkeypatch.setattr("cdtm_graph.sim.simulate.simulate",
+                        lambda *a, **k: simulated.append(1) or pytest.fail("work began"))
+    assert main(["demo", "--images", "--out", str(mine)]) == 1
+    assert "notes.txt" in capsys.readouterr().err and not simulated
+    assert [p.name for p in mine.iterdir()] == ["notes.txt"]
+    monkeypatch.undo()
+    monkeypatch.setattr("cdtm_graph.cli.demo.IMAGE_DEMO_FRAMES", 3)
+    monkeypatch.setattr("cdtm_graph.cli.demo.IMAGE_DEMO_RESOLUTION_PX", (160, 120))
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("cdtm_graph.frontend.track_log", stopped)
+    assert main(["demo", "--images", "--out", str(mine), "--force"]) == 130  # interrupted
+    assert sorted(p.name for p in mine.iterdir()) == ["notes.txt"]
+
+
 def test_live_tracking_script_feeds_the_incremental_smoother(image_log, capsys):
     summary = runpy.run_path(str(ROOT / "scripts" / "live_tracking.py"),
                              run_name="not_main")["main"]([str(image_log)])
