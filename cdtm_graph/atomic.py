@@ -143,6 +143,22 @@ def _write_manifest(directory: Path, files: Mapping[str, str], complete: bool,
     os.replace(tmp, directory / MANIFEST_NAME)
 
 
+def credit_file(directory: str | os.PathLike, name: str, writer: str) -> None:
+    """List ``name`` in ``directory``'s manifest as ``writer``'s, after that command put it
+    there itself (``cdtm track``'s tracks.csv, renamed into a log): another command's
+    rerun then refuses to replace it, as it refuses a user's file. Nothing happens
+    without a manifest (a log cdtm did not write)."""
+    directory = Path(directory)
+    _check_payload_name(name)
+    with _directory_lock(directory):
+        files = read_manifest(directory)
+        if files is None or files.get(name) == writer:
+            return
+        tmp = directory / f"{STAGING_TAG}{MANIFEST_NAME}.{os.getpid()}"
+        _write_synced(tmp, _manifest_text({**files, name: writer}, complete=True))
+        os.replace(tmp, directory / MANIFEST_NAME)
+
+
 def _write_synced(path: Path, text: str) -> None:
     with open(path, "w", encoding="utf-8") as f:
         f.write(text)

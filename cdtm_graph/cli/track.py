@@ -7,6 +7,8 @@ Outputs follow :mod:`cdtm_graph.atomic`'s rules, for two single files:
   wrote earlier: JSON whose ``"format"`` is :data:`REPORT_FORMAT`; never another file, a
   directory, nor one of the log's own files) are checked, and their temporary files
   created beside them, before the images are tracked: a bad path fails at once.
+* **Credited.** In a log cdtm wrote (it holds a manifest), tracks.csv is then listed as
+  ``track``'s: rerunning ``cdtm simulate`` or an import there refuses to replace it.
 * **Complete or not at all.** A run that tracks nothing writes nothing. Otherwise both
   files are written to their temporary files first, then renamed into place, the report
   first: if tracks.csv cannot be renamed, the report is put back as it was. On any
@@ -29,7 +31,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from cdtm_graph.atomic import fsync_path, signals_deferred, temporary_beside
+from cdtm_graph.atomic import credit_file, fsync_path, signals_deferred, temporary_beside
 from cdtm_graph.cli import COMMANDS
 from cdtm_graph.errors import CdtmError, OutputError
 from cdtm_graph.flightlog.names import FRAMES_CSV, LOG_FILES, TRACKS_CSV
@@ -84,6 +86,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 # --------------------------------------------------------------------------- checks
+
+
+#: Who the log's manifest (if it has one) says wrote the tracks.csv ``cdtm track`` wrote.
+WRITER = "track"
 
 
 def _check_tracks_target(target: Path, force: bool) -> None:
@@ -221,6 +227,7 @@ def _publish(tracks_tmp: Path, target: Path, report_tmp: Path | None, report: Pa
     _check_tracks_target(target, force)
     if report is None or report_tmp is None or report_given is None:
         os.replace(tracks_tmp, target)
+        credit_file(target.parent, target.name, WRITER)
         fsync_path(target.parent)
         return
     _check_report_owner(_check_report_path(report_given), report_given)  # still ours
@@ -247,6 +254,7 @@ def _publish(tracks_tmp: Path, target: Path, report_tmp: Path | None, report: Pa
                     f"({undo.strerror}); expected a writable place: it holds this run's "
                     "report, which does not match the tracks.csv there") from None
             raise
+    credit_file(target.parent, target.name, WRITER)
     fsync_path(report.parent)
     fsync_path(target.parent)
 

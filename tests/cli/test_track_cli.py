@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 import pytest
 
+from cdtm_graph.atomic import read_manifest
 from cdtm_graph.cli import main
 from cdtm_graph.cli.track import REPORT_FORMAT
 from cdtm_graph.flightlog import read_flightlog
@@ -58,6 +59,21 @@ def test_track_refuses_to_replace_tracks_without_force(log, capsys):
     assert main(["track", str(log), "--quiet"]) == 1
     assert "--force" in _one_line_error(capsys)
     assert (log / "tracks.csv").read_bytes() == before
+
+
+
+def test_tracks_csv_tracked_into_a_simulated_log_is_credited_to_track(log, capsys):
+    """`cdtm track --force` over a simulated log's tracks.csv lists it as `track`'s in the
+    log's manifest: rerunning `cdtm simulate` there is refused and the tracked file kept.
+    Mutation tried: the manifest left as it was (simulate's rerun replaced the tracked
+    tracks.csv without a word: a hostile-input hunt's find, 2026-11-28)."""
+    assert main(["track", str(log), "--force", "--quiet"]) == 0
+    assert read_manifest(log)["tracks.csv"] == "track"
+    tracked = (log / "tracks.csv").read_bytes()
+    capsys.readouterr()
+    assert main(["simulate", str(log), "--frames", "4", "--features", "40"]) == 1
+    assert "'tracks.csv' was written by `cdtm track`" in _one_line_error(capsys)
+    assert (log / "tracks.csv").read_bytes() == tracked
 
 
 def test_track_writes_tracks_and_report(log, tmp_path, capsys):
