@@ -220,23 +220,26 @@ def key_marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                           qr_only)
 
 
-def step_and_marginals(linear: gtsam.GaussianFactorGraph, keys: Sequence[int]
+def step_and_marginals(linear: gtsam.GaussianFactorGraph, keys: Sequence[int],
+                       qr_form: gtsam.GaussianFactorGraph | None = None
                        ) -> tuple[gtsam.VectorValues, list[np.ndarray]]:
     """The solution of ``linear`` (its ``optimize()``) and the marginal covariance of each
-    key, from one elimination (Cholesky, QR where it fails)."""
+    key, from one elimination (Cholesky; QR where it fails, of ``qr_form`` if given: the
+    same system in Jacobian factors, as QR drops a Hessian factor's linear term)."""
     return _on_bayes_tree(linear, lambda tree, qr: (tree.optimize(),
-                                                    [_marginal(tree, qr, k) for k in keys]))
+                                                    [_marginal(tree, qr, k) for k in keys]),
+                          qr_form=qr_form)
 
 
 def _on_bayes_tree(linear: gtsam.GaussianFactorGraph,
-                   use: Callable[[gtsam.GaussianBayesTree, bool], _T], qr_only: bool = False
-                   ) -> _T:
-    """``use(tree, qr)`` of ``linear``'s Bayes tree: Cholesky's, QR's where Cholesky
-    declares the system indeterminant (or ``qr_only``)."""
+                   use: Callable[[gtsam.GaussianBayesTree, bool], _T], qr_only: bool = False,
+                   qr_form: gtsam.GaussianFactorGraph | None = None) -> _T:
+    """``use(tree, qr)`` of ``linear``'s Bayes tree: Cholesky's, QR's (of ``qr_form`` if
+    given) where Cholesky declares the system indeterminant (or ``qr_only``)."""
     for qr in (True,) if qr_only else (False, True):
         try:
-            tree = (linear.eliminateMultifrontal(function=gtsam.EliminateQR) if qr
-                    else linear.eliminateMultifrontal())
+            tree = ((linear if qr_form is None else qr_form).eliminateMultifrontal(
+                function=gtsam.EliminateQR) if qr else linear.eliminateMultifrontal())
             return use(tree, qr)
         except RuntimeError as exc:
             error = exc

@@ -64,14 +64,30 @@ def debiased(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
             add no information), not at the moved values: one elimination, not a second
             linearization and elimination. The step is a fraction of a sigma.
     """
-    if linear is None:
-        linear = graph.linearize(values)
-    else:  # (a graph of its own: the solve's stays as it was)
-        given, linear = linear, gtsam.GaussianFactorGraph()
-        linear.push_back(given)
-    for key, g in noise_gradient(factors, values).items():
-        g = noise_scale * g
-        # a zero Hessian and the linear term: the step solves H d = -grad + g
-        linear.push_back(gtsam.HessianFactor(key, np.zeros((g.size, g.size)), g, 0.0))
-    step, covariances = step_and_marginals(linear, marginal_keys)
+    hessian_form, jacobian_form = corrected_system(
+        graph.linearize(values) if linear is None else linear,
+        {key: noise_scale * g for key, g in noise_gradient(factors, values).items()})
+    step, covariances = step_and_marginals(hessian_form, marginal_keys, qr_form=jacobian_form)
     return values.retract(step), covariances
+
+
+def corrected_system(linear: gtsam.GaussianFactorGraph, gradient: dict[int, np.ndarray]
+                     ) -> tuple[gtsam.GaussianFactorGraph, gtsam.GaussianFactorGraph]:
+    """``linear`` with ``gradient`` (per key) taken out of its gradient, twice: with Hessian
+    factors (Cholesky's form) and with Jacobian factors (QR's: its elimination drops a
+    Hessian factor's linear term). Graphs of their own: ``linear`` stays as it was."""
+    hessian_form, jacobian_form = gtsam.GaussianFactorGraph(), gtsam.GaussianFactorGraph()
+    hessian_form.push_back(linear)
+    jacobian_form.push_back(linear)
+    for key, g in gradient.items():
+        # a zero Hessian and the linear term: the step solves H d = -grad + g
+        hessian_form.push_back(gtsam.HessianFactor(key, np.zeros((g.size, g.size)), g, 0.0))
+        # the same term as |eps d - g / eps|^2 / 2, whose eps^2 on the diagonal is far
+        # below any information here (1e-12 against ~1e-4 for the loosest prior)
+        jacobian_form.add(key, _EPS * np.eye(g.size), g / _EPS,
+                          gtsam.noiseModel.Unit.Create(g.size))
+    return hessian_form, jacobian_form
+
+
+#: The gradient's Jacobian form for QR (:func:`debiased`).
+_EPS = 1e-6

@@ -176,33 +176,78 @@ def test_a_factor_without_features_has_no_noise_cost_gradient(noisy_pair, rng, c
     np.testing.assert_array_equal(gradient, np.zeros(17 if calibrated else 12))
 
 
-def test_the_corrected_step_and_its_marginal_come_from_one_elimination(noisy_pair, rng):
-    """``debiased``'s step is the Gauss-Newton step with the noise's expected gradient
-    taken out (the same as eliminating the hand-built system), and the calibration's
-    marginal it hands back is the solve's own at ``values`` (``key_marginals``): the
-    gradient's zero-Hessian terms add no information. Mutations tried: the gradient's
-    Hessian made ``1e6 g g^T`` (the marginal shrinks); the step's sign flipped."""
+
+def _calibrated_system(noisy_pair, rng, n: int | None = 200, loose: bool = False):
+    """A pair factor holding the calibration (its first ``n`` features) and priors on both
+    poses and the calibration (``loose``: 10x wider); its values a little off. 200
+    features make a system Cholesky solves; all 16000 with the loose priors one it
+    declares indeterminant."""
     fac, Ta, Tb = noisy_pair(rng, True)
+    if n is not None:
+        fac = fac.with_features(np.arange(n))
     key_c = fac.calibration.key
     graph = gtsam.NonlinearFactorGraph()
     graph.add(fac.factor)
-    pose_prior = gtsam.noiseModel.Isotropic.Sigma(6, 0.5)
+    widen = 10.0 if loose else 1.0
+    pose_prior = gtsam.noiseModel.Isotropic.Sigma(6, 0.05 * widen)
     graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(Ta), pose_prior))
     graph.add(gtsam.PriorFactorPose3(X(1), gtsam.Pose3(Tb), pose_prior))
-    graph.add(gtsam.PriorFactorVector(key_c, np.zeros(5), gtsam.noiseModel.Isotropic.Sigma(5, 0.1)))
+    graph.add(gtsam.PriorFactorVector(key_c, np.zeros(5),
+                                      gtsam.noiseModel.Isotropic.Sigma(5, 0.01 * widen)))
     values = gtsam.Values()
     values.insert(X(0), gtsam.Pose3(Ta))
     values.insert(X(1), gtsam.Pose3(Tb))
     values.insert(key_c, np.r_[0.001, 0.002, -0.001, 0.0, 0.002])
+    return fac, key_c, graph, values
+
+
+def _step(tree, qr) -> np.ndarray:
+    return np.concatenate([tree.optimize().at(k) for k in (X(0), X(1), gtsam.symbol("c", 0))])
+
+
+def test_the_corrected_step_and_its_marginal_come_from_one_elimination(noisy_pair, rng):
+    """``debiased``'s step is the Gauss-Newton step with the noise's expected gradient
+    taken out (Cholesky's of the system built by hand), and the calibration's marginal it
+    hands back is the solve's own at ``values`` (``key_marginals``): the gradient's
+    zero-Hessian terms add no information. Mutations tried: the gradient's Hessian made
+    ``1e6 g g^T`` (the marginal shrinks); the step's sign flipped."""
+    fac, key_c, graph, values = _calibrated_system(noisy_pair, rng)
     moved, (c_cov,) = debiased(graph, values, [fac], noise_scale=1.5, marginal_keys=[key_c])
     by_hand = graph.linearize(values)
     for key, g in noise_gradient([fac], values).items():
         by_hand.push_back(gtsam.HessianFactor(key, np.zeros((g.size, g.size)), 1.5 * g, 0.0))
-    try:  # (as the product solves: Cholesky, QR where it declares the system indeterminant)
-        step = by_hand.optimize()
-    except RuntimeError:
-        step = by_hand.optimize(gtsam.EliminateQR)
+    step = by_hand.optimize()  # (Cholesky: this system is well conditioned)
     np.testing.assert_allclose(moved.atVector(key_c), values.atVector(key_c) + step.at(key_c),
                                rtol=0, atol=1e-12)
     assert np.linalg.norm(step.at(key_c)) > 1e-6  # a step that moves
     np.testing.assert_allclose(c_cov, key_marginals(graph, values, [key_c])[0], rtol=1e-9)
+
+
+def test_the_corrected_step_survives_the_qr_fallback(noisy_pair, rng):
+    """Where Cholesky fails, the step is QR's, and QR drops a Hessian factor's linear term:
+    the correction is then given to it as Jacobian factors (``corrected_system``), whose
+    QR step equals Cholesky's of the Hessian form. Mutation tried: QR of the Hessian form
+    (as before: the plain Gauss-Newton step, the noise's bias back without a word; the
+    review's find, 2026-11-28; on the 16000-feature system, where Cholesky fails, the
+    calibration's step came out of the opposite sign)."""
+    from cdtm_graph.calibration.noise_bias import corrected_system
+    from cdtm_graph.optimizer import _on_bayes_tree
+
+    fac, key_c, graph, values = _calibrated_system(noisy_pair, rng)
+    hessian_form, jacobian_form = corrected_system(graph.linearize(values),
+                                                   noise_gradient([fac], values))
+    cholesky = _on_bayes_tree(hessian_form, _step)
+    qr = _on_bayes_tree(hessian_form, _step, qr_only=True, qr_form=jacobian_form)
+    np.testing.assert_allclose(qr, cholesky, rtol=0, atol=1e-6 * np.abs(cholesky).max())
+    dropped = _on_bayes_tree(hessian_form, _step, qr_only=True)  # the Hessian form's QR
+    assert np.abs(dropped - cholesky).max() > 1e-2 * np.abs(cholesky).max()
+    # debiased itself on the system Cholesky fails on: QR's step of the Jacobian form
+    fac, key_c, graph, values = _calibrated_system(noisy_pair, rng, n=None, loose=True)
+    hessian_form, jacobian_form = corrected_system(graph.linearize(values),
+                                                   noise_gradient([fac], values))
+    with pytest.raises(RuntimeError):
+        hessian_form.eliminateMultifrontal()
+    qr = _on_bayes_tree(hessian_form, _step, qr_only=True, qr_form=jacobian_form)
+    moved, _ = debiased(graph, values, [fac])
+    np.testing.assert_allclose(moved.atVector(key_c) - values.atVector(key_c), qr[12:],
+                               rtol=1e-9, atol=1e-12)
