@@ -168,13 +168,14 @@ def _horizontal_crs(path: Path, crs_wkt: str, datum: VerticalDatum):
 
 
 def _check_metres(path: Path, horizontal) -> None:
-    """Refuse a projected CRS in another unit than the metre: its heights are read as
+    """Refuse a projected CRS in another unit than the metre, unless a vertical CRS states
+    the heights' (a compound one: checked to be EGM96, in metres): the heights are read as
     metres, and a file in feet (US State Plane) most often holds heights in feet too,
     which nothing in it says (x and y would be converted, z not: 3.28x too high)."""
-    if horizontal.is_geographic:
+    if horizontal.is_geographic or not horizontal.axis_info:
         return
     axis = horizontal.axis_info[0]
-    if abs(float(axis.unit_conversion_factor) - 1.0) > 1e-12:
+    if abs(float(axis.unit_conversion_factor or 1.0) - 1.0) > 1e-12:
         raise _fail(path, f"its CRS {horizontal.name!r} is in {axis.unit_name} units, and the "
                     "unit of its heights cannot be told (often the same)",
                     "a DEM in metres (reproject it to a metric CRS, e.g. `gdalwarp -t_srs "
@@ -249,7 +250,8 @@ def read_dem_sources(paths: Sequence[str | os.PathLike], vertical_datum: Vertica
                 raise _fail(path, f"its own CRS {CRS.from_wkt(wkt).name!r} differs from "
                             f"dtm.crs {crs!r}", "dtm.crs only for files without a CRS")
         horizontal = _horizontal_crs(path, wkt, vertical_datum)
-        _check_metres(path, horizontal)
+        if not CRS.from_wkt(wkt).is_compound:  # (a compound CRS's heights: EGM96 metres)
+            _check_metres(path, horizontal)
         sources.append(DemSource(path, horizontal.to_wkt(), (t.a, t.c, t.e, t.f), width,
                                  height, scale, offset, horizontal.is_geographic))
     if not sources:

@@ -285,7 +285,7 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
     # solve's last linearization without the pin, the last factor)
     values, free = levenberg_marquardt(graph, values, max_iterations, relative_error_tol,
                                        solver=solver, error_at_start=held_error,
-                                       linear_at_start=_without_pin(pinned_linear))
+                                       linear_at_start=without_pin(pinned_linear, graph))
     cost_drop = held_error - free.final_error
     # (the noise stays linearized at the run's solution, as the likelihood ratio has it;
     # its bias taken out at the scatter the residuals show with the calibration free)
@@ -310,11 +310,13 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
                             time.perf_counter() - start, int(kept.size), scatter, wald)
 
 
-def _without_pin(linear: gtsam.GaussianFactorGraph | None
-                 ) -> gtsam.GaussianFactorGraph | None:
+def without_pin(linear: gtsam.GaussianFactorGraph | None, free: gtsam.NonlinearFactorGraph
+                ) -> gtsam.GaussianFactorGraph | None:
     """The pinned graph's linearization without the pin, its last factor (the same
-    factor objects); None without one."""
-    if linear is None or list(linear.at(linear.size() - 1).keys()) != [CALIBRATION_KEY]:
+    factor objects): ``free``'s linearization at the same values. None without one, or
+    when it is not ``free`` and the pin after it."""
+    if (linear is None or linear.size() != free.size() + 1
+            or list(linear.at(linear.size() - 1).keys()) != [CALIBRATION_KEY]):
         return None
     rest = gtsam.GaussianFactorGraph()
     for i in range(linear.size() - 1):

@@ -273,7 +273,8 @@ def run(args: argparse.Namespace) -> int:
     if not args.quiet:
         print(summary(out, out_dir))
     if out.errors is not None and out.errors.n_frames_evaluated == 0:
-        print(f"cdtm smooth: warning: {Path(args.log) / 'groundtruth.csv'}: "
+        from cdtm_graph.flightlog import GROUNDTRUTH_CSV
+        print(f"cdtm smooth: warning: {Path(args.log) / GROUNDTRUTH_CSV}: "
               + GROUNDTRUTH_ELSEWHERE, file=sys.stderr)
     return print_verdict(out)
 

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from cdtm_graph.atomic import check_output_dir
 from cdtm_graph.cli import COMMANDS
-from cdtm_graph.cli.evaluate import EVALUATE_FILES, write_evaluation
+from cdtm_graph.cli.evaluate import EVALUATE_FILES, EVALUATE_WRITER, write_evaluation
 from cdtm_graph.cli.outdir import add_out_option
 from cdtm_graph.cli.smooth import (
     PLOT_FILES,
@@ -77,11 +77,13 @@ def run_dir_names(logs: list[str]) -> list[str]:
 
     Raises:
         CdtmError: a log given twice; a name the evaluation writes into DIR."""
-    paths = [Path(os.path.realpath(log)) for log in logs]
-    for i, path in enumerate(paths):
-        if path in paths[:i]:
-            raise CdtmError(f"{logs[i]}: given twice (as {logs[paths.index(path)]}); "
+    real = [os.path.realpath(log) for log in logs]
+    for i, path in enumerate(real):
+        if path in real[:i]:
+            raise CdtmError(f"{logs[i]}: given twice (as {logs[real.index(path)]}); "
                             "expected each log once")
+    # (named as given, links not followed: a link is a way to name a log)
+    paths = [Path(os.path.abspath(log)) for log in logs]
     parts = [[p for p in path.parts if p not in ("/", "")] or ["log"] for path in paths]
     depth = [1] * len(paths)
     while True:
@@ -125,7 +127,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from cdtm_graph.flightlog import GROUNDTRUTH_CSV
-    from cdtm_graph.outputs import ALL_RUN_FILES
+    from cdtm_graph.outputs import ALL_RUN_FILES, RUN_WRITER
     from cdtm_graph.parallel import ParallelSettings, map_tasks
 
     settings_from_args(args)  # bad smoothing options: one line before any work
@@ -142,17 +144,31 @@ def run(args: argparse.Namespace) -> int:
     run_dirs = [out_dir / name for name in run_dir_names(args.logs)]
     # Every output directory checked before any work (each run's again as it is written).
     check_output_dir(out_dir, force=args.force, protected=args.logs, names=EVALUATE_FILES,
-                     label="--out")
+                     label="--out", writer=EVALUATE_WRITER)
     run_files = [*ALL_RUN_FILES, *(PLOT_FILES if args.plots else ()),
                   *((SCENE_FILE,) if args.scene else ())]
     for run_dir in run_dirs:
         check_output_dir(run_dir, force=args.force, protected=args.logs, names=run_files,
-                         label="--out")
-    # Every log read (and its DTM) before any work: a bad one is its one line now, not
-    # after the others' runs (which would stay, without their evaluation).
+                         label="--out", writer=RUN_WRITER)
+    # Every log read (and its DTM) and checked as its run will check it, before any work:
+    # a bad one is its one line now, not after the others' runs (which would stay,
+    # without their evaluation).
+    import numpy as np
+
     from cdtm_graph.run.prepare import load_log_and_dtm
+    from cdtm_graph.smoother.incremental import check_lag
+    from cdtm_graph.verdict.preflight import check_imu_span
+    lag_s = settings_from_args(args).lag_s
     for log in args.logs:
-        load_log_and_dtm(log)
+        flight, _ = load_log_and_dtm(log)
+        check_imu_span(flight)
+        if len(flight.frames) > 1:
+            check_lag(lag_s, float(np.median(np.diff(flight.frames.t_ns))) * 1e-9)
+        truth = flight.groundtruth
+        if truth is not None and not truth.covers(flight.frames.t_ns).any():
+            raise CdtmError(f"{Path(log) / GROUNDTRUTH_CSV}: its times cover none of the "
+                            "frames; expected ground truth on the IMU's clock, over the "
+                            "flight (smooth-many evaluates its runs against it)")
     options = {k: getattr(args, k) for k in _TASK_OPTIONS}
     tasks = [SmoothTask(str(log), str(d), options) for log, d in zip(args.logs, run_dirs,
                                                                          strict=True)]

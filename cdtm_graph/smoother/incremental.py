@@ -154,9 +154,8 @@ class IncrementalSmoother:
                  and graph.map_error is not None else None)  # as it goes (batch's: both)
         self._rounds = None if self._judge is None else TrackRounds(
             self._judge, watch, w, self.stages, self.forget_tracks)
-        if (frame_interval_s is not None and settings.lag_s is not None
-                and settings.lag_s < 2 * frame_interval_s):
-            raise _lag_holds_no_pair(settings.lag_s, frame_interval_s)
+        if frame_interval_s is not None:
+            check_lag(settings.lag_s, frame_interval_s)
         if frame_interval_s is not None and search is not None \
                 and search.needed_at_start() and not w.holds_search(search, frame_interval_s):
             raise _lag_too_short(settings, frame_interval_s)
@@ -492,8 +491,10 @@ def _sightings(k: int, track_id: np.ndarray | None, uv_px: np.ndarray | None
     as tracks.csv's reader asks."""
     if track_id is not None and len(track_id):
         given = np.asarray(track_id)
-        if given.dtype.kind == "f" and not np.all(np.isfinite(given) & (given == np.round(given))):
-            bad = given[~(np.isfinite(given) & (given == np.round(given)))][0]
+        whole = (np.isfinite(given) & (given == np.round(given)) & (np.abs(given) < 2.0**63)
+                 if given.dtype.kind == "f" else None)
+        if whole is not None and not whole.all():
+            bad = given[~whole][0]
             raise FlightLogError(f"frame {k}: track id {float(bad)!r} is not an integer; expected "
                                  "integer track ids")
     seen = checked_sightings(k, track_id, uv_px)
@@ -505,13 +506,17 @@ def _sightings(k: int, track_id: np.ndarray | None, uv_px: np.ndarray | None
     return seen
 
 
-def _lag_holds_no_pair(lag_s: float, frame_interval_s: float) -> CdtmError:
-    """A lag that cannot hold two frames: no C-DTM pair would ever be in the window (the
-    run would end ``failed`` on IMU alone, naming another cause)."""
-    return CdtmError(
-        f"a fixed lag of {lag_s:g} s holds fewer than two frames ({frame_interval_s:g} s "
-        "apart; a frame leaves the window one interval before the lag): expected a lag of "
-        f"at least {2 * frame_interval_s:g} s")
+def check_lag(lag_s: float | None, frame_interval_s: float) -> None:
+    """Refuse a fixed lag that cannot hold two frames: no C-DTM pair would ever be in the
+    window (the run would end ``failed`` on IMU alone, naming another cause).
+
+    Raises:
+        CdtmError: ``lag_s`` under two frame intervals (None: full history, fine)."""
+    if lag_s is not None and lag_s < 2 * frame_interval_s:
+        raise CdtmError(
+            f"a fixed lag of {lag_s:g} s holds fewer than two frames ({frame_interval_s:g} s "
+            "apart; a frame leaves the window one interval before the lag): expected a lag "
+            f"of at least {2 * frame_interval_s:g} s")
 
 
 def _lag_too_short(settings: SmootherSettings, frame_interval_s: float) -> CdtmError:

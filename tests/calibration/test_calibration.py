@@ -461,3 +461,29 @@ def test_the_calibration_is_named_only_beyond_the_residuals_scatter(scenario, se
         assert check.residual_scatter > SCATTERED_MIN
         assert check.position_nees < SUSPECT_NEES
         assert any(n.startswith("calibration_") for n in out.verdict.notes)
+
+
+def test_the_free_solve_starts_on_the_pinned_solves_linearization(clean_flights, monkeypatch):
+    """In a batch run's check the pinned solve ends on a linearization at its answer; the
+    free solve starts on it, the pin left out (``without_pin``), and that changes nothing:
+    the check is bit for bit the one made with a fresh linearization. Mutations tried:
+    ``without_pin`` keeping the pin (the free solve starts pinned: the estimate and the
+    cost drop move) and returning None always (the reuse gone: the first assertion)."""
+    flight, dtm = clean_flights.flight(1, 30)
+    result = clean_flights.run(1, 30).result
+    sigmas = GraphSettings().calibration
+    started = []
+    real_lm = calibration_check.levenberg_marquardt
+
+    def lm(*args, **kwargs):
+        started.append(kwargs.get("linear_at_start") is not None)
+        return real_lm(*args, **kwargs)
+
+    monkeypatch.setattr(calibration_check, "levenberg_marquardt", lm)
+    reused = calibration_check.check_calibration(flight, dtm, GraphSettings(), result, sigmas)
+    assert started == [False, True]
+    monkeypatch.setattr(calibration_check, "without_pin", lambda linear, free: None)
+    fresh = calibration_check.check_calibration(flight, dtm, GraphSettings(), result, sigmas)
+    assert reused.cost_drop == fresh.cost_drop
+    np.testing.assert_array_equal(reused.z, fresh.z)
+    assert reused.position_nees == fresh.position_nees

@@ -325,6 +325,19 @@ def test_smooth_many_reads_every_log_before_any_work(logs, tmp_path, capsys):
     _one_line(capsys.readouterr().err, "DIR/evaluation.csv")
     assert main(["smooth-many", str(logs[0]), str(logs[0]) + "/", "--out", str(out)]) == 1
     _one_line(capsys.readouterr().err, "given twice")
+    # what each run would refuse or find, found first: a lag under two frame intervals,
+    # ground truth on another clock
+    assert main(["smooth-many", str(logs[1]), "--out", str(out), "--mode", "incremental",
+                 "--lag-s", "0.5"]) == 1
+    _one_line(capsys.readouterr().err, "holds fewer than two frames")
+    clock = tmp_path / "clock"
+    shutil.copytree(logs[0], clock)
+    rows = (clock / "groundtruth.csv").read_text().splitlines()
+    (clock / "groundtruth.csv").write_text("\n".join(
+        row if row.startswith("#") or not row else
+        f"{int(row.split(',', 1)[0]) + 10**12},{row.split(',', 1)[1]}" for row in rows) + "\n")
+    assert main(["smooth-many", str(logs[1]), str(clock), "--out", str(out)]) == 1
+    _one_line(capsys.readouterr().err, "groundtruth.csv: its times cover none of the frames")
     assert not out.exists()
 
 

@@ -13,7 +13,7 @@ import pytest
 rasterio = pytest.importorskip("rasterio")
 from affine import Affine  # noqa: E402
 
-from cdtm_graph.dem import import_dem  # noqa: E402
+from cdtm_graph.dem import import_dem, read_dem_sources  # noqa: E402
 from cdtm_graph.dtm import Dtm, load_dtm  # noqa: E402
 from cdtm_graph.errors import DtmError  # noqa: E402
 from cdtm_graph.geodesy import (  # noqa: E402
@@ -437,3 +437,11 @@ def test_a_dem_in_feet_is_refused_naming_the_unit(tmp_path):
     with pytest.raises(DtmError, match=r"feet\.tif: its CRS .* is in US survey foot units, and "
                                        r"the unit of its heights cannot be told"):
         import_dem([feet], _frame(), REGION, VerticalDatum.ELLIPSOID)
+
+
+def test_a_dem_in_feet_with_its_heights_stated_in_metres_is_read(tmp_path):
+    """The same CRS in feet with an EGM96 height (metres) beside it: the unit of the
+    heights is stated, so the file is read (not refused as in feet)."""
+    stated = _write_tif(tmp_path / "stated.tif", np.full((40, 40), 1000.0),
+                        "EPSG:2227+5773", 6_000_000.0, 2_100_000.0, 30.0)
+    assert len(read_dem_sources([stated], VerticalDatum.EGM96)) == 1

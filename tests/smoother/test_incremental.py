@@ -350,6 +350,7 @@ def test_a_fixed_lag_that_holds_no_pair_of_frames_is_refused(seed):
 
 @pytest.mark.parametrize("ids, uv, words", [
     ([1.5, 2.0], [[10.0, 10.0], [20.0, 20.0]], "track id 1.5 is not an integer"),
+    ([1e20, 2.0], [[10.0, 10.0], [20.0, 20.0]], r"track id 1e\+20 is not an integer"),
     ([1, 2], [[10.0, np.nan], [20.0, 20.0]], "track 1 has pixel"),
     ([1, 2], [[10.0, 10.0], [np.inf, 20.0]], "track 2 has pixel"),
 ])
