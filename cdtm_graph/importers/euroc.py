@@ -113,8 +113,9 @@ def read_euroc(path: str | os.PathLike, *, kalibr: str | os.PathLike | None = No
 
     Raises:
         FlightLogError: a CSV or YAML file is malformed (file, line, expected).
-        SensorDataError: a required file is missing; an image is missing or does not fit
-            the calibration's resolution.
+        SensorDataError: a required file is missing; an image is missing, or the first
+            does not fit the calibration's resolution (a wrong camera or camchain: a
+            later image of another size is named by ``cdtm track``, which reads them all).
     """
     folder = EurocFolder(find_mav0(path), camera, imu)
     for required in (folder.imu_csv, folder.frames_csv):

@@ -556,8 +556,10 @@ def write_imported_log(log: FlightLog, settings: ImportSettings, directory: str 
     write_flightlog_files(log, directory, final_dir, geodetic=geodetic)
     try:
         back = read_flightlog(directory, read_tracks=False)
-    except FlightLogError as exc:
-        raise FlightLogError(str(exc).replace(str(directory), str(final_dir))) from None
+    except FlightLogError as exc:  # a value of the inputs (a camchain's), as written
+        raise FlightLogError(str(exc).replace(str(directory), str(final_dir))
+                             + " (in the log the import would write from its inputs: "
+                             "nothing was written)") from None
     expected = dataclasses.replace(log, root=back.root, config=dataclasses.replace(
         log.config, dtm=back.config.dtm))
     _check_round_trip(expected, back, Path(final_dir), geodetic)

@@ -531,3 +531,22 @@ def test_euroc_names_the_row_of_an_image_named_twice(native, files, tmp_path):
     with pytest.raises(FlightLogError, match=r"cam0/data.csv:4: image '.*' is named again "
                                              r"\(first on line 3\)"):
         import_euroc(tmp_path / "mav0", tmp_path / "out", tmp_path / "out", _settings(native))
+
+
+def test_a_camchain_value_the_log_refuses_says_nothing_was_written(native, files, tmp_path):
+    """A camchain whose cx lies far off the image (1e6 px): refused when the log it would
+    write is read back, naming that log's flight.yaml line and saying it was never
+    written. Mutation tried: the note left out (the message named a flight.yaml that does
+    not exist: a hostile-input hunt's find, 2026-11-28)."""
+    chain = tmp_path / "chain.yaml"
+    text = (files / "camchain_shift.yaml").read_text()
+    data = yaml.safe_load(text)
+    data["cam0"]["intrinsics"][2] = 1e6
+    chain.write_text(yaml.safe_dump(data))
+    out = tmp_path / "out"
+    out.mkdir()
+    with pytest.raises(FlightLogError, match=r"flight\.yaml:\d+: camera\.intrinsics cx .*"
+                                             r"\(in the log the import would write from its "
+                                             r"inputs: nothing was written\)"):
+        import_euroc(files / "shifted" / "mav0", out, out, _settings(native), kalibr=chain,
+                     kalibr_imu=files / "imu_shift.yaml")
