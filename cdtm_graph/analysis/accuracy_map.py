@@ -31,6 +31,7 @@ from cdtm_graph.analysis.map_options import (
     MAX_ABS_HEADING_DEG,
     MAX_FEATURES,
     MAX_NODES,
+    MAX_ROTATION_DEG,
     RESOLUTION_RANGE_PX,
     AltitudeReference,
 )
@@ -141,6 +142,9 @@ class AccuracyMapSettings:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise CdtmError(f"{name} = {value!r}, expected >= 0")
+        if not self.rotation_deg <= MAX_ROTATION_DEG:
+            raise CdtmError(f"rotation_deg = {self.rotation_deg!r}, expected at most "
+                            f"{MAX_ROTATION_DEG:g} deg (the angle of one rotation)")
         if self.sigma_h_m is not None and not (math.isfinite(self.sigma_h_m)
                                                and self.sigma_h_m >= 0):
             raise CdtmError(f"sigma_h_m = {self.sigma_h_m!r}, expected >= 0")

@@ -15,6 +15,8 @@ MAX_NODES = 1_000_000
 RESOLUTION_RANGE_PX = (2, 100_000)
 #: Headings (deg) accepted: one turn either way.
 MAX_ABS_HEADING_DEG = 360.0
+#: The rotation between a pair's frames (deg): an angle of one rotation, at most a half turn.
+MAX_ROTATION_DEG = 180.0
 
 
 class AltitudeReference(enum.Enum):

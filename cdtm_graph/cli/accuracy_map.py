@@ -21,6 +21,7 @@ from cdtm_graph.analysis.map_options import (
     MAX_ABS_HEADING_DEG,
     MAX_FEATURES,
     MAX_NODES,
+    MAX_ROTATION_DEG,
     RESOLUTION_RANGE_PX,
     AltitudeReference,
 )
@@ -62,7 +63,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--baseline-m", type=float, default=40.0,
                         help="baseline |p12| [m] (default: %(default)s)")
     parser.add_argument("--rotation-deg", type=float, default=10.0,
-                        help="rotation between the frames [deg] (default: %(default)s)")
+                        help="rotation between the frames [deg], 0 to "
+                             f"{MAX_ROTATION_DEG:g} (default: %(default)s)")
     parser.add_argument("--pixel-sigma-px", "--sigma-px", type=float, default=0.5,
                         help="registration error, 1 sigma [px] (default: %(default)s)")
     parser.add_argument("--sigma-h-m", type=float, default=None,

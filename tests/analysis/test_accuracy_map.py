@@ -135,6 +135,7 @@ def test_bad_settings_are_user_errors(half_flat_dtm, change):
     ({"heading_deg": math.nan}, "heading_deg = nan, expected a finite angle in [-360, 360]"),
     ({"heading_deg": math.inf}, "heading_deg = inf, expected a finite angle"),
     ({"heading_deg": 361.0}, "heading_deg = 361.0, expected a finite angle"),
+    ({"rotation_deg": 1e6}, "rotation_deg = 1000000.0, expected at most 180 deg"),
     ({"n_features": 100_001}, "n_features = 100001, expected 1 to 100000 features per pair"),
     ({"n_features": 10**400}, "n_features = 1000000000000000..., expected 1 to 100000"),
     ({"resolution_px": 1}, "resolution_px = 1, expected 2 to 100000 px"),
