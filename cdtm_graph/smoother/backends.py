@@ -112,21 +112,27 @@ class _Isam2Estimates:
         self._poses = {}
         self._marginals = {}
 
+    # (every read back-substitutes, and may meet the system indeterminant there: a
+    # SolverError naming the variable, as an update does)
     def pose(self, k: int) -> np.ndarray:
         pose = self._poses.get(k)
         if pose is None:
-            pose = self._poses[k] = self._solver.calculateEstimatePose3(X(k)).matrix()
+            with _solvable():
+                pose = self._poses[k] = self._solver.calculateEstimatePose3(X(k)).matrix()
             pose.flags.writeable = False  # shared: callers must not change it in place
         return pose
 
     def velocity(self, k: int) -> np.ndarray:
-        return np.asarray(self._solver.calculateEstimateVector(V(k)))
+        with _solvable():
+            return np.asarray(self._solver.calculateEstimateVector(V(k)))
 
     def bias(self, k: int) -> gtsam.imuBias.ConstantBias:
-        return self._solver.calculateEstimateConstantBias(B(k))
+        with _solvable():
+            return self._solver.calculateEstimateConstantBias(B(k))
 
     def estimate(self) -> gtsam.Values:
-        return self._solver.calculateEstimate()
+        with _solvable():
+            return self._solver.calculateEstimate()
 
     def marginal(self, key: int) -> np.ndarray:
         # (kept until the next update: a track round and the shape watch ask for the same)

@@ -367,3 +367,27 @@ def test_the_live_api_refuses_ids_and_pixels_a_log_could_not_hold(seed, ids, uv,
     with pytest.raises(FlightLogError, match=words):
         smoother.add_frame(t0, np.array(ids), np.array(uv))
     assert smoother.add_frame(t0, np.array([1, 2]), np.array([[10.0, 10.0], [20.0, 20.0]]))
+
+
+@pytest.mark.parametrize("read", ["pose", "velocity", "bias", "estimate"])
+def test_a_read_that_meets_an_indeterminant_system_is_one_line(read):
+    """iSAM2 back-substitutes when an estimate is read, and may find the system
+    indeterminant there (gyro samples in deg/s: X(19) of a 60-frame log): a SolverError
+    naming the variable, as an update's. Mutation tried: the reads unwrapped (a raw GTSAM
+    traceback, exit 1: a hostile-input hunt's find, 2026-11-28)."""
+    from cdtm_graph.errors import SolverError
+    from cdtm_graph.smoother.backends import FullHistory
+
+    text = ("\nIndeterminate linear system detected while working near variable\n"
+            "8646911284551352323 (Symbol: x3).\n")
+
+    class Indeterminant:
+        def __getattr__(self, name):
+            def raises(*args):
+                raise RuntimeError(text)
+            return raises
+
+    backend = FullHistory()
+    backend._solver = Indeterminant()
+    with pytest.raises(SolverError, match=r"indeterminant system near X\(3\)"):
+        getattr(backend, read)(*(() if read == "estimate" else (3,)))
