@@ -276,7 +276,23 @@ def run(args: argparse.Namespace) -> int:
                    if args.track else None)
     if not args.quiet:
         print(_summary(log, out, contents, tracked))
+    rate = _rate_finding(log)
+    if rate is not None:  # (said now, not first at the smoothing's verdict)
+        print(f"cdtm import: warning: {out / 'flight.yaml'}: {rate}", file=sys.stderr)
     return 0
+
+
+def _rate_finding(log: FlightLog) -> str | None:
+    """The verdict's ``imu_rate_mismatch`` finding on the imported samples against the
+    imu.rate_hz the import wrote (a calibration file's, which may be another rate's)."""
+    from cdtm_graph.codes import Code
+    from cdtm_graph.verdict.imu_faults import check_imu
+
+    imu = log.imu
+    found = [f for f in check_imu(imu.t_ns, imu.gyro_radps, imu.acc_mps2,
+                                  log.config.imu.rate_hz)
+             if f.code is Code.IMU_RATE_MISMATCH]
+    return found[0].message if found else None
 
 
 def _import_bag(args, staging: Path, out: Path, settings, progress):
