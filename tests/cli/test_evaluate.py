@@ -302,11 +302,14 @@ def test_smooth_many_writes_logs_of_one_name_inside_out_and_nothing_else(logs, t
     assert (cwd / "out" / "d2_log" / "report.json").is_file()
 
 
-def test_smooth_many_reads_every_log_before_any_work(logs, tmp_path, capsys):
+def test_smooth_many_reads_every_log_before_any_work(logs, tmp_path, capsys, monkeypatch):
     """A log whose flight.yaml is bad (an IMU rate of 0) beside a good one: its one line,
-    exit 1, and no run of the good one left in DIR; a log named as an evaluation file and a
-    log given twice are refused alike. Mutation tried: the logs not read before the work
-    (the good log's run was left in DIR without the evaluation)."""
+    exit 1, and no run of the good one left in DIR; a log named as an evaluation file, a
+    log given twice, a lag under two frame intervals and ground truth on another clock are
+    refused alike, no run begun. Mutations tried: the logs not read before the work (the
+    good log's run was left in DIR without the evaluation); the lag and the ground truth
+    not checked up front (each run refused the lag itself, after the work began; the
+    evaluation refused the ground truth after every run)."""
     bad = tmp_path / "bad"
     shutil.copytree(logs[0], bad)
     text = (bad / "flight.yaml").read_text()
@@ -327,8 +330,11 @@ def test_smooth_many_reads_every_log_before_any_work(logs, tmp_path, capsys):
     _one_line(capsys.readouterr().err, "given twice")
     # what each run would refuse or find, found first: a lag under two frame intervals,
     # ground truth on another clock
+    from cdtm_graph.cli import smooth_many
+    monkeypatch.setattr(smooth_many, "smooth_task",
+                        lambda task: pytest.fail(f"a run began: {task.log}"))
     assert main(["smooth-many", str(logs[1]), "--out", str(out), "--mode", "incremental",
-                 "--lag-s", "0.5"]) == 1
+                 "--lag-s", "0.5", "--workers", "1"]) == 1
     _one_line(capsys.readouterr().err, "holds fewer than two frames")
     clock = tmp_path / "clock"
     shutil.copytree(logs[0], clock)
@@ -336,7 +342,8 @@ def test_smooth_many_reads_every_log_before_any_work(logs, tmp_path, capsys):
     (clock / "groundtruth.csv").write_text("\n".join(
         row if row.startswith("#") or not row else
         f"{int(row.split(',', 1)[0]) + 10**12},{row.split(',', 1)[1]}" for row in rows) + "\n")
-    assert main(["smooth-many", str(logs[1]), str(clock), "--out", str(out)]) == 1
+    assert main(["smooth-many", str(logs[1]), str(clock), "--out", str(out), "--workers",
+                 "1"]) == 1
     _one_line(capsys.readouterr().err, "groundtruth.csv: its times cover none of the frames")
     assert not out.exists()
 
