@@ -91,6 +91,9 @@ class Code(enum.StrEnum):
                          "their covariance")
     OVERCONFIDENT = ("overconfident", Kind.RUN,
                      "against ground truth, the covariances are too small")
+    INITIAL_POSITION = ("initial_position", Kind.RUN,
+                        "flight.yaml's initial position contradicts the data, and the first "
+                        "frames lean on it")
     IMU_BIAS = ("imu_bias", Kind.RUN,
                 "an IMU bias the run estimates lies beyond flight.yaml's prior")
     IMU_NOISE = ("imu_noise", Kind.RUN,
@@ -114,6 +117,12 @@ class Code(enum.StrEnum):
                               "a correction that another fault explains as well: the map's "
                               "shared error, the residuals' scatter, or a fault the verdict "
                               "names")
+    INITIAL_POSITION_NOT_HELD = ("initial_position_not_held", Kind.NOTE,
+                                 "flight.yaml's initial position contradicts the data, which "
+                                 "hold the first frame without it")
+    INITIAL_POSITION_CONFOUNDED = ("initial_position_confounded", Kind.NOTE,
+                                   "flight.yaml's initial position contradicts the data, "
+                                   "whose own fault the verdict names")
     MAP_ERROR_GROWN = ("map_error_grown", Kind.NOTE,
                        "the tracks show the DTM's heights worse than its stated sigma_h: "
                        "the run used theirs")

@@ -173,6 +173,89 @@ class BiasPrior:
         return out[0], out[1]
 
 
+@dataclass(frozen=True)
+class PriorConflict:
+    """flight.yaml's position prior against the first frame's estimate
+    (:meth:`PositionPrior.conflict`).
+
+    Attributes:
+        nis: the squared distance of the prior's value from where the rest of the data
+            put the first frame, in the covariance the two should differ by
+            (chi-square(``dof``) when both are as stated).
+        dof: the directions the data tell (those the prior alone holds are left out).
+        distance_m: how far the rest of the data put the first frame from the prior.
+        pull_m: how far the prior moved the first frame's estimate from there.
+        pull_nees: that move in the run's covariance of the frame (its NEES, were the
+            prior's value wrong).
+    """
+
+    nis: float
+    dof: int
+    distance_m: float
+    pull_m: float
+    pull_nees: float
+
+
+#: A direction the data tell less than this share of (one minus the prior's share of the
+#: frame's information) is the prior's alone: it cannot be tested there.
+_UNTOLD_SHARE = 1e-3
+
+
+@dataclass(frozen=True)
+class PositionPrior:
+    """flight.yaml's prior on the first frame's position (``initial_state.position_m``
+    within ``sigma_position_m``, each axis). The verdict holds the first frame's estimate
+    against it (:meth:`conflict`, the verdict's ``initial_position``), as it holds the
+    bias estimates against theirs (:class:`BiasPrior`)."""
+
+    position_m: np.ndarray
+    sigma_m: float
+
+    @classmethod
+    def of(cls, config: FlightConfig) -> PositionPrior:
+        init = config.initial_state
+        return cls(np.asarray(init.position_m, float), float(init.sigma_position_m))
+
+    def conflict(self, world_T_body: np.ndarray, pose_cov: np.ndarray,
+                 offset_cov_world: np.ndarray) -> PriorConflict | None:
+        """The prior against the first frame's estimate ``world_T_body`` (4, 4), whose
+        marginal ``pose_cov`` (6, 6, body frame) holds the map's offset
+        ``offset_cov_world`` (3, 3), as :class:`MapOffset` adds it. None when there is
+        nothing to test (no sigma, no covariance, or the prior alone holds the frame).
+
+        Why it works without the data's own fix: in the linear-Gaussian model the posterior
+        ``x`` of a prior ``N(mu, Sp)`` and data fixing ``x_d`` is ``mu + (I - A)(x_d - mu)``
+        with ``A = P Sp^-1`` (P the posterior covariance), so ``r = x - mu`` gives back
+        ``x_d - mu = (I - A)^-1 r``; ``r`` has covariance ``Sp - P`` (plus the map's
+        offset, which ``x_d`` carries and ``mu`` does not, through ``I - A``), and the
+        prior moved the estimate by ``-A (I - A)^-1 r`` from the data's fix. Where the data
+        dominate (``A`` ~ 0) a far prior moves nothing; where the prior holds the frame
+        (``A`` near 1) the data barely tell it and a small ``r`` is a large conflict.
+        """
+        sigma = self.sigma_m
+        if not (sigma > 0.0 and math.isfinite(sigma)) or not np.all(np.isfinite(pose_cov)):
+            return None
+        R = world_T_body[:3, :3]
+        run_cov = R @ pose_cov[3:, 3:] @ R.T
+        offset = np.asarray(offset_cov_world, float)
+        # the posterior of the frame without the map's offset, in the prior's units
+        share, V = np.linalg.eigh((run_cov - offset + (run_cov - offset).T) / (2 * sigma**2))
+        share = np.clip(share, 0.0, 1.0)
+        told = 1.0 - share > _UNTOLD_SHARE
+        if not told.any():
+            return None
+        V, share = V[:, told], share[told]
+        y = V.T @ (world_T_body[:3, 3] - self.position_m) / sigma
+        D = np.diag(1.0 - share)
+        S = D + D @ V.T @ (offset / sigma**2) @ V @ D
+        nis = float(y @ np.linalg.solve(S, y))
+        pull = -sigma * V @ (share / (1.0 - share) * y)
+        return PriorConflict(nis=nis, dof=int(told.sum()),
+                             distance_m=float(sigma * np.linalg.norm(y / (1.0 - share))),
+                             pull_m=float(np.linalg.norm(pull)),
+                             pull_nees=float(pull @ np.linalg.solve(run_cov, pull)))
+
+
 class Solver(enum.Enum):
     """The solver that produced a result."""
 
@@ -551,6 +634,8 @@ class SmootherResult:
             ``covariances``.
         bias_prior: flight.yaml's IMU bias prior, which the verdict holds the bias
             estimates against (``None``: not checked).
+        position_prior: flight.yaml's prior on the first frame's position, which the
+            verdict holds that frame's estimate against (``None``: not checked).
         stages: what each defence left out (features, by reason) and its time: the
             per-frame stages in order, then the work charged apart (the track tests'
             rounds, the fix search's verdicts); they add up to ``counts.rejected_per_frame``
@@ -579,6 +664,7 @@ class SmootherResult:
     calibration_check: CalibrationCheck | None = None
     map_offset: MapOffset = field(default_factory=MapOffset)
     bias_prior: BiasPrior | None = None
+    position_prior: PositionPrior | None = None
     stages: tuple[dict, ...] = ()
     convergence_check: ConvergenceCheck | None = None
     map_error: MapErrorEstimate | None = None

@@ -28,6 +28,7 @@ from cdtm_graph.imu import initial_bias
 from cdtm_graph.results import (
     BroadMapError,
     GraphCounts,
+    PositionPrior,
     RandomWalkEstimate,
     SmootherResult,
     Solver,
@@ -623,6 +624,39 @@ def test_a_calibration_finding_beside_a_rival_fault_is_a_note():
     offset = np.full(result.counts.n_frames, 5.0)  # NEES 25 everywhere: confidently wrong
     faulty = assess(result, _errors_of(result, offset))
     assert sorted(_codes(faulty)) == ["calibration_suspect", "confidently_wrong"]
+
+
+@pytest.mark.parametrize("sigma_m, off_m, outliers, code, note", [
+    (1.2, 3.0, False, "initial_position", None),
+    (1.2, 3.0, True, None, "initial_position_confounded"),
+    (50.0, 250.0, False, None, "initial_position_not_held"),
+    (1.2, 1.0, False, None, None),
+], ids=["held", "beside_outliers", "not_held", "honest"])
+def test_a_prior_the_data_contradict_is_a_reason_only_where_it_holds_the_frame(
+        sigma_m, off_m, outliers, code, note):
+    """``initial_position``: the first frame's estimate (1 m sigma each axis) ``off_m`` from
+    flight.yaml's prior. At 1.2 m the prior weighs 69% of the frame: 3 m off is 4.5 sigma
+    from the data's fix (9.8 m off) and moved the frame 6.8 m: a reason, or beside
+    ``outliers`` (the data may be off) a note; 250 m off a 50 m prior is 5 sigma but
+    moved the frame 0.1 m: a note; 1 m off at 1.2 m is nothing. Mutations: the rivals'
+    test switched off -> ``beside_outliers`` fails; the pull's test switched off ->
+    ``not_held`` fails."""
+    result = _result()
+    x0 = result.estimate.world_T_body[0, :3, 3]
+    result = dataclasses.replace(result, position_prior=PositionPrior(
+        x0 - np.array([off_m, 0.0, 0.0]), sigma_m))
+    if outliers:
+        per_frame = np.where(np.arange(result.counts.n_frames) >= 1, 3, 0)  # 2%: outliers
+        result = dataclasses.replace(result, counts=dataclasses.replace(
+            result.counts, n_outliers=int(per_frame.sum()), outliers_per_frame=per_frame))
+    verdict = assess(result)
+    assert ("initial_position" in _codes(verdict)) is (code is not None), verdict.lines()
+    assert [n.split(":")[0] for n in verdict.notes if n.startswith("initial_position")] == (
+        [note] if note else [])
+    if code:
+        reason = next(r for r in verdict.reasons if r.code == code)
+        assert (reason.first_frame, reason.last_frame) == (0, 0)
+        assert all(figure in reason.message for figure in ("4.5 sigma", "9.8 m", "6.82 m"))
 
 
 def test_a_calibration_part_the_flight_did_not_tell_is_a_note():
