@@ -92,6 +92,11 @@ def smooth_and_evaluate(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
     report["self_checks"] = verdict.self_checks.to_dict()
     if result.calibration_check is not None:
         report["calibration_check"] = result.calibration_check.to_dict()
+    if result.position_prior is not None:
+        conflict = result.initial_position_conflict()
+        report["initial_position"] = {
+            "prior": result.position_prior.to_dict(),
+            "conflict": None if conflict is None else conflict.to_dict()}
     if result.convergence_check is not None:
         report["convergence_check"] = result.convergence_check.to_dict()
     if result.map_error is not None:

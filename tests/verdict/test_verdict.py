@@ -604,6 +604,34 @@ def test_the_calibration_check_is_a_reason_or_a_note(cost_drop, position_nees, c
     assert named == ([note] if note else [])
 
 
+@pytest.mark.parametrize("wald, named", [(1e3, True), (20.0, False)])
+def test_a_calibration_fault_that_drove_features_out_is_named_for_them(wald, named):
+    """A specific correction the positions do not feel (``calibration_held`` alone) beside
+    features left out as off the map over the whole flight (20 of 150 a frame: a
+    ``map_mismatch`` reason): the calibration is named and the rejections are notes that
+    say so (``late20ms``: a 20 ms offset left 3925 features out, W 1948-2101, 2026-11-28);
+    a correction the map's shared error explains as well (W 20) leaves ``map_mismatch``
+    named and the calibration a note (``calibration_held``). Mutation: the
+    ``held_specific`` branch switched off -> ``map_mismatch`` named, no
+    ``calibration_suspect``: fails."""
+    k = 30
+    mismatch = np.full(k, 20)
+    mismatch[0] = 0
+    result = dataclasses.replace(
+        _result(k, features=130, rejected={"map_mismatch": mismatch}),
+        calibration_check=_check(100.0, 1.0, True, wald))
+    verdict = assess(result)
+    if named:
+        assert _codes(verdict) == ["calibration_suspect"], verdict.lines()
+        assert "left features out (map_mismatch)" in verdict.reasons[0].message
+        explained = [n for n in verdict.notes if n.startswith("map_mismatch: frames 0-29")]
+        assert len(explained) == 1 and "as the calibration named drives" in explained[0]
+    else:
+        assert _codes(verdict) == ["map_mismatch"], verdict.lines()
+        assert [n.split(":")[0] for n in verdict.notes if n.startswith("calibration")] == [
+            "calibration_held"]
+
+
 def test_a_calibration_finding_beside_a_rival_fault_is_a_note():
     """Issue 21: a suspect calibration beside a reason that moves the side solve alike
     (here ``outliers``: wrong matches) is a note ``calibration_confounded`` naming it, the
@@ -626,29 +654,33 @@ def test_a_calibration_finding_beside_a_rival_fault_is_a_note():
     assert sorted(_codes(faulty)) == ["calibration_suspect", "confidently_wrong"]
 
 
-@pytest.mark.parametrize("sigma_m, off_m, outliers, code, note", [
-    (1.2, 3.0, False, "initial_position", None),
-    (1.2, 3.0, True, None, "initial_position_confounded"),
-    (50.0, 250.0, False, None, "initial_position_not_held"),
-    (1.2, 1.0, False, None, None),
-], ids=["held", "beside_outliers", "not_held", "honest"])
+@pytest.mark.parametrize("sigma_m, off_m, beside, code, note", [
+    (1.2, 3.0, None, "initial_position", None),
+    (1.2, 3.0, "outliers", None, "initial_position_confounded"),
+    (1.2, 3.0, "calibration", None, "initial_position_confounded"),
+    (50.0, 250.0, None, None, "initial_position_not_held"),
+    (1.2, 1.0, None, None, None),
+], ids=["held", "beside_outliers", "beside_calibration", "not_held", "honest"])
 def test_a_prior_the_data_contradict_is_a_reason_only_where_it_holds_the_frame(
-        sigma_m, off_m, outliers, code, note):
+        sigma_m, off_m, beside, code, note):
     """``initial_position``: the first frame's estimate (1 m sigma each axis) ``off_m`` from
     flight.yaml's prior. At 1.2 m the prior weighs 69% of the frame: 3 m off is 4.5 sigma
     from the data's fix (9.8 m off) and moved the frame 6.8 m: a reason, or beside
-    ``outliers`` (the data may be off) a note; 250 m off a 50 m prior is 5 sigma but
-    moved the frame 0.1 m: a note; 1 m off at 1.2 m is nothing. Mutations: the rivals'
-    test switched off -> ``beside_outliers`` fails; the pull's test switched off ->
-    ``not_held`` fails."""
+    ``outliers`` (the data may be off) or ``calibration_suspect`` a note; 250 m off a 50 m
+    prior is 5 sigma but moved the frame 0.1 m: a note; 1 m off at 1.2 m is nothing.
+    Mutations: the rivals' test switched off -> ``beside_outliers`` fails; the prior
+    judged before the calibration check (as first merged) -> ``beside_calibration``
+    fails; the pull's test switched off -> ``not_held`` fails."""
     result = _result()
     x0 = result.estimate.world_T_body[0, :3, 3]
     result = dataclasses.replace(result, position_prior=PositionPrior(
         x0 - np.array([off_m, 0.0, 0.0]), sigma_m))
-    if outliers:
+    if beside == "outliers":
         per_frame = np.where(np.arange(result.counts.n_frames) >= 1, 3, 0)  # 2%: outliers
         result = dataclasses.replace(result, counts=dataclasses.replace(
             result.counts, n_outliers=int(per_frame.sum()), outliers_per_frame=per_frame))
+    if beside == "calibration":
+        result = dataclasses.replace(result, calibration_check=_check(100.0, 50.0))
     verdict = assess(result)
     assert ("initial_position" in _codes(verdict)) is (code is not None), verdict.lines()
     assert [n.split(":")[0] for n in verdict.notes if n.startswith("initial_position")] == (
