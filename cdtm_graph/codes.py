@@ -91,6 +91,9 @@ class Code(enum.StrEnum):
                          "their covariance")
     OVERCONFIDENT = ("overconfident", Kind.RUN,
                      "against ground truth, the covariances are too small")
+    MAP_ERROR = ("map_error", Kind.RUN,
+                 "the tracks show the DTM's heights off by more than the run may grow its "
+                 "stated sigma_h to")
     INITIAL_POSITION = ("initial_position", Kind.RUN,
                         "flight.yaml's initial position contradicts the data, and the first "
                         "frames lean on it")

@@ -452,6 +452,9 @@ class MapErrorEstimate:
             it exceeded it beyond chance (the run then made again with it), or the bound.
         bound_m: the most a run is grown to (``MapErrorSettings.max_ratio`` times the
             stated).
+        first_estimated_m: the first run's reading, when it lay beyond the bound and the
+            run was made again at the bound (``estimated_m`` is then the second run's);
+            NaN otherwise.
     """
 
     stated_m: float
@@ -459,6 +462,7 @@ class MapErrorEstimate:
     n_tracks: int
     used_m: float
     bound_m: float = float("inf")
+    first_estimated_m: float = float("nan")
 
     @property
     def grown(self) -> bool:
@@ -473,7 +477,9 @@ class MapErrorEstimate:
         return {"stated_m": self.stated_m,
                 "estimated_m": None if math.isnan(self.estimated_m) else self.estimated_m,
                 "n_tracks": self.n_tracks, "used_m": self.used_m, "grown": self.grown,
-                "bound_m": self.bound_m}
+                "bound_m": self.bound_m,
+                "first_estimated_m": (None if math.isnan(self.first_estimated_m)
+                                      else self.first_estimated_m)}
 
 
 @dataclass(frozen=True)

@@ -217,6 +217,14 @@ def with_map_offset(dtm: Dtm, offset_enu_m: tuple[float, float, float]) -> Dtm:
                sigma_h_m=dtm.sigma_h_m)
 
 
+def with_dtm_noise(dtm: Dtm, sigma_m: float, rng: np.random.Generator) -> Dtm:
+    """The log's DTM with independent noise of ``sigma_m`` on every post: a map much worse
+    than it states (a coarse or noisy product, heights from another survey). Between the
+    posts the bilinear surface averages it: about 2/3 of ``sigma_m`` at a random point."""
+    return Dtm(dtm.elevation + sigma_m * rng.standard_normal(dtm.elevation.shape),
+               dtm.x0, dtm.y0, dtm.dx, dtm.dy, sigma_h_m=dtm.sigma_h_m)
+
+
 def with_wrong_matches(log: FlightLog, fraction: float, rng: np.random.Generator
                        ) -> tuple[FlightLog, np.ndarray]:
     """A fraction of the observations moved to a uniformly random pixel of the image: the

@@ -665,6 +665,7 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
                  for code, message, a, b in _bias_check(result, f.t_s, settings)]
     run_wide += [reason(code, message, 0, last)
                  for code, message in _noise_check(imu_noise, settings)]
+    run_wide += [reason(code, message, 0, last) for code, message in _map_error_check(result)]
     run_wide += [reason(code, message, 0, last) for code, message in _random_walk_check(result)]
 
     stretches: list[Reason] = []
@@ -763,11 +764,38 @@ def _map_error_notes(result: SmootherResult) -> list[str]:
     me = result.map_error
     if me is None or not me.grown:
         return []
+    first = (f"; the first run read {me.first_estimated_m:.2f} m, beyond the "
+             f"{me.bound_m:.2f} m a run grows it to, and the run made again at that bound "
+             "was kept (a map that much worse than stated may hold more than sigma_h "
+             "models: check it)" if np.isfinite(me.first_estimated_m) else "")
     return [f"{Code.MAP_ERROR_GROWN}: the tracks show the DTM's heights off by "
             f"{me.estimated_m:.2f} m rms ({me.n_tracks} well-triangulated tracks), beyond "
             f"its stated sigma_h of {me.stated_m:.2f} m (flight.yaml dtm.sigma_h_m, or the "
             f"model of its spacing): the run was made with {me.used_m:.2f} m, its "
-            "covariances hold it"]
+            f"covariances hold it{first}"]
+
+
+def _map_error_check(result: SmootherResult) -> list[tuple[Code, str]]:
+    """``map_error`` (a reason): the tracks read the DTM's heights off by more than the
+    run may grow its stated sigma_h to (``MapErrorSettings.max_ratio``), in the run kept:
+    the first run read beyond, and so did the run made again at the bound, so the run kept
+    the stated sigma_h and its covariances hold none of it (10 m of noise on the posts of
+    a map stating 2.4 m: 8.3-8.8 m read, `map_mismatch` and `wrong_fix` named, the map
+    not, 2026-11-28). A map grown within the bound is a note (``map_error_grown``), as is
+    one held at the bound after a first reading beyond it: a first run the stated sigma_h
+    drove off the ground reads beyond it too, and comes back (docs/design.md, waves of 5
+    m). The advice is the user's map: its accuracy as flight.yaml states it, or the map
+    itself (a datum, another place)."""
+    me = result.map_error
+    if me is None or not me.beyond:
+        return []
+    return [(Code.MAP_ERROR, (
+        f"the tracks show the DTM's heights off by {me.estimated_m:.2f} m rms "
+        f"({me.n_tracks} well-triangulated tracks), beyond {me.bound_m / me.stated_m:g}x its "
+        f"stated sigma_h of {me.stated_m:.2f} m (flight.yaml dtm.sigma_h_m, or the model of "
+        "its spacing), the most a run grows it to, and so they did at that bound: the run "
+        f"was made with the stated {me.used_m:.2f} m, its covariances hold none of the "
+        "map's error; state the map's accuracy in dtm.sigma_h_m, or check the map"))]
 
 
 def _walk_figures(result: SmootherResult) -> str:
@@ -839,7 +867,7 @@ def _bias_limit(settings: VerdictSettings) -> float:
 WALK_CONFOUNDERS = frozenset({
     Code.IMU_BIAS, Code.CALIBRATION_SUSPECT, Code.OUTLIERS, Code.RESIDUAL_CHI2, Code.MISFIT,
     Code.RESIDUAL_MISFIT, Code.INNOVATION_NIS, Code.HEAVY_REJECTION, Code.MAP_MISMATCH,
-    Code.WRONG_FIX, Code.CLUTTER})
+    Code.MAP_ERROR, Code.WRONG_FIX, Code.CLUTTER})
 
 
 def walk_confounders(result: SmootherResult, settings: VerdictSettings | None = None
@@ -888,8 +916,8 @@ def _bias_check(result: SmootherResult, t_s: np.ndarray, settings: VerdictSettin
 #: exact, put the first frame 4.1-5.6 sigma from it in 4 of 9 runs (60 frames, a 2 m
 #: prior; every run named ``map_mismatch``).
 INITIAL_POSITION_RIVALS = frozenset({
-    Code.MAP_MISMATCH, Code.CLUTTER, Code.WRONG_FIX, Code.HEAVY_REJECTION, Code.OUTLIERS,
-    Code.MISFIT, Code.RESIDUAL_CHI2, Code.RESIDUAL_MISFIT, Code.INNOVATION_NIS,
+    Code.MAP_MISMATCH, Code.MAP_ERROR, Code.CLUTTER, Code.WRONG_FIX, Code.HEAVY_REJECTION,
+    Code.OUTLIERS, Code.MISFIT, Code.RESIDUAL_CHI2, Code.RESIDUAL_MISFIT, Code.INNOVATION_NIS,
     Code.CALIBRATION_SUSPECT})
 
 
@@ -985,7 +1013,7 @@ def _calibration_notes(result: SmootherResult) -> list[str]:
 #: ``broad_map_error``: a 1% focal error reads 20-40 there), so that a real fault is still
 #: named.
 CALIBRATION_RIVALS = frozenset({
-    Code.MAP_MISMATCH, Code.CLUTTER, Code.WRONG_FIX,
+    Code.MAP_MISMATCH, Code.MAP_ERROR, Code.CLUTTER, Code.WRONG_FIX,
     Code.HEAVY_REJECTION, Code.OUTLIERS,
     Code.MISFIT, Code.RESIDUAL_CHI2, Code.RESIDUAL_MISFIT, Code.INNOVATION_NIS,
     Code.IMU_GAP, Code.NO_FEATURES, Code.OFF_DTM, Code.FEW_FEATURES, Code.FLAT_TERRAIN,

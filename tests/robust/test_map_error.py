@@ -91,6 +91,33 @@ def test_a_map_worse_than_stated_grows_the_covariance():
 
 
 @pytest.mark.slow
+def test_a_map_far_worse_than_stated_is_named(seed):
+    """10 m of noise on every post of a map that states 2.4 m (30 frames, batch): on seed
+    + 2 the tracks read 8.8 m, beyond the 3x a run grows sigma_h to, and again at that
+    bound: the run keeps 2.4 m. It was `failed` (``wrong_fix``, ``map_mismatch``) with
+    the map's own error never named; now ``map_error`` too (2026-11-28). On seed, the
+    run made again at the bound reads 6.6 m and is kept there: a note that names the
+    first reading (7.8 m), `trusted` at ANEES 5.7 (docs/verdict.md: the gap left).
+    Mutation: the rule switched off (``_map_error_check`` returning ``[]``) -> fails."""
+    from cdtm_graph.sim.faults import with_dtm_noise
+
+    runs = {}
+    for s in (seed, seed + 2):
+        log, dtm = SCENARIOS["clean"].flight(dataclasses.replace(BASE, frames=30, seed=s))
+        out = smooth_and_evaluate(log, with_dtm_noise(dtm, 10.0, np.random.default_rng(s)),
+                                  SmootherSettings())
+        runs[s] = (out.result.map_error, assess(out.result))
+    me, verdict = runs[seed + 2]
+    assert me is not None and me.beyond and me.used_m == me.stated_m
+    assert "map_error" in [r.code for r in verdict.reasons], verdict.lines()
+    me, verdict = runs[seed]
+    assert me is not None and me.used_m == me.bound_m and me.first_estimated_m > me.bound_m
+    assert "map_error" not in [r.code for r in verdict.reasons]
+    assert any(n.startswith("map_error_grown") and "the first run read" in n
+               for n in verdict.notes)
+
+
+@pytest.mark.slow
 def test_clean_flights_keep_their_stated_map_error(clean_flights):
     """The 20 clean 30-frame flights the verdict tests read: none grown (their runs are
     then bit for bit what they were without the mechanism). Catches a margin without the

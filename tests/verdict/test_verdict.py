@@ -691,6 +691,32 @@ def test_a_prior_the_data_contradict_is_a_reason_only_where_it_holds_the_frame(
         assert all(figure in reason.message for figure in ("4.5 sigma", "9.8 m", "6.82 m"))
 
 
+@pytest.mark.parametrize("estimated, used, first, code, note", [
+    (3.5, 3.5, float("nan"), None, "map_error_grown"),
+    (6.6, 7.2, 7.8, None, "map_error_grown"),
+    (8.3, 2.4, float("nan"), "map_error", None),
+], ids=["grown", "held_at_the_bound", "beyond"])
+def test_a_map_read_beyond_what_a_run_grows_it_to_is_a_reason(estimated, used, first, code,
+                                                              note):
+    """``map_error_grown`` (a note: the covariances hold the grown sigma_h; held at the
+    bound after a first reading beyond it, the note says so) against ``map_error`` (a
+    reason): the tracks read the map beyond 3x its stated 2.4 m in the run kept, which
+    then holds the stated sigma_h. Mutation: the rule switched off -> ``beyond`` is
+    trusted: fails."""
+    from cdtm_graph.results import MapErrorEstimate
+
+    result = dataclasses.replace(_result(), map_error=MapErrorEstimate(
+        2.4, estimated, 300, used, 7.2, first))
+    verdict = assess(result)
+    assert _codes(verdict) == ([code] if code else []), verdict.lines()
+    assert [n.split(":")[0] for n in verdict.notes if n.startswith("map_error")] == (
+        [note] if note else [])
+    if code:
+        assert f"{estimated:.2f} m rms" in verdict.reasons[0].message
+    if first == first:  # held at the bound: the first reading named
+        assert any(f"the first run read {first:.2f} m" in n for n in verdict.notes)
+
+
 def test_a_calibration_part_the_flight_did_not_tell_is_a_note():
     """``calibration_unobservable``: a part estimated online that kept its prior's sigma is
     a note, not a reason. Mutation: the note switched off -> fails."""
