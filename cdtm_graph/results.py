@@ -453,8 +453,11 @@ class MapErrorEstimate:
         bound_m: the most a run is grown to (``MapErrorSettings.max_ratio`` times the
             stated).
         first_estimated_m: the first run's reading, when it lay beyond the bound and the
-            run was made again at the bound (``estimated_m`` is then the second run's);
-            NaN otherwise.
+            run made again at the bound read within it and was kept (``estimated_m`` is
+            then that run's); NaN otherwise.
+        bound_estimated_m: the reading of the run made again at the bound, when the
+            first run's lay beyond it and that run was not kept (beyond again, or NaN:
+            too few tracks); NaN otherwise.
     """
 
     stated_m: float
@@ -463,6 +466,7 @@ class MapErrorEstimate:
     used_m: float
     bound_m: float = float("inf")
     first_estimated_m: float = float("nan")
+    bound_estimated_m: float = float("nan")
 
     @property
     def grown(self) -> bool:
@@ -479,7 +483,9 @@ class MapErrorEstimate:
                 "n_tracks": self.n_tracks, "used_m": self.used_m, "grown": self.grown,
                 "bound_m": self.bound_m,
                 "first_estimated_m": (None if math.isnan(self.first_estimated_m)
-                                      else self.first_estimated_m)}
+                                      else self.first_estimated_m),
+                "bound_estimated_m": (None if math.isnan(self.bound_estimated_m)
+                                      else self.bound_estimated_m)}
 
 
 @dataclass(frozen=True)

@@ -166,7 +166,7 @@ class CalibrationCheck:
     time_s: float
     n_frames: int = 0
     residual_scatter: float = 1.0
-    wald: float = float("inf")
+    wald: float = float("nan")
 
     @property
     def significant(self) -> bool:

@@ -164,6 +164,8 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
                 flight, run = capped, again
                 map_error = replace(second, used_m=map_error.bound_m,
                                     first_estimated_m=map_error.estimated_m)
+            else:
+                map_error = replace(map_error, bound_estimated_m=second.estimated_m)
     walks, calibration = None, None
     if settings.graph.imu_random_walk is not None and run.checked:
         # the IMU biases wander more than flight.yaml says: the run again with the walks

@@ -681,12 +681,15 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
                 stretches.append(reason(test.code, test.describe(a, b), a, b))
     stretches.sort(key=lambda r: (r.first_frame, r.last_frame, r.code))
     named = {r.code for r in run_wide + stretches}
-    calibration_reasons, calibration_notes, explained_codes = _calibration_check(result, named)
+    whole_flight = {r.code for r in run_wide if (r.first_frame, r.last_frame) == (0, last)}
+    calibration_reasons, calibration_notes, explained_codes = _calibration_check(
+        result, named, whole_flight)
     if calibration_reasons:
-        calibration_at -= sum(r.code in explained_codes for r in run_wide[:calibration_at])
-        run_wide, explained_run = _explained_by_calibration(run_wide, explained_codes)
-        stretches, explained = _explained_by_calibration(stretches, explained_codes)
-        calibration_notes += explained_run + explained
+        # (none of the codes it explains sits before its place: nothing to move)
+        _, explained = _explained_by_calibration(run_wide + stretches, explained_codes)
+        run_wide = [r for r in run_wide if r.code not in explained_codes]
+        stretches = [r for r in stretches if r.code not in explained_codes]
+        calibration_notes += explained
     # (the prior judged after the calibration: a calibration fault moves the first fix)
     prior_reasons, prior_notes = _initial_position_check(
         result, {r.code for r in run_wide + stretches} | {c for c, _ in calibration_reasons},
@@ -789,13 +792,16 @@ def _map_error_check(result: SmootherResult) -> list[tuple[Code, str]]:
     me = result.map_error
     if me is None or not me.beyond:
         return []
+    again = (f"and at that bound they read {me.bound_estimated_m:.2f} m"
+             if np.isfinite(me.bound_estimated_m)
+             else "and a run at that bound could not read it (too few tracks)")
     return [(Code.MAP_ERROR, (
         f"the tracks show the DTM's heights off by {me.estimated_m:.2f} m rms "
         f"({me.n_tracks} well-triangulated tracks), beyond {me.bound_m / me.stated_m:g}x its "
         f"stated sigma_h of {me.stated_m:.2f} m (flight.yaml dtm.sigma_h_m, or the model of "
-        "its spacing), the most a run grows it to, and so they did at that bound: the run "
-        f"was made with the stated {me.used_m:.2f} m, its covariances hold none of the "
-        "map's error; state the map's accuracy in dtm.sigma_h_m, or check the map"))]
+        f"its spacing), the most a run grows it to, {again}: the run was made with the "
+        f"stated {me.used_m:.2f} m, its covariances hold none of the map's error; state the "
+        "map's accuracy in dtm.sigma_h_m, or check the map"))]
 
 
 def _walk_figures(result: SmootherResult) -> str:
@@ -1041,15 +1047,20 @@ DRIVEN_OUT = frozenset({Code.MAP_MISMATCH, Code.HEAVY_REJECTION})
 def _explained_by_calibration(reasons: list[Reason], codes: frozenset[str]
                               ) -> tuple[list[Reason], list[str]]:
     """``reasons`` without those of ``codes`` (of :data:`CALIBRATION_CONSEQUENCES`), which
-    become notes, when the verdict names the calibration."""
+    become one note per code, when the verdict names the calibration: the frames of each
+    of its reasons, what the calibration does, and the first reason's own words."""
     kept = [r for r in reasons if r.code not in codes]
-    notes = [f"{r.code}: frames {r.first_frame}-{r.last_frame}: "
-             f"{CALIBRATION_CONSEQUENCES[r.code]}: not named as a reason"
-             for r in reasons if r.code in codes]
+    notes = []
+    for code in sorted({r.code for r in reasons if r.code in codes}):
+        mine = [r for r in reasons if r.code == code]
+        frames = ", ".join(f"{r.first_frame}-{r.last_frame}" for r in mine)
+        notes.append(f"{code}: frames {frames}: {CALIBRATION_CONSEQUENCES[code]}: not named "
+                     f"as a reason ({mine[0].message})")
     return kept, notes
 
 
-def _calibration_check(result: SmootherResult, named: set[str]
+def _calibration_check(result: SmootherResult, named: set[str],
+                       whole_flight: set[str] | frozenset[str] = frozenset()
                        ) -> tuple[list[tuple[Code, str]], list[str], frozenset[str]]:
     """``calibration_suspect`` (a reason): the run held flight.yaml's calibration, and a
     batch side solve that estimates it finds it wrong beyond the run's covariance, beyond
@@ -1060,17 +1071,20 @@ def _calibration_check(result: SmootherResult, named: set[str]
     correction the positions do not feel), ``calibration_unresolved`` (a side solve that
     tells the calibration poorly: the flight cannot check it).
 
-    A specific correction the positions do not feel is still named when the verdict names
-    rejections it drives (:data:`DRIVEN_OUT`): the features left out are the fault's
-    doing, not the map's (``late20ms``: the time offset at -54 sigma, W 1337-1945, beside
-    ``map_mismatch`` over the whole flight; on flights whose calibration is exact W stays
-    below 17.5 on every error model measured, docs/verdict.md). Returns the reasons, the
-    notes, and the codes whose reasons the calibration explains
+    A specific correction (Wald beyond ``SUSPECT_WALD``) beside rejections over the whole
+    flight that a calibration fault drives (:data:`DRIVEN_OUT`, ``whole_flight``: the codes
+    of the run-wide reasons) takes them as its doing, not as rivals: on flights whose
+    calibration is exact W stays below 17.5 on every error model measured (docs/
+    verdict.md), and a fault of the map over a stretch stays a rival. Such a correction is
+    named even when the positions do not feel it (``late20ms``: the time offset at -54
+    sigma, W 1947-2101, beside ``map_mismatch`` over the whole flight). Returns the
+    reasons, the notes, and the codes whose reasons the calibration explains
     (:func:`_explained_by_calibration`)."""
     check = result.calibration_check
     if check is None or not check.significant:
         return [], [], frozenset()
-    rivals = sorted(CALIBRATION_RIVALS & named)
+    driven = frozenset(DRIVEN_OUT & set(whole_flight)) if check.specific else frozenset()
+    rivals = sorted((CALIBRATION_RIVALS & named) - driven)
     advice = "smooth in batch mode with the calibration estimated (--calibration online) " \
              "or correct flight.yaml"
     if check.suspect and rivals:
@@ -1081,25 +1095,26 @@ def _calibration_check(result: SmootherResult, named: set[str]
         return [], [f"calibration_confounded: {check.describe()}; but the map's shared error "
                     "and the residuals' scatter explain it as well: not named as a reason; "
                     "held as flight.yaml writes it"], frozenset()
+    out = (f"; the run left features out over the whole flight ({', '.join(sorted(driven))})"
+           " as so wrong a calibration drives them out" if driven else "")
     if check.suspect:
         return [(Code.CALIBRATION_SUSPECT, (
             f"the run held flight.yaml's camera calibration, which the flight contradicts: "
-            f"{check.describe()}; {advice}"))], [], frozenset({Code.BROAD_MAP_ERROR})
-    driven = sorted(DRIVEN_OUT & named)
-    if check.held_specific and driven:
+            f"{check.describe()}{out}; {advice}"))], [], frozenset({Code.BROAD_MAP_ERROR}) | driven
+    if check.held_specific and driven and not rivals:
         return [(Code.CALIBRATION_SUSPECT, (
             f"the run held flight.yaml's camera calibration, which the flight contradicts: "
             f"{check.describe()}; the positions it kept lie within their covariance of that "
-            f"solution, but the run left features out ({', '.join(driven)}) as so wrong a "
-            f"calibration drives them out: {advice}"))], [], frozenset(
-                {Code.BROAD_MAP_ERROR} | DRIVEN_OUT)
+            f"solution, but{out[1:]}; {advice}"))], [], frozenset({Code.BROAD_MAP_ERROR}) | driven
     if check.unresolved:
         return [], [f"calibration_unresolved: {check.describe()}; but the side solve tells "
                     "the calibration poorly (before the first turn the focal scale trades with "
                     "the height): this flight cannot check its calibration; held as "
                     "flight.yaml writes it"], frozenset()
-    return [], [f"calibration_held: {check.describe()}: significant, but within the run's "
-                "covariance; held as flight.yaml writes it"], frozenset()
+    specific = " and specific" if check.specific else ""
+    return [], [f"calibration_held: {check.describe()}: significant{specific}, but within the "
+                "run's covariance, and it drove no feature out over the whole flight; held as "
+                "flight.yaml writes it"], frozenset()
 
 
 #: The smoother's own frame flags that are a reason at any length (each is an event, not
