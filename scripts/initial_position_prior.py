@@ -50,10 +50,8 @@ def main(argv: list[str] | None = None) -> None:
         for mode in args.modes:
             out = smooth_and_evaluate(log, dtm, Mode(mode).settings(SmootherSettings()))
             result, errors = out.result, out.errors
-            assert result.position_prior is not None and errors is not None
-            conflict = result.position_prior.conflict(
-                result.estimate.world_T_body[0], result.covariances.pose[0],
-                result.map_offset.covariance_world())
+            assert errors is not None
+            conflict = result.initial_position_conflict()
             verdict = assess(result)
             notes = [n.split(":")[0] for n in verdict.notes if n.startswith("initial_position")]
             figures = ("-" if conflict is None else

@@ -53,8 +53,8 @@ from cdtm_graph.dtm import Dtm
 from cdtm_graph.flightlog import CalibrationSigmas, FlightLog, Frames, Tracks
 from cdtm_graph.graph import GraphSettings
 from cdtm_graph.graph.log_graph import build_log_graph
-from cdtm_graph.optimizer import LinearSolver, levenberg_marquardt
-from cdtm_graph.results import SmootherResult, TrajectoryEstimate, position_move_nees
+from cdtm_graph.optimizer import LinearSolver, key_marginals, levenberg_marquardt
+from cdtm_graph.results import SmootherResult, Solver, TrajectoryEstimate, position_move_nees
 from factors.calibration import CALIBRATION_DIM
 
 #: The flight contradicts flight.yaml's calibration when estimating it lowers the error
@@ -151,6 +151,12 @@ class CalibrationCheck:
         residual_scatter: the C-DTM residuals at the calibrated solution over their
             expectation, at least 1 (:func:`~cdtm_graph.calibration.clustered.
             residual_scatter`): the estimate is debiased at this noise level.
+        first_frame: a fixed lag's run: the side solve's first frame with flight.yaml's
+            calibration held, ``(world_T_body (4, 4), pose covariance (6, 6))``: the
+            whole flight's view of it, which the verdict holds flight.yaml's position prior
+            against (:meth:`~cdtm_graph.results.SmootherResult.initial_position_conflict`:
+            the fixed lag's own first frame is the window's it left, where the prior holds
+            most of it). None otherwise.
         wald: the correction's Wald statistic on the cluster-robust covariance
             (:func:`~cdtm_graph.calibration.clustered.clustered_covariance`); specific
             beyond ``SUSPECT_WALD``; NaN where it would decide nothing (not significant
@@ -167,6 +173,7 @@ class CalibrationCheck:
     n_frames: int = 0
     residual_scatter: float = 1.0
     wald: float = float("nan")
+    first_frame: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def significant(self) -> bool:
@@ -288,6 +295,10 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
     graph = built.graph
     held_error = graph.error(values)
     pinned_linear = solver.linearized_at(values)
+    first_frame = None
+    if result.stats.solver is Solver.FIXED_LAG:  # (one marginal: the verdict's first frame)
+        (first_cov,) = key_marginals(pinned, values, [X(0)], linear=pinned_linear)
+        first_frame = (values.atPose3(X(0)).matrix(), first_cov)
     if on_pinned is not None:
         on_pinned(PinnedSolve(pinned_linear or pinned.linearize(values), values, sub, kept))
     # (the free solve starts where the pinned one ended: its error there, and the pinned
@@ -317,7 +328,8 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
     suspect = bool(cost_drop > SUSPECT_COST_DROP and _matters(nees) and conclusive
                    and wald > SUSPECT_WALD)
     return CalibrationCheck(estimate, z, nees, float(cost_drop), conclusive, suspect,
-                            time.perf_counter() - start, int(kept.size), scatter, wald)
+                            time.perf_counter() - start, int(kept.size), scatter, wald,
+                            first_frame)
 
 
 def without_pin(linear: gtsam.GaussianFactorGraph | None, free: gtsam.NonlinearFactorGraph
