@@ -930,18 +930,17 @@ INITIAL_POSITION_RIVALS = frozenset({
 def _initial_position_check(result: SmootherResult, named: set[str],
                             settings: VerdictSettings) -> tuple[list[tuple[Code, str]], list[str]]:
     """``initial_position`` (a reason): flight.yaml's position prior and the rest of the
-    data disagree on the first frame beyond the chi-square bound, and the prior moved that
-    frame's estimate beyond the same quantile in its covariance (a size: an error that
-    large matters; the test is the first): the first frames lean on a
-    wrong value at a confident covariance (20 m off at a stated 2 m: the first frame 10-14
-    m off at 1.5 m sigma, ANEES 16-22, and no other reason without ground truth). Notes:
+    data disagree on the first frame beyond the chi-square bound (the test), and the prior
+    moved that frame's estimate beyond the same quantile in its covariance (a size: an
+    error that large matters): the first frames lean on a wrong value at a confident
+    covariance (20 m off at a stated 2 m: the first frame 10-14 m off at 1.5 m sigma,
+    ANEES 16-22, and no other reason without ground truth). Notes:
     ``initial_position_confounded`` (the verdict names a fault of the data or the
     calibration, :data:`INITIAL_POSITION_RIVALS`: judged after the calibration check, as
     a 1% focal error put an honest 2 m prior 5.2-7.3 sigma from the first fix),
-    ``initial_position_not_held`` (the prior is far
-    off, but the data hold the frame: the simulator's own 50 m prior, drawn 4.05 sigma
-    off, moved it 0.18 sigma). The statistic: :meth:`~cdtm_graph.results.PositionPrior.
-    conflict`."""
+    ``initial_position_not_held`` (the prior is far off, but the data hold the frame: the
+    simulator's own 50 m prior, drawn 4.05 sigma off, moved it 0.18 sigma). The
+    statistic: :meth:`~cdtm_graph.results.SmootherResult.initial_position_conflict`."""
     prior, conflict = result.position_prior, result.initial_position_conflict()
     if prior is None or conflict is None:
         return [], []
@@ -1039,8 +1038,8 @@ CALIBRATION_CONSEQUENCES: Mapping[str, str] = {
     Code.HEAVY_REJECTION: "features left out, as the calibration named drives them out",
 }
 
-#: The rejections :attr:`~cdtm_graph.calibration.check.CalibrationCheck.held_specific`
-#: names the calibration for.
+#: The rejections over the whole flight a specific correction takes as its own doing
+#: (:func:`_calibration_check`).
 DRIVEN_OUT = frozenset({Code.MAP_MISMATCH, Code.HEAVY_REJECTION})
 
 
@@ -1112,9 +1111,9 @@ def _calibration_check(result: SmootherResult, named: set[str],
                     "the height): this flight cannot check its calibration; held as "
                     "flight.yaml writes it"], frozenset()
     specific = " and specific" if check.specific else ""
+    beside = f", beside {', '.join(rivals)}" if check.specific and rivals else ""
     return [], [f"calibration_held: {check.describe()}: significant{specific}, but within the "
-                "run's covariance, and it drove no feature out over the whole flight; held as "
-                "flight.yaml writes it"], frozenset()
+                f"run's covariance{beside}; held as flight.yaml writes it"], frozenset()
 
 
 #: The smoother's own frame flags that are a reason at any length (each is an event, not
