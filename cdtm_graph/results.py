@@ -681,6 +681,9 @@ class SmootherResult:
             None when not checked.
         broad_map_error: the map's smooth error across each frame's footprint, from the
             tracks at the run's estimate (:class:`BroadMapError`); None when not looked at.
+        broad_map_error_whole: a fixed lag's: the same read at the calibration check's
+            batch solve of the whole flight (its own is read at the poses its window held,
+            as it goes); the verdict names either. None otherwise.
     """
 
     estimate: TrajectoryEstimate
@@ -701,6 +704,7 @@ class SmootherResult:
     map_error: MapErrorEstimate | None = None
     imu_random_walk: RandomWalkEstimate | None = None
     broad_map_error: BroadMapError | None = None
+    broad_map_error_whole: BroadMapError | None = None
 
     def initial_position_conflict(self) -> PriorConflict | None:
         """flight.yaml's position prior against the first frame's estimate

@@ -105,5 +105,7 @@ def smooth_and_evaluate(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
         report["imu_random_walk"] = result.imu_random_walk.to_dict()
     if result.broad_map_error is not None:
         report["broad_map_error"] = result.broad_map_error.to_dict()
+    if result.broad_map_error_whole is not None:
+        report["broad_map_error_whole"] = result.broad_map_error_whole.to_dict()
     report["timings_s"]["total"] = time.perf_counter() - start
     return RunOutput(result, errors, free, free_errors, report, verdict)

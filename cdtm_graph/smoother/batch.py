@@ -167,11 +167,11 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
             else:
                 map_error = replace(map_error, bound_estimated_m=second.estimated_m)
     walks, calibration = None, None
+    pinned: list[PinnedSolve] = []  # the calibration check's first solve, of the run kept
     if settings.graph.imu_random_walk is not None and run.checked:
         # the IMU biases wander more than flight.yaml says: the run again with the walks
         # the bias steps show, read at the calibration check's first solve (the run's
         # graph at its optimum, flight.yaml's calibration held)
-        pinned: list[PinnedSolve] = []
         calibration = _calibration_check(flight, dtm, settings, run.result, run.left_out,
                                          run.unfixed_frames, pinned.append)
         walks = check_random_walks(flight, dtm, settings.graph, run.result, run.left_out,
@@ -184,6 +184,7 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
             flight = with_random_walks(flight, walks.used_gyro, walks.used_accel)
             run = _smooth_once(flight, dtm, settings, progress)
             calibration = None  # of the run before
+            pinned.clear()
     result = run.result
     if (map_error is not None and settings.graph.broad_map_error is not None
             and settings.lag_s is None):  # (a fixed lag takes it as it goes, or not at all)
@@ -193,7 +194,18 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
             settings.graph.mismatch))
     if run.checked:
         result = _checked(flight, dtm, settings, result, run.left_out, run.unfixed_frames,
-                          calibration)
+                          calibration, pinned.append)
+    if (map_error is not None and settings.graph.broad_map_error is not None
+            and settings.lag_s is not None and pinned
+            and pinned[-1].kept.size == len(flight.frames)):
+        # a fixed lag's shape at the poses its window held misses what the whole flight
+        # shows (hill15, seed 8): read it too at the calibration check's batch solve
+        # (verdict: either; 15-30 ms, 2026-11-28); a thinned solve's frames are not the run's
+        whole = replace(result, estimate=_estimate_from_values(pinned[-1].values,
+                                                               flight.frames.t_ns))
+        result = replace(result, broad_map_error_whole=run_broad_map_error(
+            flight, dtm, noise, whole, run.unfixed_frames, run.left_out, None,
+            settings.graph.broad_map_error, settings.graph.mismatch))
     if map_error is not None:
         result = replace(result, map_error=map_error)
     return result if walks is None else replace(result, imu_random_walk=walks)
@@ -356,18 +368,20 @@ def _online_calibration(flight: FlightLog, settings: SmootherSettings
 
 def _checked(flight: FlightLog, dtm: Dtm, settings: SmootherSettings, result: SmootherResult,
              left_out: np.ndarray, unfixed_frames: np.ndarray,
-             calibration: CalibrationCheck | None = None) -> SmootherResult:
+             calibration: CalibrationCheck | None = None,
+             on_pinned: Callable[[PinnedSolve], None] | None = None) -> SmootherResult:
     """``result`` (which held flight.yaml's calibration) with the side solve's check of it
     (:mod:`cdtm_graph.calibration.check`; ``calibration``: made already), unless the
-    settings hold it unchecked; and, if its solver did not report convergence, with one
-    more solve's move (:mod:`cdtm_graph.smoother.convergence`)."""
+    settings hold it unchecked (``on_pinned`` given its first solve, when it makes it);
+    and, if its solver did not report convergence, with one more solve's move
+    (:mod:`cdtm_graph.smoother.convergence`)."""
     if not result.stats.converged:
         result = replace(result, convergence_check=check_convergence(
             flight, dtm, settings.graph, result, left_out, unfixed_frames,
             settings.max_iterations, settings.relative_error_tol))
     if calibration is None:
         calibration = _calibration_check(flight, dtm, settings, result, left_out,
-                                         unfixed_frames)
+                                         unfixed_frames, on_pinned)
     return result if calibration is None else replace(result, calibration_check=calibration)
 
 

@@ -73,7 +73,7 @@ import numpy as np
 
 from cdtm_graph.codes import FAILING, Code
 from cdtm_graph.constants import NS_PER_S, chi2_2dof_quantile, chi2_quantile
-from cdtm_graph.results import Rejection, SmootherResult
+from cdtm_graph.results import BroadMapError, Rejection, SmootherResult
 from cdtm_graph.robust.gating import OUTLIER_TEST_PROBABILITY, truncated_chi2_2dof_mean
 from cdtm_graph.verdict.evaluation import (
     POSITION_DOF,
@@ -418,12 +418,13 @@ def _geometry_tests(f: _Frames, result: SmootherResult, settings: VerdictSetting
     return tests
 
 
-def sustained_stretches(result: SmootherResult, bound: float) -> list[tuple[int, int, float]]:
-    """Each stretch of frames whose shape evidence (``result.broad_map_error``) stays above
-    ``bound``: its first and last frame and the ground flown over it (m: the estimate's
-    horizontal speed times the frames' median interval, n frames spanning n intervals),
-    as :class:`BroadMapBounds` judges them."""
-    broad = result.broad_map_error
+def sustained_stretches(result: SmootherResult, bound: float,
+                        broad: BroadMapError | None = None) -> list[tuple[int, int, float]]:
+    """Each stretch of frames whose shape evidence (``broad``, by default
+    ``result.broad_map_error``) stays above ``bound``: its first and last frame and the
+    ground flown over it (m: the estimate's horizontal speed times the frames' median
+    interval, n frames spanning n intervals), as :class:`BroadMapBounds` judges them."""
+    broad = result.broad_map_error if broad is None else broad
     if broad is None or len(result.estimate) < 2:
         return []
     evidence = np.asarray(broad.evidence, dtype=float)
@@ -438,22 +439,32 @@ def sustained_stretches(result: SmootherResult, bound: float) -> list[tuple[int,
 def _broad_map_test(f: _Frames, result: SmootherResult, settings: VerdictSettings
                     ) -> FrameTest | None:
     """``broad_map_error``: the frames where the tracks' heights curve over their ground
-    points beyond what ground detail does (:class:`~cdtm_graph.results.BroadMapError`)."""
-    broad = result.broad_map_error
-    if broad is None or np.shape(broad.evidence) != (f.k,):
+    points beyond what ground detail does (:class:`~cdtm_graph.results.BroadMapError`):
+    the run's reading, and a fixed lag's whole-flight one (``broad_map_error_whole``),
+    either beyond the bounds."""
+    views = [b for b in (result.broad_map_error, result.broad_map_error_whole)
+             if b is not None and np.shape(b.evidence) == (f.k,)]
+    if not views:
         return None
-    evidence = np.asarray(broad.evidence, dtype=float)
     bounds = settings.broad_map
-    with np.errstate(invalid="ignore"):
-        flagged = np.isfinite(evidence) & (evidence > bounds.peak)
-    held = ([(a, b, m) for a, b, m in sustained_stretches(result, bounds.sustained)
-             if m >= bounds.sustained_m]
-            if bounds.sustained is not None and bounds.sustained_m is not None else [])
+    flagged = np.zeros(f.k, dtype=bool)
+    held: list[tuple[int, int, float]] = []
+    for view in views:
+        with np.errstate(invalid="ignore"):
+            flagged |= np.isfinite(view.evidence) & (np.asarray(view.evidence) > bounds.peak)
+        if bounds.sustained is not None and bounds.sustained_m is not None:
+            held += [(a, b, m) for a, b, m in sustained_stretches(result, bounds.sustained, view)
+                     if m >= bounds.sustained_m]
     for a, b, _ in held:  # (first, last frame, metres flown)
         flagged[a:b + 1] = True
 
     def describe(a: int, b: int) -> str:
-        k = a + int(np.nanargmax(evidence[a:b + 1]))
+        # the reading that stands highest over the stretch speaks for it
+        broad = max(views, key=lambda v: float(np.nanmax(np.append(v.evidence[a:b + 1],
+                                                                    -np.inf))))
+        evidence = np.asarray(broad.evidence, dtype=float)
+        k = a + int(np.nanargmax(np.where(np.isfinite(evidence[a:b + 1]),
+                                          evidence[a:b + 1], -np.inf)))
         how = [f"shape statistic {evidence[k]:.0f} at frame {k}"]
         if evidence[k] > bounds.peak:
             how.append(f"more than {bounds.peak:g}")

@@ -866,6 +866,32 @@ def test_a_broad_map_error_is_named_over_its_stretch(frames, named):
     assert _codes(fixed_lag) == _codes(verdict) and fixed_lag.flags == verdict.flags
 
 
+@pytest.mark.parametrize("whole_peak, named", [(25.0, True), (12.0, False), (None, False)])
+def test_a_fixed_lags_whole_flight_reading_of_the_shape_is_judged_too(whole_peak, named):
+    """A fixed lag reads the map's shape at the poses its window held, and (since
+    2026-11-28) at the calibration check's batch solve of the whole flight
+    (``broad_map_error_whole``): either beyond the bounds names it (``hill15`` seed 8:
+    the window's reading peaked at 14.9 over 600 m, the whole flight's held above 12 for
+    1651 m: named; 60 flights over clean ground or ground detail, none). Here the
+    window's reading stays at 12 and the whole flight's peaks at 25 over frames 12-16:
+    named there, with the whole flight's figures; at 12, or without it, not. Mutation: the
+    whole flight's reading left out of ``_broad_map_test`` -> fails."""
+    watch = _shaped(np.full(30, 12.0), lag_s=10.0)
+    result = watch
+    if whole_peak is not None:
+        evidence = np.full(30, 12.0)
+        evidence[12:17] = whole_peak
+        evidence[:7] = evidence[-7:] = np.nan
+        result = dataclasses.replace(watch, broad_map_error_whole=BroadMapError(
+            evidence, evidence, np.full(30, 1.3), np.full(30, 3.7), np.full(30, 230)))
+    verdict = assess(result)
+    assert (_codes(verdict) == ["broad_map_error"]) is named, verdict.lines()
+    if named:
+        reason = _only(verdict, "broad_map_error")
+        assert (reason.first_frame, reason.last_frame) == (12, 16)
+        assert "tilt by 1.3 m and curve by 3.7 m" in reason.message
+
+
 @pytest.mark.parametrize("speed_mps, seconds, named", [
     (150.0, 10, True), (150.0, 14, True), (150.0, 9, False), (60.0, 21, False),
     (60.0, 24, True)])
