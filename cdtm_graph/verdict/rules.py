@@ -697,10 +697,9 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
         result, named, whole_flight)
     if calibration_reasons:
         # (none of the codes it explains sits before its place: nothing to move)
-        _, explained = _explained_by_calibration(run_wide + stretches, explained_codes)
+        calibration_notes += _explained_by_calibration(run_wide + stretches, explained_codes)
         run_wide = [r for r in run_wide if r.code not in explained_codes]
         stretches = [r for r in stretches if r.code not in explained_codes]
-        calibration_notes += explained
     # (the prior judged after the calibration: a calibration fault moves the first fix)
     prior_reasons, prior_notes = _initial_position_check(
         result, {r.code for r in run_wide + stretches} | {c for c, _ in calibration_reasons},
@@ -1054,19 +1053,18 @@ CALIBRATION_CONSEQUENCES: Mapping[str, str] = {
 DRIVEN_OUT = frozenset({Code.MAP_MISMATCH, Code.HEAVY_REJECTION})
 
 
-def _explained_by_calibration(reasons: list[Reason], codes: frozenset[str]
-                              ) -> tuple[list[Reason], list[str]]:
-    """``reasons`` without those of ``codes`` (of :data:`CALIBRATION_CONSEQUENCES`), which
-    become one note per code, when the verdict names the calibration: the frames of each
-    of its reasons, what the calibration does, and the first reason's own words."""
-    kept = [r for r in reasons if r.code not in codes]
+def _explained_by_calibration(reasons: list[Reason], codes: frozenset[str]) -> list[str]:
+    """The notes the reasons of ``codes`` (of :data:`CALIBRATION_CONSEQUENCES`) become when
+    the verdict names the calibration (the caller drops the reasons): one per code, with
+    the frames of each of its reasons, what the calibration does, and the first reason's
+    own words."""
     notes = []
     for code in sorted({r.code for r in reasons if r.code in codes}):
         mine = [r for r in reasons if r.code == code]
         frames = ", ".join(f"{r.first_frame}-{r.last_frame}" for r in mine)
         notes.append(f"{code}: frames {frames}: {CALIBRATION_CONSEQUENCES[code]}: not named "
                      f"as a reason ({mine[0].message})")
-    return kept, notes
+    return notes
 
 
 def _calibration_check(result: SmootherResult, named: set[str],
