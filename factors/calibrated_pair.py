@@ -30,7 +30,12 @@ from factors.calibration import (
     shift,
     shift_adjoint,
 )
-from factors.kernel import KERNEL_NONE, cdtm_linearize, focal_scale_kernel
+from factors.kernel import (
+    KERNEL_NONE,
+    cdtm_linearize,
+    focal_scale_kernel,
+    principal_point_kernel,
+)
 
 if TYPE_CHECKING:
     from factors.cdtm_factor import PairFeatures, RobustKernel
@@ -185,6 +190,27 @@ class CalibratedPair:
                            corrected_rays(self.features.q_b, s), G_E, N, sqrt_info, 1.0 + s,
                            kernel, self._kernel_k, column)
         return column
+
+    def principal_point_columns(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray,
+                                calibration: np.ndarray, robust: bool = True) -> np.ndarray:
+        """d e / d c, (n, 2, 2): the whitened (and, ``robust``, reweighted) residuals'
+        derivative w.r.t. a shift ``c`` of the principal point in normalized coordinates
+        (``[dcx / fx, dcy / fy]``), at the calibration ``calibration`` (5,)
+        (:func:`~factors.kernel.principal_point_kernel`: the rays move, the poses and the
+        planes are held). Not a part of the calibration variable: the calibration check
+        tests it apart (:mod:`cdtm_graph.calibration.principal_point`)."""
+        c = np.asarray(calibration, dtype=float)
+        s = float(c[FOCAL_SCALE])
+        shift_a, shift_b, body_T_cam, _, q_a, _, sqrt_info = self._calibrated_setup(c)
+        wTc_a = world_T_body_a @ shift_a @ body_T_cam
+        wTc_b = world_T_body_b @ shift_b @ body_T_cam
+        G_E, N = self.planes(wTc_a, s)
+        out = np.empty((self.features.n, 2, 2))
+        principal_point_kernel(wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3], q_a,
+                               corrected_rays(self.features.q_b, s), G_E, N, sqrt_info,
+                               1.0 + s, self.robust.kernel_id if robust else KERNEL_NONE,
+                               self._kernel_k, out)
+        return out
 
     def _calibrated_error(self, values: gtsam.Values, key: int, jacobians) -> np.ndarray:
         """The factor's error with the calibration as its third variable."""

@@ -381,11 +381,14 @@ class CdtmPairFactor(CalibratedPair):
         return self._e if want_jacobians else self._e_loss, self._Ha, self._Hb
 
     def noise_cost_gradient(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray,
-                            calibration: np.ndarray | None = None) -> np.ndarray:
+                            calibration: np.ndarray | None = None,
+                            principal_point: bool = False) -> np.ndarray:
         """Gradient of the cost the data noise alone is expected to leave, ``E[|r|^2]``
         with ``r`` whitened and reweighted as the factor does, w.r.t. ``X(a)``, ``X(b)``
         (right perturbations) and, with a calibration link, the calibration (5,):
-        (12,) or (17,).
+        (12,) or (17,); ``principal_point`` (a calibration link only): also w.r.t. a shift
+        of the principal point in normalized coordinates (:meth:`principal_point_columns`),
+        (19,).
 
         Why: the factor holds its whitening fixed and ``q_a`` exact, but the residual's
         noise (``q_a``'s pixel noise above all: it moves the ground point by its range
@@ -408,8 +411,9 @@ class CdtmPairFactor(CalibratedPair):
         moved, weight, c = self.noise_moved(world_T_body_a, world_T_body_b, calibration)
         n = self.features.n
         calibrated = moved.calibration is not None
+        extra = 2 if principal_point and calibrated else 0
         if n == 0:
-            return np.zeros(12 + CALIBRATION_DIM if calibrated else 12)
+            return np.zeros((12 + CALIBRATION_DIM if calibrated else 12) + extra)
         if calibrated:
             # the Jacobians w.r.t. the shifted bodies and the focal scale, summed as the
             # gradient weighs them, then chained once (the chain is linear: ``chained``)
@@ -418,7 +422,8 @@ class CdtmPairFactor(CalibratedPair):
             Ad = moved._calibrated_kernel(world_T_body_a, world_T_body_b, c, KERNEL_NONE,
                                           True, e, Ha, Hb)
             focal = moved._focal_scale_column(world_T_body_a, world_T_body_b, c, KERNEL_NONE)
-            J = np.concatenate((Ha, Hb, focal[:, :, None]), axis=2)
+            J = np.concatenate((Ha, Hb, focal[:, :, None]) + ((moved.principal_point_columns(
+                world_T_body_a, world_T_body_b, c, robust=False),) if extra else ()), axis=2)
         else:
             e, Ha, Hb = moved.innovations(world_T_body_a, world_T_body_b)
             J = np.concatenate((Ha, Hb), axis=2)
@@ -429,7 +434,8 @@ class CdtmPairFactor(CalibratedPair):
                       sides_J[:, 0] - sides_J[:, 1])
         if not calibrated:
             return g
-        return moved.chained(g[None, :6], g[None, 6:12], g[12:], c, Ad)[0]
+        chained = moved.chained(g[None, :6], g[None, 6:12], g[12], c, Ad)[0]
+        return np.concatenate([chained, g[13:]]) if extra else chained
 
     def noise_moved(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray,
                     calibration: np.ndarray | None = None

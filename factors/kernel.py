@@ -201,6 +201,54 @@ def cdtm_linearize(
     return n_inactive
 
 
+@njit(cache=True, inline="always")
+def _ray_move(i, R_a, p_a, R_b, p_b, q_a, q_b, G_E, N, dqa0, dqa1, dqx, dqy):
+    """Feature i's unwhitened residual ``e = B(q_b)^T h`` and its derivative when camera
+    a's ray moves by ``[dqa0, dqa1, 0]`` and camera b's by ``[dqx, dqy, 0]``, the poses and
+    the tangent plane held: ``(active, e0, e1, de0, de1)``; ``active`` False for an
+    inactive feature (:func:`_hit_in_b`).
+
+    With ``P = p_a + lam r`` on the plane, ``dP = lam P(r, N) dr``; ``dh = (I - h h^T) dg /
+    |g|``; ``B = B(q_b)`` is :func:`factors.cdtm_math.orthonormal_complement`'s basis.
+    (Moving a hit along its tangent plane changes the plane only at second order, so
+    holding the planes is exact to first order where they are re-cast.)"""
+    r0, r1, r2, Nr, lam, g0, g1, g2 = _hit_in_b(i, R_a, p_a, R_b, p_b, q_a, G_E, N)
+    if np.isnan(lam):
+        return False, 0.0, 0.0, 0.0, 0.0
+    gn = np.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+    h0, h1, h2 = g0 / gn, g1 / gn, g2 / gn
+    # camera a's ray: dr = R_a dq_a, dP = lam (dr - r (N.dr) / N.r), dg = R_b^T dP
+    dr0 = R_a[0, 0] * dqa0 + R_a[0, 1] * dqa1
+    dr1 = R_a[1, 0] * dqa0 + R_a[1, 1] * dqa1
+    dr2 = R_a[2, 0] * dqa0 + R_a[2, 1] * dqa1
+    Ndr = (N[i, 0] * dr0 + N[i, 1] * dr1 + N[i, 2] * dr2) / Nr
+    dP0, dP1, dP2 = lam * (dr0 - r0 * Ndr), lam * (dr1 - r1 * Ndr), lam * (dr2 - r2 * Ndr)
+    dg0 = R_b[0, 0] * dP0 + R_b[1, 0] * dP1 + R_b[2, 0] * dP2
+    dg1 = R_b[0, 1] * dP0 + R_b[1, 1] * dP1 + R_b[2, 1] * dP2
+    dg2 = R_b[0, 2] * dP0 + R_b[1, 2] * dP1 + R_b[2, 2] * dP2
+    hdg = h0 * dg0 + h1 * dg1 + h2 * dg2
+    dh0, dh1, dh2 = (dg0 - h0 * hdg) / gn, (dg1 - h1 * hdg) / gn, (dg2 - h2 * hdg) / gn
+    # camera b's ray and its basis: b1 = (qz, 0, -qx) / |(qx, qz)|, b2 = q^ x b1
+    qx, qy, qz = q_b[i, 0], q_b[i, 1], q_b[i, 2]
+    rho = np.sqrt(qx * qx + qz * qz)
+    b10, b12 = qz / rho, -qx / rho
+    db10 = -qz * qx * dqx / rho**3
+    db12 = -dqx / rho + qx * qx * dqx / rho**3
+    qn = np.sqrt(qx * qx + qy * qy + qz * qz)
+    u0, u1, u2 = qx / qn, qy / qn, qz / qn
+    udq = (u0 * dqx + u1 * dqy) / qn
+    du0, du1, du2 = dqx / qn - u0 * udq, dqy / qn - u1 * udq, -u2 * udq
+    b20, b21, b22 = u1 * b12, u2 * b10 - u0 * b12, -u1 * b10
+    db20 = du1 * b12 + u1 * db12
+    db21 = du2 * b10 + u2 * db10 - du0 * b12 - u0 * db12
+    db22 = -du1 * b10 - u1 * db10
+    e0 = b10 * h0 + b12 * h2
+    e1 = b20 * h0 + b21 * h1 + b22 * h2
+    de0 = db10 * h0 + db12 * h2 + b10 * dh0 + b12 * dh2
+    de1 = db20 * h0 + db21 * h1 + db22 * h2 + b20 * dh0 + b21 * dh1 + b22 * dh2
+    return True, e0, e1, de0, de1
+
+
 @njit(cache=True)
 def focal_scale_kernel(R_a, p_a, R_b, p_b, q_a, q_b, G_E, N, sqrt_info, one_plus_s, kernel,
                        kernel_k, out):
@@ -208,59 +256,24 @@ def focal_scale_kernel(R_a, p_a, R_b, p_b, q_a, q_b, G_E, N, sqrt_info, one_plus
     scale ``s`` (:mod:`factors.calibration`), the poses and the tangent planes held.
 
     The rays are the corrected ones at ``s``, ``q = [q0_xy / (1 + s), 1]``, so
-    ``dq/ds = -[q_xy, 0] / (1 + s)`` moves both rays; the whitening is ``S0 (1 + s)``
-    (``sqrt_info``), so ``dS/ds = S / (1 + s)``; ``B = B(q_b)`` is
-    :func:`factors.cdtm_math.orthonormal_complement`'s basis. With ``P = p_a + lam r``
-    on the plane, ``dP = lam P(r, N) dr``; ``dh = (I - h h^T) dg / |g|``; the row is
-    reweighted by the feature's sqrt weight, as :func:`cdtm_linearize` weighs its
-    Jacobians. (Moving a hit along its tangent plane changes the plane only at second
-    order, so holding the planes is exact to first order where they are re-cast.)
+    ``dq/ds = -[q_xy, 0] / (1 + s)`` moves both rays (:func:`_ray_move`); the whitening is
+    ``S0 (1 + s)`` (``sqrt_info``), so ``dS/ds = S / (1 + s)``; the row is reweighted by
+    the feature's sqrt weight, as :func:`cdtm_linearize` weighs its Jacobians.
 
     Args:
         R_a, p_a, R_b, p_b, G_E, N, kernel, kernel_k: as :func:`cdtm_linearize`.
         q_a, q_b: (n, 3) the corrected rays (z = 1). sqrt_info: (n, 2, 2) at ``s``.
         one_plus_s: ``1 + s``. out: (n, 2) output; zero rows for inactive features.
     """
+    k = -1.0 / one_plus_s
     for i in range(q_a.shape[0]):
         out[i, 0] = 0.0
         out[i, 1] = 0.0
-        r0, r1, r2, Nr, lam, g0, g1, g2 = _hit_in_b(i, R_a, p_a, R_b, p_b, q_a, G_E, N)
-        if np.isnan(lam):
+        active, e0, e1, de0, de1 = _ray_move(i, R_a, p_a, R_b, p_b, q_a, q_b, G_E, N,
+                                             k * q_a[i, 0], k * q_a[i, 1],
+                                             k * q_b[i, 0], k * q_b[i, 1])
+        if not active:
             continue
-        gn = np.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
-        h0, h1, h2 = g0 / gn, g1 / gn, g2 / gn
-        # camera a's ray: dr = R_a dq_a, dP = lam (dr - r (N.dr) / N.r), dg = R_b^T dP
-        k = -1.0 / one_plus_s
-        dqa0, dqa1 = k * q_a[i, 0], k * q_a[i, 1]
-        dr0 = R_a[0, 0] * dqa0 + R_a[0, 1] * dqa1
-        dr1 = R_a[1, 0] * dqa0 + R_a[1, 1] * dqa1
-        dr2 = R_a[2, 0] * dqa0 + R_a[2, 1] * dqa1
-        Ndr = (N[i, 0] * dr0 + N[i, 1] * dr1 + N[i, 2] * dr2) / Nr
-        dP0, dP1, dP2 = lam * (dr0 - r0 * Ndr), lam * (dr1 - r1 * Ndr), lam * (dr2 - r2 * Ndr)
-        dg0 = R_b[0, 0] * dP0 + R_b[1, 0] * dP1 + R_b[2, 0] * dP2
-        dg1 = R_b[0, 1] * dP0 + R_b[1, 1] * dP1 + R_b[2, 1] * dP2
-        dg2 = R_b[0, 2] * dP0 + R_b[1, 2] * dP1 + R_b[2, 2] * dP2
-        hdg = h0 * dg0 + h1 * dg1 + h2 * dg2
-        dh0, dh1, dh2 = (dg0 - h0 * hdg) / gn, (dg1 - h1 * hdg) / gn, (dg2 - h2 * hdg) / gn
-        # camera b's ray and its basis: b1 = (qz, 0, -qx) / |(qx, qz)|, b2 = q^ x b1
-        qx, qy, qz = q_b[i, 0], q_b[i, 1], q_b[i, 2]
-        dqx, dqy = k * qx, k * qy
-        rho = np.sqrt(qx * qx + qz * qz)
-        b10, b12 = qz / rho, -qx / rho
-        db10 = -qz * qx * dqx / rho**3
-        db12 = -dqx / rho + qx * qx * dqx / rho**3
-        qn = np.sqrt(qx * qx + qy * qy + qz * qz)
-        u0, u1, u2 = qx / qn, qy / qn, qz / qn
-        udq = (u0 * dqx + u1 * dqy) / qn
-        du0, du1, du2 = dqx / qn - u0 * udq, dqy / qn - u1 * udq, -u2 * udq
-        b20, b21, b22 = u1 * b12, u2 * b10 - u0 * b12, -u1 * b10
-        db20 = du1 * b12 + u1 * db12
-        db21 = du2 * b10 + u2 * db10 - du0 * b12 - u0 * db12
-        db22 = -du1 * b10 - u1 * db10
-        e0 = b10 * h0 + b12 * h2
-        e1 = b20 * h0 + b21 * h1 + b22 * h2
-        de0 = db10 * h0 + db12 * h2 + b10 * dh0 + b12 * dh2
-        de1 = db20 * h0 + db21 * h1 + db22 * h2 + b20 * dh0 + b21 * dh1 + b22 * dh2
         S00, S01, S10, S11 = sqrt_info[i, 0, 0], sqrt_info[i, 0, 1], sqrt_info[i, 1, 0], \
             sqrt_info[i, 1, 1]
         w0 = S00 * e0 + S01 * e1
@@ -270,6 +283,43 @@ def focal_scale_kernel(R_a, p_a, R_b, p_b, q_a, q_b, G_E, N, sqrt_info, one_plus
         # d(S e) = S de + (dS/ds) e, dS/ds = S / (1 + s)
         out[i, 0] = sw * (S00 * de0 + S01 * de1 + w0 / one_plus_s)
         out[i, 1] = sw * (S10 * de0 + S11 * de1 + w1 / one_plus_s)
+
+
+@njit(cache=True)
+def principal_point_kernel(R_a, p_a, R_b, p_b, q_a, q_b, G_E, N, sqrt_info, one_plus_s,
+                           kernel, kernel_k, out):
+    """``d e / d c`` of the whitened, reweighted residuals of n features w.r.t. a shift
+    ``c`` of the principal point in normalized coordinates (``[dcx / fx, dcy / fy]``), the
+    poses, the focal scale and the tangent planes held.
+
+    The corrected rays are ``[(q0_xy - c) / (1 + s), 1]``: ``dq/dc_j = -e_j / (1 + s)``
+    moves both rays alike (:func:`_ray_move`); the whitening does not depend on ``c``.
+
+    Args:
+        as :func:`focal_scale_kernel`. out: (n, 2, 2) output, ``out[i, :, j] = d e_i /
+        d c_j``; zero for inactive features.
+    """
+    k = -1.0 / one_plus_s
+    for i in range(q_a.shape[0]):
+        for j in range(2):
+            out[i, 0, j] = 0.0
+            out[i, 1, j] = 0.0
+        for j in range(2):
+            dq0 = k if j == 0 else 0.0
+            dq1 = k if j == 1 else 0.0
+            active, e0, e1, de0, de1 = _ray_move(i, R_a, p_a, R_b, p_b, q_a, q_b, G_E, N,
+                                                 dq0, dq1, dq0, dq1)
+            if not active:
+                break
+            S00, S01, S10, S11 = sqrt_info[i, 0, 0], sqrt_info[i, 0, 1], \
+                sqrt_info[i, 1, 0], sqrt_info[i, 1, 1]
+            w0 = S00 * e0 + S01 * e1
+            w1 = S10 * e0 + S11 * e1
+            s = np.sqrt(w0 * w0 + w1 * w1)
+            sw = np.sqrt(robust_weight(kernel, kernel_k[i], s)) if kernel != KERNEL_NONE \
+                else 1.0
+            out[i, 0, j] = sw * (S00 * de0 + S01 * de1)
+            out[i, 1, j] = sw * (S10 * de0 + S11 * de1)
 
 
 #: Rows of a compressed pair factor: 12 pose columns plus the residual column.

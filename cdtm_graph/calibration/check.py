@@ -49,6 +49,7 @@ from cdtm_graph.calibration.clustered import clustered_covariance, residual_scat
 from cdtm_graph.calibration.noise_bias import debiased
 from cdtm_graph.calibration.online import CALIBRATION_KEY, CalibrationEstimate, prior_sigmas
 from cdtm_graph.calibration.online import estimate as calibration_estimate
+from cdtm_graph.calibration.principal_point import PrincipalPointCheck, principal_point_step
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.flightlog import CalibrationSigmas, FlightLog, Frames, Tracks
 from cdtm_graph.graph import GraphSettings
@@ -145,7 +146,9 @@ class CalibrationCheck:
             statistic of the calibration's five parameters).
         conclusive: the side solve told every part of the calibration to
             ``CONCLUSIVE_SIGMA_RATIO`` of its prior sigma.
-        suspect: significant, it matters, conclusive and specific (module docstring).
+        suspect: the five parameters' correction is significant, it matters, conclusive
+            and specific (module docstring); the principal point's apart
+            (:attr:`principal_point_suspect`).
         time_s: the side solve's cost.
         n_frames: the frames it solved (every n-th of a long log, :func:`thinned`).
         residual_scatter: the C-DTM residuals at the calibrated solution over their
@@ -157,6 +160,9 @@ class CalibrationCheck:
             against (:meth:`~cdtm_graph.results.SmootherResult.initial_position_conflict`:
             the fixed lag's own first frame is the window's it left, where the prior holds
             most of it). None otherwise.
+        principal_point: the step with ``cx``, ``cy`` free at the free optimum
+            (:mod:`cdtm_graph.calibration.principal_point`); None where the side solve's
+            graph did not allow it.
         wald: the correction's Wald statistic on the cluster-robust covariance
             (:func:`~cdtm_graph.calibration.clustered.clustered_covariance`); specific
             beyond ``SUSPECT_WALD``; NaN where it would decide nothing (not significant
@@ -174,11 +180,54 @@ class CalibrationCheck:
     residual_scatter: float = 1.0
     wald: float = float("nan")
     first_frame: tuple[np.ndarray, np.ndarray] | None = None
+    principal_point: PrincipalPointCheck | None = None
 
     @property
     def significant(self) -> bool:
-        """The flight prefers the estimated calibration beyond chance."""
+        """The flight prefers the estimated calibration, or a principal point moved,
+        beyond chance."""
+        return self.five_significant or self.principal_point_significant
+
+    @property
+    def five_significant(self) -> bool:
+        """The flight prefers the estimated five parameters beyond chance."""
         return self.cost_drop > SUSPECT_COST_DROP
+
+    @property
+    def principal_point_significant(self) -> bool:
+        """Freeing ``cx``, ``cy`` at the calibrated optimum lowers the error beyond chance
+        (:mod:`cdtm_graph.calibration.principal_point`)."""
+        return self.principal_point is not None and self.principal_point.significant
+
+    @property
+    def principal_point_suspect_alone(self) -> bool:
+        """The principal point is suspect and the five parameters are not significant."""
+        return self.principal_point_suspect and not self.five_significant
+
+    @property
+    def principal_point_suspect(self) -> bool:
+        """The principal point moved significantly and specifically (beyond the map's
+        shared error and the residuals' scatter), and the run's positions lie beyond
+        their covariance from where it moves them."""
+        pp = self.principal_point
+        return (pp is not None and pp.significant and pp.conclusive and pp.specific
+                and _matters(pp.position_nees))
+
+    @property
+    def principal_point_confounded(self) -> bool:
+        """The principal point moved significantly and the positions feel it, but not
+        specifically: the map's error and the residuals' scatter explain it as well."""
+        pp = self.principal_point
+        return (pp is not None and pp.significant and pp.conclusive and not pp.specific
+                and _matters(pp.position_nees))
+
+    @property
+    def principal_point_unresolved(self) -> bool:
+        """The principal point moved significantly and the positions feel it, but the
+        flight tells it poorly (a few frames, no roll change yet)."""
+        pp = self.principal_point
+        return (pp is not None and pp.significant and not pp.conclusive
+                and _matters(pp.position_nees))
 
     @property
     def specific(self) -> bool:
@@ -190,7 +239,7 @@ class CalibrationCheck:
     def confounded(self) -> bool:
         """Significant, far from the run and conclusive, but not specific: the map's error
         and the residuals' scatter explain the correction as well."""
-        return (self.significant and _matters(self.position_nees) and self.conclusive
+        return (self.five_significant and _matters(self.position_nees) and self.conclusive
                 and not self.specific)
 
     @property
@@ -200,7 +249,7 @@ class CalibrationCheck:
         unless it drove the run's features out (the verdict's call: a time offset of 20 ms
         left 3925 features out as off the map, the positions at NEES 2.6-6.6 from the
         calibrated solution, the run's ANEES 5-10)."""
-        return (self.significant and self.conclusive and self.specific
+        return (self.five_significant and self.conclusive and self.specific
                 and not _matters(self.position_nees))
 
     @property
@@ -208,7 +257,7 @@ class CalibrationCheck:
         """Significant and far from the run, but not conclusive: the flight does not tell
         its calibration from its position (before the first turn the focal scale trades
         with the height)."""
-        return self.significant and _matters(self.position_nees) and not self.conclusive
+        return self.five_significant and _matters(self.position_nees) and not self.conclusive
 
     def describe(self) -> str:
         """The estimate in words (for a reason or a note)."""
@@ -223,7 +272,9 @@ class CalibrationCheck:
                 + (f", a Wald statistic of {self.wald:.1f} against the map's shared error and "
                    f"that scatter ({SUSPECT_WALD:.0f} needed)" if np.isfinite(self.wald) else "")
                 + f"; the run's positions lie at a mean NEES of {self.position_nees:.1f} from "
-                "that solution's")
+                "that solution's" + (f"; {self.principal_point.describe()}"
+                                     if self.principal_point_significant
+                                     and self.principal_point is not None else ""))
 
     def to_dict(self) -> dict:
         c = self.estimate
@@ -234,7 +285,10 @@ class CalibrationCheck:
                 "cost_drop": self.cost_drop, "conclusive": self.conclusive,
                 "suspect": self.suspect, "time_s": self.time_s, "n_frames": self.n_frames,
                 "residual_scatter": self.residual_scatter,
-                "wald": self.wald if np.isfinite(self.wald) else None}
+                "wald": self.wald if np.isfinite(self.wald) else None,
+                "principal_point": (None if self.principal_point is None
+                                    else self.principal_point.to_dict()),
+                "principal_point_suspect": self.principal_point_suspect}
 
 
 @dataclass(frozen=True)
@@ -309,7 +363,20 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
     cost_drop = held_error - free.final_error
     # (the noise stays linearized at the run's solution, as the likelihood ratio has it;
     # its bias taken out at the scatter the residuals show with the calibration free)
-    scatter = residual_scatter(built.cdtm, values)
+    measured_scatter = residual_scatter(built.cdtm, values, floor=0.0)
+    scatter = max(measured_scatter, 1.0)  # (less scatter never makes the five bolder)
+    # (the principal point, tested at the free optimum: one step with cx, cy free; its
+    # noise bias at the scatter as measured: with flight.yaml's pixel noise stated 3x the
+    # tracker's, taken at the stated size it read cx -26 px on a clean 25-frame flight)
+    camera = flight.config.camera.camera
+    linear_free = solver.linearized_at(values)
+    pp_step = principal_point_step(graph.linearize(values) if linear_free is None else linear_free,
+                                   values, built.cdtm, camera.fx, camera.fy, measured_scatter)
+    principal_point = None if pp_step is None else PrincipalPointCheck(
+        pp_step.shift_px, pp_step.sigma_px, pp_step.cost_drop,
+        _position_nees(result, kept, np.stack([
+            values.atPose3(X(j)).retract(pp_step.step.at(X(j))).translation()
+            for j in range(kept.size)])), pp_step.wald)
     values, (c_cov,) = debiased(graph, values, built.cdtm, noise_scale=scatter,
                                 linear=solver.linearized_at(values),
                                 marginal_keys=[CALIBRATION_KEY])
@@ -329,7 +396,7 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
                    and wald > SUSPECT_WALD)
     return CalibrationCheck(estimate, z, nees, float(cost_drop), conclusive, suspect,
                             time.perf_counter() - start, int(kept.size), scatter, wald,
-                            first_frame)
+                            first_frame, principal_point)
 
 
 def without_pin(linear: gtsam.GaussianFactorGraph | None, free: gtsam.NonlinearFactorGraph

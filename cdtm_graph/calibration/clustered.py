@@ -26,7 +26,7 @@ this covariance: ``SUSPECT_WALD`` in :mod:`cdtm_graph.calibration.check`).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
 import gtsam
 import numpy as np
@@ -51,11 +51,12 @@ CELL_M = 500.0
 _DIM = {"x": 6, "v": 3, "b": 6}
 
 
-def residual_scatter(factors: Sequence[CdtmPairFactor], values: gtsam.Values) -> float:
+def residual_scatter(factors: Sequence[CdtmPairFactor], values: gtsam.Values,
+                     floor: float = 1.0) -> float:
     """The C-DTM features' squared Mahalanobis distances (the full measurement noise, each
     truncated at the chi-square(2) 99.9% test as the verdict's self-check has it) over
     their expectation, at ``values`` (with the calibration's ``CALIBRATION_KEY``); at
-    least 1 (less scatter never makes the check bolder)."""
+    least ``floor`` (1: less scatter never makes the five's check bolder)."""
     c = values.atVector(CALIBRATION_KEY)
     total, n = 0.0, 0
     for f in factors:
@@ -65,8 +66,8 @@ def residual_scatter(factors: Sequence[CdtmPairFactor], values: gtsam.Values) ->
         total += float(np.minimum(d, CHI2_2DOF_999).sum())
         n += d.size
     if n == 0:
-        return 1.0
-    return max(total / n / truncated_chi2_2dof_mean(OUTLIER_TEST_PROBABILITY), 1.0)
+        return max(1.0, floor)
+    return max(total / n / truncated_chi2_2dof_mean(OUTLIER_TEST_PROBABILITY), floor)
 
 
 def clustered_covariance(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
@@ -87,39 +88,67 @@ def clustered_covariance(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values
             solution, with ``CALIBRATION_KEY``. factors: its C-DTM pair factors (each
             linked to ``CALIBRATION_KEY``).
     """
+    c = values.atVector(CALIBRATION_KEY)
+
+    def rows():
+        for f in factors:
+            Ta, Tb = values.atPose3(f.key_a).matrix(), values.atPose3(f.key_b).matrix()
+            yield f, *f.evaluate_calibrated(Ta, Tb, c)
+
+    return sandwich(graph.linearize(values), side_solve_dims(values), CALIBRATION_KEY, rows(),
+                    cell_m)
+
+
+def sandwich(linear: gtsam.GaussianFactorGraph, dims: dict[int, int], key: int,
+             rows: Iterable[tuple[CdtmPairFactor, np.ndarray, np.ndarray, np.ndarray,
+                                  np.ndarray]],
+             cell_m: float = CELL_M) -> np.ndarray:
+    """The cluster-robust covariance of the variable ``key`` of the linear system
+    ``linear`` (:func:`clustered_covariance`'s formula), its C-DTM features' rows given by
+    ``rows``: per pair factor ``(factor, e, Ha, Hb, Hk)``, its whitened residuals (n, 2)
+    and Jacobians w.r.t. ``X(a)``, ``X(b)`` (n, 2, 6) and ``key`` (n, 2, d).
+
+    Args:
+        dims: every variable of ``linear`` and its dimension, in the order of the dense
+            Hessian.
+    """
     ordering = gtsam.Ordering()
     offset: dict[int, int] = {}
     n = 0
-    for key in values.keys():
-        ordering.push_back(key)
-        offset[key] = n
-        n += CALIBRATION_DIM if key == CALIBRATION_KEY else _DIM[chr(gtsam.Symbol(key).chr())]
-    H, _ = graph.linearize(values).hessian(ordering)
-    c0 = offset[CALIBRATION_KEY]
-    rows = slice(c0, c0 + CALIBRATION_DIM)
-    unit = np.zeros((n, CALIBRATION_DIM))
-    unit[rows] = np.eye(CALIBRATION_DIM)
-    A = np.linalg.solve(H, unit).T  # (5, n)
-    c = values.atVector(CALIBRATION_KEY)
-    model = np.zeros((CALIBRATION_DIM, CALIBRATION_DIM))
+    for k, dim in dims.items():
+        ordering.push_back(k)
+        offset[k] = n
+        n += dim
+    d = dims[key]
+    H, _ = linear.hessian(ordering)
+    c0 = offset[key]
+    target = slice(c0, c0 + d)
+    unit = np.zeros((n, d))
+    unit[target] = np.eye(d)
+    A = np.linalg.solve(H, unit).T  # (d, n)
+    model = np.zeros((d, d))
     scores, ground = [], []
-    for f in factors:
-        Ta, Tb = values.atPose3(f.key_a).matrix(), values.atPose3(f.key_b).matrix()
-        e, Ha, Hb, Hc = f.evaluate_calibrated(Ta, Tb, c)
+    for f, e, Ha, Hb, Hk in rows:
         a, b = offset[f.key_a], offset[f.key_b]
-        # each feature's residual rows through A: (m, 2, 5)
-        B = Ha @ A[:, a:a + 6].T + Hb @ A[:, b:b + 6].T + Hc @ A[:, rows].T
+        # each feature's residual rows through A: (m, 2, d)
+        B = Ha @ A[:, a:a + 6].T + Hb @ A[:, b:b + 6].T + Hk @ A[:, target].T
         model += np.einsum("mki,mkj->ij", B, B)
         scores.append(np.einsum("mki,mk->mi", B, e))
         ground.append(f.features.G_E[:, :2])
-    P = A[:, rows]
+    P = A[:, target]
     if not scores:
         return P
     cell = np.floor(np.concatenate(ground) / cell_m).astype(np.int64)
     label = np.unique(cell, axis=0, return_inverse=True)[1].ravel()
     G = int(label.max()) + 1
-    per_cell = np.zeros((G, CALIBRATION_DIM))
+    per_cell = np.zeros((G, d))
     np.add.at(per_cell, label, np.concatenate(scores))
     extra = per_cell.T @ per_cell * (G / max(G - 1, 1)) - model
     w, vectors = np.linalg.eigh(0.5 * (extra + extra.T))
     return P + (vectors * np.maximum(w, 0.0)) @ vectors.T
+
+
+def side_solve_dims(values: gtsam.Values) -> dict[int, int]:
+    """Every variable of the side solve and its dimension, in ``values``' order."""
+    return {key: CALIBRATION_DIM if key == CALIBRATION_KEY
+            else _DIM[chr(gtsam.Symbol(key).chr())] for key in values.keys()}

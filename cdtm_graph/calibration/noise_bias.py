@@ -26,16 +26,22 @@ from cdtm_graph.optimizer import step_and_marginals
 from factors import CdtmPairFactor
 
 
-def noise_gradient(factors: Sequence[CdtmPairFactor], values: gtsam.Values
+def noise_gradient(factors: Sequence[CdtmPairFactor], values: gtsam.Values,
+                   principal_point_px: tuple[float, float] | None = None
                    ) -> dict[int, np.ndarray]:
     """Half the gradient of the C-DTM noise's expected cost, per variable key (the pose
-    tangents' and, when the factors hold it, the calibration's)."""
+    tangents' and, when the factors hold it, the calibration's). ``principal_point_px``
+    (flight.yaml's fx, fy): the calibration's part also holds a principal point shift's,
+    (7,): ``[C(0), dcx, dcy (px)]`` (:mod:`cdtm_graph.calibration.principal_point`)."""
     out: dict[int, np.ndarray] = {}
+    to_px = None if principal_point_px is None else 1.0 / np.asarray(principal_point_px)
     for f in factors:
         Ta, Tb = values.atPose3(f.key_a).matrix(), values.atPose3(f.key_b).matrix()
         key_c = None if f.calibration is None else f.calibration.key
         c = values.atVector(key_c) if key_c is not None else None
-        g = 0.5 * f.noise_cost_gradient(Ta, Tb, c)
+        g = 0.5 * f.noise_cost_gradient(Ta, Tb, c, principal_point=to_px is not None)
+        if to_px is not None:
+            g[-2:] *= to_px
         parts = [(f.key_a, g[:6]), (f.key_b, g[6:12])]
         if key_c is not None:
             parts.append((key_c, g[12:]))

@@ -265,11 +265,13 @@ def with_imu_bias(log: FlightLog, accel_mps2: tuple[float, float, float] = (0.0,
 
 def with_calibration_error(log: FlightLog, focal_scale: float = 1.0,
                            mount_rotation_deg: tuple[float, float, float] = (0.0, 0.0, 0.0),
-                           time_offset_s: float = 0.0) -> FlightLog:
+                           time_offset_s: float = 0.0,
+                           principal_point_px: tuple[float, float] = (0.0, 0.0)) -> FlightLog:
     """flight.yaml and frames.csv as a user with a wrong calibration would write them.
 
     Args:
         focal_scale: fx and fy in flight.yaml are the true ones times this.
+        principal_point_px: cx and cy in flight.yaml are the true ones plus this.
         mount_rotation_deg: ``body_T_cam`` in flight.yaml is the true mount turned by this
             rotation vector (camera frame, degrees).
         time_offset_s: the frame times are this late against the IMU (the camera's clock
@@ -277,7 +279,9 @@ def with_calibration_error(log: FlightLog, focal_scale: float = 1.0,
     """
     cfg = log.config
     cam = cfg.camera.camera
-    camera = dataclasses.replace(cam, fx=cam.fx * focal_scale, fy=cam.fy * focal_scale)
+    camera = dataclasses.replace(cam, fx=cam.fx * focal_scale, fy=cam.fy * focal_scale,
+                                 cx=cam.cx + principal_point_px[0],
+                                 cy=cam.cy + principal_point_px[1])
     turn = make_pose(so3_exp(np.radians(np.asarray(mount_rotation_deg, dtype=float))),
                      np.zeros(3))
     camera_cfg = dataclasses.replace(cfg.camera, camera=camera,

@@ -1095,17 +1095,22 @@ def _calibration_check(result: SmootherResult, named: set[str],
     rivals = sorted((CALIBRATION_RIVALS & named) - driven)
     advice = "smooth in batch mode with the calibration estimated (--calibration online) " \
              "or correct flight.yaml"
-    if check.suspect and rivals:
+    if check.principal_point_suspect:
+        advice = ("correct flight.yaml's principal point (cx, cy: --calibration online does not "
+                  "estimate it)" + ("" if check.principal_point_suspect_alone else
+                                    f"; {advice} for the rest"))
+    suspect = check.suspect or check.principal_point_suspect
+    if suspect and rivals:
         return [], [f"calibration_confounded: {check.describe()}; but the verdict names "
                     f"{', '.join(rivals)}, which moves the side solve alike: not named as a "
                     "reason; held as flight.yaml writes it"], frozenset()
-    if check.confounded:
+    if (check.confounded or check.principal_point_confounded) and not suspect:
         return [], [f"calibration_confounded: {check.describe()}; but the map's shared error "
                     "and the residuals' scatter explain it as well: not named as a reason; "
                     "held as flight.yaml writes it"], frozenset()
     out = (f"; the run left features out over the whole flight ({', '.join(sorted(driven))})"
            " as so wrong a calibration drives them out" if driven else "")
-    if check.suspect:
+    if suspect:
         return [(Code.CALIBRATION_SUSPECT, (
             f"the run held flight.yaml's camera calibration, which the flight contradicts: "
             f"{check.describe()}{out}; {advice}"))], [], frozenset({Code.BROAD_MAP_ERROR}) | driven
@@ -1114,11 +1119,11 @@ def _calibration_check(result: SmootherResult, named: set[str],
             f"the run held flight.yaml's camera calibration, which the flight contradicts: "
             f"{check.describe()}; the positions it kept lie within their covariance of that "
             f"solution, but{out[1:]}; {advice}"))], [], frozenset({Code.BROAD_MAP_ERROR}) | driven
-    if check.unresolved:
+    if check.unresolved or check.principal_point_unresolved:
         return [], [f"calibration_unresolved: {check.describe()}; but the side solve tells "
                     "the calibration poorly (before the first turn the focal scale trades with "
-                    "the height): this flight cannot check its calibration; held as "
-                    "flight.yaml writes it"], frozenset()
+                    "the height, the principal point with the position): this flight cannot "
+                    "check its calibration; held as flight.yaml writes it"], frozenset()
     specific = " and specific" if check.specific else ""
     beside = f", beside {', '.join(rivals)}" if check.specific and rivals else ""
     return [], [f"calibration_held: {check.describe()}: significant{specific}, but within the "
