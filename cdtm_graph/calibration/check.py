@@ -46,7 +46,7 @@ import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 
 from cdtm_graph.calibration.clustered import clustered_covariance, residual_scatter
-from cdtm_graph.calibration.noise_bias import debiased
+from cdtm_graph.calibration.noise_bias import debiased, noise_gradient
 from cdtm_graph.calibration.online import CALIBRATION_KEY, CalibrationEstimate, prior_sigmas
 from cdtm_graph.calibration.online import estimate as calibration_estimate
 from cdtm_graph.calibration.principal_point import PrincipalPointCheck, principal_point_step
@@ -370,16 +370,28 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
     # tracker's, taken at the stated size it read cx -26 px on a clean 25-frame flight)
     camera = flight.config.camera.camera
     linear_free = solver.linearized_at(values)
+    # (the noise's expected gradient once, the shift's part beside the five's: the
+    # dearest part of either step)
+    gradient = noise_gradient(built.cdtm, values, (camera.fx, camera.fy))
     pp_step = principal_point_step(graph.linearize(values) if linear_free is None else linear_free,
-                                   values, built.cdtm, camera.fx, camera.fy, measured_scatter)
-    principal_point = None if pp_step is None else PrincipalPointCheck(
-        pp_step.shift_px, pp_step.sigma_px, pp_step.cost_drop,
-        _position_nees(result, kept, np.stack([
-            values.atPose3(X(j)).retract(pp_step.step.at(X(j))).translation()
-            for j in range(kept.size)])), pp_step.wald)
+                                   values, built.cdtm, camera.fx, camera.fy, measured_scatter,
+                                   gradient)
+    principal_point = None
+    if pp_step is not None:
+        # (the run's positions against themselves moved as the shift alone moves them:
+        # whether the principal point matters, the five's correction apart)
+        pp_nees = float("nan")
+        if pp_step.step_without_shift is not None:
+            pp_nees = _position_nees(result, kept, result.estimate.world_T_body[kept, :3, 3]
+                                     - pp_step.position_move_m(values, [X(j) for j in
+                                                                        range(kept.size)]))
+        principal_point = PrincipalPointCheck(pp_step.shift_px, pp_step.sigma_px,
+                                              pp_step.cost_drop, pp_nees, pp_step.wald)
     values, (c_cov,) = debiased(graph, values, built.cdtm, noise_scale=scatter,
                                 linear=solver.linearized_at(values),
-                                marginal_keys=[CALIBRATION_KEY])
+                                marginal_keys=[CALIBRATION_KEY],
+                                gradient={key: g[:CALIBRATION_DIM] if key == CALIBRATION_KEY
+                                          else g for key, g in gradient.items()})
     c = values.atVector(CALIBRATION_KEY)
     estimate = calibration_estimate(c, c_cov, sigmas, flight.config)
     posterior = np.sqrt(np.diag(estimate.covariance))

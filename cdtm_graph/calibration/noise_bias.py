@@ -40,7 +40,7 @@ def noise_gradient(factors: Sequence[CdtmPairFactor], values: gtsam.Values,
         key_c = None if f.calibration is None else f.calibration.key
         c = values.atVector(key_c) if key_c is not None else None
         g = 0.5 * f.noise_cost_gradient(Ta, Tb, c, principal_point=to_px is not None)
-        if to_px is not None:
+        if to_px is not None and key_c is not None:
             g[-2:] *= to_px
         parts = [(f.key_a, g[:6]), (f.key_b, g[6:12])]
         if key_c is not None:
@@ -53,7 +53,9 @@ def noise_gradient(factors: Sequence[CdtmPairFactor], values: gtsam.Values,
 def debiased(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
              factors: Sequence[CdtmPairFactor], noise_scale: float = 1.0,
              linear: gtsam.GaussianFactorGraph | None = None,
-             marginal_keys: Sequence[int] = ()) -> tuple[gtsam.Values, list[np.ndarray]]:
+             marginal_keys: Sequence[int] = (),
+             gradient: dict[int, np.ndarray] | None = None
+             ) -> tuple[gtsam.Values, list[np.ndarray]]:
     """``values`` moved by one corrected-score step: the Gauss-Newton step of ``graph``
     at ``values`` with the noise's expected gradient taken out of its gradient; and the
     marginal covariance of each of ``marginal_keys``, from the same elimination.
@@ -69,10 +71,13 @@ def debiased(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
             (the solve's linearization, which the step needs anyway; the gradient's terms
             add no information), not at the moved values: one elimination, not a second
             linearization and elimination. The step is a fraction of a sigma.
+        gradient: :func:`noise_gradient` of ``factors`` at ``values``, if the caller has it
+            (at the model's noise: ``noise_scale`` multiplies it here).
     """
     hessian_form, jacobian_form = corrected_system(
         graph.linearize(values) if linear is None else linear,
-        {key: noise_scale * g for key, g in noise_gradient(factors, values).items()})
+        {key: noise_scale * g for key, g in (noise_gradient(factors, values) if gradient is None
+                                             else gradient).items()})
     step, covariances = step_and_marginals(hessian_form, marginal_keys, qr_form=jacobian_form)
     return values.retract(step), covariances
 

@@ -45,7 +45,8 @@ PRIOR_SIGMA_PX = 50.0
 #: The flight contradicts flight.yaml's principal point when freeing it lowers the error
 #: by more than this: chi-square(2)'s 99.9% quantile (13.8 / 2) times 2.7, the allowance
 #: the five parameters' test makes for what clean flights show
-#: (:data:`cdtm_graph.calibration.check.SUSPECT_COST_DROP`). FITTED: see docs/verdict.md.
+#: (:data:`cdtm_graph.calibration.check.SUSPECT_COST_DROP`). Not fitted: docs/verdict.md
+#: gives what it was checked on.
 PRINCIPAL_POINT_COST_DROP = 18.7
 
 #: ...and conclusive when it tells each of ``cx``, ``cy`` to this 1-sigma (px): a flight of a
@@ -74,13 +75,25 @@ class PrincipalPointStep:
         wald: the shift's Wald statistic on its cluster-robust covariance
             (:func:`~cdtm_graph.calibration.clustered.sandwich`, as the five's); NaN where
             the drop is not significant.
+        step_without_shift: the same corrected-score step without the shift's columns
+            (the five's own correction): ``step`` less this is the shift's move of every
+            variable. None where the drop is not significant.
     """
+
+    def position_move_m(self, values: gtsam.Values, keys: Sequence[int]) -> np.ndarray:
+        """(F, 3) how far the shift moves the positions of the poses ``keys`` (world, m):
+        the step's positions less those of the step without it, both from ``values``."""
+        assert self.step_without_shift is not None
+        return np.stack([values.atPose3(k).retract(self.step.at(k)).translation()
+                         - values.atPose3(k).retract(self.step_without_shift.at(k)).translation()
+                         for k in keys])
 
     shift_px: np.ndarray
     covariance_px2: np.ndarray
     cost_drop: float
     step: gtsam.VectorValues
     wald: float = float("nan")
+    step_without_shift: gtsam.VectorValues | None = None
 
     @property
     def sigma_px(self) -> np.ndarray:
@@ -89,7 +102,9 @@ class PrincipalPointStep:
 
 def principal_point_step(linear: gtsam.GaussianFactorGraph, values: gtsam.Values,
                          factors: Sequence[CdtmPairFactor], fx_px: float, fy_px: float,
-                         noise_scale: float = 1.0) -> PrincipalPointStep | None:
+                         noise_scale: float = 1.0,
+                         gradient: dict[int, np.ndarray] | None = None
+                         ) -> PrincipalPointStep | None:
     """The Gauss-Newton step of the side solve at ``values`` with the principal point free.
 
     Args:
@@ -99,6 +114,8 @@ def principal_point_step(linear: gtsam.GaussianFactorGraph, values: gtsam.Values
             shift's columns in pixels).
         noise_scale: the noise's variance over the model's, as for the five
             (:func:`~cdtm_graph.calibration.noise_bias.debiased`).
+        gradient: ``noise_gradient(factors, values, (fx_px, fy_px))``, if the caller has
+            it (the model's noise; the calibration's part (7,) with the shift's).
 
     Returns None when ``linear`` does not hold one factor per C-DTM pair factor of those
     keys (nothing to test against).
@@ -142,22 +159,36 @@ def principal_point_step(linear: gtsam.GaussianFactorGraph, values: gtsam.Values
     # the corrected score, as the five's step has it (:mod:`~cdtm_graph.calibration.
     # noise_bias`): the pixel noise biases the shift too (+3 px in cx, 7 sigma, on a clean
     # flight without it)
-    gradient = {WITH_PRINCIPAL_POINT_KEY if key == CALIBRATION_KEY else key: noise_scale * g
-                for key, g in noise_gradient(factors, values, (fx_px, fy_px)).items()}
-    hessian_form, jacobian_form = corrected_system(augmented, gradient)
+    if gradient is None:
+        gradient = noise_gradient(factors, values, (fx_px, fy_px))
+    gradient = {key: noise_scale * g for key, g in gradient.items()}
+    hessian_form, jacobian_form = corrected_system(augmented, {
+        WITH_PRINCIPAL_POINT_KEY if key == CALIBRATION_KEY else key: g
+        for key, g in gradient.items()})
     step, (covariance,) = step_and_marginals(hessian_form, [WITH_PRINCIPAL_POINT_KEY],
                                              qr_form=jacobian_form)
     shift = np.asarray(step.at(WITH_PRINCIPAL_POINT_KEY), dtype=float)[m:]
     covariance = covariance[m:, m:]
     drop = 0.5 * float(shift @ np.linalg.solve(covariance, shift))
-    wald = float("nan")
-    if drop > PRINCIPAL_POINT_COST_DROP:  # (a dense solve: only where it decides)
+    wald, without = float("nan"), None
+    if drop > PRINCIPAL_POINT_COST_DROP:  # (a dense solve and an elimination: only where
+        # they decide) the five's own step, the same corrected score without the shift
+        gradient[CALIBRATION_KEY] = gradient[CALIBRATION_KEY][:m]
+        hessian_form, jacobian_form = corrected_system(linear, gradient)
+        without, _ = step_and_marginals(hessian_form, [], qr_form=jacobian_form)
         dims = {WITH_PRINCIPAL_POINT_KEY if key == CALIBRATION_KEY else key:
                 m + 2 if key == CALIBRATION_KEY else dim
                 for key, dim in side_solve_dims(values).items()}
-        robust = sandwich(augmented, dims, WITH_PRINCIPAL_POINT_KEY, rows)[m:, m:]
+        # (the residuals as the step leaves them, to first order: the spread is read at
+        # the estimate with the shift, as the five's is read at their corrected estimate;
+        # at the free optimum the shift's own misfit, correlated over the ground, would
+        # count as spread: 5 px read W 65-74, no more than 2 px)
+        k = np.asarray(step.at(WITH_PRINCIPAL_POINT_KEY), dtype=float)
+        after = [(f, e + Ha @ step.at(f.key_a) + Hb @ step.at(f.key_b) + Hk @ k, Ha, Hb, Hk)
+                 for f, e, Ha, Hb, Hk in rows]
+        robust = sandwich(augmented, dims, WITH_PRINCIPAL_POINT_KEY, after)[m:, m:]
         wald = float(shift @ np.linalg.solve(robust, shift))
-    return PrincipalPointStep(shift, covariance, drop, step, wald)
+    return PrincipalPointStep(shift, covariance, drop, step, wald, without)
 
 
 @dataclass(frozen=True)
@@ -169,8 +200,9 @@ class PrincipalPointCheck:
         shift_px: (2,) the correction to flight.yaml's ``cx``, ``cy`` (pixels).
         sigma_px: (2,) its 1-sigmas.
         cost_drop: the error the step drops (:class:`PrincipalPointStep`).
-        position_nees: mean over frames of the run's position against the step's, squared
-            Mahalanobis distance in the run's position covariance.
+        position_nees: mean over frames of how far the shift alone moves the positions
+            (the step less the five's own step), squared Mahalanobis distance in the run's
+            position covariance; NaN where the drop is not significant (not computed).
         wald: :attr:`PrincipalPointStep.wald`.
     """
 
@@ -207,5 +239,7 @@ class PrincipalPointCheck:
 
     def to_dict(self) -> dict:
         return {"shift_px": self.shift_px.tolist(), "sigma_px": self.sigma_px.tolist(),
-                "cost_drop": self.cost_drop, "position_nees": self.position_nees,
+                "cost_drop": self.cost_drop,
+                "position_nees": (self.position_nees if np.isfinite(self.position_nees)
+                                  else None),
                 "wald": self.wald if np.isfinite(self.wald) else None}
