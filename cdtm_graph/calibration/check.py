@@ -46,10 +46,11 @@ import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 
 from cdtm_graph.calibration.clustered import clustered_covariance, residual_scatter
+from cdtm_graph.calibration.extra_parts import PartCheck, score_step
 from cdtm_graph.calibration.noise_bias import debiased, noise_gradient
 from cdtm_graph.calibration.online import CALIBRATION_KEY, CalibrationEstimate, prior_sigmas
 from cdtm_graph.calibration.online import estimate as calibration_estimate
-from cdtm_graph.calibration.principal_point import PrincipalPointCheck, principal_point_step
+from cdtm_graph.calibration.principal_point import principal_point_part
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.flightlog import CalibrationSigmas, FlightLog, Frames, Tracks
 from cdtm_graph.graph import GraphSettings
@@ -147,8 +148,8 @@ class CalibrationCheck:
         conclusive: the side solve told every part of the calibration to
             ``CONCLUSIVE_SIGMA_RATIO`` of its prior sigma.
         suspect: the five parameters' correction is significant, it matters, conclusive
-            and specific (module docstring); the principal point's apart
-            (:attr:`principal_point_suspect`).
+            and specific (module docstring); the other parts' apart
+            (:attr:`suspect_parts`).
         time_s: the side solve's cost.
         n_frames: the frames it solved (every n-th of a long log, :func:`thinned`).
         residual_scatter: the C-DTM residuals at the calibrated solution over their
@@ -180,13 +181,13 @@ class CalibrationCheck:
     residual_scatter: float = 1.0
     wald: float = float("nan")
     first_frame: tuple[np.ndarray, np.ndarray] | None = None
-    principal_point: PrincipalPointCheck | None = None
+    principal_point: PartCheck | None = None
 
     @property
     def significant(self) -> bool:
-        """The flight prefers the estimated calibration, or a principal point moved,
-        beyond chance."""
-        return self.five_significant or self.principal_point_significant
+        """The flight prefers the estimated calibration, or a part the side solve does not
+        estimate moved, beyond chance."""
+        return self.five_significant or any(p.significant for p in self.parts)
 
     @property
     def five_significant(self) -> bool:
@@ -194,40 +195,33 @@ class CalibrationCheck:
         return self.cost_drop > SUSPECT_COST_DROP
 
     @property
-    def principal_point_significant(self) -> bool:
-        """Freeing ``cx``, ``cy`` at the calibrated optimum lowers the error beyond chance
-        (:mod:`cdtm_graph.calibration.principal_point`)."""
-        return self.principal_point is not None and self.principal_point.significant
+    def parts(self) -> list[PartCheck]:
+        """The parts the side solve does not estimate, as one more step tested them
+        (:mod:`cdtm_graph.calibration.extra_parts`)."""
+        return [p for p in (self.principal_point,) if p is not None]
 
     @property
-    def principal_point_suspect_alone(self) -> bool:
-        """The principal point is suspect and the five parameters are not significant."""
-        return self.principal_point_suspect and not self.five_significant
+    def suspect_parts(self) -> list[PartCheck]:
+        """The parts that moved significantly, conclusively and specifically (beyond the
+        map's shared error and the residuals' scatter), the run's positions beyond their
+        covariance from where each alone moves them."""
+        return [p for p in self.parts if p.significant and p.conclusive and p.specific
+                and _matters(p.position_nees)]
 
     @property
-    def principal_point_suspect(self) -> bool:
-        """The principal point moved significantly and specifically (beyond the map's
-        shared error and the residuals' scatter), and the run's positions lie beyond
-        their covariance from where it moves them."""
-        pp = self.principal_point
-        return (pp is not None and pp.significant and pp.conclusive and pp.specific
-                and _matters(pp.position_nees))
+    def confounded_parts(self) -> list[PartCheck]:
+        """The parts that moved significantly and conclusively, the positions feeling it,
+        but not specifically: the map's error and the residuals' scatter explain it as
+        well."""
+        return [p for p in self.parts if p.significant and p.conclusive and not p.specific
+                and _matters(p.position_nees)]
 
     @property
-    def principal_point_confounded(self) -> bool:
-        """The principal point moved significantly and the positions feel it, but not
-        specifically: the map's error and the residuals' scatter explain it as well."""
-        pp = self.principal_point
-        return (pp is not None and pp.significant and pp.conclusive and not pp.specific
-                and _matters(pp.position_nees))
-
-    @property
-    def principal_point_unresolved(self) -> bool:
-        """The principal point moved significantly and the positions feel it, but the
-        flight tells it poorly (a few frames, no roll change yet)."""
-        pp = self.principal_point
-        return (pp is not None and pp.significant and not pp.conclusive
-                and _matters(pp.position_nees))
+    def unresolved_parts(self) -> list[PartCheck]:
+        """The parts that moved significantly, the positions feeling it, but that the
+        flight tells poorly (a few frames, no roll change yet)."""
+        return [p for p in self.parts if p.significant and not p.conclusive
+                and _matters(p.position_nees)]
 
     @property
     def specific(self) -> bool:
@@ -272,9 +266,8 @@ class CalibrationCheck:
                 + (f", a Wald statistic of {self.wald:.1f} against the map's shared error and "
                    f"that scatter ({SUSPECT_WALD:.0f} needed)" if np.isfinite(self.wald) else "")
                 + f"; the run's positions lie at a mean NEES of {self.position_nees:.1f} from "
-                "that solution's" + (f"; {self.principal_point.describe()}"
-                                     if self.principal_point_significant
-                                     and self.principal_point is not None else ""))
+                "that solution's" + "".join(f"; {p.describe()}" for p in self.parts
+                                            if p.significant))
 
     def to_dict(self) -> dict:
         c = self.estimate
@@ -288,7 +281,7 @@ class CalibrationCheck:
                 "wald": self.wald if np.isfinite(self.wald) else None,
                 "principal_point": (None if self.principal_point is None
                                     else self.principal_point.to_dict()),
-                "principal_point_suspect": self.principal_point_suspect}
+                "suspect_parts": [p.part.name for p in self.suspect_parts]}
 
 
 @dataclass(frozen=True)
@@ -365,28 +358,26 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
     # its bias taken out at the scatter the residuals show with the calibration free)
     measured_scatter = residual_scatter(built.cdtm, values, floor=0.0)
     scatter = max(measured_scatter, 1.0)  # (less scatter never makes the five bolder)
-    # (the principal point, tested at the free optimum: one step with cx, cy free; its
-    # noise bias at the scatter as measured: with flight.yaml's pixel noise stated 3x the
-    # tracker's, taken at the stated size it read cx -26 px on a clean 25-frame flight)
+    # (the parts the side solve does not estimate, each tested at the free optimum by one
+    # more step with it free; its noise bias at the scatter as measured: with flight.yaml's
+    # pixel noise stated 3x the tracker's, taken at the stated size the principal point
+    # read cx -26 px on a clean 25-frame flight)
     camera = flight.config.camera.camera
     linear_free = solver.linearized_at(values)
-    # (the noise's expected gradient once, the shift's part beside the five's: the
-    # dearest part of either step)
+    linear_free = graph.linearize(values) if linear_free is None else linear_free
+    # (the noise's expected gradient once, the principal point's part beside the five's:
+    # the dearest part of every step)
     gradient = noise_gradient(built.cdtm, values, (camera.fx, camera.fy))
-    pp_step = principal_point_step(graph.linearize(values) if linear_free is None else linear_free,
-                                   values, built.cdtm, camera.fx, camera.fy, measured_scatter,
-                                   gradient)
-    principal_point = None
-    if pp_step is not None:
-        # (the run's positions against themselves moved as the shift alone moves them:
-        # whether the principal point matters, the five's correction apart)
-        pp_nees = float("nan")
-        if pp_step.step_without_shift is not None:
-            pp_nees = _position_nees(result, kept, result.estimate.world_T_body[kept, :3, 3]
-                                     - pp_step.position_move_m(values, [X(j) for j in
-                                                                        range(kept.size)]))
-        principal_point = PrincipalPointCheck(pp_step.shift_px, pp_step.sigma_px,
-                                              pp_step.cost_drop, pp_nees, pp_step.wald)
+    poses = [X(j) for j in range(kept.size)]
+    tested: list[PartCheck | None] = []
+    for part in (principal_point_part(camera.fx, camera.fy),):
+        step = score_step(linear_free, values, built.cdtm, part, gradient, measured_scatter)
+        part_nees = float("nan")  # (whether it matters: the positions' move of it alone)
+        if step is not None and step.step_without is not None:
+            part_nees = _position_nees(result, kept, result.estimate.world_T_body[kept, :3, 3]
+                                       - step.position_move_m(values, poses))
+        tested.append(None if step is None else PartCheck(
+            part, step.correction, step.sigma, step.cost_drop, part_nees, step.wald))
     values, (c_cov,) = debiased(graph, values, built.cdtm, noise_scale=scatter,
                                 linear=solver.linearized_at(values),
                                 marginal_keys=[CALIBRATION_KEY],
@@ -408,7 +399,7 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
                    and wald > SUSPECT_WALD)
     return CalibrationCheck(estimate, z, nees, float(cost_drop), conclusive, suspect,
                             time.perf_counter() - start, int(kept.size), scatter, wald,
-                            first_frame, principal_point)
+                            first_frame, *tested)
 
 
 def without_pin(linear: gtsam.GaussianFactorGraph | None, free: gtsam.NonlinearFactorGraph

@@ -1095,16 +1095,15 @@ def _calibration_check(result: SmootherResult, named: set[str],
     rivals = sorted((CALIBRATION_RIVALS & named) - driven)
     advice = "smooth in batch mode with the calibration estimated (--calibration online) " \
              "or correct flight.yaml"
-    if check.principal_point_suspect:
-        advice = ("correct flight.yaml's principal point (cx, cy: --calibration online does not "
-                  "estimate it)" + ("" if check.principal_point_suspect_alone else
-                                    f"; {advice} for the rest"))
-    suspect = check.suspect or check.principal_point_suspect
+    if check.suspect_parts:
+        advice = "; ".join(p.part.advice for p in check.suspect_parts) + (
+            f"; {advice} for the rest" if check.five_significant else "")
+    suspect = check.suspect or bool(check.suspect_parts)
     if suspect and rivals:
         return [], [f"calibration_confounded: {check.describe()}; but the verdict names "
                     f"{', '.join(rivals)}, which moves the side solve alike: not named as a "
                     "reason; held as flight.yaml writes it"], frozenset()
-    if (check.confounded or check.principal_point_confounded) and not suspect:
+    if (check.confounded or check.confounded_parts) and not suspect:
         return [], [f"calibration_confounded: {check.describe()}; but the map's shared error "
                     "and the residuals' scatter explain it as well: not named as a reason; "
                     "held as flight.yaml writes it"], frozenset()
@@ -1119,10 +1118,10 @@ def _calibration_check(result: SmootherResult, named: set[str],
             f"the run held flight.yaml's camera calibration, which the flight contradicts: "
             f"{check.describe()}; the positions it kept lie within their covariance of that "
             f"solution, but{out[1:]}; {advice}"))], [], frozenset({Code.BROAD_MAP_ERROR}) | driven
-    if check.unresolved or check.principal_point_unresolved:
+    if check.unresolved or check.unresolved_parts:
         return [], [f"calibration_unresolved: {check.describe()}; but the side solve tells "
                     "the calibration poorly (before the first turn the focal scale trades with "
-                    "the height, the principal point with the position): this flight cannot "
+                    "the height, a body-fixed offset with the position): this flight cannot "
                     "check its calibration; held as flight.yaml writes it"], frozenset()
     specific = " and specific" if check.specific else ""
     beside = f", beside {', '.join(rivals)}" if check.specific and rivals else ""

@@ -628,13 +628,15 @@ def test_a_principal_point_off_is_named_by_the_calibration_check(
     fails; its specificity left out -> the fifth fails; a shift told to 5 px (a short
     flight) is a note ``calibration_unresolved``, its conclusiveness left out -> the last
     fails."""
-    from cdtm_graph.calibration.principal_point import PrincipalPointCheck
+    from cdtm_graph.calibration.extra_parts import PartCheck
+    from cdtm_graph.calibration.principal_point import principal_point_part
 
     check = dataclasses.replace(
         _check(five_drop, 50.0, True, 20.0),
-        principal_point=PrincipalPointCheck(
-            np.array([2.1, 1.9]), np.array([0.45, 5.0 if note == "calibration_unresolved"
-                                            else 0.2]), pp_drop, pp_nees, pp_wald))
+        principal_point=PartCheck(
+            principal_point_part(500.0, 500.0), np.array([2.1, 1.9]),
+            np.array([0.45, 5.0 if note == "calibration_unresolved" else 0.2]), pp_drop,
+            pp_nees, pp_wald))
     k = 30
     result = dataclasses.replace(_result(k), calibration_check=check)
     if rival:
