@@ -32,6 +32,12 @@ PRIOR_SIGMA_PX = 50.0
 CONCLUSIVE_PX = 1.0
 
 
+def _noise_part(gradient: dict[int, np.ndarray]) -> np.ndarray:
+    """The calibration's entries after the five (none without a C-DTM factor: zero)."""
+    g = gradient.get(CALIBRATION_KEY)
+    return np.zeros(2) if g is None else g[-2:]
+
+
 def principal_point_part(fx_px: float, fy_px: float) -> ExtraPart:
     """The principal point as a part of the calibration check, flight.yaml's focal lengths
     ``fx_px``, ``fy_px`` turning its columns (normalized coordinates) into pixels. Its
@@ -44,6 +50,6 @@ def principal_point_part(fx_px: float, fy_px: float) -> ExtraPart:
         return f.principal_point_columns(Ta, Tb, c) * to_px
 
     return ExtraPart("principal_point", ("cx", "cy"), "px", columns,
-                     lambda gradient: gradient[CALIBRATION_KEY][-2:], PRIOR_SIGMA_PX,
+                     _noise_part, PRIOR_SIGMA_PX,
                      CONCLUSIVE_PX, "correct flight.yaml's principal point (cx, cy: "
                      "--calibration online does not estimate it)")
