@@ -260,6 +260,27 @@ class PinholeCamera:
         return ((u >= lo) & (u <= self.width - 0.5 + margin_px)
                 & (v >= lo) & (v <= self.height - 0.5 + margin_px))
 
+    def undistortion_jacobian(self, rays: np.ndarray) -> np.ndarray:
+        """(N, 2, 2) how each undistorted ray ``(x, y)`` moves with its pixel's distorted
+        normalized coordinates ``((u - cx) / fx, (v - cy) / fy)``: the inverse of the
+        distortion's Jacobian at the rays (N, 3), by central differences of
+        :meth:`rays_to_pixels` (the lens's one formula); the identity without distortion.
+        """
+        q = np.asarray(rays, dtype=float).reshape(-1, 3)
+        n = q.shape[0]
+        if self.model is DistortionModel.NONE:
+            return np.broadcast_to(np.eye(2), (n, 2, 2)).copy()
+        step = 1e-6
+        J = np.empty((n, 2, 2))
+        scale = np.array([self.fx, self.fy])
+        for j in range(2):
+            plus, minus = q.copy(), q.copy()
+            plus[:, j] += step
+            minus[:, j] -= step
+            J[:, :, j] = (self.rays_to_pixels(plus) - self.rays_to_pixels(minus)) / (
+                2.0 * step * scale)
+        return np.linalg.inv(J)
+
     def sigma_normalized(self, pixel_sigma_px: float) -> tuple[float, float]:
         """A pixel standard deviation in normalized image units: ``(sigma / fx, sigma / fy)``."""
         return (pixel_sigma_px / self.fx, pixel_sigma_px / self.fy)

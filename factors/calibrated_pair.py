@@ -12,6 +12,7 @@ Jacobians chained to the calibration. This mixin holds that evaluation; the fact
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import gtsam
@@ -39,6 +40,10 @@ from factors.kernel import (
 
 if TYPE_CHECKING:
     from factors.cdtm_factor import PairFeatures, RobustKernel
+
+#: Rays (m, 3) -> the lens's undistortion Jacobian at them (m, 2, 2): how each undistorted
+#: ray moves with its pixel's distorted normalized coordinates.
+RayJacobian = Callable[[np.ndarray], np.ndarray]
 
 #: ``cdtm_linearize``'s ``e_loss_out`` when only one kind of residual is wanted.
 NO_LOSS = np.empty((0, 2))
@@ -192,24 +197,33 @@ class CalibratedPair:
         return column
 
     def principal_point_columns(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray,
-                                calibration: np.ndarray, robust: bool = True) -> np.ndarray:
+                                calibration: np.ndarray, robust: bool = True,
+                                ray_jacobian: RayJacobian | None = None) -> np.ndarray:
         """d e / d c, (n, 2, 2): the whitened (and, ``robust``, reweighted) residuals'
         derivative w.r.t. a shift ``c`` of the principal point in normalized coordinates
         (``[dcx / fx, dcy / fy]``), at the calibration ``calibration`` (5,)
         (:func:`~factors.kernel.principal_point_kernel`: the rays move, the poses and the
-        planes are held). Not a part of the calibration variable: the calibration check
-        tests it apart (:mod:`cdtm_graph.calibration.principal_point`)."""
+        planes are held). ``ray_jacobian``: rays (m, 3) -> the lens's undistortion
+        Jacobian at them (m, 2, 2); None: no distortion (the identity). Not a part of the
+        calibration variable: the calibration check tests it apart
+        (:mod:`cdtm_graph.calibration.principal_point`)."""
         c = np.asarray(calibration, dtype=float)
         s = float(c[FOCAL_SCALE])
         shift_a, shift_b, body_T_cam, _, q_a, _, sqrt_info = self._calibrated_setup(c)
         wTc_a = world_T_body_a @ shift_a @ body_T_cam
         wTc_b = world_T_body_b @ shift_b @ body_T_cam
         G_E, N = self.planes(wTc_a, s)
-        out = np.empty((self.features.n, 2, 2))
+        n = self.features.n
+        if ray_jacobian is None:
+            J_a = J_b = np.broadcast_to(np.eye(2), (n, 2, 2))
+        else:
+            J_a, J_b = ray_jacobian(self.features.q_a), ray_jacobian(self.features.q_b)
+        out = np.empty((n, 2, 2))
         principal_point_kernel(wTc_a[:3, :3], wTc_a[:3, 3], wTc_b[:3, :3], wTc_b[:3, 3], q_a,
                                corrected_rays(self.features.q_b, s), G_E, N, sqrt_info,
                                1.0 + s, self.robust.kernel_id if robust else KERNEL_NONE,
-                               self._kernel_k, out)
+                               self._kernel_k, np.ascontiguousarray(J_a),
+                               np.ascontiguousarray(J_b), out)
         return out
 
     def _calibrated_error(self, values: gtsam.Values, key: int, jacobians) -> np.ndarray:

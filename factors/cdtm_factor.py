@@ -34,7 +34,13 @@ import gtsam
 import numpy as np
 
 import factors.cdtm_math as cdtm_math
-from factors.calibrated_pair import CALIBRATED_ROWS, NO_LOSS, CalibratedPair, pose_matrix
+from factors.calibrated_pair import (
+    CALIBRATED_ROWS,
+    NO_LOSS,
+    CalibratedPair,
+    RayJacobian,
+    pose_matrix,
+)
 from factors.calibration import (
     CALIBRATION_DIM,
     FOCAL_SCALE,
@@ -382,13 +388,14 @@ class CdtmPairFactor(CalibratedPair):
 
     def noise_cost_gradient(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray,
                             calibration: np.ndarray | None = None,
-                            principal_point: bool = False) -> np.ndarray:
+                            principal_point: bool = False,
+                            ray_jacobian: RayJacobian | None = None) -> np.ndarray:
         """Gradient of the cost the data noise alone is expected to leave, ``E[|r|^2]``
         with ``r`` whitened and reweighted as the factor does, w.r.t. ``X(a)``, ``X(b)``
         (right perturbations) and, with a calibration link, the calibration (5,):
         (12,) or (17,); ``principal_point`` (a calibration link only): also w.r.t. a shift
-        of the principal point in normalized coordinates (:meth:`principal_point_columns`),
-        (19,).
+        of the principal point in normalized coordinates (:meth:`principal_point_columns`,
+        with ``ray_jacobian``), (19,).
 
         Why: the factor holds its whitening fixed and ``q_a`` exact, but the residual's
         noise (``q_a``'s pixel noise above all: it moves the ground point by its range
@@ -423,7 +430,8 @@ class CdtmPairFactor(CalibratedPair):
                                           True, e, Ha, Hb)
             focal = moved._focal_scale_column(world_T_body_a, world_T_body_b, c, KERNEL_NONE)
             J = np.concatenate((Ha, Hb, focal[:, :, None]) + ((moved.principal_point_columns(
-                world_T_body_a, world_T_body_b, c, robust=False),) if extra else ()), axis=2)
+                world_T_body_a, world_T_body_b, c, robust=False, ray_jacobian=ray_jacobian),)
+                if extra else ()), axis=2)
         else:
             e, Ha, Hb = moved.innovations(world_T_body_a, world_T_body_b)
             J = np.concatenate((Ha, Hb), axis=2)

@@ -287,17 +287,20 @@ def focal_scale_kernel(R_a, p_a, R_b, p_b, q_a, q_b, G_E, N, sqrt_info, one_plus
 
 @njit(cache=True)
 def principal_point_kernel(R_a, p_a, R_b, p_b, q_a, q_b, G_E, N, sqrt_info, one_plus_s,
-                           kernel, kernel_k, out):
+                           kernel, kernel_k, J_a, J_b, out):
     """``d e / d c`` of the whitened, reweighted residuals of n features w.r.t. a shift
-    ``c`` of the principal point in normalized coordinates (``[dcx / fx, dcy / fy]``), the
-    poses, the focal scale and the tangent planes held.
+    ``c`` of the principal point in (distorted) normalized coordinates (``[dcx / fx,
+    dcy / fy]``), the poses, the focal scale and the tangent planes held.
 
-    The corrected rays are ``[(q0_xy - c) / (1 + s), 1]``: ``dq/dc_j = -e_j / (1 + s)``
-    moves both rays alike (:func:`_ray_move`); the whitening does not depend on ``c``.
+    A pixel's distorted normalized coordinates move by ``-c``; its undistorted ray by
+    ``-J c`` (``J``: the undistortion's Jacobian there, the identity without distortion),
+    under the focal scale ``/ (1 + s)`` (:func:`_ray_move`, each ray by its own ``J``); the
+    whitening does not depend on ``c``.
 
     Args:
-        as :func:`focal_scale_kernel`. out: (n, 2, 2) output, ``out[i, :, j] = d e_i /
-        d c_j``; zero for inactive features.
+        as :func:`focal_scale_kernel`. J_a, J_b: (n, 2, 2) ``J`` at each feature's two
+        sightings. out: (n, 2, 2) output, ``out[i, :, j] = d e_i / d c_j``; zero for
+        inactive features.
     """
     k = -1.0 / one_plus_s
     for i in range(q_a.shape[0]):
@@ -305,10 +308,9 @@ def principal_point_kernel(R_a, p_a, R_b, p_b, q_a, q_b, G_E, N, sqrt_info, one_
             out[i, 0, j] = 0.0
             out[i, 1, j] = 0.0
         for j in range(2):
-            dq0 = k if j == 0 else 0.0
-            dq1 = k if j == 1 else 0.0
             active, e0, e1, de0, de1 = _ray_move(i, R_a, p_a, R_b, p_b, q_a, q_b, G_E, N,
-                                                 dq0, dq1, dq0, dq1)
+                                                 k * J_a[i, 0, j], k * J_a[i, 1, j],
+                                                 k * J_b[i, 0, j], k * J_b[i, 1, j])
             if not active:
                 break
             S00, S01, S10, S11 = sqrt_info[i, 0, 0], sqrt_info[i, 0, 1], \

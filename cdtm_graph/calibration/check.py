@@ -47,10 +47,10 @@ from gtsam.symbol_shorthand import B, V, X
 
 from cdtm_graph.calibration.clustered import clustered_covariance, residual_scatter
 from cdtm_graph.calibration.extra_parts import PartCheck, score_step
-from cdtm_graph.calibration.noise_bias import debiased, noise_gradient
+from cdtm_graph.calibration.noise_bias import debiased
 from cdtm_graph.calibration.online import CALIBRATION_KEY, CalibrationEstimate, prior_sigmas
 from cdtm_graph.calibration.online import estimate as calibration_estimate
-from cdtm_graph.calibration.principal_point import principal_point_part
+from cdtm_graph.calibration.principal_point import noise_gradient_of, principal_point_part
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.flightlog import CalibrationSigmas, FlightLog, Frames, Tracks
 from cdtm_graph.graph import GraphSettings
@@ -367,10 +367,10 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
     linear_free = graph.linearize(values) if linear_free is None else linear_free
     # (the noise's expected gradient once, the principal point's part beside the five's:
     # the dearest part of every step)
-    gradient = noise_gradient(built.cdtm, values, (camera.fx, camera.fy))
+    gradient = noise_gradient_of(built.cdtm, values, camera)
     poses = [X(j) for j in range(kept.size)]
     tested: list[PartCheck | None] = []
-    for part in (principal_point_part(camera.fx, camera.fy),):
+    for part in (principal_point_part(camera),):
         step = score_step(linear_free, values, built.cdtm, part, gradient, measured_scatter)
         part_nees = float("nan")  # (whether it matters: the positions' move of it alone)
         if step is not None and step.step_without is not None:

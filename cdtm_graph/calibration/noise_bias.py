@@ -24,22 +24,25 @@ import numpy as np
 
 from cdtm_graph.optimizer import step_and_marginals
 from factors import CdtmPairFactor
+from factors.calibrated_pair import RayJacobian
 
 
 def noise_gradient(factors: Sequence[CdtmPairFactor], values: gtsam.Values,
-                   principal_point_px: tuple[float, float] | None = None
-                   ) -> dict[int, np.ndarray]:
+                   principal_point_px: tuple[float, float] | None = None,
+                   ray_jacobian: RayJacobian | None = None) -> dict[int, np.ndarray]:
     """Half the gradient of the C-DTM noise's expected cost, per variable key (the pose
     tangents' and, when the factors hold it, the calibration's). ``principal_point_px``
     (flight.yaml's fx, fy): the calibration's part also holds a principal point shift's,
-    (7,): ``[C(0), dcx, dcy (px)]`` (:mod:`cdtm_graph.calibration.principal_point`)."""
+    (7,): ``[C(0), dcx, dcy (px)]`` (:mod:`cdtm_graph.calibration.principal_point`; the
+    lens's ``ray_jacobian`` as :meth:`factors.CdtmPairFactor.principal_point_columns`)."""
     out: dict[int, np.ndarray] = {}
     to_px = None if principal_point_px is None else 1.0 / np.asarray(principal_point_px)
     for f in factors:
         Ta, Tb = values.atPose3(f.key_a).matrix(), values.atPose3(f.key_b).matrix()
         key_c = None if f.calibration is None else f.calibration.key
         c = values.atVector(key_c) if key_c is not None else None
-        g = 0.5 * f.noise_cost_gradient(Ta, Tb, c, principal_point=to_px is not None)
+        g = 0.5 * f.noise_cost_gradient(Ta, Tb, c, principal_point=to_px is not None,
+                                        ray_jacobian=ray_jacobian)
         if to_px is not None and key_c is not None:
             g[-2:] *= to_px
         parts = [(f.key_a, g[:6]), (f.key_b, g[6:12])]

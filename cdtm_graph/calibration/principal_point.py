@@ -15,11 +15,17 @@ columns (:meth:`factors.CdtmPairFactor.principal_point_columns`, in pixels).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
+import gtsam
 import numpy as np
 
 from cdtm_graph.calibration.extra_parts import ExtraPart
+from cdtm_graph.calibration.noise_bias import noise_gradient
 from cdtm_graph.calibration.online import CALIBRATION_KEY
+from cdtm_graph.camera import DistortionModel, PinholeCamera
 from factors import CdtmPairFactor
+from factors.calibrated_pair import RayJacobian
 
 #: The shift's prior 1-sigma in the step (pixels): a regularizer where the flight does not
 #: tell it (no roll change), far above any shift the test names.
@@ -38,18 +44,34 @@ def _noise_part(gradient: dict[int, np.ndarray]) -> np.ndarray:
     return np.zeros(2) if g is None else g[-2:]
 
 
-def principal_point_part(fx_px: float, fy_px: float) -> ExtraPart:
-    """The principal point as a part of the calibration check, flight.yaml's focal lengths
-    ``fx_px``, ``fy_px`` turning its columns (normalized coordinates) into pixels. Its
-    noise part is the calibration's entries after the five (:func:`~cdtm_graph.
-    calibration.noise_bias.noise_gradient` with ``principal_point_px``)."""
-    to_px = np.array([1.0 / fx_px, 1.0 / fy_px])
+def principal_point_part(camera: PinholeCamera) -> ExtraPart:
+    """The principal point as a part of the calibration check: flight.yaml's focal lengths
+    turn its columns (normalized coordinates) into pixels, its lens's undistortion
+    Jacobian carries a pixel's shift to its ray (:meth:`~cdtm_graph.camera.PinholeCamera.
+    undistortion_jacobian`; None without distortion). Its noise part is the calibration's
+    entries after the five (:func:`~cdtm_graph.calibration.noise_bias.noise_gradient`
+    with ``principal_point_px`` and the same Jacobian: :func:`noise_gradient_of`)."""
+    to_px = np.array([1.0 / camera.fx, 1.0 / camera.fy])
+    ray_jacobian = ray_jacobian_of(camera)
 
     def columns(f: CdtmPairFactor, Ta: np.ndarray, Tb: np.ndarray, c: np.ndarray,
                 Ha: np.ndarray, Hb: np.ndarray) -> np.ndarray:
-        return f.principal_point_columns(Ta, Tb, c) * to_px
+        return f.principal_point_columns(Ta, Tb, c, ray_jacobian=ray_jacobian) * to_px
 
     return ExtraPart("principal_point", ("cx", "cy"), "px", columns,
                      _noise_part, PRIOR_SIGMA_PX,
                      CONCLUSIVE_PX, "correct flight.yaml's principal point (cx, cy: "
                      "--calibration online does not estimate it)")
+
+
+def ray_jacobian_of(camera: PinholeCamera) -> RayJacobian | None:
+    """The lens's undistortion Jacobian as the columns take it; None without distortion
+    (the identity, exactly)."""
+    return None if camera.model is DistortionModel.NONE else camera.undistortion_jacobian
+
+
+def noise_gradient_of(factors: Sequence[CdtmPairFactor], values: gtsam.Values,
+                      camera: PinholeCamera) -> dict[int, np.ndarray]:
+    """The noise's expected gradient with the principal point's part (the five's first),
+    as :func:`principal_point_part` of ``camera`` reads it."""
+    return noise_gradient(factors, values, (camera.fx, camera.fy), ray_jacobian_of(camera))

@@ -630,11 +630,12 @@ def test_a_principal_point_off_is_named_by_the_calibration_check(
     fails."""
     from cdtm_graph.calibration.extra_parts import PartCheck
     from cdtm_graph.calibration.principal_point import principal_point_part
+    from cdtm_graph.camera import PinholeCamera
 
     check = dataclasses.replace(
         _check(five_drop, 50.0, True, 20.0),
         principal_point=PartCheck(
-            principal_point_part(500.0, 500.0), np.array([2.1, 1.9]),
+            principal_point_part(PinholeCamera.from_fov(640, 480, 60.0)), np.array([2.1, 1.9]),
             np.array([0.45, 5.0 if note == "calibration_unresolved" else 0.2]), pp_drop,
             pp_nees, pp_wald))
     k = 30
