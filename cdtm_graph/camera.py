@@ -263,10 +263,13 @@ class PinholeCamera:
     def undistortion_jacobian(self, rays: np.ndarray) -> np.ndarray:
         """(N, 2, 2) how each undistorted ray ``(x, y)`` moves with its pixel's distorted
         normalized coordinates ``((u - cx) / fx, (v - cy) / fy)``: the inverse of the
-        distortion's Jacobian at the rays (N, 3), by central differences of
-        :meth:`rays_to_pixels` (the lens's one formula); the identity without distortion.
+        distortion's Jacobian at the rays (N, 3, any positive z), by central differences
+        of :meth:`rays_to_pixels` (the lens's one formula); the identity without
+        distortion, and where the lens folds (a Jacobian that is not invertible or not
+        finite: no pixel is measured there, :meth:`pixels_to_rays`).
         """
         q = np.asarray(rays, dtype=float).reshape(-1, 3)
+        q = q / q[:, 2:3]
         n = q.shape[0]
         if self.model is DistortionModel.NONE:
             return np.broadcast_to(np.eye(2), (n, 2, 2)).copy()
@@ -279,7 +282,13 @@ class PinholeCamera:
             minus[:, j] -= step
             J[:, :, j] = (self.rays_to_pixels(plus) - self.rays_to_pixels(minus)) / (
                 2.0 * step * scale)
-        return np.linalg.inv(J)
+        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+        ok = np.isfinite(det) & (np.abs(det) > 1e-9)
+        out = np.broadcast_to(np.eye(2), (n, 2, 2)).copy()
+        a, b, c, d = J[ok, 0, 0], J[ok, 0, 1], J[ok, 1, 0], J[ok, 1, 1]
+        out[ok] = np.stack([np.stack([d, -b], axis=1), np.stack([-c, a], axis=1)],
+                           axis=1) / det[ok][:, None, None]
+        return out
 
     def sigma_normalized(self, pixel_sigma_px: float) -> tuple[float, float]:
         """A pixel standard deviation in normalized image units: ``(sigma / fx, sigma / fy)``."""

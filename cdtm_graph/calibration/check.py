@@ -399,7 +399,7 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
                    and wald > SUSPECT_WALD)
     return CalibrationCheck(estimate, z, nees, float(cost_drop), conclusive, suspect,
                             time.perf_counter() - start, int(kept.size), scatter, wald,
-                            first_frame, *tested)
+                            first_frame, principal_point=tested[0])
 
 
 def without_pin(linear: gtsam.GaussianFactorGraph | None, free: gtsam.NonlinearFactorGraph

@@ -11,6 +11,9 @@ import numpy as np
 import pytest
 from gtsam.symbol_shorthand import X
 
+from cdtm_graph.calibration.extra_parts import score_step
+from cdtm_graph.calibration.online import CALIBRATION_KEY
+from cdtm_graph.calibration.principal_point import PRIOR_SIGMA_PX, principal_point_part
 from cdtm_graph.camera import DistortionModel, PinholeCamera
 from cdtm_graph.run import smooth_and_evaluate
 from cdtm_graph.sim.faults import with_calibration_error
@@ -180,8 +183,8 @@ def test_wrong_matches_on_the_epipolar_line_move_cx_but_are_not_named_for_it():
     the residuals' cluster-robust spread: Wald 33.4 against 37.3 (measured 2026-11-28,
     batch; seeds 1-8 read 20.5-42.5, beyond on 7 of 24 runs: docs/verdict.md); the verdict
     names their rejection and holds the calibration a note. Mutations: the Wald left out
-    of ``principal_point_suspect`` -> suspect: fails; the sandwich read at the free
-    optimum instead of the step's estimate reads 18.9 (the bound 34 below: fails)."""
+    of ``CalibrationCheck.suspect_parts`` -> suspect: fails; the sandwich read at the free
+    optimum instead of the step's estimate reads 18.9 (the bound 30 below: fails)."""
     flight, dtm = SCENARIOS["wrong_epipolar15"].flight(FLIGHT)
     out = smooth_and_evaluate(flight, dtm, SmootherSettings())
     check = out.result.calibration_check
@@ -206,3 +209,18 @@ def test_a_pixel_noise_stated_too_large_does_not_move_the_principal_point():
     pp = smooth_and_evaluate(flight, dtm, SmootherSettings()).result.calibration_check \
         .principal_point
     assert abs(pp.correction[0]) < 2.0 and not pp.significant
+
+
+def test_a_flight_without_pair_factors_reads_no_principal_point():
+    """No C-DTM pair factor (every feature off the map: ``far1000_periodic``), so no
+    noise gradient at all: the step holds the prior alone, a drop of zero. Mutation: the
+    part's noise read as ``gradient[CALIBRATION_KEY]`` -> KeyError (the fresh clone's
+    CI found it, 2026-11-28)."""
+    values = gtsam.Values()
+    values.insert(CALIBRATION_KEY, np.zeros(5))
+    linear = gtsam.GaussianFactorGraph()
+    linear.add(CALIBRATION_KEY, np.eye(5), np.zeros(5), gtsam.noiseModel.Unit.Create(5))
+    step = score_step(linear, values, [], principal_point_part(
+        PinholeCamera.from_fov(640, 480, 60.0)), {})
+    assert step is not None and step.cost_drop == 0.0
+    np.testing.assert_allclose(step.sigma, PRIOR_SIGMA_PX)

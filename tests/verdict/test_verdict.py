@@ -624,7 +624,7 @@ def test_a_principal_point_off_is_named_by_the_calibration_check(
     ``calibration_confounded``; below the bound nothing; the five significant but
     confounded (a Wald of 20), the principal point still named. Mutations: the principal
     point's significance left out of ``CalibrationCheck.significant`` -> the first, third,
-    fourth and fifth cases fail; the five's ``confounded`` judged before it -> the second
+    fourth, fifth and last cases fail; the five's ``confounded`` judged before it -> the second
     fails; its specificity left out -> the fifth fails; a shift told to 5 px (a short
     flight) is a note ``calibration_unresolved``, its conclusiveness left out -> the last
     fails."""
