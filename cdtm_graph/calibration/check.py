@@ -368,16 +368,17 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
     # (the noise's expected gradient once, the principal point's part beside the five's:
     # the dearest part of every step)
     gradient = noise_gradient_of(built.cdtm, values, camera)
-    poses = [X(j) for j in range(kept.size)]
-    tested: list[PartCheck | None] = []
-    for part in (principal_point_part(camera),):
-        step = score_step(linear_free, values, built.cdtm, part, gradient, measured_scatter)
+    part = principal_point_part(camera)
+    step = score_step(linear_free, values, built.cdtm, part, gradient, measured_scatter)
+    principal_point = None
+    if step is not None:
         part_nees = float("nan")  # (whether it matters: the positions' move of it alone)
-        if step is not None and step.step_without is not None:
+        if step.step_without is not None:
             part_nees = _position_nees(result, kept, result.estimate.world_T_body[kept, :3, 3]
-                                       - step.position_move_m(values, poses))
-        tested.append(None if step is None else PartCheck(
-            part, step.correction, step.sigma, step.cost_drop, part_nees, step.wald))
+                                       - step.position_move_m(values, [X(j) for j in
+                                                                       range(kept.size)]))
+        principal_point = PartCheck(part, step.correction, step.sigma, step.cost_drop,
+                                    part_nees, step.wald)
     values, (c_cov,) = debiased(graph, values, built.cdtm, noise_scale=scatter,
                                 linear=solver.linearized_at(values),
                                 marginal_keys=[CALIBRATION_KEY],
@@ -399,7 +400,7 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
                    and wald > SUSPECT_WALD)
     return CalibrationCheck(estimate, z, nees, float(cost_drop), conclusive, suspect,
                             time.perf_counter() - start, int(kept.size), scatter, wald,
-                            first_frame, principal_point=tested[0])
+                            first_frame, principal_point)
 
 
 def without_pin(linear: gtsam.GaussianFactorGraph | None, free: gtsam.NonlinearFactorGraph
