@@ -603,6 +603,35 @@ class BroadMapError:
 
 
 @dataclass(frozen=True)
+class ConsideredPrincipalPoint:
+    """What the declared principal point's uncertainty added to the run's covariances
+    (report.json ``considered_principal_point``;
+    :mod:`cdtm_graph.calibration.considered`).
+
+    Attributes:
+        sigma_px: flight.yaml's ``camera.principal_point_sigma_px``.
+        position_sigma_m: (K,) each frame's largest position 1-sigma the term adds alone
+            (the largest eigenvalue's root of its position block, m).
+        frames_solved: how many frames the solve held (the others interpolated).
+        time_s: its cost.
+    """
+
+    sigma_px: float
+    position_sigma_m: np.ndarray
+    frames_solved: int
+    time_s: float
+
+    def to_dict(self) -> dict:
+        s = self.position_sigma_m
+        ok = s[np.isfinite(s)]
+        return {"sigma_px": self.sigma_px, "frames_solved": self.frames_solved,
+                "position_sigma_added_m": {
+                    "median": float(np.median(ok)) if ok.size else None,
+                    "max": float(ok.max()) if ok.size else None},
+                "time_s": self.time_s}
+
+
+@dataclass(frozen=True)
 class ConvergenceCheck:
     """One more solve from a run's estimate: how far it moves the positions against the
     run's own covariance (:func:`cdtm_graph.smoother.convergence.check_convergence`; made
@@ -684,6 +713,9 @@ class SmootherResult:
         broad_map_error_whole: a fixed lag's: the same read at the calibration check's
             batch solve of the whole flight (its own is read at the poses its window held,
             as it goes); the verdict names either. None otherwise.
+        considered_principal_point: what flight.yaml's declared principal-point
+            uncertainty added to ``covariances`` (:class:`ConsideredPrincipalPoint`); None
+            when it declares none.
     """
 
     estimate: TrajectoryEstimate
@@ -705,6 +737,7 @@ class SmootherResult:
     imu_random_walk: RandomWalkEstimate | None = None
     broad_map_error: BroadMapError | None = None
     broad_map_error_whole: BroadMapError | None = None
+    considered_principal_point: ConsideredPrincipalPoint | None = None
 
     def initial_position_conflict(self) -> PriorConflict | None:
         """flight.yaml's position prior against the first frame's estimate

@@ -38,7 +38,7 @@ made only when it decides, 27% more (the 1% focal error; interleaved medians of 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import gtsam
@@ -54,9 +54,10 @@ from cdtm_graph.calibration.principal_point import noise_gradient_of, principal_
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.flightlog import CalibrationSigmas, FlightLog, Frames, Tracks
 from cdtm_graph.graph import GraphSettings
-from cdtm_graph.graph.log_graph import build_log_graph
+from cdtm_graph.graph.log_graph import LogGraph, build_log_graph
 from cdtm_graph.optimizer import LinearSolver, key_marginals, levenberg_marquardt
 from cdtm_graph.results import SmootherResult, Solver, TrajectoryEstimate, position_move_nees
+from factors import CdtmPairFactor
 from factors.calibration import CALIBRATION_DIM
 
 #: The flight contradicts flight.yaml's calibration when estimating it lowers the error
@@ -295,12 +296,64 @@ class PinnedSolve:
         linear: the graph linearized at ``values``. values: its solution (``X, V, B`` of
             the thinned log's frames, and the calibration ``C(0)`` pinned at zero).
         log: the thinned log. kept: its frames' indices in the run's log.
+        factors: the graph's C-DTM pair factors.
     """
 
     linear: gtsam.GaussianFactorGraph
     values: gtsam.Values
     log: FlightLog
     kept: np.ndarray
+    factors: Sequence[CdtmPairFactor] = ()
+
+
+@dataclass
+class _Pinned:
+    """The side solve's first solve and what the check goes on with."""
+
+    solve: PinnedSolve
+    built: LogGraph
+    solver: LinearSolver
+    pinned: gtsam.NonlinearFactorGraph  # the run's graph and the pin, its last factor
+    held_error: float  # the graph's error (without the pin) at the pinned optimum
+    linear: gtsam.GaussianFactorGraph | None  # the solver's last linearization (pinned)
+
+
+def _solve_pinned(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
+                  result: SmootherResult, sigmas: CalibrationSigmas,
+                  left_out: np.ndarray | None, unfixed_frames: np.ndarray | None,
+                  max_iterations: int, relative_error_tol: float) -> _Pinned:
+    sub, kept = thinned(flight, MAX_FRAMES)
+    values = estimate_values(result.estimate, kept)
+    values.insert(CALIBRATION_KEY, np.zeros(CALIBRATION_DIM))
+    if unfixed_frames is not None:  # the kept ones, as the thinned log numbers them
+        unfixed_frames = np.searchsorted(kept, unfixed_frames[np.isin(unfixed_frames, kept)])
+    built = build_log_graph(sub, dtm, settings, values, left_out, unfixed_frames, sigmas)
+    solver = LinearSolver()
+    # The likelihood ratio: this graph's optimum with the calibration pinned at
+    # flight.yaml's, then free. (The run's own solution is not this graph's optimum: a
+    # fixed lag's frames keep the estimate they left the window with.)
+    pinned = built.graph
+    pinned.add(gtsam.PriorFactorVector(CALIBRATION_KEY, np.zeros(CALIBRATION_DIM),
+                                       gtsam.noiseModel.Diagonal.Sigmas(
+                                           PIN * prior_sigmas(sigmas))))
+    values, _ = levenberg_marquardt(pinned, values, max_iterations,
+                                    relative_error_tol, solver=solver)
+    held_error = built.graph.error(values)
+    pinned_linear = solver.linearized_at(values)
+    solve = PinnedSolve(pinned_linear or pinned.linearize(values), values, sub, kept,
+                        built.cdtm)
+    return _Pinned(solve, built, solver, pinned, held_error, pinned_linear)
+
+
+def pinned_solve(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
+                 result: SmootherResult, sigmas: CalibrationSigmas,
+                 left_out: np.ndarray | None = None,
+                 unfixed_frames: np.ndarray | None = None, max_iterations: int = 30,
+                 relative_error_tol: float = 1e-6) -> PinnedSolve:
+    """The calibration check's first solve alone (:func:`check_calibration`'s arguments),
+    for a run whose calibration is not checked."""
+    return _solve_pinned(flight, dtm, settings, result, sigmas, left_out, unfixed_frames,
+                         max_iterations, relative_error_tol).solve
 
 
 def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
@@ -323,31 +376,17 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
         on_pinned: given the first solve (:class:`PinnedSolve`), when it is made.
     """
     start = time.perf_counter()
-    sub, kept = thinned(flight, MAX_FRAMES)
-    values = estimate_values(result.estimate, kept)
-    values.insert(CALIBRATION_KEY, np.zeros(CALIBRATION_DIM))
-    if unfixed_frames is not None:  # the kept ones, as the thinned log numbers them
-        unfixed_frames = np.searchsorted(kept, unfixed_frames[np.isin(unfixed_frames, kept)])
-    built = build_log_graph(sub, dtm, settings, values, left_out, unfixed_frames, sigmas)
-    solver = LinearSolver()
-    # The likelihood ratio: this graph's optimum with the calibration pinned at
-    # flight.yaml's, then free. (The run's own solution is not this graph's optimum: a
-    # fixed lag's frames keep the estimate they left the window with.)
-    pinned = built.graph
-    pinned.add(gtsam.PriorFactorVector(CALIBRATION_KEY, np.zeros(CALIBRATION_DIM),
-                                       gtsam.noiseModel.Diagonal.Sigmas(
-                                           PIN * prior_sigmas(sigmas))))
-    values, _ = levenberg_marquardt(pinned, values, max_iterations,
-                                    relative_error_tol, solver=solver)
+    first = _solve_pinned(flight, dtm, settings, result, sigmas, left_out, unfixed_frames,
+                          max_iterations, relative_error_tol)
+    built, solver, pinned, held_error = first.built, first.solver, first.pinned, first.held_error
+    pinned_linear, values, kept = first.linear, first.solve.values, first.solve.kept
     graph = built.graph
-    held_error = graph.error(values)
-    pinned_linear = solver.linearized_at(values)
     first_frame = None
     if result.stats.solver is Solver.FIXED_LAG:  # (one marginal: the verdict's first frame)
         (first_cov,) = key_marginals(pinned, values, [X(0)], linear=pinned_linear)
         first_frame = (values.atPose3(X(0)).matrix(), first_cov)
     if on_pinned is not None:
-        on_pinned(PinnedSolve(pinned_linear or pinned.linearize(values), values, sub, kept))
+        on_pinned(first.solve)
     # (the free solve starts where the pinned one ended: its error there, and the pinned
     # solve's last linearization without the pin, the last factor)
     values, free = levenberg_marquardt(graph, values, max_iterations, relative_error_tol,

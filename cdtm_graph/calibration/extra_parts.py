@@ -131,25 +131,25 @@ class ScoreStep:
                          for k in keys])
 
 
-def score_step(linear: gtsam.GaussianFactorGraph, values: gtsam.Values,
-               factors: Sequence[CdtmPairFactor], part: ExtraPart,
-               gradient: dict[int, np.ndarray], noise_scale: float = 1.0
-               ) -> ScoreStep | None:
-    """The corrected-score Gauss-Newton step of the side solve at ``values`` with ``part``
-    free.
+#: One pair factor's rows with a part's columns: the factor, its residuals (n, 2), its
+#: Jacobians of pose a, pose b (n, 2, 6) and of the calibration with the part (n, 2, m + d).
+PartRows = tuple[CdtmPairFactor, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+def with_part(linear: gtsam.GaussianFactorGraph, values: gtsam.Values,
+              factors: Sequence[CdtmPairFactor], part: ExtraPart
+              ) -> tuple[gtsam.GaussianFactorGraph, list[PartRows]] | None:
+    """``linear`` with ``part``'s columns added to every C-DTM pair factor's rows: the
+    calibration key becomes :data:`WITH_PART_KEY` (``[C(0), the part]``; its priors zero on
+    the part, which gets none here).
 
     Args:
-        linear: the side solve's graph linearized at ``values`` (its C-DTM pair factors
-            among them, each holding ``CALIBRATION_KEY``). values: its optimum.
-        factors: those C-DTM pair factors. part: what is freed.
-        gradient: the noise's expected gradient (:func:`~cdtm_graph.calibration.
-            noise_bias.noise_gradient`, the model's noise; the calibration's part may hold
-            more than the five, which are its first entries).
-        noise_scale: the noise's variance over the model's (the residuals' scatter as
-            measured).
+        linear: a side solve's graph linearized at ``values`` (its C-DTM pair factors
+            among them, each holding ``CALIBRATION_KEY``).
+        factors: those C-DTM pair factors. part: the part.
 
-    Returns None when ``linear`` does not hold one factor per C-DTM pair factor of those
-    keys (nothing to test against).
+    Returns the graph and each pair factor's rows; None when ``linear`` does not hold one
+    factor per C-DTM pair factor of those keys (nothing to add to).
     """
     pairs = {(f.key_a, f.key_b) for f in factors}
     c = values.atVector(CALIBRATION_KEY)
@@ -171,7 +171,7 @@ def score_step(linear: gtsam.GaussianFactorGraph, values: gtsam.Values,
             return None
     if replaced != len(factors):
         return None
-    rows = []
+    rows: list[PartRows] = []
     for f in factors:
         Ta, Tb = values.atPose3(f.key_a).matrix(), values.atPose3(f.key_b).matrix()
         e, Ha, Hb, Hc = f.evaluate_calibrated(Ta, Tb, c)
@@ -183,6 +183,34 @@ def score_step(linear: gtsam.GaussianFactorGraph, values: gtsam.Values,
         R: np.ndarray = np.linalg.qr(stacked, mode="r")  # type: ignore[assignment]
         augmented.add(f.key_a, R[:, :6], f.key_b, R[:, 6:12], WITH_PART_KEY, R[:, 12:-1],
                       R[:, -1], gtsam.noiseModel.Unit.Create(R.shape[0]))
+    return augmented, rows
+
+
+def score_step(linear: gtsam.GaussianFactorGraph, values: gtsam.Values,
+               factors: Sequence[CdtmPairFactor], part: ExtraPart,
+               gradient: dict[int, np.ndarray], noise_scale: float = 1.0
+               ) -> ScoreStep | None:
+    """The corrected-score Gauss-Newton step of the side solve at ``values`` with ``part``
+    free.
+
+    Args:
+        linear: the side solve's graph linearized at ``values`` (its C-DTM pair factors
+            among them, each holding ``CALIBRATION_KEY``). values: its optimum.
+        factors: those C-DTM pair factors. part: what is freed.
+        gradient: the noise's expected gradient (:func:`~cdtm_graph.calibration.
+            noise_bias.noise_gradient`, the model's noise; the calibration's part may hold
+            more than the five, which are its first entries).
+        noise_scale: the noise's variance over the model's (the residuals' scatter as
+            measured).
+
+    Returns None when ``linear`` does not hold one factor per C-DTM pair factor of those
+    keys (nothing to test against).
+    """
+    built = with_part(linear, values, factors, part)
+    if built is None:
+        return None
+    augmented, rows = built
+    m, d = values.atVector(CALIBRATION_KEY).size, part.dim
     prior = np.zeros((d, m + d))
     prior[:, m:] = np.eye(d) / part.prior_sigma
     augmented.add(WITH_PART_KEY, prior, np.zeros(d), gtsam.noiseModel.Unit.Create(d))

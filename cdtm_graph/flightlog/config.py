@@ -80,6 +80,9 @@ RANGES: dict[str, Range] = {
     "camera.calibration.time_offset_sigma_s": Range(1e-6, 1.0, "s"),
     "camera.calibration.mount_sigma_deg": Range(1e-4, 20.0, "deg"),
     "camera.calibration.focal_scale_sigma": Range(1e-6, 0.5),
+    # a principal point known to within 50 px at worst (a calibration, not a guess); 0:
+    # exactly (a simulation's own camera)
+    "camera.principal_point_sigma_px": Range(0.0, 50.0, "px"),
     "imu.rate_hz": Range(1.0, 1e5, "Hz"),
     "imu.gyroscope_noise_density": Range(1e-9, 1e-1, "rad/s/sqrt(Hz)"),
     "imu.accelerometer_noise_density": Range(1e-7, 1.0, "m/s^2/sqrt(Hz)"),
@@ -402,7 +405,8 @@ def _parse_camera(y: _Yaml, node: yaml.Node, line: int) -> CameraConfig:
     pairs = y.pairs(node, "camera", line)
     m = y.keys(pairs, "camera", line,
                ("resolution", "intrinsics", "pixel_sigma_px", "body_T_cam"),
-               ("distortion_model", "distortion_coeffs", "time_offset_s", "calibration"))
+               ("distortion_model", "distortion_coeffs", "time_offset_s", "calibration",
+                "principal_point_sigma_px"))
     res_node = m["resolution"]
     if not isinstance(res_node, yaml.SequenceNode) or len(res_node.value) != 2:
         y.fail(res_node, "camera.resolution is not two values", "[width, height] in pixels")
@@ -432,8 +436,11 @@ def _parse_camera(y: _Yaml, node: yaml.Node, line: int) -> CameraConfig:
                 if "time_offset_s" in m else 0.0)
     calibration = (_calibration_sigmas(y, m["calibration"], y.line(pairs["calibration"][0]))
                    if "calibration" in m else None)
+    principal_point_sigma = (y.bounded(m["principal_point_sigma_px"],
+                                       "camera.principal_point_sigma_px")
+                             if "principal_point_sigma_px" in m else None)
     return CameraConfig(camera, sigma, make_pose(quat_wxyz_to_rotation(quat), translation),
-                        offset_s, calibration)
+                        offset_s, calibration, principal_point_sigma)
 
 
 def _calibration_sigmas(y: _Yaml, node: yaml.Node, line: int) -> CalibrationSigmas:

@@ -194,6 +194,10 @@ class CameraConfig(_ArrayEq):
             offset starts from this value as its prior.
         calibration: prior sigmas of the calibration estimated online (the values above
             are the priors' means); None: the run's settings decide.
+        principal_point_sigma_px: 1-sigma of ``cx`` and ``cy`` each (px): how well the
+            camera's calibration knows its principal point. No run estimates it, so its
+            effect on the poses is added to their covariances, as a considered parameter
+            (:mod:`cdtm_graph.calibration.considered`); None: not declared, nothing added.
     """
 
     camera: PinholeCamera
@@ -201,6 +205,7 @@ class CameraConfig(_ArrayEq):
     body_T_cam: np.ndarray
     time_offset_s: float = 0.0
     calibration: CalibrationSigmas | None = None
+    principal_point_sigma_px: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "pixel_sigma_px", float(self.pixel_sigma_px))

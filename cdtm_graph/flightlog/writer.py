@@ -135,6 +135,8 @@ def _yaml_document(log: FlightLog, target: Path, geodetic: bool = False) -> str:
         camera["time_offset_s"] = float(cfg.camera.time_offset_s)
     if cfg.camera.calibration is not None:
         camera["calibration"] = dataclasses.asdict(cfg.camera.calibration)
+    if cfg.camera.principal_point_sigma_px is not None:
+        camera["principal_point_sigma_px"] = float(cfg.camera.principal_point_sigma_px)
     camera["body_T_cam"] = {
         "translation_m": body_T_cam[:3, 3].tolist(),
         "quaternion_wxyz": rotation_to_quat_wxyz(body_T_cam[:3, :3]).tolist(),

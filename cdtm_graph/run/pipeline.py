@@ -107,5 +107,7 @@ def smooth_and_evaluate(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
         report["broad_map_error"] = result.broad_map_error.to_dict()
     if result.broad_map_error_whole is not None:
         report["broad_map_error_whole"] = result.broad_map_error_whole.to_dict()
+    if result.considered_principal_point is not None:
+        report["considered_principal_point"] = result.considered_principal_point.to_dict()
     report["timings_s"]["total"] = time.perf_counter() - start
     return RunOutput(result, errors, free, free_errors, report, verdict)

@@ -18,7 +18,13 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 
-from cdtm_graph.calibration.check import CalibrationCheck, PinnedSolve, check_calibration
+from cdtm_graph.calibration.check import (
+    CalibrationCheck,
+    PinnedSolve,
+    check_calibration,
+    pinned_solve,
+)
+from cdtm_graph.calibration.considered import considered
 from cdtm_graph.calibration.noise_bias import debiased
 from cdtm_graph.calibration.online import CALIBRATION_KEY
 from cdtm_graph.calibration.online import estimate as calibration_estimate
@@ -27,6 +33,7 @@ from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import FlightLogError
 from cdtm_graph.flightlog import CalibrationSigmas, FlightLog
 from cdtm_graph.graph import feature_noise, insert_state
+from cdtm_graph.graph.builders import DEFAULT_CALIBRATION_SIGMAS
 from cdtm_graph.graph.log_graph import LogGraph, build_log_graph
 from cdtm_graph.imu import initial_bias, shared_preintegrations
 from cdtm_graph.optimizer import LinearSolver, key_marginals, levenberg_marquardt, marginals
@@ -206,9 +213,31 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
         result = replace(result, broad_map_error_whole=run_broad_map_error(
             flight, dtm, noise, whole, run.unfixed_frames, run.left_out, None,
             settings.graph.broad_map_error, settings.graph.mismatch))
+    if flight.config.camera.principal_point_sigma_px:
+        result = _principal_point_considered(flight, dtm, settings, result, run,
+                                             pinned[-1] if pinned else None)
     if map_error is not None:
         result = replace(result, map_error=map_error)
     return result if walks is None else replace(result, imu_random_walk=walks)
+
+
+def _principal_point_considered(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
+                                result: SmootherResult, run: _Run,
+                                pinned: PinnedSolve | None) -> SmootherResult:
+    """``result`` with flight.yaml's declared principal-point uncertainty in its pose
+    covariances (:mod:`cdtm_graph.calibration.considered`), from the calibration check's
+    first solve (one of its own where the calibration is not checked: held unchecked, or
+    estimated online, its sensitivity then taken with the rest of the calibration held)."""
+    if pinned is None:
+        sigmas = (flight.config.camera.calibration or settings.graph.calibration
+                  or DEFAULT_CALIBRATION_SIGMAS)
+        pinned = pinned_solve(flight, dtm, settings.graph, result, sigmas, run.left_out,
+                              run.unfixed_frames, settings.max_iterations,
+                              settings.relative_error_tol)
+    covariances, added = considered(result.covariances, flight.frames.t_ns, pinned,
+                                    flight.config.camera.camera,
+                                    float(flight.config.camera.principal_point_sigma_px or 0))
+    return replace(result, covariances=covariances, considered_principal_point=added)
 
 
 @dataclass

@@ -386,6 +386,34 @@ def test_time_offset_out_of_range_or_not_a_number(
     )
 
 
+def test_the_principal_point_sigma_round_trips_and_is_absent_by_default(
+        flightlog_files, tmp_path: Path, rng, log: FlightLog) -> None:
+    """``camera.principal_point_sigma_px``: read, written back bit for bit, and neither
+    written nor read where a log does not declare it (nothing considered)."""
+    assert "principal_point_sigma_px" not in (log.root / "flight.yaml").read_text()
+    assert read_flightlog(log.root).config.camera.principal_point_sigma_px is None
+    the_log = flightlog_files.make_log(tmp_path / "log", rng)
+    camera = dataclasses.replace(the_log.config.camera, principal_point_sigma_px=0.35)
+    the_log = dataclasses.replace(the_log, config=dataclasses.replace(the_log.config,
+                                                                      camera=camera))
+    write_flightlog(the_log, the_log.root)
+    flightlog_files.write_dtm(the_log.root / "dtm.npz")
+    back = read_flightlog(the_log.root)
+    assert back == the_log and back.config.camera.principal_point_sigma_px == 0.35
+
+
+@pytest.mark.parametrize("value", ["51", "-0.1", "nan", "one"])
+def test_the_principal_point_sigma_out_of_range_or_not_a_number(
+    flightlog_files, log: FlightLog, value: str
+) -> None:
+    path = log.root / "flight.yaml"
+    line = flightlog_files.line_of(path, "pixel_sigma_px:") + 1
+    flightlog_files.insert_line(path, line, f"  principal_point_sigma_px: {value}")
+    flightlog_files.expect_error(
+        log.root, "flight.yaml", line, "camera.principal_point_sigma_px", "[0, 50] px"
+    )
+
+
 def test_a_stamp_the_time_offset_pushes_out_of_int64_is_refused(
     flightlog_files, tmp_path: Path, rng
 ) -> None:

@@ -1,0 +1,90 @@
+"""The principal point as a considered parameter: what its declared uncertainty does to
+the poses, added to their covariances.
+
+No run estimates the principal point (``cx``, ``cy``): a flight tells it too weakly (the
+calibration check's step reads it to 0.4-1 px on the 90-frame flight, docs/verdict.md),
+and a shift of it reads as the camera moved by ``height * d / f`` in body axes (1 px at
+1800 m: ~5 m). So the estimate is made at flight.yaml's value and inherits its error one
+for one. When flight.yaml declares how well the calibration knows it
+(``camera.principal_point_sigma_px``, 1-sigma of each), the run's pose covariances get
+that error's part, as a Schmidt "consider" parameter: ``P + S C S^T``, with ``C`` the
+declared covariance and ``S = dx / dc`` the estimate's first-order response to the
+principal point, the other calibration held.
+
+``S`` comes from the calibration check's first solve (the run's graph at its optimum,
+flight.yaml's calibration pinned: :class:`~cdtm_graph.calibration.check.PinnedSolve`)
+with the principal point's columns added to every C-DTM pair factor's rows
+(:func:`~cdtm_graph.calibration.extra_parts.with_part`): in the joint Gaussian of the
+poses and the principal point, the regression ``Sigma_xc Sigma_cc^-1`` is exactly
+``-H_xx^-1 H_xc`` whatever the principal point's prior, so one elimination and a joint
+marginal per frame give it. Frames a long log's thinned solve leaves out take ``S``
+interpolated in time between the nearest kept frames (in body axes, where the shift is
+nearly constant).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import X
+
+from cdtm_graph.calibration.check import PinnedSolve
+from cdtm_graph.calibration.extra_parts import WITH_PART_KEY, with_part
+from cdtm_graph.calibration.online import CALIBRATION_KEY
+from cdtm_graph.calibration.principal_point import principal_point_part
+from cdtm_graph.camera import PinholeCamera
+from cdtm_graph.optimizer import joint_marginals
+from cdtm_graph.results import ConsideredPrincipalPoint, StateCovariances
+
+
+def principal_point_sensitivity(pinned: PinnedSolve, camera: PinholeCamera
+                                ) -> np.ndarray | None:
+    """(F, 6, 2) each solved frame's pose response to the principal point (its tangent:
+    rotation, then translation in body axes, per px of ``cx``, ``cy``), the rest of the
+    calibration held; None when the solve holds no C-DTM pair factor."""
+    part = principal_point_part(camera)
+    built = with_part(pinned.linear, pinned.values, pinned.factors, part) if pinned.factors \
+        else None
+    if built is None:
+        return None
+    augmented, _ = built
+    m, d = pinned.values.atVector(CALIBRATION_KEY).size, part.dim
+    prior = np.zeros((d, m + d))
+    prior[:, m:] = np.eye(d) / part.prior_sigma  # (any prior: S does not depend on it)
+    augmented.add(WITH_PART_KEY, prior, np.zeros(d), gtsam.noiseModel.Unit.Create(d))
+    out = np.empty((pinned.kept.size, 6, d))
+    c = slice(6 + m, None)
+    for j, joint in enumerate(joint_marginals(augmented, [X(j) for j in
+                                                         range(pinned.kept.size)],
+                                              WITH_PART_KEY)):
+        # (cc symmetric)
+        out[j] = np.linalg.solve(joint[c, c], joint[:6, c].T).T
+    return out
+
+
+def considered(covariances: StateCovariances, t_ns: np.ndarray, pinned: PinnedSolve,
+               camera: PinholeCamera, sigma_px: float
+               ) -> tuple[StateCovariances, ConsideredPrincipalPoint | None]:
+    """``covariances`` (of the frames at ``t_ns``) with the principal point's declared
+    1-sigma ``sigma_px`` considered, and what that added; as they are (and None) when the
+    solve holds no C-DTM factor or nothing is declared."""
+    start = time.perf_counter()
+    if sigma_px <= 0:
+        return covariances, None
+    solved = principal_point_sensitivity(pinned, camera)
+    if solved is None:
+        return covariances, None
+    kept_t = t_ns[pinned.kept].astype(float)
+    flat = solved.reshape(solved.shape[0], -1)
+    # (each entry in time; the frames outside the solved span take its nearest)
+    S = np.stack([np.interp(t_ns.astype(float), kept_t, flat[:, i])
+                  for i in range(flat.shape[1])], axis=1).reshape(t_ns.size, 6, -1)
+    added = sigma_px**2 * S @ np.swapaxes(S, 1, 2)
+    pose = covariances.pose + added
+    position_sigma = np.sqrt(np.linalg.eigvalsh(added[:, 3:, 3:])[:, -1].clip(0.0))
+    return (replace(covariances, pose=pose),
+            ConsideredPrincipalPoint(float(sigma_px), position_sigma, int(pinned.kept.size),
+                                     time.perf_counter() - start))
