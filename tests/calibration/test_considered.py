@@ -112,6 +112,23 @@ def test_the_added_covariance_is_the_declared_variance_through_the_sensitivity(s
     np.testing.assert_allclose(thinned.position_sigma_m, added.position_sigma_m, rtol=0.10)
 
 
+@pytest.mark.parametrize("graph", [GraphSettings(calibration=None),
+                                   GraphSettings(calibration_online=True)],
+                         ids=["held unchecked", "online"])
+def test_a_run_without_the_calibration_check_considers_it_too(short_flight, graph):
+    """``--calibration held`` makes no side solve, and ``online`` none that pins the
+    calibration: a declared principal point is still considered, from a first solve of
+    its own, the same as the checked run's to the frame. Mutation: considered only where
+    the check made its first solve (the declared key silently ignored): both fail."""
+    flight, dtm, _ = short_flight
+    checked = smooth(declared(flight, 0.5), dtm).considered_principal_point
+    result = smooth(declared(flight, 0.5), dtm, SmootherSettings(graph=graph))
+    assert result.calibration_check is None
+    added = result.considered_principal_point
+    assert checked is not None and added is not None and added.sigma_px == 0.5
+    np.testing.assert_allclose(added.position_sigma_m, checked.position_sigma_m, rtol=0.05)
+
+
 #: Measured 2026-11-28 (the 90-frame flight, seed 1, cx and cy 1 px off): per mode, the
 #: median over frames of ``|move - S d| / |S d|`` (the run's estimate moved by the shift,
 #: against the sensitivity's prediction) and the position ANEES without and with the shift
