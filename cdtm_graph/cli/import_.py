@@ -120,6 +120,11 @@ def _common_options(p: argparse.ArgumentParser, kalibr_required: bool) -> None:
                           + ("" if kalibr_required else "; default: imu0/sensor.yaml"))
     cal.add_argument("--pixel-sigma-px", type=float, default=0.5,
                      help="1-sigma of a tracked feature's position (default %(default)s px)")
+    cal.add_argument("--principal-point-sigma-px", type=float, metavar="PX",
+                     help="1-sigma of cx and of cy as the calibration knows them (Kalibr's "
+                          "results-cam.txt: the projection's +- figures), into flight.yaml's "
+                          "camera.principal_point_sigma_px: its effect is added to every "
+                          "pose covariance; default: undeclared (nothing added)")
     cal.add_argument("--imu-noise", choices=[s.value for s in ImuNoiseSource],
                      default=ImuNoiseSource.STATED.value,
                      help="the IMU noise densities flight.yaml gets: the calibration's "
@@ -201,7 +206,7 @@ def _settings(args: argparse.Namespace):
         sigma_velocity_mps=args.sigma_velocity_mps, sigma_gyro_bias=args.sigma_gyro_bias,
         sigma_accel_bias=args.sigma_accel_bias)
     return ImportSettings(dtm, args.pixel_sigma_px, args.gravity_mps2, initial,
-                          ImuNoiseSource(args.imu_noise))
+                          ImuNoiseSource(args.imu_noise), args.principal_point_sigma_px)
 
 
 def _refuse_foreign_log_files(out: Path, writer: str) -> None:

@@ -210,6 +210,8 @@ class ImportSettings:
         gravity_mps2: gravity; None: 9.80665 m/s^2, or WGS84 normal gravity at the origin.
         initial: the initial state where ground truth does not give it, and its sigmas.
         imu_noise: the calibration's noise densities, or the samples' own where larger.
+        principal_point_sigma_px: how well the calibration knows ``cx``, ``cy`` (flight.yaml
+            ``camera.principal_point_sigma_px``); None: undeclared.
     """
 
     dtm: DtmSource
@@ -217,6 +219,7 @@ class ImportSettings:
     gravity_mps2: float | None = None
     initial: InitialPrior = field(default_factory=InitialPrior)
     imu_noise: ImuNoiseSource = ImuNoiseSource.STATED
+    principal_point_sigma_px: float | None = None
 
 
 def image_size_px(image: Path) -> tuple[int, int]:
@@ -329,8 +332,15 @@ def assemble_flightlog(recording: SensorRecording, images: tuple[str, ...],
             as the smoother will read it).
     """
     cam = recording.camera
+    for name, key, value in (
+            ("pixel sigma", "camera.pixel_sigma_px", settings.pixel_sigma_px),
+            ("principal point sigma", "camera.principal_point_sigma_px",
+             settings.principal_point_sigma_px)):
+        if value is not None and not RANGES[key].lo <= value <= RANGES[key].hi:
+            raise SensorDataError(f"{name} {value!r} px: expected {RANGES[key]}")
     camera_config = CameraConfig(cam.camera, settings.pixel_sigma_px, cam.body_T_cam,
-                                 cam.time_offset_s)
+                                 cam.time_offset_s,
+                                 principal_point_sigma_px=settings.principal_point_sigma_px)
     frames = _frames_inside_imu(recording, Frames(
         recording.frame_t_cam_ns + camera_config.time_offset_ns, images))
     dtm = settings.dtm
@@ -344,10 +354,6 @@ def assemble_flightlog(recording: SensorRecording, images: tuple[str, ...],
     limit = RANGES["gravity_mps2"]
     if not limit.lo <= gravity <= limit.hi:
         raise SensorDataError(f"gravity {gravity!r} m/s^2: expected {limit}")
-    if not RANGES["camera.pixel_sigma_px"].lo <= settings.pixel_sigma_px <= \
-            RANGES["camera.pixel_sigma_px"].hi:
-        raise SensorDataError(f"pixel sigma {settings.pixel_sigma_px!r} px: expected "
-                              f"{RANGES['camera.pixel_sigma_px']}")
     names = [Path(p.name) for p in dtm.paths] if dtm.copy else list(dtm.paths)
     offsets = dtm.offset_sigma_m or (None, None)
     dtm_config = DtmConfig(names[0], dtm.sigma_h_m, (0.0, 0.0, 0.0), tuple(names[1:]),

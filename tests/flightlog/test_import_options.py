@@ -170,6 +170,24 @@ def test_dtm_offset_sigmas_go_into_flight_yaml(folders, tmp_path, capsys):
     assert not (tmp_path / "c").exists()
 
 
+def test_the_principal_point_sigma_goes_into_flight_yaml(folders, tmp_path, capsys):
+    """``--principal-point-sigma-px PX`` declares how well the calibration knows cx, cy;
+    without it, undeclared; out of range, one line and exit 1, nothing written.
+    Catches: the option not passed on (undeclared after it), no range check."""
+    assert _import(folders, "clean", tmp_path / "a", "--quiet",
+                   "--principal-point-sigma-px", "0.4") == 0
+    assert read_flightlog(tmp_path / "a", read_tracks=False).config.camera \
+        .principal_point_sigma_px == 0.4
+    assert _import(folders, "clean", tmp_path / "b", "--quiet") == 0
+    assert read_flightlog(tmp_path / "b", read_tracks=False).config.camera \
+        .principal_point_sigma_px is None
+    capsys.readouterr()
+    assert _import(folders, "clean", tmp_path / "c", "--principal-point-sigma-px", "80") == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "principal point sigma 80.0 px: expected" in err[0], err
+    assert not (tmp_path / "c").exists()
+
+
 def test_the_summary_names_the_lens_model_in_words(folders, tmp_path, capsys):
     """The summary line says what the lens is. Catches today's ``camera 320x240 none``."""
     assert _import(folders, "clean", tmp_path / "log") == 0
