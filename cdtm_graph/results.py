@@ -226,8 +226,9 @@ class PositionPrior:
     def conflict(self, world_T_body: np.ndarray, pose_cov: np.ndarray,
                  offset_cov_world: np.ndarray) -> PriorConflict | None:
         """The prior against the first frame's estimate ``world_T_body`` (4, 4), whose
-        marginal ``pose_cov`` (6, 6, body frame) holds the map's offset
-        ``offset_cov_world`` (3, 3), as :class:`MapOffset` adds it. None when there is
+        marginal ``pose_cov`` (6, 6, body frame) holds ``offset_cov_world`` (3, 3): what the
+        data's fix carries and the prior does not (the map's offset, as :class:`MapOffset`
+        adds it; a declared principal point's share). None when there is
         nothing to test (no sigma, no covariance, or the prior alone holds the frame).
 
         Why it works without the data's own fix: in the linear-Gaussian model the posterior
@@ -610,16 +611,26 @@ class ConsideredPrincipalPoint:
 
     Attributes:
         sigma_px: flight.yaml's ``camera.principal_point_sigma_px``.
-        position_sigma_m: (K,) each frame's largest position 1-sigma the term adds alone
-            (the largest eigenvalue's root of its position block, m).
+        pose_cov_added: (K, 6, 6) what each frame's pose covariance got (body frame, as
+            :class:`StateCovariances`).
         frames_solved: how many frames the solve held (the others interpolated).
         time_s: its cost.
     """
 
     sigma_px: float
-    position_sigma_m: np.ndarray
+    pose_cov_added: np.ndarray
     frames_solved: int
     time_s: float
+
+    @property
+    def position_sigma_m(self) -> np.ndarray:
+        """(K,) each frame's largest position 1-sigma the term adds alone (m)."""
+        return np.sqrt(np.linalg.eigvalsh(self.pose_cov_added[:, 3:, 3:])[:, -1].clip(0.0))
+
+    def position_cov_world(self, k: int, world_T_body: np.ndarray) -> np.ndarray:
+        """(3, 3) what frame k's position covariance got, in world axes, at its pose."""
+        R = world_T_body[:3, :3]
+        return R @ self.pose_cov_added[k, 3:, 3:] @ R.T
 
     def to_dict(self) -> dict:
         s = self.position_sigma_m
@@ -750,11 +761,18 @@ class SmootherResult:
             return None
         world_T_body, pose_cov = self.estimate.world_T_body[0], self.covariances.pose[0]
         check = self.calibration_check
+        considered = self.considered_principal_point
         if check is not None and check.first_frame is not None:
             world_T_body, first_cov = check.first_frame
             pose_cov = self.map_offset.added_to_pose(first_cov, world_T_body)
-        return self.position_prior.conflict(world_T_body, pose_cov,
-                                            self.map_offset.covariance_world())
+            if considered is not None:
+                pose_cov = pose_cov + considered.pose_cov_added[0]
+        # (a declared principal point's share, as the map's offset: the data's fix carries
+        # it, the prior does not)
+        offset = self.map_offset.covariance_world()
+        if considered is not None:
+            offset = offset + considered.position_cov_world(0, world_T_body)
+        return self.position_prior.conflict(world_T_body, pose_cov, offset)
 
 
 def frame_flags(counts: GraphCounts, extra: dict[int, list[str]] | None = None

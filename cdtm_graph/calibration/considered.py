@@ -83,8 +83,6 @@ def considered(covariances: StateCovariances, t_ns: np.ndarray, pinned: PinnedSo
     S = np.stack([np.interp(t_ns.astype(float), kept_t, flat[:, i])
                   for i in range(flat.shape[1])], axis=1).reshape(t_ns.size, 6, -1)
     added = sigma_px**2 * S @ np.swapaxes(S, 1, 2)
-    pose = covariances.pose + added
-    position_sigma = np.sqrt(np.linalg.eigvalsh(added[:, 3:, 3:])[:, -1].clip(0.0))
-    return (replace(covariances, pose=pose),
-            ConsideredPrincipalPoint(float(sigma_px), position_sigma, int(pinned.kept.size),
+    return (replace(covariances, pose=covariances.pose + added),
+            ConsideredPrincipalPoint(float(sigma_px), added, int(pinned.kept.size),
                                      time.perf_counter() - start))

@@ -129,6 +129,32 @@ def test_a_run_without_the_calibration_check_considers_it_too(short_flight, grap
     np.testing.assert_allclose(added.position_sigma_m, checked.position_sigma_m, rtol=0.05)
 
 
+def test_the_initial_position_test_takes_the_declared_share_as_the_data_s(short_flight):
+    """flight.yaml's position prior against the first frame (the verdict's
+    ``initial_position``): the data's fix carries the principal point's share and the prior
+    does not, as with the map's offset. So the share of the frame the data tell is the
+    same declared or not (the test's dof), and the data's fix is allowed its larger spread
+    (the statistic no larger). Mutation: the share counted in the frame's covariance but
+    not beside the map's offset: the frame reads as held by the prior in one direction
+    more (dof 2 of 3; measured 2026-11-28), and that direction goes untested."""
+    flight, dtm, _ = short_flight
+    truth = flight.groundtruth.interpolate(flight.frames.t_ns[:1]).position_m[0]
+    init = dataclasses.replace(flight.config.initial_state, position_m=truth + [1.5, -1.0, 0.5],
+                               sigma_position_m=2.0)
+    tight = dataclasses.replace(flight, config=dataclasses.replace(flight.config,
+                                                                   initial_state=init))
+    result = smooth(tight, dtm)
+    solve = pinned_solve(tight, dtm, GraphSettings(), result, DEFAULT_CALIBRATION_SIGMAS)
+    covariances, added = considered(result.covariances, tight.frames.t_ns, solve,
+                                    tight.config.camera.camera, 1.0)
+    with_share = dataclasses.replace(result, covariances=covariances,
+                                     considered_principal_point=added)
+    plain, declared_ = result.initial_position_conflict(), with_share.initial_position_conflict()
+    assert plain is not None and declared_ is not None
+    assert declared_.dof == plain.dof
+    assert declared_.nis <= plain.nis * (1 + 1e-9), (declared_.nis, plain.nis)
+
+
 #: Measured 2026-11-28 (the 90-frame flight, seed 1, cx and cy 1 px off): per mode, the
 #: median over frames of ``|move - S d| / |S d|`` (the run's estimate moved by the shift,
 #: against the sensitivity's prediction) and the position ANEES without and with the shift
