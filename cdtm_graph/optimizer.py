@@ -231,24 +231,6 @@ def step_and_marginals(linear: gtsam.GaussianFactorGraph, keys: Sequence[int],
                           qr_form=qr_form)
 
 
-def joint_marginals(linear: gtsam.GaussianFactorGraph, keys: Sequence[int], with_key: int
-                    ) -> list[np.ndarray]:
-    """For each of ``keys``, the joint marginal covariance of it and ``with_key`` (in that
-    order), from one elimination (Cholesky; QR where it fails)."""
-    def use(tree: gtsam.GaussianBayesTree, qr: bool) -> list[np.ndarray]:
-        out = []
-        for key in keys:
-            ordering = gtsam.Ordering()
-            ordering.push_back(key)
-            ordering.push_back(with_key)
-            joint = (tree.joint(key, with_key, gtsam.EliminateQR) if qr
-                     else tree.joint(key, with_key))
-            information, _ = joint.hessian(ordering)
-            out.append(np.linalg.inv(information))
-        return out
-    return _on_bayes_tree(linear, use)
-
-
 def _on_bayes_tree(linear: gtsam.GaussianFactorGraph,
                    use: Callable[[gtsam.GaussianBayesTree, bool], _T], qr_only: bool = False,
                    qr_form: gtsam.GaussianFactorGraph | None = None) -> _T:

@@ -4,7 +4,7 @@ the poses, added to their covariances.
 No run estimates the principal point (``cx``, ``cy``): a flight tells it too weakly (the
 calibration check's step reads it to 0.4-1 px on the 90-frame flight, docs/verdict.md),
 and a shift of it reads as the camera moved by ``height * d / f`` in body axes (1 px at
-1800 m: ~5 m). So the estimate is made at flight.yaml's value and inherits its error one
+1800 m: ~3.3 m). So the estimate is made at flight.yaml's value and inherits its error one
 for one. When flight.yaml declares how well the calibration knows it
 (``camera.principal_point_sigma_px``, 1-sigma of each), the run's pose covariances get
 that error's part, as a Schmidt "consider" parameter: ``P + S C S^T``, with ``C`` the
@@ -14,12 +14,10 @@ principal point, the other calibration held.
 ``S`` comes from the calibration check's first solve (the run's graph at its optimum,
 flight.yaml's calibration pinned: :class:`~cdtm_graph.calibration.check.PinnedSolve`)
 with the principal point's columns added to every C-DTM pair factor's rows
-(:func:`~cdtm_graph.calibration.extra_parts.with_part`): in the joint Gaussian of the
-poses and the principal point, the regression ``Sigma_xc Sigma_cc^-1`` is exactly
-``-H_xx^-1 H_xc`` whatever the principal point's prior, so one elimination and a joint
-marginal per frame give it. Frames a long log's thinned solve leaves out take ``S``
-interpolated in time between the nearest kept frames (in body axes, where the shift is
-nearly constant).
+(:func:`~cdtm_graph.calibration.extra_parts.with_part`): ``S = -H_xx^-1 H_xc``, the
+graph's solution with the principal point pinned at 1 px less the one pinned at 0.
+Frames a long log's thinned solve leaves out take ``S`` interpolated in time between the
+nearest kept frames (in body axes, where the shift is nearly constant).
 """
 
 from __future__ import annotations
@@ -36,15 +34,24 @@ from cdtm_graph.calibration.extra_parts import WITH_PART_KEY, with_part
 from cdtm_graph.calibration.online import CALIBRATION_KEY
 from cdtm_graph.calibration.principal_point import principal_point_part
 from cdtm_graph.camera import PinholeCamera
-from cdtm_graph.optimizer import joint_marginals
+from cdtm_graph.optimizer import step_and_marginals
 from cdtm_graph.results import ConsideredPrincipalPoint, StateCovariances
+
+#: The principal point's pin in the solves that give ``S`` (px): tight against what a
+#: flight tells of it (0.4-1 px: its share of ``S`` ~1e-8), loose against round-off.
+PIN_PX = 1e-4
 
 
 def principal_point_sensitivity(pinned: PinnedSolve, camera: PinholeCamera
                                 ) -> np.ndarray | None:
     """(F, 6, 2) each solved frame's pose response to the principal point (its tangent:
     rotation, then translation in body axes, per px of ``cx``, ``cy``), the rest of the
-    calibration held; None when the solve holds no C-DTM pair factor."""
+    calibration held; None when the solve holds no C-DTM pair factor.
+
+    The graph's solution with the principal point pinned at 1 px in ``cx``, then ``cy``,
+    less the solution with it pinned at 0: three eliminations of the side solve's graph
+    (a joint marginal per frame, ``Sigma_xc Sigma_cc^-1``, gives the same to 1e-6 at ten
+    times the cost: tests/calibration/test_considered.py)."""
     part = principal_point_part(camera)
     built = with_part(pinned.linear, pinned.values, pinned.factors, part) if pinned.factors \
         else None
@@ -52,17 +59,18 @@ def principal_point_sensitivity(pinned: PinnedSolve, camera: PinholeCamera
         return None
     augmented, _ = built
     m, d = pinned.values.atVector(CALIBRATION_KEY).size, part.dim
-    prior = np.zeros((d, m + d))
-    prior[:, m:] = np.eye(d) / part.prior_sigma  # (any prior: S does not depend on it)
-    augmented.add(WITH_PART_KEY, prior, np.zeros(d), gtsam.noiseModel.Unit.Create(d))
-    out = np.empty((pinned.kept.size, 6, d))
-    c = slice(6 + m, None)
-    for j, joint in enumerate(joint_marginals(augmented, [X(j) for j in
-                                                         range(pinned.kept.size)],
-                                              WITH_PART_KEY)):
-        # (cc symmetric)
-        out[j] = np.linalg.solve(joint[c, c], joint[:6, c].T).T
-    return out
+    keys = [X(j) for j in range(pinned.kept.size)]
+
+    def solution(cx_cy: np.ndarray) -> np.ndarray:
+        graph = gtsam.GaussianFactorGraph()
+        graph.push_back(augmented)
+        graph.add(WITH_PART_KEY, np.eye(m + d) / PIN_PX, np.r_[np.zeros(m), cx_cy] / PIN_PX,
+                  gtsam.noiseModel.Unit.Create(m + d))
+        delta, _ = step_and_marginals(graph, [])
+        return np.stack([delta.at(k) for k in keys])
+
+    at_zero = solution(np.zeros(d))
+    return np.stack([solution(unit) - at_zero for unit in np.eye(d)], axis=2)
 
 
 def considered(covariances: StateCovariances, t_ns: np.ndarray, pinned: PinnedSolve,

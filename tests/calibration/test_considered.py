@@ -26,10 +26,6 @@ from cdtm_graph.sim.simulate import simulate_flight
 from cdtm_graph.smoother import SmootherMode, SmootherSettings, smooth
 from cdtm_graph.studies.robustness import BASE
 
-#: The principal point's pin in the linear re-solve (px): tight against what the flight
-#: tells of it (0.4-1 px), loose against round-off.
-PIN_PX = 1e-4
-
 
 def declared(flight: FlightLog, sigma_px: float | None) -> FlightLog:
     """``flight`` whose flight.yaml declares the principal point's 1-sigma ``sigma_px``."""
@@ -45,42 +41,44 @@ def short_flight():
     return flight, dtm, smooth(flight, dtm)
 
 
-def test_the_sensitivity_is_the_solve_with_the_principal_point_pinned_at_1_px(short_flight):
-    """``S = d x / d (cx, cy)``, read from the joint marginal of each pose and the principal
-    point, against the other way to get it: the same linear system (the pinned solve's,
-    the principal point's columns added) solved with ``cx``, then ``cy``, pinned at 1 px,
-    less the same solve pinned at 0. Every pose's response (tangent: rotation, body-axis
-    translation) within 1e-6 of the largest. Measured 2026-11-28: 3.1-3.6 m per px, and
-    the two agree to within the bound. Mutations: the joint marginal's ordering swapped
-    (the principal point's block read as the pose's) and the sign of ``S`` flipped both
-    fail.
+def test_the_sensitivity_is_the_regression_in_the_joint_marginal(short_flight):
+    """``S = d x / d (cx, cy)`` (the side solve's graph, the principal point's columns
+    added, solved with it pinned at 1 px less pinned at 0) against the other way to get
+    it: in the joint Gaussian of each pose and the principal point (any prior on it), the
+    regression ``Sigma_xc Sigma_cc^-1``, which is ``-H_xx^-1 H_xc`` exactly. Every pose's
+    response (tangent: rotation, body-axis translation) within 1e-6 of the largest.
+    Measured 2026-11-28: 3.1-3.6 m per px. Mutations: the pin at 0 not taken off (the
+    side solve's own residual step left in), the pin's mean on the five instead of the
+    principal point, and the sign of ``S`` flipped: each fails.
 
     (Central differences of the nonlinear pinned solve itself cannot be this test: its
     Levenberg-Marquardt leaves a 0.05 px shift where it starts, a step that small losing to
     the re-intersected planes' kinks, and at 0.25 px it differs 8-13% from ``S`` with the
-    kernel off: the pair factors' planes and weights.)"""
+    kernel off: the pair factors' planes and weights. The product's own response is the
+    slow test below.)"""
     flight, dtm, result = short_flight
     solve = pinned_solve(flight, dtm, GraphSettings(), result, DEFAULT_CALIBRATION_SIGMAS)
     camera = flight.config.camera.camera
     S = principal_point_sensitivity(solve, camera)
     assert S is not None and S.shape == (30, 6, 2)
+    part = principal_point_part(camera)
+    augmented, _ = with_part(solve.linear, solve.values, solve.factors, part)
     m = solve.values.atVector(CALIBRATION_KEY).size
-
-    def pinned_at(cx_cy):
-        augmented, _ = with_part(solve.linear, solve.values, solve.factors,
-                                 principal_point_part(camera))
-        mean = np.r_[np.zeros(m), cx_cy]
-        augmented.add(WITH_PART_KEY, np.eye(m + 2) / PIN_PX, mean / PIN_PX,
-                      gtsam.noiseModel.Unit.Create(m + 2))
-        delta = augmented.optimize()
-        return np.stack([delta.at(X(j)) for j in range(30)])
-
-    at_zero = pinned_at(np.zeros(2))
-    for axis in (0, 1):
-        response = pinned_at(np.eye(2)[axis]) - at_zero
-        scale = np.abs(response[:, 3:]).max()
+    prior = np.zeros((2, m + 2))
+    prior[:, m:] = np.eye(2) / 3.0  # (any prior)
+    augmented.add(WITH_PART_KEY, prior, np.zeros(2), gtsam.noiseModel.Unit.Create(2))
+    tree = augmented.eliminateMultifrontal(function=gtsam.EliminateQR)  # (as the side solve)
+    c = slice(6 + m, None)
+    for j in range(30):
+        ordering = gtsam.Ordering()
+        ordering.push_back(X(j))
+        ordering.push_back(WITH_PART_KEY)
+        information, _ = tree.joint(X(j), WITH_PART_KEY, gtsam.EliminateQR).hessian(ordering)
+        joint = np.linalg.inv(information)
+        regression = np.linalg.solve(joint[c, c], joint[:6, c].T).T
+        scale = np.abs(regression[3:]).max()
         assert 1.0 < scale < 10.0  # metres per px at 1800 m
-        np.testing.assert_allclose(S[:, :, axis], response, atol=1e-6 * scale)
+        np.testing.assert_allclose(S[j], regression, atol=1e-6 * scale)
 
 
 def test_the_added_covariance_is_the_declared_variance_through_the_sensitivity(short_flight):
