@@ -310,12 +310,19 @@ class PinnedSolve:
 class _Pinned:
     """The side solve's first solve and what the check goes on with."""
 
-    solve: PinnedSolve
+    log: FlightLog  # the thinned log
+    kept: np.ndarray
+    values: gtsam.Values
     built: LogGraph
     solver: LinearSolver
     pinned: gtsam.NonlinearFactorGraph  # the run's graph and the pin, its last factor
     held_error: float  # the graph's error (without the pin) at the pinned optimum
     linear: gtsam.GaussianFactorGraph | None  # the solver's last linearization (pinned)
+
+    def solve(self) -> PinnedSolve:
+        """As :class:`PinnedSolve` (linearized here where the solver kept none)."""
+        return PinnedSolve(self.linear or self.pinned.linearize(self.values), self.values,
+                           self.log, self.kept, self.built.cdtm)
 
 
 def _solve_pinned(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
@@ -339,10 +346,8 @@ def _solve_pinned(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
     values, _ = levenberg_marquardt(pinned, values, max_iterations,
                                     relative_error_tol, solver=solver)
     held_error = built.graph.error(values)
-    pinned_linear = solver.linearized_at(values)
-    solve = PinnedSolve(pinned_linear or pinned.linearize(values), values, sub, kept,
-                        built.cdtm)
-    return _Pinned(solve, built, solver, pinned, held_error, pinned_linear)
+    return _Pinned(sub, kept, values, built, solver, pinned, held_error,
+                   solver.linearized_at(values))
 
 
 def pinned_solve(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
@@ -353,7 +358,7 @@ def pinned_solve(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
     """The calibration check's first solve alone (:func:`check_calibration`'s arguments),
     for a run whose calibration is not checked."""
     return _solve_pinned(flight, dtm, settings, result, sigmas, left_out, unfixed_frames,
-                         max_iterations, relative_error_tol).solve
+                         max_iterations, relative_error_tol).solve()
 
 
 def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
@@ -379,14 +384,14 @@ def check_calibration(flight: FlightLog, dtm: Dtm, settings: GraphSettings,
     first = _solve_pinned(flight, dtm, settings, result, sigmas, left_out, unfixed_frames,
                           max_iterations, relative_error_tol)
     built, solver, pinned, held_error = first.built, first.solver, first.pinned, first.held_error
-    pinned_linear, values, kept = first.linear, first.solve.values, first.solve.kept
+    pinned_linear, values, kept = first.linear, first.values, first.kept
     graph = built.graph
     first_frame = None
     if result.stats.solver is Solver.FIXED_LAG:  # (one marginal: the verdict's first frame)
         (first_cov,) = key_marginals(pinned, values, [X(0)], linear=pinned_linear)
         first_frame = (values.atPose3(X(0)).matrix(), first_cov)
     if on_pinned is not None:
-        on_pinned(first.solve)
+        on_pinned(first.solve())
     # (the free solve starts where the pinned one ended: its error there, and the pinned
     # solve's last linearization without the pin, the last factor)
     values, free = levenberg_marquardt(graph, values, max_iterations, relative_error_tol,

@@ -22,6 +22,7 @@ nearest kept frames (in body axes, where the shift is nearly constant).
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import replace
 
@@ -34,8 +35,11 @@ from cdtm_graph.calibration.extra_parts import WITH_PART_KEY, with_part
 from cdtm_graph.calibration.online import CALIBRATION_KEY
 from cdtm_graph.calibration.principal_point import principal_point_part
 from cdtm_graph.camera import PinholeCamera
+from cdtm_graph.dtm import Dtm
 from cdtm_graph.optimizer import step_and_marginals
 from cdtm_graph.results import ConsideredPrincipalPoint, StateCovariances
+
+logger = logging.getLogger(__name__)
 
 #: The principal point's pin in the solves that give ``S`` (px): tight against what a
 #: flight tells of it (0.4-1 px: its share of ``S`` ~1e-8), loose against round-off.
@@ -84,6 +88,8 @@ def considered(covariances: StateCovariances, t_ns: np.ndarray, pinned: PinnedSo
         return covariances, None
     solved = principal_point_sensitivity(pinned, camera)
     if solved is None:
+        logger.warning("camera.principal_point_sigma_px %g px not considered: the side "
+                       "solve holds no C-DTM factor to take its share from", sigma_px)
         return covariances, None
     kept_t = t_ns[pinned.kept].astype(float)
     flat = solved.reshape(solved.shape[0], -1)
@@ -94,3 +100,27 @@ def considered(covariances: StateCovariances, t_ns: np.ndarray, pinned: PinnedSo
     return (replace(covariances, pose=covariances.pose + added),
             ConsideredPrincipalPoint(float(sigma_px), added, int(pinned.kept.size),
                                      time.perf_counter() - start))
+
+
+def live_pose_covariance(body_T_cam: np.ndarray, camera: PinholeCamera, range_m: float,
+                         sigma_px: float) -> np.ndarray:
+    """(6, 6) the live path's share of a declared principal point in one frame's pose
+    covariance (body frame): the after-run ``S`` needs the side solve, so an update takes
+    its geometric approximation, a shift ``d`` of the principal point read as the camera
+    moved by ``range * d / f`` along its own x, y axes (``range_m``: along the optical
+    axis to the ground; :func:`optical_axis_range_m`). Within 15% of the solved ``S``'s
+    position sigma on the 90-frame flight (seeds 1-2: -15% to +14%;
+    tests/calibration/test_considered.py); it leaves out the attitude's share and the
+    cross terms (up to 25% of ``S``'s entries)."""
+    S = np.zeros((6, 2))
+    S[3:, 0] = body_T_cam[:3, 0] * range_m / camera.fx
+    S[3:, 1] = body_T_cam[:3, 1] * range_m / camera.fy
+    return sigma_px**2 * S @ S.T
+
+
+def optical_axis_range_m(world_T_body: np.ndarray, body_T_cam: np.ndarray, dtm: Dtm
+                         ) -> float:
+    """The distance along the camera's optical axis to the DTM (m); NaN where it misses."""
+    world_T_cam = world_T_body @ body_T_cam
+    hits = dtm.raycast(world_T_cam[:3, 3], world_T_cam[:3, 2])
+    return float(hits.t[0]) if hits.hit[0] else float("nan")

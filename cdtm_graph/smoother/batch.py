@@ -228,6 +228,9 @@ def _principal_point_considered(flight: FlightLog, dtm: Dtm, settings: SmootherS
     covariances (:mod:`cdtm_graph.calibration.considered`), from the calibration check's
     first solve (one of its own where the calibration is not checked: held unchecked, or
     estimated online, its sensitivity then taken with the rest of the calibration held)."""
+    if np.isnan(result.covariances.pose).all():  # (none to add to: marginals=False)
+        return result
+    start = time.perf_counter()
     if pinned is None:
         sigmas = (flight.config.camera.calibration or settings.graph.calibration
                   or DEFAULT_CALIBRATION_SIGMAS)
@@ -237,6 +240,8 @@ def _principal_point_considered(flight: FlightLog, dtm: Dtm, settings: SmootherS
     covariances, added = considered(result.covariances, flight.frames.t_ns, pinned,
                                     flight.config.camera.camera,
                                     float(flight.config.camera.principal_point_sigma_px or 0))
+    if added is not None:  # (its own solve's time too, where the check made none)
+        added = replace(added, time_s=time.perf_counter() - start)
     return replace(result, covariances=covariances, considered_principal_point=added)
 
 
