@@ -36,6 +36,7 @@ from cdtm_graph.calibration.online import CALIBRATION_KEY
 from cdtm_graph.calibration.principal_point import principal_point_part
 from cdtm_graph.camera import PinholeCamera
 from cdtm_graph.dtm import Dtm
+from cdtm_graph.flightlog import CameraConfig
 from cdtm_graph.optimizer import step_and_marginals
 from cdtm_graph.results import ConsideredPrincipalPoint, StateCovariances
 
@@ -124,3 +125,33 @@ def optical_axis_range_m(world_T_body: np.ndarray, body_T_cam: np.ndarray, dtm: 
     world_T_cam = world_T_body @ body_T_cam
     hits = dtm.raycast(world_T_cam[:3, 3], world_T_cam[:3, 2])
     return float(hits.t[0]) if hits.hit[0] else float("nan")
+
+
+class LiveShare:
+    """A declared principal point's share in the live path's pose covariances (the
+    incremental smoother's ``FrameUpdate``), as :class:`~cdtm_graph.results.MapOffset`
+    adds the map's offset there: its geometric form (:func:`live_pose_covariance`), the
+    last range kept where the optical axis misses the DTM (none before the first hit).
+
+    Args:
+        camera: flight.yaml's camera (its ``principal_point_sigma_px`` declared or not).
+        dtm: the map.
+    """
+
+    def __init__(self, camera: CameraConfig, dtm: Dtm):
+        self.sigma_px = camera.principal_point_sigma_px or 0.0
+        self.camera, self.dtm = camera, dtm
+        self.range_m = float("nan")
+
+    def added_to_pose(self, pose_cov: np.ndarray, world_T_body: np.ndarray) -> np.ndarray:
+        """One (6, 6) pose covariance (of the pose ``world_T_body``) with the share added
+        (itself where nothing is declared)."""
+        if not self.sigma_px:
+            return pose_cov
+        range_m = optical_axis_range_m(world_T_body, self.camera.body_T_cam, self.dtm)
+        if np.isfinite(range_m):
+            self.range_m = range_m
+        if not np.isfinite(self.range_m):
+            return pose_cov
+        return pose_cov + live_pose_covariance(self.camera.body_T_cam, self.camera.camera,
+                                               self.range_m, self.sigma_px)

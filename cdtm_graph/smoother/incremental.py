@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from cdtm_graph.calibration.considered import live_pose_covariance, optical_axis_range_m
+from cdtm_graph.calibration.considered import LiveShare
 from cdtm_graph.codes import Code
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import CdtmError, FlightLogError
@@ -162,10 +162,7 @@ class IncrementalSmoother:
             raise _lag_too_short(settings, frame_interval_s)
         self._frame_flags: dict[int, list[str]] = {}
         self._map_offset = MapOffset.of(config.dtm)  # in what it reports, not what it uses
-        # a declared principal point's share, likewise (its geometric approximation: the
-        # run's result takes the side solve's; the last range where the axis misses)
-        self._principal_point_sigma_px = config.camera.principal_point_sigma_px or 0.0
-        self._range_m = float("nan")
+        self._principal_point = LiveShare(config.camera, dtm)  # likewise, a declared one's
         self._pair_prior_of: Callable[[], Callable[[int], np.ndarray]] | None = None
         # Warm-up: from a loose prior (or an acquired fix) every update moves its frame far
         # from the prediction, until one does not; nothing is judged meanwhile. Not a test
@@ -265,25 +262,13 @@ class IncrementalSmoother:
                 self._try_acquisition(k)
         converged, reported = self._settling.reported(k, self.n_cdtm_factors > 0)
         self._imu.start(int(t_ns), w.biases[k])
-        pose_cov = self._map_offset.added_to_pose(reported[:6, :6], w.poses[k])
-        if self._principal_point_sigma_px:
-            pose_cov += self._principal_point_share(w.poses[k])
+        pose_cov = self._principal_point.added_to_pose(
+            self._map_offset.added_to_pose(reported[:6, :6], w.poses[k]), w.poses[k])
         elapsed = time.perf_counter() - start
         self.update_times_s.append(elapsed)
         self.imu_times_s.append(self._imu.take_time_s())
         return FrameUpdate(k, int(t_ns), w.poses[k], w.velocities[k], pose_cov, work.n_features,
                            elapsed, self.imu_times_s[-1], converged)
-
-    def _principal_point_share(self, world_T_body: np.ndarray) -> np.ndarray:
-        """(6, 6) a declared principal point's share of a live pose covariance."""
-        camera = self.config.camera
-        range_m = optical_axis_range_m(world_T_body, camera.body_T_cam, self.dtm)
-        if np.isfinite(range_m):
-            self._range_m = range_m
-        if not np.isfinite(self._range_m):
-            return np.zeros((6, 6))
-        return live_pose_covariance(camera.body_T_cam, camera.camera, self._range_m,
-                                    self._principal_point_sigma_px)
 
     # -- what the stages ask (robust.stages.SolverView) --------------------------------
 
