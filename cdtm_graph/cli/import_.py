@@ -120,11 +120,17 @@ def _common_options(p: argparse.ArgumentParser, kalibr_required: bool) -> None:
                           + ("" if kalibr_required else "; default: imu0/sensor.yaml"))
     cal.add_argument("--pixel-sigma-px", type=float, default=0.5,
                      help="1-sigma of a tracked feature's position (default %(default)s px)")
-    cal.add_argument("--principal-point-sigma-px", type=float, metavar="PX",
-                     help="1-sigma of cx and of cy as the calibration knows them (Kalibr's "
-                          "results-cam.txt: the projection's +- figures), into flight.yaml's "
-                          "camera.principal_point_sigma_px: its effect is added to every "
-                          "pose covariance; default: undeclared (nothing added)")
+    principal = cal.add_mutually_exclusive_group()
+    principal.add_argument("--principal-point-sigma-px", type=float, metavar="PX",
+                           help="1-sigma of cx and of cy as the calibration knows them, into "
+                                "flight.yaml's camera.principal_point_sigma_px: its effect "
+                                "is added to every pose covariance; default: undeclared "
+                                "(nothing added)")
+    principal.add_argument("--kalibr-results", type=Path, metavar="RESULTS_CAM_TXT",
+                           help="instead of --principal-point-sigma-px: Kalibr's "
+                                "results-cam.txt (kalibr_calibrate_cameras), whose cam0 "
+                                "'projection ... +- [...]' gives it (the larger of pu's and "
+                                "pv's 1-sigma)")
     cal.add_argument("--imu-noise", choices=[s.value for s in ImuNoiseSource],
                      default=ImuNoiseSource.STATED.value,
                      help="the IMU noise densities flight.yaml gets: the calibration's "
@@ -205,8 +211,12 @@ def _settings(args: argparse.Namespace):
         sigma_position_m=args.sigma_position_m, sigma_attitude_deg=args.sigma_attitude_deg,
         sigma_velocity_mps=args.sigma_velocity_mps, sigma_gyro_bias=args.sigma_gyro_bias,
         sigma_accel_bias=args.sigma_accel_bias)
+    principal_point_sigma = args.principal_point_sigma_px
+    if args.kalibr_results is not None:
+        from cdtm_graph.importers import read_kalibr_principal_point_sigma
+        principal_point_sigma = read_kalibr_principal_point_sigma(args.kalibr_results)
     return ImportSettings(dtm, args.pixel_sigma_px, args.gravity_mps2, initial,
-                          ImuNoiseSource(args.imu_noise), args.principal_point_sigma_px)
+                          ImuNoiseSource(args.imu_noise), principal_point_sigma)
 
 
 def _refuse_foreign_log_files(out: Path, writer: str) -> None:

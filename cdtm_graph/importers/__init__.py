@@ -28,6 +28,7 @@ if TYPE_CHECKING:
         read_euroc_sensor,
         read_kalibr_camchain,
         read_kalibr_imu,
+        read_kalibr_principal_point_sigma,
     )
     from cdtm_graph.importers.euroc import import_euroc, read_euroc
     from cdtm_graph.importers.px4 import (
@@ -53,7 +54,9 @@ if TYPE_CHECKING:
 
 _WHERE = {"CameraCalibration": "calibration", "ImuCalibration": "calibration",
           "read_euroc_sensor": "calibration", "read_kalibr_camchain": "calibration",
-          "read_kalibr_imu": "calibration", "import_euroc": "euroc", "read_euroc": "euroc",
+          "read_kalibr_imu": "calibration",
+          "read_kalibr_principal_point_sigma": "calibration", "import_euroc": "euroc",
+          "read_euroc": "euroc",
           "Px4Options": "px4", "import_px4": "px4", "read_px4": "px4", "DtmSource": "recording",
           "ImportSettings": "recording", "InitialPrior": "recording",
           "SensorRecording": "recording", "assemble_flightlog": "recording",
@@ -65,7 +68,8 @@ __all__ = [
     "BagTopics", "CameraCalibration", "DtmSource", "ImportSettings", "ImuCalibration",
     "ImuNoiseSource", "InitialPrior", "SensorRecording", "StampSource", "assemble_flightlog",
     "import_euroc", "import_rosbag", "read_bag", "read_euroc", "read_euroc_sensor",
-    "read_groundtruth", "read_kalibr_camchain", "read_kalibr_imu", "write_imported_log",
+    "read_groundtruth", "read_kalibr_camchain", "read_kalibr_imu",
+    "read_kalibr_principal_point_sigma", "write_imported_log",
 ]
 
 

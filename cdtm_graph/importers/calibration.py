@@ -243,6 +243,59 @@ def read_kalibr_camchain(path: str | os.PathLike, camera: str = "cam0") -> Camer
                                  y.optional_text(m, "rostopic"))
 
 
+#: Kalibr's results-cam.txt: a camera's block opens ``camN (topic):``, and its
+#: ``projection: [fu fv pu pv] +- [...]`` line gives the estimates and their 1-sigma (the
+#: square roots of its estimator's covariance diagonal, kalibr_camera_calibration's
+#: ``recoverCovariance``), numpy-printed, possibly over several lines.
+_RESULTS_BLOCK = re.compile(r"^\s*(cam\d+)\s*\(.*\):\s*$")
+_RESULTS_PROJECTION = re.compile(r"projection:\s*\[([^\]]*)\]\s*\+-\s*\[([^\]]*)\]")
+
+
+def read_kalibr_principal_point_sigma(path: str | os.PathLike, camera: str = "cam0"
+                                      ) -> float:
+    """How well Kalibr's camera calibration tells one camera's principal point: the larger
+    of the 1-sigmas of ``pu`` and ``pv`` (px) in its ``results-cam.txt``
+    (``kalibr_calibrate_cameras``).
+
+    Raises:
+        FlightLogError: the file is missing or not text, holds no block for ``camera``, or
+            its ``projection`` line is not four values ``+-`` four positive ones.
+    """
+    path = Path(path)
+    shown = str(path)
+    if not path.is_file():
+        _fail_path(shown, why_not_a_file(path), "Kalibr's results-cam.txt")
+    try:
+        lines = path.read_text(encoding="utf-8-sig").splitlines()
+    except UnicodeDecodeError:
+        _fail(shown, 1, "not UTF-8 text", "Kalibr's results-cam.txt")
+    blocks = [(i, m.group(1)) for i, line in enumerate(lines)
+              if (m := _RESULTS_BLOCK.match(line))]
+    start = next((i for i, name in blocks if name == camera), None)
+    if start is None:
+        cams = ", ".join(name for _, name in blocks) or "none"
+        _fail(shown, 1, f"no block for camera '{camera}' (cameras here: {cams})",
+              "Kalibr's results-cam.txt (kalibr_calibrate_cameras), with a "
+              "'cam0 (topic):' block")
+    end = next((i for i, _ in blocks if i > start), len(lines))
+    at = next((i for i in range(start, end) if "projection:" in lines[i]), None)
+    if at is None:
+        _fail(shown, start + 1, f"camera '{camera}' has no 'projection:' line",
+              "'projection: [fu fv pu pv] +- [sigmas]'")
+    text = " ".join(lines[at:min(at + 4, end)])  # (numpy may wrap a long array)
+    match = _RESULTS_PROJECTION.search(text)
+    values: list[float] = []
+    if match is not None:
+        with contextlib.suppress(ValueError):
+            values = [float(v) for v in (match.group(1) + " " + match.group(2)).split()]
+    sigmas = np.asarray(values[4:], dtype=float)
+    if len(values) != 8 or not (np.all(np.isfinite(values)) and np.all(sigmas > 0)):
+        _fail(shown, at + 1, f"projection line {_show(lines[at].strip())}",
+              "'projection: [fu fv pu pv] +- [sigmas]', four numbers and four positive "
+              "sigmas (a pinhole camera)")
+    return float(max(sigmas[2], sigmas[3]))
+
+
 def read_kalibr_imu(path: str | os.PathLike, imu: str = "imu0") -> ImuCalibration:
     """A Kalibr IMU file (``imu.yaml``, or ``imu-...yaml`` with ``imu0:`` sections).
 

@@ -188,6 +188,58 @@ def test_the_principal_point_sigma_goes_into_flight_yaml(folders, tmp_path, caps
     assert not (tmp_path / "c").exists()
 
 
+#: Kalibr's results-cam.txt as kalibr_calibrate_cameras prints it (numpy arrays; a
+#: second camera whose projection wraps over two lines). The +- figures are 1-sigma.
+RESULTS_CAM = """Calibration results
+====================
+Camera-system parameters:
+\tcam0 (/cam0/image_raw):
+\t type: <class 'aslam_cv.libaslam_cv_python.DistortedPinholeCameraGeometry'>
+\t distortion: [-0.2 0.05 0.0001 0.0002] +- [ 0.0005 0.0006 0.00003 0.00003]
+\t projection: [ 554.25625842  554.25625842  319.5  239.5] +- [ 0.21  0.2  0.31  0.42]
+\t reprojection error: [0.000001, -0.000002] +- [0.18, 0.17]
+
+\tcam1 (/cam1/image_raw):
+\t type: <class 'aslam_cv.libaslam_cv_python.DistortedPinholeCameraGeometry'>
+\t distortion: [-0.2 0.05 0.0001 0.0002] +- [ 0.0005 0.0006 0.00003 0.00003]
+\t projection: [ 1374.5565357   1374.43497963   904.28367918   543.60982887] +- [ 5.19
+\t 5.06  0.63  0.52]
+"""
+
+
+def test_kalibr_results_give_the_principal_point_sigma(folders, tmp_path, capsys):
+    """``--kalibr-results results-cam.txt``: cam0's larger principal-point 1-sigma into
+    flight.yaml (0.42 px here); cam1's too, its array wrapped; a file without the camera
+    or with a malformed projection line is one line naming it, exit 1, nothing written;
+    with --principal-point-sigma-px too, a usage error. Catches: the focal lengths' sigma
+    taken (0.21), cx's alone (0.31), the wrapped array refused."""
+    from cdtm_graph.importers import read_kalibr_principal_point_sigma
+    results = tmp_path / "results-cam.txt"
+    results.write_text(RESULTS_CAM)
+    assert read_kalibr_principal_point_sigma(results) == 0.42
+    assert read_kalibr_principal_point_sigma(results, "cam1") == 0.63
+    assert _import(folders, "clean", tmp_path / "a", "--quiet",
+                   "--kalibr-results", str(results)) == 0
+    assert read_flightlog(tmp_path / "a", read_tracks=False).config.camera \
+        .principal_point_sigma_px == 0.42
+    for name, text, expected in (
+            ("nocam.txt", RESULTS_CAM.replace("cam0 (", "cam7 ("),
+             "no block for camera 'cam0' (cameras here: cam7, cam1)"),
+            ("bad.txt", RESULTS_CAM.replace("+- [ 0.21  0.2  0.31  0.42]", "+- [0.2 -1]"),
+             ":7: projection line")):
+        (tmp_path / name).write_text(text)
+        capsys.readouterr()
+        assert _import(folders, "clean", tmp_path / name.replace(".", "_"),
+                       "--kalibr-results", str(tmp_path / name)) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and expected in err[0], err
+        assert not (tmp_path / name.replace(".", "_")).exists()
+    with pytest.raises(SystemExit) as usage:
+        _import(folders, "clean", tmp_path / "b", "--kalibr-results", str(results),
+                "--principal-point-sigma-px", "0.3")
+    assert usage.value.code == 2
+
+
 def test_the_summary_names_the_lens_model_in_words(folders, tmp_path, capsys):
     """The summary line says what the lens is. Catches today's ``camera 320x240 none``."""
     assert _import(folders, "clean", tmp_path / "log") == 0
