@@ -78,12 +78,27 @@ def principal_point_sensitivity(pinned: PinnedSolve, camera: PinholeCamera
     return np.stack([solution(unit) - at_zero for unit in np.eye(d)], axis=2)
 
 
+#: How far a fixed lag's own response to the principal point strays from ``S`` (the whole
+#: flight's), as a fraction of it: its frames keep the estimate they left the window with,
+#: made without the later attitude changes. Fitted 2026-11-28 on the 90-frame flight,
+#: seed 1, cx and cy moved (8, -6) px: the misfit's rms over the frames 0.090 of ``|S d|``,
+#: spread over the three axes alike (per axis 0.0065-0.0096 of ``|S d|^2 / 3``); checked
+#: on (0, 10) px (0.094) and seed 2 (0.108). Batch and iSAM2 follow ``S`` to 1-2%.
+FIXED_LAG_RESPONSE_MISFIT = 0.10
+
+
 def considered(covariances: StateCovariances, t_ns: np.ndarray, pinned: PinnedSolve,
-               camera: PinholeCamera, sigma_px: float
+               camera: PinholeCamera, sigma_px: float, response_misfit: float = 0.0
                ) -> tuple[StateCovariances, ConsideredPrincipalPoint | None]:
     """``covariances`` (of the frames at ``t_ns``) with the principal point's declared
     1-sigma ``sigma_px`` considered, and what that added; as they are (and None) when the
-    solve holds no C-DTM factor or nothing is declared."""
+    solve holds no C-DTM factor or nothing is declared.
+
+    ``response_misfit``: how far the run's own response may stray from ``S``, as a
+    fraction of it (:data:`FIXED_LAG_RESPONSE_MISFIT`); its expected square is added to
+    the positions in every direction alike, ``(misfit sigma |S|_F)^2 / 3`` per axis (it
+    grows with the declared sigma as the response does: at 10 px a fixed lag without it
+    read ANEES 4.6)."""
     start = time.perf_counter()
     if sigma_px <= 0:
         return covariances, None
@@ -98,6 +113,9 @@ def considered(covariances: StateCovariances, t_ns: np.ndarray, pinned: PinnedSo
     S = np.stack([np.interp(t_ns.astype(float), kept_t, flat[:, i])
                   for i in range(flat.shape[1])], axis=1).reshape(t_ns.size, 6, -1)
     added = sigma_px**2 * S @ np.swapaxes(S, 1, 2)
+    if response_misfit:
+        spread = (response_misfit * sigma_px) ** 2 * np.sum(S[:, 3:] ** 2, axis=(1, 2)) / 3
+        added[:, 3:, 3:] += spread[:, None, None] * np.eye(3)
     return (replace(covariances, pose=covariances.pose + added),
             ConsideredPrincipalPoint(float(sigma_px), added, int(pinned.kept.size),
                                      time.perf_counter() - start))

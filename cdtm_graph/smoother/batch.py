@@ -24,7 +24,7 @@ from cdtm_graph.calibration.check import (
     check_calibration,
     pinned_solve,
 )
-from cdtm_graph.calibration.considered import considered
+from cdtm_graph.calibration.considered import FIXED_LAG_RESPONSE_MISFIT, considered
 from cdtm_graph.calibration.noise_bias import debiased
 from cdtm_graph.calibration.online import CALIBRATION_KEY
 from cdtm_graph.calibration.online import estimate as calibration_estimate
@@ -237,9 +237,10 @@ def _principal_point_considered(flight: FlightLog, dtm: Dtm, settings: SmootherS
         pinned = pinned_solve(flight, dtm, settings.graph, result, sigmas, run.left_out,
                               run.unfixed_frames, settings.max_iterations,
                               settings.relative_error_tol)
-    covariances, added = considered(result.covariances, flight.frames.t_ns, pinned,
-                                    flight.config.camera.camera,
-                                    float(flight.config.camera.principal_point_sigma_px or 0))
+    covariances, added = considered(
+        result.covariances, flight.frames.t_ns, pinned, flight.config.camera.camera,
+        float(flight.config.camera.principal_point_sigma_px or 0),
+        FIXED_LAG_RESPONSE_MISFIT if settings.lag_s is not None else 0.0)
     if added is not None:  # (its own solve's time too, where the check made none)
         added = replace(added, time_s=time.perf_counter() - start)
     return replace(result, covariances=covariances, considered_principal_point=added)
