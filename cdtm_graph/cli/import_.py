@@ -128,9 +128,9 @@ def _common_options(p: argparse.ArgumentParser, kalibr_required: bool) -> None:
                                 "(nothing added)")
     principal.add_argument("--kalibr-results", type=Path, metavar="RESULTS_CAM_TXT",
                            help="instead of --principal-point-sigma-px: Kalibr's "
-                                "results-cam.txt (kalibr_calibrate_cameras), whose cam0 "
-                                "'projection ... +- [...]' gives it (the larger of pu's and "
-                                "pv's 1-sigma)")
+                                "results-cam.txt (kalibr_calibrate_cameras), whose "
+                                "--camera block's 'projection ... +- [...]' gives it (the "
+                                "larger of pu's and pv's 1-sigma)")
     cal.add_argument("--imu-noise", choices=[s.value for s in ImuNoiseSource],
                      default=ImuNoiseSource.STATED.value,
                      help="the IMU noise densities flight.yaml gets: the calibration's "
@@ -214,7 +214,8 @@ def _settings(args: argparse.Namespace):
     principal_point_sigma = args.principal_point_sigma_px
     if args.kalibr_results is not None:
         from cdtm_graph.importers import read_kalibr_principal_point_sigma
-        principal_point_sigma = read_kalibr_principal_point_sigma(args.kalibr_results)
+        principal_point_sigma = read_kalibr_principal_point_sigma(args.kalibr_results,
+                                                                  args.camera)
     return ImportSettings(dtm, args.pixel_sigma_px, args.gravity_mps2, initial,
                           ImuNoiseSource(args.imu_noise), principal_point_sigma)
 

@@ -293,7 +293,12 @@ def read_kalibr_principal_point_sigma(path: str | os.PathLike, camera: str = "ca
         _fail(shown, at + 1, f"projection line {_show(lines[at].strip())}",
               "'projection: [fu fv pu pv] +- [sigmas]', four numbers and four positive "
               "sigmas (a pinhole camera)")
-    return float(max(sigmas[2], sigmas[3]))
+    sigma = float(max(sigmas[2], sigmas[3]))
+    limit = RANGES["camera.principal_point_sigma_px"]
+    if sigma > limit.hi:
+        _fail(shown, at + 1, f"camera '{camera}''s principal point sigma {sigma:g} px",
+              f"at most {limit.hi:g} px (camera.principal_point_sigma_px): a calibration")
+    return sigma
 
 
 def read_kalibr_imu(path: str | os.PathLike, imu: str = "imu0") -> ImuCalibration:

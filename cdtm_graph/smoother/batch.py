@@ -40,6 +40,7 @@ from cdtm_graph.optimizer import LinearSolver, key_marginals, levenberg_marquard
 from cdtm_graph.results import (
     Rejection,
     SmootherResult,
+    Solver,
     SolverStats,
     StateCovariances,
     TrajectoryEstimate,
@@ -240,7 +241,7 @@ def _principal_point_considered(flight: FlightLog, dtm: Dtm, settings: SmootherS
     covariances, added = considered(
         result.covariances, flight.frames.t_ns, pinned, flight.config.camera.camera,
         float(flight.config.camera.principal_point_sigma_px or 0),
-        FIXED_LAG_RESPONSE_MISFIT if settings.lag_s is not None else 0.0)
+        FIXED_LAG_RESPONSE_MISFIT if result.stats.solver is Solver.FIXED_LAG else 0.0)
     if added is not None:  # (its own solve's time too, where the check made none)
         added = replace(added, time_s=time.perf_counter() - start)
     return replace(result, covariances=covariances, considered_principal_point=added)

@@ -69,7 +69,9 @@ class FrameUpdate:
         world_T_body: (4, 4) its current estimate. velocity_mps: (3,).
         pose_covariance: (6, 6) its marginal, GTSAM tangent order [rot, trans], body frame,
             with an offset of the whole map added (flight.yaml's ``dtm.*_offset_sigma_m``,
-            :class:`~cdtm_graph.results.MapOffset`).
+            :class:`~cdtm_graph.results.MapOffset`) and a declared principal point's share
+            (``camera.principal_point_sigma_px``, :class:`~cdtm_graph.calibration.
+            considered.LiveShare`).
         n_features: C-DTM features that arrived with it. update_time_s: the update's cost.
         imu_time_s: time spent preintegrating this frame's interval as its IMU samples
             arrived (``add_imu``), before this update.

@@ -211,8 +211,9 @@ def test_kalibr_results_give_the_principal_point_sigma(folders, tmp_path, capsys
     """``--kalibr-results results-cam.txt``: cam0's larger principal-point 1-sigma into
     flight.yaml (0.42 px here); cam1's too, its array wrapped; a file without the camera
     or with a malformed projection line is one line naming it, exit 1, nothing written;
-    with --principal-point-sigma-px too, a usage error. Catches: the focal lengths' sigma
-    taken (0.21), cx's alone (0.31), the wrapped array refused."""
+    with --principal-point-sigma-px too, a usage error; ``--camera cam1`` takes cam1's.
+    Catches: the focal lengths' sigma taken (0.21), cx's alone (0.31), the wrapped array
+    refused, --camera not passed on (cam0's 0.42: a review's find)."""
     from cdtm_graph.importers import read_kalibr_principal_point_sigma
     results = tmp_path / "results-cam.txt"
     results.write_text(RESULTS_CAM)
@@ -238,6 +239,13 @@ def test_kalibr_results_give_the_principal_point_sigma(folders, tmp_path, capsys
         _import(folders, "clean", tmp_path / "b", "--kalibr-results", str(results),
                 "--principal-point-sigma-px", "0.3")
     assert usage.value.code == 2
+    # the camera the import reads (--camera) is the one whose sigma is taken
+    from cdtm_graph.cli import build_parser
+    from cdtm_graph.cli.import_ import _settings
+    args = build_parser().parse_args(["import", "euroc", str(folders / "clean"), "--camera",
+                                      "cam1", "--kalibr-results", str(results), "--dtm",
+                                      str(NATIVE / "dtm.npz"), "--out", str(tmp_path / "c")])
+    assert _settings(args).principal_point_sigma_px == 0.63
 
 
 def test_the_summary_names_the_lens_model_in_words(folders, tmp_path, capsys):
