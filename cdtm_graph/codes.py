@@ -109,6 +109,9 @@ class Code(enum.StrEnum):
     # -- notes ----------------------------------------------------------------------------
     MAP_OFFSET_UNDECLARED = ("map_offset_undeclared", Kind.NOTE,
                              "flight.yaml does not say how far the whole map may be off")
+    PRINCIPAL_POINT_CONSIDERED = ("principal_point_considered", Kind.NOTE,
+                                  "flight.yaml's principal-point uncertainty is in the "
+                                  "covariances: its share of them")
     CALIBRATION_UNOBSERVABLE = ("calibration_unobservable", Kind.NOTE,
                                 "a calibration part this flight cannot tell")
     CALIBRATION_UNRESOLVED = ("calibration_unresolved", Kind.NOTE,

@@ -717,6 +717,7 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
     return Verdict(status, reasons, flags, checks,
                    tuple(convergence_notes + notes + prior_notes + _calibration_notes(result)
                          + calibration_notes + _map_offset_notes(result)
+                         + _principal_point_notes(result)
                          + _map_error_notes(result)
                          + _random_walk_notes(result, {r.code for r in reasons})))
 
@@ -767,6 +768,29 @@ def _map_offset_notes(result: SmootherResult) -> list[str]:
             "far the whole map may be off (its registration, its vertical datum: a DEM "
             "product's absolute accuracy); the camera and the DTM cannot see such an offset, "
             "every position takes it one for one, and the covariances hold none of it"]
+
+
+def _principal_point_notes(result: SmootherResult) -> list[str]:
+    """``principal_point_considered``: flight.yaml declares how well the calibration knows
+    the principal point, and its share is in the covariances
+    (:mod:`cdtm_graph.calibration.considered`): how much of them it is. A note, not a
+    reason: the run is as good as its calibration, and says so; where the share dominates,
+    a better calibration is what would make the run more accurate."""
+    added = result.considered_principal_point
+    if added is None:
+        return []
+    position = result.covariances.pose[:, 3:, 3:]
+    share = (np.trace(added.pose_cov_added[:, 3:, 3:], axis1=1, axis2=2)
+             / np.trace(position, axis1=1, axis2=2))
+    ok = np.isfinite(share)
+    if not ok.any():
+        return []
+    sigma = added.position_sigma_m[ok]
+    return [f"{Code.PRINCIPAL_POINT_CONSIDERED}: flight.yaml's principal point, known to "
+            f"{added.sigma_px:g} px, adds {float(np.median(sigma)):.2f} m to the position "
+            f"1-sigma (median over frames; up to {float(np.max(sigma)):.2f} m): "
+            f"{_pct(float(np.median(share[ok])))} of the position variance (median), the "
+            "share a better camera calibration would take out"]
 
 
 def _map_error_notes(result: SmootherResult) -> list[str]:
