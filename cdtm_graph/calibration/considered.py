@@ -88,6 +88,15 @@ def principal_point_sensitivity(pinned: PinnedSolve, camera: PinholeCamera
 FIXED_LAG_RESPONSE_MISFIT = 0.11
 
 
+def misfit_spread(S: np.ndarray, sigma_px: float, misfit: float) -> np.ndarray:
+    """(..., 3, 3) the expected square of a response that strays from ``S`` ((..., 6, 2)) by
+    ``misfit`` of its size, spread over the three position axes alike:
+    ``(misfit sigma |S_pos|_F)^2 / 3`` each (``E|S d|^2 = sigma^2 |S|_F^2`` for ``d`` of
+    1-sigma ``sigma`` per axis)."""
+    size2 = sigma_px**2 * np.sum(S[..., 3:, :] ** 2, axis=(-2, -1))
+    return (misfit**2 * size2 / 3)[..., None, None] * np.eye(3)
+
+
 def considered(covariances: StateCovariances, t_ns: np.ndarray, pinned: PinnedSolve,
                camera: PinholeCamera, sigma_px: float, response_misfit: float = 0.0
                ) -> tuple[StateCovariances, ConsideredPrincipalPoint | None]:
@@ -114,9 +123,7 @@ def considered(covariances: StateCovariances, t_ns: np.ndarray, pinned: PinnedSo
     S = np.stack([np.interp(t_ns.astype(float), kept_t, flat[:, i])
                   for i in range(flat.shape[1])], axis=1).reshape(t_ns.size, 6, -1)
     added = sigma_px**2 * S @ np.swapaxes(S, 1, 2)
-    if response_misfit:
-        spread = (response_misfit * sigma_px) ** 2 * np.sum(S[:, 3:] ** 2, axis=(1, 2)) / 3
-        added[:, 3:, 3:] += spread[:, None, None] * np.eye(3)
+    added[:, 3:, 3:] += misfit_spread(S, sigma_px, response_misfit)
     return (replace(covariances, pose=covariances.pose + added),
             ConsideredPrincipalPoint(float(sigma_px), added, int(pinned.kept.size),
                                      time.perf_counter() - start))
@@ -151,8 +158,7 @@ def live_pose_covariance(world_T_body: np.ndarray, body_T_cam: np.ndarray,
     S[3:, 1] = body_T_cam[:3, 1] * range_m / camera.fy
     added = sigma_px**2 * S @ S.T
     size2 = sigma_px**2 * np.sum(S**2)  # (the share's expected squared length)
-    # (its misfit's expected square in every direction, as the fixed lag's result has)
-    added[3:, 3:] += LIVE_RESPONSE_MISFIT**2 * size2 / 3 * np.eye(3)
+    added[3:, 3:] += misfit_spread(S, sigma_px, LIVE_RESPONSE_MISFIT)
     axis = body_T_cam[:3, 2]  # (body axes)
     down = -world_T_body[2, :3]  # world's down in body axes
     cos_theta = float(np.clip(axis @ down, 1e-3, 1.0))
