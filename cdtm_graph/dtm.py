@@ -205,6 +205,10 @@ class Dtm:
         if np.isnan(self._cell_max).all():
             raise DtmError("no cell has four valid corners, expected at least one valid cell")
         self._z_top = float(np.nanmax(elev))
+        # the tangent planes' slopes, where they are not the bilinear patch's own
+        # (:meth:`with_regional_slopes`)
+        self._slopes: Dtm | None = None
+        self.slope_sigma_posts = 0.0
 
     def __repr__(self) -> str:
         return (
@@ -235,6 +239,32 @@ class Dtm:
         if self.sigma_h_m is not None:
             return self.sigma_h_m
         return sigma_h_from_grid_spacing(self.grid_spacing_m)
+
+    def with_regional_slopes(self, sigma_posts: float) -> Dtm:
+        """This DTM with its tangent planes' slopes (:meth:`tangent_planes`, the C-DTM
+        factor's) taken from the grid smoothed by a Gaussian of ``sigma_posts`` posts: a
+        weighted plane fit over about ``2 sigma_posts + 1`` posts a side, as terrain-
+        referenced navigation linearizes a map whose posts are noisy (SITAN's regional
+        slopes). The planes' points, the heights, the rays' hits: the grid's own.
+
+        Why: an error of ``s`` metres on each post tilts the bilinear patch by about
+        ``s sqrt(2) / spacing`` (10 m on 30 m posts: 25 deg), which the factor reads as
+        horizontal information the map does not hold: a grown sigma_h carries the heights'
+        error, not that (docs/verdict.md, "Noisy posts"). No-data posts stay out of the
+        smoothing (the weights renormalized over the valid ones).
+        """
+        from scipy.ndimage import gaussian_filter  # (a grown run's only: not at start-up)
+
+        valid = np.isfinite(self.elevation)
+        weight = gaussian_filter(valid.astype(float), sigma_posts, mode="nearest")
+        with np.errstate(invalid="ignore", divide="ignore"):
+            smoothed = gaussian_filter(np.where(valid, self.elevation, 0.0), sigma_posts,
+                                       mode="nearest") / weight
+        out = Dtm(self.elevation, self.x0, self.y0, self.dx, self.dy, self.sigma_h_m)
+        out._slopes = Dtm(np.where(valid, smoothed, np.nan), self.x0, self.y0, self.dx,
+                          self.dy, self.sigma_h_m)
+        out.slope_sigma_posts = float(sigma_posts)
+        return out
 
     # -- surface queries -------------------------------------------------------------
 
@@ -342,8 +372,10 @@ class Dtm:
         n = d.shape[0]
         origins = np.asarray(origins, dtype=np.float64)
         if origins.shape == (3,):  # one camera: allocation and fill inside numba
-            return _tangent_planes_kernel(self.elevation, self._cell_max, self.x0, self.y0,
-                                          self.dx, self.dy, self._z_top, origins, d)
+            point, normal, hit = _tangent_planes_kernel(
+                self.elevation, self._cell_max, self.x0, self.y0, self.dx, self.dy,
+                self._z_top, origins, d)
+            return point, self._regional(point, normal, hit), hit
         o = np.ascontiguousarray(np.broadcast_to(origins, d.shape))
         point = np.empty((n, 3))
         t = np.empty(n)
@@ -354,7 +386,20 @@ class Dtm:
         status.fill(RayStatus.MISS)
         _raycast_kernel(self.elevation, self._cell_max, self.x0, self.y0, self.dx, self.dy,
                         self._z_top, o, d, point, t, normal, status)
-        return point, normal, status == RayStatus.HIT
+        hit = status == RayStatus.HIT
+        return point, self._regional(point, normal, hit), hit
+
+    def _regional(self, point: np.ndarray, normal: np.ndarray, hit: np.ndarray) -> np.ndarray:
+        """``normal`` with the regional slopes at the hits, if this DTM has them."""
+        if self._slopes is None or not hit.any():
+            return normal
+        _, regional = self._slopes.height_and_normal(point[hit, 0], point[hit, 1])
+        out = normal.copy()
+        # (a hit whose smoothed neighbourhood holds no data keeps its patch's slope)
+        ok = np.isfinite(regional).all(axis=1)
+        rows = np.flatnonzero(hit)[ok]
+        out[rows] = regional[ok]
+        return out
 
     # -- conversions -----------------------------------------------------------------
 

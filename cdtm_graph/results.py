@@ -459,6 +459,9 @@ class MapErrorEstimate:
         bound_estimated_m: the reading of the run made again at the bound, when the
             first run's lay beyond it and that run was not kept (beyond again, or NaN:
             too few tracks); NaN otherwise.
+        slope_sigma_posts: the run kept took its tangent planes' slopes from the DTM
+            smoothed over this many posts (a Gaussian's sigma; a grown run's,
+            ``MapErrorSettings.slope_sigma_posts``); 0: the bilinear patches' own.
     """
 
     stated_m: float
@@ -468,6 +471,7 @@ class MapErrorEstimate:
     bound_m: float = float("inf")
     first_estimated_m: float = float("nan")
     bound_estimated_m: float = float("nan")
+    slope_sigma_posts: float = 0.0
 
     @property
     def grown(self) -> bool:
@@ -486,7 +490,8 @@ class MapErrorEstimate:
                 "first_estimated_m": (None if math.isnan(self.first_estimated_m)
                                       else self.first_estimated_m),
                 "bound_estimated_m": (None if math.isnan(self.bound_estimated_m)
-                                      else self.bound_estimated_m)}
+                                      else self.bound_estimated_m),
+                "slope_sigma_posts": self.slope_sigma_posts}
 
 
 @dataclass(frozen=True)

@@ -90,12 +90,18 @@ class MapErrorSettings:
             the map is then not "worse than stated" but wrong (a DTM of another place, a
             datum error), a fault for the track tests and the verdict to name, which a
             grown sigma_h would hide.
+        slope_sigma_posts: a grown run's tangent planes take their slopes from the DTM
+            smoothed by a Gaussian of this many posts (:meth:`~cdtm_graph.dtm.Dtm.
+            with_regional_slopes`): the error the tracks show tilts the bilinear patches
+            too; None: the patches' own. Chosen on white noise of 10 m on the posts
+            (seeds 1-3), checked on other map errors (docs/verdict.md, "Noisy posts").
     """
 
     grow_ratio: float = 1.25
     spread_z: float = 4.5
     min_tracks: int = 50
     max_ratio: float = 3.0
+    slope_sigma_posts: float | None = 1.0
 
 
 def estimate_map_error(heights: TrackHeights, sigma_h_m: float,

@@ -153,15 +153,16 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
                                        settings.graph.mismatch)
         first = run
         if map_error.grown:
-            flight = with_sigma_h(flight, map_error.used_m)
+            flight, dtm = with_sigma_h(flight, map_error.used_m), _grown(dtm, settings)
             run = _smooth_once(flight, dtm, settings, progress)
+            map_error = replace(map_error, slope_sigma_posts=dtm.slope_sigma_posts)
         elif map_error.beyond:
             # beyond the bound: a map wrong (a fault), or a run the stated sigma_h drove off
             # (the ground dropped as off the map until the estimate drifted, which the
             # tracks then read as map error). Once more at the bound: kept only if the
             # tracks then read the map within it.
-            capped = with_sigma_h(flight, map_error.bound_m)
-            again = _smooth_once(capped, dtm, settings, progress)
+            capped, grown_dtm = with_sigma_h(flight, map_error.bound_m), _grown(dtm, settings)
+            again = _smooth_once(capped, grown_dtm, settings, progress)
             second = estimate_map_error(
                 run_heights(capped, dtm, noise, again.result.estimate, again.unfixed_frames),
                 noise.sigma_h_m,
@@ -169,9 +170,10 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
             logger.info("map error %.2f m beyond its bound %.2f m; at the bound: %.2f m",
                         map_error.estimated_m, map_error.bound_m, second.estimated_m)
             if second.estimated_m <= map_error.bound_m:
-                flight, run = capped, again
+                flight, run, dtm = capped, again, grown_dtm
                 map_error = replace(second, used_m=map_error.bound_m,
-                                    first_estimated_m=map_error.estimated_m)
+                                    first_estimated_m=map_error.estimated_m,
+                                    slope_sigma_posts=dtm.slope_sigma_posts)
             else:
                 map_error = replace(map_error, bound_estimated_m=second.estimated_m)
     walks, calibration = None, None
@@ -220,6 +222,15 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     if map_error is not None:
         result = replace(result, map_error=map_error)
     return result if walks is None else replace(result, imu_random_walk=walks)
+
+
+def _grown(dtm: Dtm, settings: SmootherSettings) -> Dtm:
+    """The DTM a run with a grown map error is made again on: a map worse than stated
+    is tilted by its error too, so its tangent planes take regional slopes
+    (``MapErrorSettings.slope_sigma_posts``; None: as it is)."""
+    map_error = settings.graph.map_error
+    slopes = None if map_error is None else map_error.slope_sigma_posts
+    return dtm if slopes is None else dtm.with_regional_slopes(slopes)
 
 
 def _principal_point_considered(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,

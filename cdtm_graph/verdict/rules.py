@@ -805,10 +805,13 @@ def _map_error_notes(result: SmootherResult) -> list[str]:
              f"{me.bound_m:.2f} m a run grows it to, and the run made again at that bound "
              "was kept (a map that much worse than stated may hold more than sigma_h "
              "models: check it)" if np.isfinite(me.first_estimated_m) else "")
+    slopes = (f", and its tangent planes' slopes from the DTM smoothed over "
+              f"{me.slope_sigma_posts:g} post(s) (the error tilts the map's patches too)"
+              if me.slope_sigma_posts else "")
     return [f"{Code.MAP_ERROR_GROWN}: the tracks show the DTM's heights off by "
             f"{me.estimated_m:.2f} m rms ({me.n_tracks} well-triangulated tracks), beyond "
             f"its stated sigma_h of {me.stated_m:.2f} m (flight.yaml dtm.sigma_h_m, or the "
-            f"model of its spacing): the run was made with {me.used_m:.2f} m, its "
+            f"model of its spacing): the run was made with {me.used_m:.2f} m{slopes}, its "
             f"covariances hold it{first}"]
 
 
