@@ -79,7 +79,7 @@ def main(argv: list[str] | None = None) -> None:
                 reasons = sorted({r.code.value for r in verdict.reasons})
                 print(f"{args.kind} {args.metres:g} seed {seed} {mode:9} slopes "
                       f"{'patch' if slopes is None else f'{slopes:g} post'}: RMSE "
-                      f"{np.linalg.norm(e.rmse_position_m):.2f} m, sigma {sigma:.2f} m, ANEES "
+                      f"{e.rmse_position_3d_m:.2f} m, sigma {sigma:.2f} m, ANEES "
                       f"{e.anees_position:.2f}, {verdict.status.value} {reasons}; map read "
                       f"{me.estimated_m:.2f} m, used {me.used_m:.2f} m", flush=True)
 
