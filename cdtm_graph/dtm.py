@@ -21,6 +21,7 @@ naming the file, the line where there is one, and what was expected.
 from __future__ import annotations
 
 import contextlib
+import copy
 import enum
 import logging
 import math
@@ -205,15 +206,17 @@ class Dtm:
         if np.isnan(self._cell_max).all():
             raise DtmError("no cell has four valid corners, expected at least one valid cell")
         self._z_top = float(np.nanmax(elev))
-        # the tangent planes' slopes, where they are not the bilinear patch's own
+        # the grid the tangent planes take their slopes from, where it is not this one
         # (:meth:`with_regional_slopes`)
-        self._slopes: Dtm | None = None
+        self._slope_elevation: np.ndarray | None = None
         self.slope_sigma_posts = 0.0
 
     def __repr__(self) -> str:
+        slopes = (f", slope_sigma_posts={self.slope_sigma_posts}" if self.slope_sigma_posts
+                  else "")
         return (
             f"Dtm(shape={self.shape}, x0={self.x0}, y0={self.y0}, dx={self.dx}, dy={self.dy}, "
-            f"sigma_h_m={self.sigma_h_m})"
+            f"sigma_h_m={self.sigma_h_m}{slopes})"
         )
 
     @property
@@ -242,39 +245,52 @@ class Dtm:
 
     def with_regional_slopes(self, sigma_posts: float) -> Dtm:
         """This DTM with its tangent planes' slopes (:meth:`tangent_planes`, the C-DTM
-        factor's) taken from the grid smoothed by a Gaussian of ``sigma_posts`` posts: a
-        weighted plane fit over about ``2 sigma_posts + 1`` posts a side, as terrain-
-        referenced navigation linearizes a map whose posts are noisy (SITAN's regional
-        slopes). The planes' points, the heights, the rays' hits: the grid's own.
+        factor's) taken from the grid smoothed by a Gaussian of ``sigma_posts`` posts (along
+        each axis: in metres ``sigma_posts * |dx|`` and ``* |dy|``): a weighted plane fit
+        over about ``2 sigma_posts + 1`` posts a side, as terrain-referenced navigation
+        linearizes a map whose posts are noisy (SITAN's regional slopes). The planes'
+        points, the heights, the rays' hits: the grid's own (shared, not copied).
 
         Why: an error of ``s`` metres on each post tilts the bilinear patch by about
         ``s sqrt(2) / spacing`` (10 m on 30 m posts: 25 deg), which the factor reads as
         horizontal information the map does not hold: a grown sigma_h carries the heights'
         error, not that (docs/verdict.md, "Noisy posts"). No-data posts stay out of the
-        smoothing (the weights renormalized over the valid ones).
+        smoothing (the weights renormalized over the valid ones); the outermost posts are
+        padded with themselves, which flattens the slope of the edge cells a little (0.21
+        for 0.3 in the last cell).
+
+        Raises:
+            ValueError: ``sigma_posts`` not a finite number > 0.
         """
+        if not (math.isfinite(sigma_posts) and sigma_posts > 0):
+            raise ValueError(f"sigma_posts = {sigma_posts!r}, expected a finite number > 0")
         from scipy.ndimage import gaussian_filter  # (a grown run's only: not at start-up)
 
         valid = np.isfinite(self.elevation)
-        weight = gaussian_filter(valid.astype(float), sigma_posts, mode="nearest")
+        smoothed = gaussian_filter(np.where(valid, self.elevation, 0.0), sigma_posts,
+                                   mode="nearest")
         with np.errstate(invalid="ignore", divide="ignore"):
-            smoothed = gaussian_filter(np.where(valid, self.elevation, 0.0), sigma_posts,
-                                       mode="nearest") / weight
-        out = Dtm(self.elevation, self.x0, self.y0, self.dx, self.dy, self.sigma_h_m)
-        out._slopes = Dtm(np.where(valid, smoothed, np.nan), self.x0, self.y0, self.dx,
-                          self.dy, self.sigma_h_m)
+            np.divide(smoothed, gaussian_filter(valid.astype(float), sigma_posts,
+                                                mode="nearest"), out=smoothed)
+        smoothed[~valid] = np.nan
+        smoothed.flags.writeable = False
+        out = copy.copy(self)  # (the grid and its per-cell caches shared: read-only)
+        out._slope_elevation = smoothed
         out.slope_sigma_posts = float(sigma_posts)
         return out
 
     # -- surface queries -------------------------------------------------------------
 
-    def _surface(self, x: np.ndarray, y: np.ndarray, normals: bool):
-        """The broadcast shape, flat heights and (with ``normals``) upward normals."""
+    def _surface(self, x: np.ndarray, y: np.ndarray, normals: bool,
+                 elevation: np.ndarray | None = None):
+        """The broadcast shape, flat heights and (with ``normals``) upward normals (of
+        ``elevation``, a grid of this one's shape and spacing; default: this one's)."""
         xb, yb = np.broadcast_arrays(np.asarray(x, dtype=float), np.asarray(y, dtype=float))
         h = np.empty(xb.size)
         normal = np.empty((xb.size if normals else 0, 3))
+        grid = self.elevation if elevation is None else elevation
         # compiled: callers ask for one point (a camera's ground) as often as for thousands
-        _surface_kernel(self.elevation, self.x0, self.y0, self.dx, self.dy,
+        _surface_kernel(grid, self.x0, self.y0, self.dx, self.dy,
                         np.ascontiguousarray(xb).reshape(-1), np.ascontiguousarray(yb).reshape(-1),
                         h, normal)
         return xb.shape, h, normal
@@ -391,9 +407,10 @@ class Dtm:
 
     def _regional(self, point: np.ndarray, normal: np.ndarray, hit: np.ndarray) -> np.ndarray:
         """``normal`` with the regional slopes at the hits, if this DTM has them."""
-        if self._slopes is None or not hit.any():
+        if self._slope_elevation is None or not hit.any():
             return normal
-        _, regional = self._slopes.height_and_normal(point[hit, 0], point[hit, 1])
+        _, _, regional = self._surface(point[hit, 0], point[hit, 1], normals=True,
+                                       elevation=self._slope_elevation)
         out = normal.copy()
         # (a hit whose smoothed neighbourhood holds no data keeps its patch's slope)
         ok = np.isfinite(regional).all(axis=1)

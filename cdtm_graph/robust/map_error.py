@@ -45,6 +45,7 @@ gives counted). Ground detail of tens to hundreds of metres averages out of a su
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
@@ -102,6 +103,12 @@ class MapErrorSettings:
     min_tracks: int = 50
     max_ratio: float = 3.0
     slope_sigma_posts: float | None = 1.0
+
+    def __post_init__(self) -> None:
+        s = self.slope_sigma_posts
+        if s is not None and not (math.isfinite(s) and s > 0):
+            raise ValueError(f"MapErrorSettings.slope_sigma_posts = {s!r}: expected a "
+                             "finite number of posts > 0, or None (the patches' slopes)")
 
 
 def estimate_map_error(heights: TrackHeights, sigma_h_m: float,

@@ -435,7 +435,7 @@ def test_regional_slopes_are_the_smoothed_grids_and_change_nothing_else(rng):
     tilted = plane_dtm(0.3, -0.2, 5.0)
     inner_x = tilted.x0 + tilted.dx * np.linspace(5, 19, 50)
     inner_y = tilted.y0 + tilted.dy * np.linspace(5, 24, 50)
-    _, n = tilted.with_regional_slopes(1.0)._slopes.height_and_normal(inner_x, inner_y)
+    n = _normals_below(tilted.with_regional_slopes(1.0), inner_x, inner_y)
     np.testing.assert_allclose(n, np.tile([-0.3, 0.2, 1.0], (50, 1)), atol=1e-9)
     # a no-data post: its neighbours' slopes stay near those of the valid posts (the
     # weights' centroid shifts off the hole: 0.283 for 0.3 measured; the hole read as
@@ -443,9 +443,19 @@ def test_regional_slopes_are_the_smoothed_grids_and_change_nothing_else(rng):
     holed = np.array(tilted.elevation) + 500.0  # (a hole read as 0 m: a 500 m pit)
     holed[12, 10] = np.nan
     near_x, near_y = tilted.x0 + tilted.dx * 11.5, tilted.y0 + tilted.dy * 13.5
-    _, n = Dtm(holed, tilted.x0, tilted.y0, tilted.dx, tilted.dy).with_regional_slopes(
-        1.0)._slopes.height_and_normal(np.array([near_x]), np.array([near_y]))
+    n = _normals_below(Dtm(holed, tilted.x0, tilted.y0, tilted.dx, tilted.dy)
+                       .with_regional_slopes(1.0), np.array([near_x]), np.array([near_y]))
     np.testing.assert_allclose(n[0], [-0.3, 0.2, 1.0], rtol=0.1)
+    with pytest.raises(ValueError, match="sigma_posts"):
+        tilted.with_regional_slopes(float("nan"))
+
+
+def _normals_below(dtm: Dtm, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The tangent planes' normals where vertical rays from high above (x, y) hit."""
+    origins = np.column_stack([x, y, np.full(x.size, 1e4)])
+    _, normal, hit = dtm.tangent_planes(origins, np.tile([0.0, 0.0, -1.0], (x.size, 1)))
+    assert hit.all()
+    return normal
 
 
 # ---------------------------------------------------------------------------------------

@@ -69,18 +69,28 @@ def test_the_estimate_recovers_the_map_error_the_tracks_show(rng, outliers):
     assert not wrong.grown and wrong.beyond and wrong.bound_m == 3 * SIGMA_H_M
 
 
-def test_a_map_worse_than_stated_grows_the_covariance():
+def test_a_map_worse_than_stated_grows_the_covariance(monkeypatch):
     """A 25-frame flight over 3 m rms of waves the DTM lacks (issue 21), iSAM2: the run is
-    made with the map error the tracks show and its covariance grows. Catches the
-    mechanism switched off (``GraphSettings.map_error=None`` by default: no estimate), or
-    the second run made with flight.yaml's sigma_h (the height's 1-sigma then stays at
-    the stated map's 1.72 m; tried once, 2026-11-27)."""
+    made with the map error the tracks show, its tangent planes' slopes regional, and its
+    covariance grows; the calibration check after it is given the same map. Catches the
+    mechanism switched off (``GraphSettings.map_error=None`` by default: no estimate), the
+    second run made with flight.yaml's sigma_h (the height's 1-sigma then stays at the
+    stated map's 1.72 m, 2026-11-27; 2.27 m with the slopes regional, 2026-11-28), the
+    slopes left the patches' (1.84 m), or the grown map not handed on to the side solves
+    (``dtm`` not rebound in ``smooth``'s grown branch). Each tried once."""
+    from cdtm_graph.smoother import batch
+
+    checked = []  # the slopes of the map the calibration check was given
+    check = batch._calibration_check
+    monkeypatch.setattr(batch, "_calibration_check", lambda flight, dtm, *args, **kwargs: (
+        checked.append(dtm.slope_sigma_posts) or check(flight, dtm, *args, **kwargs)))
     seed = 1  # a flight whose estimate (3.97 m) grows (seed 2: 2.76 m, not grown)
     detail = MapDetail(DetailShape.WAVES, DETAIL_RMS_M, (40.0, 300.0), seed=seed)
     flight = simulate_flight(dataclasses.replace(BASE, frames=25, seed=seed, map_detail=detail))
     out = smooth_and_evaluate(*flight, Mode.ISAM2.settings(SmootherSettings()))
     me = out.result.map_error
     assert me is not None and me.grown
+    assert me.slope_sigma_posts == 1.0 and checked and set(checked) == {1.0}
     assert me.used_m == pytest.approx(TRUE_MAP_M, rel=0.1)  # measured 3.97 m
     assert any(n.startswith("map_error_grown") for n in out.verdict.notes)
     # the height's 1-sigma, which the map's error feeds most: measured 2026-11-28 median
@@ -92,7 +102,7 @@ def test_a_map_worse_than_stated_grows_the_covariance():
 
 
 @pytest.mark.slow
-def test_a_map_far_worse_than_stated_is_named(seed):
+def test_a_map_far_worse_than_stated_is_named(seed, monkeypatch):
     """Noise on every post of a map that states 2.4 m (30 frames, batch). 14 m: the tracks
     read 9.9 m, beyond the 3x a run grows sigma_h to, and again at that bound: the run
     keeps 2.4 m, ``map_error`` beside the rejections (RMSE 9.4 m, ANEES 13.3). 10 m: the
@@ -100,22 +110,40 @@ def test_a_map_far_worse_than_stated_is_named(seed):
     kept there, a note naming the first reading, `trusted` at ANEES 3.17 (RMSE 5.95 m,
     sigma 5.1 m; 5.7 before its planes' slopes were made regional, 2026-11-28). (10 m on
     seed + 2, which read beyond twice before, is now kept at the bound too: RMSE 3.25 m,
-    ANEES 1.14.) Mutation: the rule switched off (``_map_error_check`` returning ``[]``)
-    -> fails."""
+    ANEES 1.14.) The side solves after the run (the calibration check, the IMU walks'
+    check) use the map the run kept: its regional slopes at the bound, the grid's own when
+    the run at the bound is not kept. Mutations: the rule switched off
+    (``_map_error_check`` returning ``[]``) -> fails; the kept run's map not handed on
+    (``dtm`` not rebound in ``smooth``'s bound branch; the run itself unchanged, its
+    calibration check's position NEES 1.99 -> 0.98) -> fails."""
     from cdtm_graph.sim.faults import with_dtm_noise
+    from cdtm_graph.smoother import batch
 
+    seen: list[float] = []  # the slopes of the map each side solve was given
+
+    def spied(solve):
+        def spy(flight, dtm, *args, **kwargs):
+            seen.append(dtm.slope_sigma_posts)
+            return solve(flight, dtm, *args, **kwargs)
+        return spy
+
+    for name in ("_calibration_check", "check_random_walks"):
+        monkeypatch.setattr(batch, name, spied(getattr(batch, name)))
     runs = {}
     log, dtm = SCENARIOS["clean"].flight(dataclasses.replace(BASE, frames=30, seed=seed))
     for noise_m in (14.0, 10.0):
+        seen.clear()
         out = smooth_and_evaluate(log, with_dtm_noise(dtm, noise_m,
                                                       np.random.default_rng(seed)),
                                   SmootherSettings())
-        runs[noise_m] = (out.result.map_error, assess(out.result), out.errors)
-    me, verdict, _ = runs[14.0]
+        runs[noise_m] = (out.result.map_error, assess(out.result), out.errors, list(seen))
+    me, verdict, _, sides = runs[14.0]
     assert me is not None and me.beyond and me.used_m == me.stated_m
     assert "map_error" in [r.code for r in verdict.reasons], verdict.lines()
-    me, verdict, errors = runs[10.0]
+    assert me.slope_sigma_posts == 0.0 and sides == [0.0, 0.0]
+    me, verdict, errors, sides = runs[10.0]
     assert me is not None and me.used_m == me.bound_m and me.first_estimated_m > me.bound_m
+    assert me.slope_sigma_posts == 1.0 and sides == [1.0, 1.0]
     assert "map_error" not in [r.code for r in verdict.reasons]
     assert any(n.startswith("map_error_grown") and "the first run read" in n
                for n in verdict.notes)
