@@ -125,7 +125,8 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
 
     When the tracks show the DTM's height error beyond its stated sigma_h (ground detail
     the map lacks, :mod:`cdtm_graph.robust.map_error`), the run is made again with the
-    sigma_h they show (``settings.graph.map_error``; ``result.map_error`` says what was
+    sigma_h they show and its tangent planes' slopes regional (:func:`_grown`), and so is
+    every check after it (``settings.graph.map_error``; ``result.map_error`` says what was
     estimated and used; ``progress`` then runs through the frames twice). Likewise when a
     side solve's bias steps show the IMU biases wandering beyond flight.yaml's random walks
     (:mod:`cdtm_graph.robust.imu_walk`; ``result.imu_random_walk``).
