@@ -1,6 +1,6 @@
 """Constants and small formulas every part of the package shares, in one place.
 
-Time units, standard gravity, and chi-square quantiles. The quantiles come from
+Time units, standard gravity, chi-square quantiles and a fast median. The quantiles come from
 ``scipy.special`` (``chi2.ppf``'s own formula, bit for bit), not ``scipy.stats``, whose
 import alone costs seconds at start-up.
 """
@@ -32,3 +32,13 @@ def chi2_2dof_quantile(p: float) -> float:
     if not 0.0 < p < 1.0:
         raise ValueError(f"gate probability {p}: expected 0 < p < 1")
     return float(-2.0 * math.log1p(-p))
+
+
+def median(x: np.ndarray) -> float:
+    """``np.median`` of a non-empty 1-d array, bit for bit, by one partition (a tenth of
+    its cost: the gate's spread per frame, the map error's solve)."""
+    lo, hi = (x.size - 1) // 2, x.size // 2
+    part = np.partition(x, (lo, hi, x.size - 1))
+    if np.isnan(part[-1]):  # NaNs sort last
+        return float("nan")
+    return float(0.5 * (part[lo] + part[hi]))

@@ -462,6 +462,10 @@ class MapErrorEstimate:
         slope_sigma_posts: the run kept took its tangent planes' slopes from the DTM
             smoothed over this many posts (a Gaussian's sigma; a grown run's,
             ``MapErrorSettings.slope_sigma_posts``); 0: the bilinear patches' own.
+        grown_at: an incremental pass that grew sigma_h as it went (:class:`~cdtm_graph.
+            robust.map_error.MapErrorWatch`): (frame, sigma_h from that frame on), in
+            order; ``used_m`` is then the last. Its factors held the stated sigma_h
+            before the first. Empty: none (a run made with one sigma_h throughout).
     """
 
     stated_m: float
@@ -472,6 +476,7 @@ class MapErrorEstimate:
     first_estimated_m: float = float("nan")
     bound_estimated_m: float = float("nan")
     slope_sigma_posts: float = 0.0
+    grown_at: tuple[tuple[int, float], ...] = ()
 
     @property
     def grown(self) -> bool:
@@ -491,7 +496,8 @@ class MapErrorEstimate:
                                       else self.first_estimated_m),
                 "bound_estimated_m": (None if math.isnan(self.bound_estimated_m)
                                       else self.bound_estimated_m),
-                "slope_sigma_posts": self.slope_sigma_posts}
+                "slope_sigma_posts": self.slope_sigma_posts,
+                "grown_at": [{"frame": k, "sigma_h_m": m} for k, m in self.grown_at]}
 
 
 @dataclass(frozen=True)

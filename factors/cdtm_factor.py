@@ -493,23 +493,23 @@ class CdtmPairFactor(CalibratedPair):
                               calibration=link.fixed_at(c) if calibrated and link else None
                               ), weight, c
 
-    def refreshed(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray) -> CdtmPairFactor:
-        """The same factor with planes and noise (eqs. 19-26) linearized at these poses.
-
-        The noise model depends on the poses it was computed at; evaluating it at the
-        estimate (as the closed form does) makes batch and incremental solutions solve
-        the same problem whatever their initial guesses were.
-        """
+    def refreshed(self, world_T_body_a: np.ndarray, world_T_body_b: np.ndarray, noise:
+                  FeatureNoise | None = None, raycast: RayCaster | None = None) -> CdtmPairFactor:
+        """The same factor with planes and noise (eqs. 19-26) linearized at these poses (the
+        estimate's, as the closed form: batch and incremental then solve the same problem);
+        given, on another reading of the map: ``noise`` (a grown sigma_h), ``raycast`` (its
+        planes, e.g. regional slopes; where a ray misses, the plane it had)."""
         f = self.features
-        if f.noise is None:
+        if (noise := noise or f.noise) is None:
             raise ValueError("features built without their noise settings cannot be refreshed")
+        source = self if raycast is None else CdtmPairFactor(
+            self.key_a, self.key_b, f, self.body_T_cam, self.plane_mode, raycast)
         wTc_a = world_T_body_a @ self.body_T_cam
-        wTc_b = world_T_body_b @ self.body_T_cam
-        G_E, N = self.planes(wTc_a)
-        features = PairFeatures.build(wTc_a, wTc_b, f.q_a, f.q_b, G_E, N, f.noise,
-                                      f.dtm_variance_scale)
-        return self._planes_to(CdtmPairFactor(
-            self.key_a, self.key_b, features, self.body_T_cam, self.plane_mode, self.raycast,
+        G_E, N = source.planes(wTc_a)
+        features = PairFeatures.build(wTc_a, world_T_body_b @ self.body_T_cam, f.q_a, f.q_b,
+                                      G_E, N, noise, f.dtm_variance_scale)
+        return source._planes_to(CdtmPairFactor(
+            self.key_a, self.key_b, features, self.body_T_cam, self.plane_mode, source.raycast,
             self.robust, self.robust_threshold, self.calibration))
 
     def _planes_to(self, other: CdtmPairFactor, keep: np.ndarray | None = None

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from cdtm_graph.constants import chi2_2dof_quantile
+from cdtm_graph.constants import chi2_2dof_quantile, median
 from cdtm_graph.geometry import largest_eigenvalue_sym3
 from cdtm_graph.results import Rejection, Rejections
 from factors import CdtmPairFactor
@@ -223,7 +223,7 @@ class InnovationGate:
             return scaled, list(track_ids)
         d_all = np.concatenate(tested)
         self.nis.append(d_all)
-        spread = (max(1.0, _median(d_all) / CHI2_2DOF_MEDIAN)
+        spread = (max(1.0, median(d_all) / CHI2_2DOF_MEDIAN)
                   if d_all.size >= self.MIN_FOR_SPREAD else 1.0)
         kept: list[CdtmPairFactor] = []
         kept_ids: list[np.ndarray] = []
@@ -249,15 +249,6 @@ class InnovationGate:
         """Every distance tested, (n,): chi-square(2) (median 1.39, mean 2) when the noise
         model and the prior are honest."""
         return np.concatenate(self.nis) if self.nis else np.zeros(0)
-
-
-def _median(x: np.ndarray) -> float:
-    """``np.median`` of a non-empty 1-d array by one partition (a tenth of its cost)."""
-    lo, hi = (x.size - 1) // 2, x.size // 2
-    part = np.partition(x, (lo, hi, x.size - 1))
-    if np.isnan(part[-1]):  # NaNs sort last
-        return float("nan")
-    return float(0.5 * (part[lo] + part[hi]))
 
 
 def _sigmas_within(cov: np.ndarray, limit: float) -> bool:

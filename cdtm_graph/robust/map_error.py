@@ -47,14 +47,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.special import gammainc
 
-from cdtm_graph.constants import NS_PER_S, chi2_quantile
+from cdtm_graph.constants import NS_PER_S, chi2_quantile, median
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.flightlog import FlightLog, Tracks
 from cdtm_graph.results import (
@@ -96,6 +96,14 @@ class MapErrorSettings:
             with_regional_slopes`): the error the tracks show tilts the bilinear patches
             too; None: the patches' own. Chosen on white noise of 10 m on the posts
             (seeds 1-3), checked on other map errors (docs/verdict.md, "Noisy posts").
+        live_every_rounds: an incremental smoother reads the map every this many of its
+            track judge's rounds and grows sigma_h as it goes (:class:`MapErrorWatch`);
+            None: it does not (a run :func:`cdtm_graph.smoother.smooth` makes again
+            with a grown map).
+        live_grow_ratio: ... when a reading exceeds the stated sigma_h by this factor
+            (and by the spread margin above): the clean 90-frame flights of the
+            robustness study read up to 1.30x live once 200 tracks are read (seeds 1-16,
+            iSAM2 and fixed lag), where ``grow_ratio`` grew one of 32 runs by chance.
     """
 
     grow_ratio: float = 1.25
@@ -103,6 +111,8 @@ class MapErrorSettings:
     min_tracks: int = 50
     max_ratio: float = 3.0
     slope_sigma_posts: float | None = 1.0
+    live_every_rounds: int | None = 1
+    live_grow_ratio: float = 1.5
 
     def __post_init__(self) -> None:
         s = self.slope_sigma_posts
@@ -125,9 +135,7 @@ def estimate_map_error(heights: TrackHeights, sigma_h_m: float,
     s = settings or MapErrorSettings()
     m = mismatch or MismatchSettings()
     other_var = heights.sigma_m**2 - sigma_h_m**2  # triangulation and camera positions
-    use = (np.isfinite(heights.dh_m) & np.isfinite(other_var)
-           & (heights.n_observations >= m.min_observations) & ~inconsistent(heights, m)
-           & (other_var <= sigma_h_m**2))
+    use = well_triangulated(heights, sigma_h_m, m)
     n = int(use.sum())
     bound = s.max_ratio * sigma_h_m
     if n < s.min_tracks:
@@ -140,9 +148,19 @@ def estimate_map_error(heights: TrackHeights, sigma_h_m: float,
     return MapErrorEstimate(sigma_h_m, estimated, n, used, bound)
 
 
+def well_triangulated(heights: TrackHeights, sigma_h_m: float,
+                      mismatch: MismatchSettings) -> np.ndarray:
+    """(T,) the tracks a map error is read from: seen often enough, their rays meeting,
+    their height known better than the stated map's (``sigma_m`` holding ``sigma_h_m``)."""
+    other_var = heights.sigma_m**2 - sigma_h_m**2
+    return (np.isfinite(heights.dh_m) & np.isfinite(other_var)
+            & (heights.n_observations >= mismatch.min_observations)
+            & ~inconsistent(heights, mismatch) & (other_var <= sigma_h_m**2))
+
+
 def _median_excess(map_sigma_m: float, dh2: np.ndarray, v: np.ndarray, target: float
                    ) -> float:
-    return float(np.median(dh2 / (v + map_sigma_m**2))) - target
+    return median(dh2 / (v + map_sigma_m**2)) - target
 
 
 #: The map sigma is solved for to this (m).
@@ -186,6 +204,89 @@ def _trimmed_sigma(dh2: np.ndarray, v: np.ndarray, gate: float) -> float:
             break
         inside = now
     return estimated
+
+
+class MapErrorWatch:
+    """:func:`estimate_map_error` taken while an incremental smoother runs, for a live
+    user whose smoother cannot be run again (:func:`cdtm_graph.smoother.smooth` makes the
+    run again instead).
+
+    Every ``MapErrorSettings.live_every_rounds`` rounds of the track judge it reads the
+    map from the tracks the round triangulated at the poses the solver holds, the cameras
+    taken as exact (as :func:`run_heights` at a run's end; :meth:`~cdtm_graph.robust.
+    track_judge.TrackJudge.last_round_heights`), each track's height less the reading's
+    median (an offset the estimate's own height error gives every track alike), with the
+    latest of the tracks read before (:data:`LIVE_TRACKS`). When the reading exceeds the
+    stated sigma_h by ``live_grow_ratio`` and by the spread margin of
+    :func:`estimate_map_error`, the smoother goes on with sigma_h grown to it (at most the
+    bound; again only when a later reading exceeds the one used by ``grow_ratio``, or
+    reaches the bound): its factors, the track tests and the tangent planes' slopes, as a
+    run made again would have them (:class:`~cdtm_graph.smoother.map_growth.MapGrowth`).
+    """
+
+    def __init__(self, stated_m: float, settings: MapErrorSettings,
+                 mismatch: MismatchSettings | None = None):
+        assert settings.live_every_rounds is not None
+        self.stated_m = self.used_m = float(stated_m)
+        self.settings, self.mismatch = settings, mismatch or MismatchSettings()
+        self.readings: list[tuple[int, float, int]] = []  # (frame, estimated_m, n_tracks)
+        self._rounds = 0
+        self._held = TrackHeights.empty()  # the latest well-triangulated tracks read
+
+    def due(self) -> bool:
+        """Whether this round reads the map (counts the rounds; none once grown to the
+        bound, the most it grows to)."""
+        self._rounds += 1
+        assert self.settings.live_every_rounds is not None
+        return (self._rounds % self.settings.live_every_rounds == 0
+                and self.used_m < self.settings.max_ratio * self.stated_m)
+
+    def read(self, k: int, heights: TrackHeights) -> float | None:
+        """Frame k's reading of the map from ``heights`` (the cameras exact, their
+        ``sigma_m`` holding the stated sigma_h) with the latest of the tracks read before
+        (:data:`LIVE_TRACKS`): the sigma_h to go on with, if it grows."""
+        # (the judge's heights hold the sigma_h in use: read against the stated one)
+        heights = replace(heights, sigma_m=np.sqrt(
+            heights.sigma_m**2 - self.used_m**2 + self.stated_m**2))
+        use = well_triangulated(heights, self.stated_m, self.mismatch)
+        if use.any():
+            now = heights.subset(use)
+            now = replace(now, dh_m=now.dh_m - np.median(now.dh_m))
+            held = self._held.subset(~np.isin(self._held.track_id, now.track_id))
+            self._held = _joined(held, now, LIVE_TRACKS)
+        s = self.settings
+        e = estimate_map_error(self._held, self.stated_m,
+                               replace(s, min_tracks=LIVE_MIN_TRACKS), self.mismatch)
+        self.readings.append((k, e.estimated_m, e.n_tracks))
+        ratio = max(s.live_grow_ratio, 1.0 + s.spread_z / np.sqrt(max(e.n_tracks, 1)))
+        if not e.estimated_m > ratio * self.stated_m:  # (NaN: too few tracks yet)
+            return None
+        reading = min(e.estimated_m, e.bound_m)
+        if reading <= self.used_m or (self.used_m > self.stated_m and reading < e.bound_m
+                                      and reading <= s.grow_ratio * self.used_m):
+            return None  # (grown again only by a margin, or to the bound)
+        self.used_m = reading
+        return reading
+
+
+#: A live reading of the map rests on at most this many of the latest tracks read (a
+#: 20-frame window holds ~40 well-triangulated ones on the robustness flight): the map
+#: the flight is over now, at a bounded cost.
+LIVE_TRACKS = 1000
+#: ... and on at least this many: early in a flight, where the margin ``1 + spread_z /
+#: sqrt(n)`` (2x at 20) keeps a short reading from growing it by chance (the clean
+#: flights' first readings: up to 1.64x over 29 tracks, 0.89 of their margin; at 10,
+#: one of 32 grew).
+LIVE_MIN_TRACKS = 20
+
+
+def _joined(a: TrackHeights, b: TrackHeights, most: int) -> TrackHeights:
+    """``a``'s tracks then ``b``'s, the last ``most`` of them."""
+    def tail(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return np.concatenate((x, y))[-most:]
+    return TrackHeights(tail(a.track_id, b.track_id), tail(a.point_m, b.point_m),
+                        tail(a.n_observations, b.n_observations), tail(a.dh_m, b.dh_m),
+                        tail(a.sigma_m, b.sigma_m), tail(a.fit_chi2, b.fit_chi2))
 
 
 def run_heights(flight: FlightLog, dtm: Dtm, noise: FeatureNoise,

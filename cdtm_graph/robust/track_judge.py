@@ -8,6 +8,7 @@ heights). It decides; the smoother takes the features out of its solver.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 
 import gtsam
@@ -77,6 +78,9 @@ class TrackJudge:
         self.considered_m: dict[int, float] = {}  # frame -> vertical offset it may carry
         self._found_off = np.zeros(0, np.int64)  # tracks the tests themselves found off
         self._judge_from: int | None = None  # tracks seen from this frame on are judged
+        # the latest round's heights, its observations' tracks and frames, the frames'
+        # position sigmas (:meth:`last_round_heights`)
+        self._last_round: tuple[TrackHeights, np.ndarray, np.ndarray, np.ndarray] | None = None
 
     @property
     def judging(self) -> bool:
@@ -169,6 +173,7 @@ class TrackJudge:
         off the map (with the crowded frames' and the likely clutter) and as wrong matches.
         """
         none = np.zeros(0, np.int64)
+        self._last_round = None
         if self._judge_from is None:
             return none, none
         # every observation of them, the tracks left out too (crowding, clutter)
@@ -176,9 +181,11 @@ class TrackJudge:
         tid, frame, q = self._settled(all_tid, all_frame, all_q)
         if tid.size == 0:
             return none, none
+        sigmas = _frame_sigmas(frame, position_sigma_of)
+        heights = self._heights(tid, frame, q, pose_of, sigmas)
+        self._last_round = (heights, tid, frame, sigmas)
         judgement, self.clutter = judge_with_clutter(
-            self._heights(tid, frame, q, pose_of, _frame_sigmas(frame, position_sigma_of)),
-            self.noise.sigma_h_m, self.mismatch, self.clutter_settings)
+            heights, self.noise.sigma_h_m, self.mismatch, self.clutter_settings)
         self._found_off = np.union1d(self._found_off, judgement.off_map)
         off = np.setdiff1d(np.union1d(untrusted(all_tid, all_frame, self._found_off,
                                                 self.mismatch.frame_fraction),
@@ -186,6 +193,23 @@ class TrackJudge:
                            self.left_out)
         wrong = np.setdiff1d(judgement.inconsistent, np.r_[self.left_out, off])
         return off, wrong
+
+    def last_round_heights(self) -> TrackHeights | None:
+        """The latest :meth:`round`'s tracks, the left out ones too (a map worse than
+        stated is what the tests drop first), their ``sigma_m`` with the cameras taken as
+        exact (:func:`~cdtm_graph.robust.map_error.run_heights`' convention: each track's
+        largest camera position variance taken out); None if it judged none, or found
+        clutter on the ground (trees, buildings: what the map lacks above it, which the
+        tests drop and the map's error must not take in)."""
+        if self._last_round is None or (self.clutter.significant
+                                        and self.clutter.height_m > 0.0):
+            return None
+        heights, tid, frame, sigmas = self._last_round
+        pose_var = np.zeros(heights.track_id.size)
+        np.maximum.at(pose_var, np.searchsorted(heights.track_id, tid),
+                      sigmas[np.searchsorted(np.unique(frame), frame)] ** 2)
+        return dataclasses.replace(heights, sigma_m=np.sqrt(np.maximum(
+            heights.sigma_m**2 - pose_var, 0.0)))
 
     def heights_since(self, since_frame: int, pose_of: PoseOf,
                       position_sigma_of: Callable[[int], float]

@@ -106,7 +106,8 @@ def _initial_values(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
             insert_state(values, k, world_T_body[k], flight.nav.velocity_mps[k], bias)
         none = np.zeros(0, np.int64)
         return InitialGuess(values, "nav.csv", none, none, [], {})
-    incremental = replace(settings, mode=SmootherMode.INCREMENTAL, lag_s=None)
+    # (the batch grows the map from its own run's tracks: the pass does not as it goes)
+    incremental = replace(_map_held(settings), mode=SmootherMode.INCREMENTAL, lag_s=None)
     smoother = IncrementalSmoother(flight.config, dtm, incremental, imu=flight.imu)
     smoother.feed(flight, progress)  # (no result: every frame's marginals are not wanted)
     unfixed = smoother.unfixed_frames  # (flagged no_fix once each)
@@ -152,10 +153,10 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
         heights = run_heights(flight, dtm, noise, run.result.estimate, run.unfixed_frames)
         map_error = estimate_map_error(heights, noise.sigma_h_m, settings.graph.map_error,
                                        settings.graph.mismatch)
-        first = run
+        first, again_settings = run, _map_held(settings)
         if map_error.grown:
             flight, dtm = with_sigma_h(flight, map_error.used_m), _grown(dtm, settings)
-            run = _smooth_once(flight, dtm, settings, progress)
+            run = _smooth_once(flight, dtm, again_settings, progress)
             map_error = replace(map_error, slope_sigma_posts=dtm.slope_sigma_posts)
         elif map_error.beyond:
             # beyond the bound: a map wrong (a fault), or a run the stated sigma_h drove off
@@ -163,7 +164,7 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
             # tracks then read as map error). Once more at the bound: kept only if the
             # tracks then read the map within it.
             capped, grown_dtm = with_sigma_h(flight, map_error.bound_m), _grown(dtm, settings)
-            again = _smooth_once(capped, grown_dtm, settings, progress)
+            again = _smooth_once(capped, grown_dtm, again_settings, progress)
             second = estimate_map_error(
                 run_heights(capped, dtm, noise, again.result.estimate, again.unfixed_frames),
                 noise.sigma_h_m,
@@ -177,6 +178,10 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
                                     slope_sigma_posts=dtm.slope_sigma_posts)
             else:
                 map_error = replace(map_error, bound_estimated_m=second.estimated_m)
+        if run is first and first.grown_at:  # the run kept grew the map as it went
+            map_error = replace(map_error, used_m=first.grown_at[-1][1],
+                                grown_at=first.grown_at, slope_sigma_posts=_grown(
+                                    dtm, settings).slope_sigma_posts)
     walks, calibration = None, None
     pinned: list[PinnedSolve] = []  # the calibration check's first solve, of the run kept
     if settings.graph.imu_random_walk is not None and run.checked:
@@ -225,6 +230,16 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     return result if walks is None else replace(result, imu_random_walk=walks)
 
 
+def _map_held(settings: SmootherSettings) -> SmootherSettings:
+    """``settings`` for a run made again with the map error the whole run showed: an
+    incremental pass then does not grow it again as it goes (``live_every_rounds``)."""
+    map_error = settings.graph.map_error
+    if map_error is None or map_error.live_every_rounds is None:
+        return settings
+    return replace(settings, graph=replace(settings.graph, map_error=replace(
+        map_error, live_every_rounds=None)))
+
+
 def _grown(dtm: Dtm, settings: SmootherSettings) -> Dtm:
     """The DTM a run with a grown map error is made again on: a map worse than stated
     is tilted by its error too, so its tangent planes take regional slopes
@@ -267,6 +282,7 @@ class _Run:
     left_out: np.ndarray  # tracks left out (off the map, wrong matches)
     unfixed_frames: np.ndarray
     checked: bool  # the calibration was held (not estimated online): check the result
+    grown_at: tuple[tuple[int, float], ...] = ()  # an incremental pass's map grown as it went
 
 
 def with_sigma_h(flight: FlightLog, sigma_h_m: float) -> FlightLog:
@@ -284,7 +300,7 @@ def _smooth_once(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
         dt_s = float(np.median(np.diff(flight.frames.t_ns))) * 1e-9
         smoother = IncrementalSmoother(flight.config, dtm, settings, frame_interval_s=dt_s)
         return _Run(smoother.run(flight, progress), smoother.mismatched_tracks,
-                    smoother.unfixed_frames, True)
+                    smoother.unfixed_frames, True, smoother.map_grown)
     guess = _initial_values(flight, dtm, settings, progress)
     initial = guess.values
     calibration = _online_calibration(flight, settings)

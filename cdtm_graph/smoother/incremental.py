@@ -22,7 +22,13 @@ from cdtm_graph.codes import Code
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.errors import CdtmError, FlightLogError
 from cdtm_graph.flightlog import FlightConfig, FlightLog
-from cdtm_graph.graph import feature_noise, imu_factor, insert_state, prior_factors
+from cdtm_graph.graph import (
+    GraphSettings,
+    feature_noise,
+    imu_factor,
+    insert_state,
+    prior_factors,
+)
 from cdtm_graph.imu import ImuArrays, ImuFeed, initial_bias, navstate_predict
 from cdtm_graph.replay import replay
 from cdtm_graph.results import (
@@ -39,7 +45,7 @@ from cdtm_graph.results import (
 from cdtm_graph.robust.acquisition import Correction
 from cdtm_graph.robust.fix_search import FixSearch
 from cdtm_graph.robust.gating import InnovationGate
-from cdtm_graph.robust.map_error import BroadMapWatch
+from cdtm_graph.robust.map_error import BroadMapWatch, MapErrorWatch
 from cdtm_graph.robust.observations import TieredObservations
 from cdtm_graph.robust.stages import (
     BUILD,
@@ -52,6 +58,7 @@ from cdtm_graph.robust.stages import (
 from cdtm_graph.robust.track_judge import TrackJudge
 from cdtm_graph.smoother.assembly import ClutterOutcome, assemble_result
 from cdtm_graph.smoother.backends import frame_keys
+from cdtm_graph.smoother.map_growth import MapGrowth
 from cdtm_graph.smoother.settings import Progress, SmootherSettings
 from cdtm_graph.smoother.settling import Settling
 from cdtm_graph.smoother.track_rounds import TrackRounds
@@ -80,6 +87,9 @@ class FrameUpdate:
             (from the prior, an acquired fix, an IMU gap), ``pose_covariance`` is the last
             settled covariance (at first the prior's) carried to this frame by the IMU
             alone, not the marginal at a linearization point the estimate is still leaving.
+        map_sigma_h_m: the DTM height 1-sigma its factors hold: flight.yaml's, until the
+            tracks show the map worse (:class:`~cdtm_graph.robust.map_error.MapErrorWatch`;
+            :attr:`IncrementalSmoother.map_grown`).
     """
 
     frame: int
@@ -91,6 +101,7 @@ class FrameUpdate:
     update_time_s: float
     imu_time_s: float = 0.0
     converged: bool = True
+    map_sigma_h_m: float = float("nan")
 
 
 class IncrementalSmoother:
@@ -146,17 +157,18 @@ class IncrementalSmoother:
         self._frame_interval_s, search = frame_interval_s, self._search
         self._window = w = SolverWindow(settings.lag_s, frame_interval_s,
                                         settings.keep_exit_covariances)
-        self.stages = incremental_stages(
-            self._pairing, BuildFactors(camera.body_T_cam, dtm, noise, graph, self.rejections),
-            None if search is None else HoldForFix(
-                search, lambda k: w.needs_fix(search, k),
-                lambda: w.holds_search(search, self._frame_interval_s)),
-            self._gate, settings.innovation_gate, self._judge)
+        self._build = BuildFactors(camera.body_T_cam, dtm, noise, graph, self.rejections)
+        hold = None if search is None else HoldForFix(
+            search, lambda k: w.needs_fix(search, k),
+            lambda: w.holds_search(search, self._frame_interval_s))
+        self.stages = incremental_stages(self._pairing, self._build, hold, self._gate,
+                                         settings.innovation_gate, self._judge)
         watch = (BroadMapWatch(graph.broad_map_error, graph.mismatch)  # a fixed lag's map
                  if settings.lag_s is not None and graph.broad_map_error is not None  # shape
                  and graph.map_error is not None else None)  # as it goes (batch's: both)
+        self._map = _map_growth(graph, noise.sigma_h_m, dtm, self._build, self._judge, w)
         self._rounds = None if self._judge is None else TrackRounds(
-            self._judge, watch, w, self.stages, self.forget_tracks)
+            self._judge, watch, w, self.stages, self.forget_tracks, self._map)
         if frame_interval_s is not None:
             check_lag(settings.lag_s, frame_interval_s)
         if frame_interval_s is not None and search is not None \
@@ -270,7 +282,7 @@ class IncrementalSmoother:
         self.update_times_s.append(elapsed)
         self.imu_times_s.append(self._imu.take_time_s())
         return FrameUpdate(k, int(t_ns), w.poses[k], w.velocities[k], pose_cov, work.n_features,
-                           elapsed, self.imu_times_s[-1], converged)
+                           elapsed, self.imu_times_s[-1], converged, self._build.noise.sigma_h_m)
 
     # -- what the stages ask (robust.stages.SolverView) --------------------------------
 
@@ -415,6 +427,11 @@ class IncrementalSmoother:
         return [] if self._search is None else self._search.searches
 
     @property
+    def map_grown(self) -> tuple[tuple[int, float], ...]:
+        """(frame, sigma_h from there) where the map's error grew (:class:`MapGrowth`)."""
+        return () if self._map is None else tuple(self._map.grown)
+
+    @property
     def mismatched_tracks(self) -> np.ndarray:
         """Tracks left out as off the map or holding a wrong match (sorted)."""
         return np.zeros(0, np.int64) if self._judge is None else self._judge.left_out
@@ -487,6 +504,17 @@ class IncrementalSmoother:
                                stages=self.stages.summary(), broad_map_error=None
                                if self._rounds is None or self._rounds.watch is None
                                else self._rounds.watch.result(self._window.t_ns))
+
+
+def _map_growth(graph: GraphSettings, sigma_h_m: float, dtm: Dtm, build: BuildFactors,
+                judge: TrackJudge | None, window: SolverWindow) -> MapGrowth | None:
+    """The map's error read and grown as the flight goes, unless the settings hold it
+    (``MapErrorSettings.live_every_rounds`` None: a run made again with a grown map)."""
+    map_error = graph.map_error
+    if map_error is None or not map_error.live_every_rounds or judge is None:
+        return None
+    return MapGrowth(MapErrorWatch(sigma_h_m, map_error, graph.mismatch), dtm,
+                     map_error.slope_sigma_posts, build, judge, window)
 
 
 def _sightings(k: int, track_id: np.ndarray | None, uv_px: np.ndarray | None

@@ -26,7 +26,7 @@ from cdtm_graph.results import Rejection, Rejections, StateCovariances, Trajecto
 from cdtm_graph.robust.acquisition import SearchPrior
 from cdtm_graph.robust.fix_search import FixSearch
 from cdtm_graph.smoother.backends import Backend, FixedLag, FullHistory, frame_keys
-from factors import CdtmPairFactor
+from factors import CdtmPairFactor, FeatureNoise, RayCaster
 
 
 def _frame(key: int) -> int:
@@ -328,6 +328,29 @@ class SolverWindow:
                 at += 1
             else:
                 self.slots[i] = -1
+
+    def on_map(self, noise: FeatureNoise, raycast: RayCaster, k: int) -> None:
+        """Every C-DTM factor still in the solver on another reading of the map (a grown
+        sigma_h, regional slopes: :meth:`~factors.CdtmPairFactor.refreshed`) at the poses
+        held now, its kernel's scale kept (a gate's innovation spread); frame k fetched."""
+        graph = gtsam.NonlinearFactorGraph()
+        live, moved = [], []
+        for i in range(self.since(self.settled), len(self.cdtm)):
+            f = self.cdtm[i]
+            if f is None or _frame(f.key_a) < self.settled:
+                continue  # (out of the solver)
+            r = f.refreshed(self.backend.pose(_frame(f.key_a)),
+                            self.backend.pose(_frame(f.key_b)), noise,
+                            raycast).with_robust_scale(f.features.robust_scale)
+            live.append(i)
+            moved.append(r)
+            graph.add(r.factor)
+        if not live:
+            return
+        new_slots = self.backend.replace(graph, [self.slots[i] for i in live])
+        for i, r, slot in zip(live, moved, new_slots):
+            self.cdtm[i], self.slots[i] = r, slot
+        self.fetch(k)
 
     def refresh_newest_noise(self, k: int, predicted: np.ndarray, n: int) -> None:
         """When frame k's update moved it far from its IMU prediction (early frames under a

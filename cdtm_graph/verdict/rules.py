@@ -808,11 +808,15 @@ def _map_error_notes(result: SmootherResult) -> list[str]:
     slopes = (f", and its tangent planes' slopes from the DTM smoothed over "
               f"{me.slope_sigma_posts:g} post(s) (the error tilts the map's patches too)"
               if me.slope_sigma_posts else "")
+    made = (f"the run was made with {me.used_m:.2f} m{slopes}, its covariances hold it"
+            if not me.grown_at else
+            "the run grew it as it went (" + ", ".join(
+                f"{m:.2f} m from frame {k}" for k, m in me.grown_at) + f"){slopes}; its "
+            "covariances hold it from there, not before")
     return [f"{Code.MAP_ERROR_GROWN}: the tracks show the DTM's heights off by "
             f"{me.estimated_m:.2f} m rms ({me.n_tracks} well-triangulated tracks), beyond "
             f"its stated sigma_h of {me.stated_m:.2f} m (flight.yaml dtm.sigma_h_m, or the "
-            f"model of its spacing): the run was made with {me.used_m:.2f} m{slopes}, its "
-            f"covariances hold it{first}"]
+            f"model of its spacing): {made}{first}"]
 
 
 def _map_error_check(result: SmootherResult) -> list[tuple[Code, str]]:
@@ -829,6 +833,10 @@ def _map_error_check(result: SmootherResult) -> list[tuple[Code, str]]:
     me = result.map_error
     if me is None or not me.beyond:
         return []
+    held = (f"the run was made with the stated {me.used_m:.2f} m, its covariances hold "
+            "none of the map's error" if not me.grown_at else
+            f"the run grew it as it went, to {me.used_m:.2f} m from frame "
+            f"{me.grown_at[-1][0]}, its covariances hold part of the map's error")
     again = (f"and at that bound they read {me.bound_estimated_m:.2f} m"
              if np.isfinite(me.bound_estimated_m)
              else "and a run at that bound could not read it (too few tracks)")
@@ -836,8 +844,7 @@ def _map_error_check(result: SmootherResult) -> list[tuple[Code, str]]:
         f"the tracks show the DTM's heights off by {me.estimated_m:.2f} m rms "
         f"({me.n_tracks} well-triangulated tracks), beyond {me.bound_m / me.stated_m:g}x its "
         f"stated sigma_h of {me.stated_m:.2f} m (flight.yaml dtm.sigma_h_m, or the model of "
-        f"its spacing), the most a run grows it to, {again}: the run was made with the "
-        f"stated {me.used_m:.2f} m, its covariances hold none of the map's error; state the "
+        f"its spacing), the most a run grows it to, {again}: {held}; state the "
         "map's accuracy in dtm.sigma_h_m, or check the map"))]
 
 

@@ -398,3 +398,37 @@ def test_a_pair_factor_lives_as_long_as_a_graph_holds_it_and_no_longer(manifold,
     del graph
     gc.collect()
     assert alive() is None
+
+
+def test_a_factor_refreshed_on_another_reading_of_the_map_is_the_one_built_there(manifold,
+                                                                                  rng):
+    """``refreshed`` given another map's noise and ray caster (a map found worse
+    mid-flight: a grown sigma_h, regional slopes) equals a factor built afresh at the same
+    poses with them; given its own, it is ``refreshed`` as before. Mutations tried
+    (2026-11-28): the old caster's planes kept (``self.planes`` for ``source.planes``) ->
+    the residuals differ; the factor's own noise kept -> ``Sigma_f`` differs: each fails."""
+    terrain = manifold.WavyTerrain(amplitude_m=60.0, wavelength_m=400.0)
+    other = manifold.WavyTerrain(amplitude_m=40.0, wavelength_m=300.0)
+    body_T_cam, Ta, Tb, feats = manifold.random_pair(rng, terrain)
+
+    def caster(t):
+        return lambda origin, ray: t.raycast(np.broadcast_to(origin, ray.shape), ray)
+
+    f = CdtmPairFactor(X(0), X(1), feats, body_T_cam, PlaneMode.REINTERSECT, caster(terrain))
+    moved = Ta @ make_pose(np.eye(3), [30.0, -20.0, 5.0])
+    f.evaluate(moved, Tb)  # (its planes cast at the pose: none of them may be kept)
+    assert feats.noise is not None
+    grown = FeatureNoise(feats.noise.sigma_q_xy, 3.0 * feats.noise.sigma_h_m)
+    on = f.refreshed(moved, Tb, grown, caster(other))
+    wTc_a, wTc_b = moved @ body_T_cam, Tb @ body_T_cam
+    G_E, N, valid = caster(other)(wTc_a[:3, 3], feats.q_a @ wTc_a[:3, :3].T)
+    assert valid.all()
+    built = PairFeatures.build(wTc_a, wTc_b, feats.q_a, feats.q_b, G_E, N, grown,
+                               feats.dtm_variance_scale)
+    fresh = CdtmPairFactor(X(0), X(1), built, body_T_cam, PlaneMode.REINTERSECT, caster(other))
+    np.testing.assert_allclose(on.features.Sigma_f, built.Sigma_f, rtol=1e-12)
+    np.testing.assert_allclose(on.evaluate(moved, Tb)[0], fresh.evaluate(moved, Tb)[0],
+                               rtol=1e-12, atol=1e-12)
+    same = f.refreshed(moved, Tb, feats.noise, caster(terrain))
+    np.testing.assert_allclose(same.evaluate(moved, Tb)[0], f.refreshed(moved, Tb).evaluate(
+        moved, Tb)[0], rtol=1e-12, atol=1e-12)
