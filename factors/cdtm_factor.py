@@ -502,8 +502,8 @@ class CdtmPairFactor(CalibratedPair):
         f = self.features
         if (noise := noise or f.noise) is None:
             raise ValueError("features built without their noise settings cannot be refreshed")
-        source = self if raycast is None else CdtmPairFactor(
-            self.key_a, self.key_b, f, self.body_T_cam, self.plane_mode, raycast)
+        source = self if raycast is None else CdtmPairFactor(  # (cast: PlaneMode.FIXED too)
+            self.key_a, self.key_b, f, self.body_T_cam, PlaneMode.REINTERSECT, raycast)
         wTc_a = world_T_body_a @ self.body_T_cam
         G_E, N = source.planes(wTc_a)
         features = PairFeatures.build(wTc_a, world_T_body_b @ self.body_T_cam, f.q_a, f.q_b,

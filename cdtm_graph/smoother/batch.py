@@ -38,6 +38,7 @@ from cdtm_graph.graph.log_graph import LogGraph, build_log_graph
 from cdtm_graph.imu import initial_bias, shared_preintegrations
 from cdtm_graph.optimizer import LinearSolver, key_marginals, levenberg_marquardt, marginals
 from cdtm_graph.results import (
+    MapErrorEstimate,
     Rejection,
     SmootherResult,
     Solver,
@@ -178,10 +179,7 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
                                     slope_sigma_posts=dtm.slope_sigma_posts)
             else:
                 map_error = replace(map_error, bound_estimated_m=second.estimated_m)
-        if run is first and first.grown_at:  # the run kept grew the map as it went
-            map_error = replace(map_error, used_m=first.grown_at[-1][1],
-                                grown_at=first.grown_at, slope_sigma_posts=_grown(
-                                    dtm, settings).slope_sigma_posts)
+        flight, dtm, map_error = _as_it_ended(run, flight, dtm, settings, map_error)
     walks, calibration = None, None
     pinned: list[PinnedSolve] = []  # the calibration check's first solve, of the run kept
     if settings.graph.imu_random_walk is not None and run.checked:
@@ -198,7 +196,12 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
             logger.info("IMU random walks grown %.3gx (gyro), %.3gx (accelerometer)",
                         *walks.scales)
             flight = with_random_walks(flight, walks.used_gyro, walks.used_accel)
-            run = _smooth_once(flight, dtm, settings, progress)
+            grown = map_error is not None and map_error.grown  # (then held as it is)
+            run = _smooth_once(flight, dtm, _map_held(settings) if grown else settings,
+                               progress)
+            if map_error is not None:
+                flight, dtm, map_error = _as_it_ended(run, flight, dtm, settings,
+                                                      replace(map_error, grown_at=()))
             calibration = None  # of the run before
             pinned.clear()
     result = run.result
@@ -228,6 +231,18 @@ def smooth(flight: FlightLog, dtm: Dtm, settings: SmootherSettings | None = None
     if map_error is not None:
         result = replace(result, map_error=map_error)
     return result if walks is None else replace(result, imu_random_walk=walks)
+
+
+def _as_it_ended(run: _Run, flight: FlightLog, dtm: Dtm, settings: SmootherSettings,
+                 map_error: MapErrorEstimate) -> tuple[FlightLog, Dtm, MapErrorEstimate]:
+    """The log and map the checks after ``run`` (and a run made again) hold, and its
+    ``map_error``: if its incremental pass grew the map as it went, as it ended."""
+    if not run.grown_at:
+        return flight, dtm, map_error
+    used = run.grown_at[-1][1]
+    flight, dtm = with_sigma_h(flight, used), _grown(dtm, settings)
+    return flight, dtm, replace(map_error, used_m=used, grown_at=run.grown_at,
+                                slope_sigma_posts=dtm.slope_sigma_posts)
 
 
 def _map_held(settings: SmootherSettings) -> SmootherSettings:

@@ -366,7 +366,7 @@ class IncrementalSmoother:
 
     def _mismatch_round(self, k: int, since_frame: int) -> int:
         """A round over the tracks seen since ``since_frame`` (:class:`TrackRounds`): how
-        many it left out."""
+        many it left out, one more if the map grew."""
         return 0 if self._rounds is None else self._rounds.run(k, since_frame)
 
     def _commit(self, k: int, factors: list[CdtmPairFactor], track_ids: list[np.ndarray],

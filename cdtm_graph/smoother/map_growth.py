@@ -37,13 +37,14 @@ class MapGrowth:
         self.build, self.judge, self.window = build, judge, window
         self.grown: list[tuple[int, float]] = []  # (frame, sigma_h from that frame on)
 
-    def read(self, k: int) -> None:
+    def read(self, k: int) -> bool:
         """Frame k's reading of the map from the tracks its round judged (the left out
-        ones too), the cameras taken as exact; grown if it shows."""
+        ones too), the cameras taken as exact; grown if it shows (returns whether)."""
         heights = self.judge.last_round_heights()
         sigma_h_m = None if heights is None else self.watch.read(k, heights)
         if sigma_h_m is not None:
             self._grow(sigma_h_m, k)
+        return sigma_h_m is not None
 
     def _grow(self, sigma_h_m: float, k: int) -> None:
         build = self.build

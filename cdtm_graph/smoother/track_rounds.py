@@ -49,7 +49,8 @@ class TrackRounds:
         """The round at frame k over the tracks seen since ``since_frame``, then the map's
         shape over the frames whose windows have closed, at the poses held then
         (:meth:`BroadMapWatch.round`), and, when due, its height error from the round's
-        tracks (:meth:`MapGrowth.read`); how many tracks it left out."""
+        tracks (:meth:`MapGrowth.read`); how many tracks it left out, one more if the map
+        grew (a run's end iterates while a round changes anything)."""
         with self.stages.charged(TRACK_ROUNDS, (Rejection.MAP_MISMATCH, Rejection.WRONG_MATCH)):
             n = self._judged(k, since_frame)
         if self.watch is not None:
@@ -59,7 +60,7 @@ class TrackRounds:
                                  w.frame_pose_covariance)
         if self.map_growth is not None and self.map_growth.watch.due():
             with self.stages.charged(MAP_ERROR_WATCH, ()):
-                self.map_growth.read(k)
+                n += self.map_growth.read(k)  # (a grown map asks the solver to iterate too)
         return n
 
     def _judged(self, k: int, since_frame: int) -> int:

@@ -73,7 +73,7 @@ import numpy as np
 
 from cdtm_graph.codes import FAILING, Code
 from cdtm_graph.constants import NS_PER_S, chi2_2dof_quantile, chi2_quantile
-from cdtm_graph.results import BroadMapError, Rejection, SmootherResult
+from cdtm_graph.results import BroadMapError, Rejection, SmootherResult, Solver
 from cdtm_graph.robust.gating import OUTLIER_TEST_PROBABILITY, truncated_chi2_2dof_mean
 from cdtm_graph.verdict.evaluation import (
     POSITION_DOF,
@@ -799,7 +799,7 @@ def _map_error_notes(result: SmootherResult) -> list[str]:
     A note, not a reason: the covariances then hold the map's real error; but the user's
     map is worse than flight.yaml says, which they should hear."""
     me = result.map_error
-    if me is None or not me.grown:
+    if me is None or not me.grown or me.beyond:  # (beyond: the reason ``map_error`` says)
         return []
     first = (f"; the first run read {me.first_estimated_m:.2f} m, beyond the "
              f"{me.bound_m:.2f} m a run grows it to, and the run made again at that bound "
@@ -808,13 +808,18 @@ def _map_error_notes(result: SmootherResult) -> list[str]:
     slopes = (f", and its tangent planes' slopes from the DTM smoothed over "
               f"{me.slope_sigma_posts:g} post(s) (the error tilts the map's patches too)"
               if me.slope_sigma_posts else "")
-    made = (f"the run was made with {me.used_m:.2f} m{slopes}, its covariances hold it"
-            if not me.grown_at else
-            "the run grew it as it went (" + ", ".join(
-                f"{m:.2f} m from frame {k}" for k, m in me.grown_at) + f"){slopes}; its "
-            "covariances hold it from there, not before")
-    return [f"{Code.MAP_ERROR_GROWN}: the tracks show the DTM's heights off by "
-            f"{me.estimated_m:.2f} m rms ({me.n_tracks} well-triangulated tracks), beyond "
+    if not me.grown_at:
+        made = f"the run was made with {me.used_m:.2f} m{slopes}, its covariances hold it"
+    else:  # (a full history's factors all take it; a fixed lag's prior keeps the stated)
+        lagged = result.stats.solver is Solver.FIXED_LAG
+        made = ("the run grew it as it went (" + ", ".join(
+            f"{m:.2f} m from frame {k}" for k, m in me.grown_at) + f"){slopes}, the factors "
+            "still in its solver then too: its covariances hold it" + (
+                " from there, the frames it had let go the stated" if lagged else ""))
+    read = (f"off by {me.estimated_m:.2f} m rms ({me.n_tracks} well-triangulated tracks)"
+            if np.isfinite(me.estimated_m) else "off as the flight went (at its end too few "
+            "well-triangulated tracks to read)")
+    return [f"{Code.MAP_ERROR_GROWN}: the tracks show the DTM's heights {read}, beyond "
             f"its stated sigma_h of {me.stated_m:.2f} m (flight.yaml dtm.sigma_h_m, or the "
             f"model of its spacing): {made}{first}"]
 

@@ -406,7 +406,8 @@ def test_a_factor_refreshed_on_another_reading_of_the_map_is_the_one_built_there
     mid-flight: a grown sigma_h, regional slopes) equals a factor built afresh at the same
     poses with them; given its own, it is ``refreshed`` as before. Mutations tried
     (2026-11-28): the old caster's planes kept (``self.planes`` for ``source.planes``) ->
-    the residuals differ; the factor's own noise kept -> ``Sigma_f`` differs: each fails."""
+    the residuals differ; the factor's own noise kept -> ``Sigma_f`` differs; a fixed-plane
+    factor's planes kept (the review's find) -> its normals differ: each fails."""
     terrain = manifold.WavyTerrain(amplitude_m=60.0, wavelength_m=400.0)
     other = manifold.WavyTerrain(amplitude_m=40.0, wavelength_m=300.0)
     body_T_cam, Ta, Tb, feats = manifold.random_pair(rng, terrain)
@@ -429,6 +430,9 @@ def test_a_factor_refreshed_on_another_reading_of_the_map_is_the_one_built_there
     np.testing.assert_allclose(on.features.Sigma_f, built.Sigma_f, rtol=1e-12)
     np.testing.assert_allclose(on.evaluate(moved, Tb)[0], fresh.evaluate(moved, Tb)[0],
                                rtol=1e-12, atol=1e-12)
+    # a factor whose planes are fixed takes the other map's too (cast once, here)
+    fixed = CdtmPairFactor(X(0), X(1), feats, body_T_cam, PlaneMode.FIXED)
+    np.testing.assert_array_equal(fixed.refreshed(moved, Tb, grown, caster(other)).features.N, N)
     same = f.refreshed(moved, Tb, feats.noise, caster(terrain))
     np.testing.assert_allclose(same.evaluate(moved, Tb)[0], f.refreshed(moved, Tb).evaluate(
         moved, Tb)[0], rtol=1e-12, atol=1e-12)

@@ -266,6 +266,54 @@ def test_the_live_path_grows_a_map_worse_than_stated_as_it_goes(mode, measured):
     assert nees.mean() < measured * 1.3, nees.mean()
 
 
+def test_a_map_grown_by_a_runs_last_round_is_iterated_to():
+    """10 m of noise on the posts (30 frames, seed 2, iSAM2): the map reads worse only at
+    the run's end, in ``finalize``'s rounds (frame 29). The growth changes the factors, so
+    the solver must iterate after it as after tracks left out: the error reported is the
+    graph's as it ends. Mutation tried (2026-11-28, the review's find): a growth not
+    counted as a round's change (``TrackRounds.run``) -> final error 6155 against the
+    graph's 5070: fails."""
+    from cdtm_graph.sim.faults import with_dtm_noise
+    from cdtm_graph.smoother.incremental import IncrementalSmoother
+
+    log, dtm = SCENARIOS["clean"].flight(dataclasses.replace(BASE, frames=30, seed=2))
+    noisy = with_dtm_noise(dtm, 10.0, np.random.default_rng(102))
+    smoother = IncrementalSmoother(log.config, noisy, Mode.ISAM2.settings(SmootherSettings()),
+                                   frame_interval_s=1.0)
+    smoother.feed(log)
+    assert smoother.map_grown and smoother.map_grown[-1][0] == 29
+    assert smoother.final_error == pytest.approx(smoother._window.backend.error(), rel=1e-9)
+
+
+def test_a_run_made_again_after_a_grown_map_holds_it(monkeypatch):
+    """The 25-frame waves flight whose map is grown at the run's end (iSAM2, seed 1): the
+    run made again with the grown sigma_h, and a run made again for the IMU's random walks
+    after it, hold the map as it is (no reading as they go: ``live_every_rounds`` None),
+    else they would grow it again from the grown sigma_h as if stated, up to 3x of it (the
+    review's find: 12.5 m on a map grown to 7.2 m). The walks' check is made to grow.
+    Mutation tried (2026-11-28): the walks' run made again with the run's own settings ->
+    fails."""
+    from types import SimpleNamespace
+
+    from cdtm_graph.smoother import batch
+
+    made = []  # each run's live reading setting
+    once = batch._smooth_once
+    monkeypatch.setattr(batch, "_smooth_once", lambda flight, dtm, settings, *a: (
+        made.append(settings.graph.map_error.live_every_rounds) or once(
+            flight, dtm, settings, *a)))
+    monkeypatch.setattr(batch, "check_random_walks", lambda flight, *a, **k: SimpleNamespace(
+        grown=True, scales=(2.0, 2.0),
+        used_gyro=2 * flight.config.imu.gyroscope_random_walk,
+        used_accel=2 * flight.config.imu.accelerometer_random_walk))
+    seed = 1
+    detail = MapDetail(DetailShape.WAVES, DETAIL_RMS_M, (40.0, 300.0), seed=seed)
+    flight = simulate_flight(dataclasses.replace(BASE, frames=25, seed=seed, map_detail=detail))
+    result = batch.smooth(*flight, Mode.ISAM2.settings(SmootherSettings()))
+    assert result.map_error is not None and result.map_error.grown
+    assert made == [1, None, None] and result.map_error.grown_at == ()
+
+
 @pytest.mark.slow  # a 90-frame fixed-lag flight fed (~4 s)
 def test_the_live_path_does_not_take_clutter_for_a_worse_map():
     """A forest the DTM lacks (20% of the ground, trees 15-25 m: the robustness study's

@@ -781,6 +781,38 @@ def test_a_map_read_beyond_what_a_run_grows_it_to_is_a_reason(estimated, used, f
         assert any(f"the first run read {first:.2f} m" in n for n in verdict.notes)
 
 
+@pytest.mark.parametrize("solver", [Solver.ISAM2, Solver.FIXED_LAG], ids=lambda s: s.value)
+def test_a_map_grown_as_the_run_went_is_said_so(solver):
+    """A run whose incremental pass grew the map as it went (``MapErrorEstimate.grown_at``)
+    and was kept. Read within the bound: the note names where it grew, that a fixed lag's
+    frames let go before hold the stated map (a full history's factors all took it), and
+    says what the end read without printing NaN when too few tracks were left to read.
+    Read beyond: the reason ``map_error`` alone, saying the run grew part of it (the note
+    would say "its covariances hold it" beside it). Mutations tried (2026-11-28): the
+    note not left out when beyond -> both appear; the mode not told apart -> the iSAM2
+    note says "the stated"; the NaN not worded -> "nan m": each fails."""
+    from cdtm_graph.results import MapErrorEstimate
+
+    base = dataclasses.replace(_result(), stats=dataclasses.replace(_result().stats,
+                                                                    solver=solver))
+    grown_at = ((25, 5.5), (45, 6.6))
+    for estimated in (6.4, float("nan")):
+        verdict = assess(dataclasses.replace(base, map_error=MapErrorEstimate(
+            2.4, estimated, 300 if estimated == estimated else 12, 6.6, 7.2,
+            grown_at=grown_at)))
+        notes = [n for n in verdict.notes if n.startswith("map_error_grown")]
+        assert _codes(verdict) == [] and len(notes) == 1, verdict.lines()
+        assert "5.50 m from frame 25, 6.60 m from frame 45" in notes[0]
+        assert ("the frames it had let go the stated" in notes[0]) == (
+            solver is Solver.FIXED_LAG)
+        assert "nan" not in notes[0]
+    beyond = assess(dataclasses.replace(base, map_error=MapErrorEstimate(
+        2.4, 8.3, 300, 6.6, 7.2, grown_at=grown_at)))
+    assert _codes(beyond) == ["map_error"], beyond.lines()
+    assert not any(n.startswith("map_error_grown") for n in beyond.notes)
+    assert "grew it as it went, to 6.60 m from frame 45" in beyond.reasons[0].message
+
+
 def test_a_calibration_part_the_flight_did_not_tell_is_a_note():
     """``calibration_unobservable``: a part estimated online that kept its prior's sigma is
     a note, not a reason. Mutation: the note switched off -> fails."""
