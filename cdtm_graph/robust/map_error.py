@@ -121,6 +121,14 @@ class MapErrorSettings:
                              "finite number of posts > 0, or None (the patches' slopes)")
 
 
+def grown_map(dtm: Dtm, settings: MapErrorSettings | None) -> Dtm:
+    """The DTM a run with a grown map error goes on with: a map worse than stated is
+    tilted by its error too, so its tangent planes take regional slopes
+    (``MapErrorSettings.slope_sigma_posts``; None: as it is)."""
+    slopes = None if settings is None else settings.slope_sigma_posts
+    return dtm if slopes is None else dtm.with_regional_slopes(slopes)
+
+
 def estimate_map_error(heights: TrackHeights, sigma_h_m: float,
                        settings: MapErrorSettings | None = None,
                        mismatch: MismatchSettings | None = None) -> MapErrorEstimate:
@@ -227,6 +235,7 @@ class MapErrorWatch:
     def __init__(self, stated_m: float, settings: MapErrorSettings,
                  mismatch: MismatchSettings | None = None):
         assert settings.live_every_rounds is not None
+        self._every = settings.live_every_rounds
         self.stated_m = self.used_m = float(stated_m)
         self.settings, self.mismatch = settings, mismatch or MismatchSettings()
         self.readings: list[tuple[int, float, int]] = []  # (frame, estimated_m, n_tracks)
@@ -237,8 +246,7 @@ class MapErrorWatch:
         """Whether this round reads the map (counts the rounds; none once grown to the
         bound, the most it grows to)."""
         self._rounds += 1
-        assert self.settings.live_every_rounds is not None
-        return (self._rounds % self.settings.live_every_rounds == 0
+        return (self._rounds % self._every == 0
                 and self.used_m < self.settings.max_ratio * self.stated_m)
 
     def read(self, k: int, heights: TrackHeights) -> float | None:
@@ -251,7 +259,7 @@ class MapErrorWatch:
         use = well_triangulated(heights, self.stated_m, self.mismatch)
         if use.any():
             now = heights.subset(use)
-            now = replace(now, dh_m=now.dh_m - np.median(now.dh_m))
+            now = replace(now, dh_m=now.dh_m - median(now.dh_m))
             held = self._held.subset(~np.isin(self._held.track_id, now.track_id))
             self._held = _joined(held, now, LIVE_TRACKS)
         s = self.settings

@@ -50,6 +50,7 @@ from cdtm_graph.robust.clutter import considered_offsets
 from cdtm_graph.robust.imu_walk import with_random_walks
 from cdtm_graph.robust.map_error import (
     estimate_map_error,
+    grown_map,
     run_broad_map_error,
     run_heights,
 )
@@ -256,12 +257,8 @@ def _map_held(settings: SmootherSettings) -> SmootherSettings:
 
 
 def _grown(dtm: Dtm, settings: SmootherSettings) -> Dtm:
-    """The DTM a run with a grown map error is made again on: a map worse than stated
-    is tilted by its error too, so its tangent planes take regional slopes
-    (``MapErrorSettings.slope_sigma_posts``; None: as it is)."""
-    map_error = settings.graph.map_error
-    slopes = None if map_error is None else map_error.slope_sigma_posts
-    return dtm if slopes is None else dtm.with_regional_slopes(slopes)
+    """:func:`~cdtm_graph.robust.map_error.grown_map` of the run's settings."""
+    return grown_map(dtm, settings.graph.map_error)
 
 
 def _principal_point_considered(flight: FlightLog, dtm: Dtm, settings: SmootherSettings,

@@ -513,8 +513,8 @@ def _map_growth(graph: GraphSettings, sigma_h_m: float, dtm: Dtm, build: BuildFa
     map_error = graph.map_error
     if map_error is None or not map_error.live_every_rounds or judge is None:
         return None
-    return MapGrowth(MapErrorWatch(sigma_h_m, map_error, graph.mismatch), dtm,
-                     map_error.slope_sigma_posts, build, judge, window)
+    return MapGrowth(MapErrorWatch(sigma_h_m, map_error, graph.mismatch), dtm, map_error,
+                     build, judge, window)
 
 
 def _sightings(k: int, track_id: np.ndarray | None, uv_px: np.ndarray | None

@@ -10,7 +10,7 @@ from dataclasses import replace
 
 from cdtm_graph.dtm import Dtm
 from cdtm_graph.graph import dtm_ray_caster
-from cdtm_graph.robust.map_error import MapErrorWatch
+from cdtm_graph.robust.map_error import MapErrorSettings, MapErrorWatch, grown_map
 from cdtm_graph.robust.stages import BuildFactors
 from cdtm_graph.robust.track_judge import TrackJudge
 from cdtm_graph.smoother.window import SolverWindow
@@ -25,15 +25,15 @@ class MapGrowth:
 
     Args:
         watch: reads the map and decides. dtm: the map as given (the grid).
-        slope_sigma_posts: a grown map's regional slopes
-            (``MapErrorSettings.slope_sigma_posts``; None: the patches' own).
+        settings: what a grown map takes (its regional slopes: :func:`~cdtm_graph.
+            robust.map_error.grown_map`).
         build: the stage that builds the factors. judge: the track tests.
         window: the solver's side.
     """
 
-    def __init__(self, watch: MapErrorWatch, dtm: Dtm, slope_sigma_posts: float | None,
+    def __init__(self, watch: MapErrorWatch, dtm: Dtm, settings: MapErrorSettings,
                  build: BuildFactors, judge: TrackJudge, window: SolverWindow):
-        self.watch, self.dtm, self.slope_sigma_posts = watch, dtm, slope_sigma_posts
+        self.watch, self.dtm, self.settings = watch, dtm, settings
         self.build, self.judge, self.window = build, judge, window
         self.grown: list[tuple[int, float]] = []  # (frame, sigma_h from that frame on)
 
@@ -48,8 +48,8 @@ class MapGrowth:
 
     def _grow(self, sigma_h_m: float, k: int) -> None:
         build = self.build
-        if self.slope_sigma_posts is not None and not build.dtm.slope_sigma_posts:
-            build.dtm = self.dtm.with_regional_slopes(self.slope_sigma_posts)
+        if build.dtm is self.dtm:  # (the first growth: the grid smoothed once)
+            build.dtm = grown_map(self.dtm, self.settings)
         build.noise = self.judge.noise = replace(build.noise, sigma_h_m=sigma_h_m)
         self.window.on_map(build.noise, dtm_ray_caster(build.dtm), k)
         self.grown.append((k, sigma_h_m))

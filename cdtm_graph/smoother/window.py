@@ -333,24 +333,12 @@ class SolverWindow:
         """Every C-DTM factor still in the solver on another reading of the map (a grown
         sigma_h, regional slopes: :meth:`~factors.CdtmPairFactor.refreshed`) at the poses
         held now, its kernel's scale kept (a gate's innovation spread); frame k fetched."""
-        graph = gtsam.NonlinearFactorGraph()
-        live, moved = [], []
-        for i in range(self.since(self.settled), len(self.cdtm)):
-            f = self.cdtm[i]
-            if f is None or _frame(f.key_a) < self.settled:
-                continue  # (out of the solver)
-            r = f.refreshed(self.backend.pose(_frame(f.key_a)),
-                            self.backend.pose(_frame(f.key_b)), noise,
-                            raycast).with_robust_scale(f.features.robust_scale)
-            live.append(i)
-            moved.append(r)
-            graph.add(r.factor)
-        if not live:
-            return
-        new_slots = self.backend.replace(graph, [self.slots[i] for i in live])
-        for i, r, slot in zip(live, moved, new_slots):
-            self.cdtm[i], self.slots[i] = r, slot
-        self.fetch(k)
+        pose = self.backend.pose
+        self._swapped(  # (a factor whose earlier frame has left the window left the solver)
+            [i for i in range(self.since(self.settled), len(self.cdtm))
+             if (f := self.cdtm[i]) is not None and _frame(f.key_a) >= self.settled],
+            lambda f: f.refreshed(pose(_frame(f.key_a)), pose(_frame(f.key_b)), noise,
+                                  raycast).with_robust_scale(f.features.robust_scale), k)
 
     def refresh_newest_noise(self, k: int, predicted: np.ndarray, n: int) -> None:
         """When frame k's update moved it far from its IMU prediction (early frames under a
@@ -360,20 +348,26 @@ class SolverWindow:
         if not self.moved_far(k, predicted):
             return
         # (a mismatch round since the commit may have taken some of them out)
-        live = [i for i in range(len(self.cdtm) - n, len(self.cdtm)) if self.cdtm[i] is not None]
+        self._swapped(
+            [i for i in range(len(self.cdtm) - n, len(self.cdtm)) if self.cdtm[i] is not None],
+            lambda f: f.refreshed(self.backend.pose(_frame(f.key_a)), self.poses[k]
+                                  ).with_robust_scale(f.features.robust_scale), k)
+
+    def _swapped(self, live: list[int], remade: Callable[[CdtmPairFactor], CdtmPairFactor],
+                 k: int) -> None:
+        """The factors at ``live`` (in the solver) swapped for ``remade`` ones, in one
+        solver update; frame k fetched (nothing if none)."""
         if not live:
             return
-        refreshed = []
+        made = []
         graph = gtsam.NonlinearFactorGraph()
         for i in live:
             f = self.cdtm[i]
             assert f is not None
-            r = f.refreshed(self.backend.pose(_frame(f.key_a)),
-                            self.poses[k]).with_robust_scale(f.features.robust_scale)
-            refreshed.append(r)
-            graph.add(r.factor)
+            made.append(remade(f))
+            graph.add(made[-1].factor)
         new_slots = self.backend.replace(graph, [self.slots[i] for i in live])
-        for i, r, slot in zip(live, refreshed, new_slots):
+        for i, r, slot in zip(live, made, new_slots):
             self.cdtm[i], self.slots[i] = r, slot
         self.fetch(k)
 
