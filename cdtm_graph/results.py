@@ -338,6 +338,17 @@ class Rejections:
             return self._totals[reason]
         return sum(self._totals.values())
 
+    def in_frames(self, first: int, end: int) -> dict[str, np.ndarray]:
+        """Reason value -> counts of frames ``first .. end - 1``, the reasons that left
+        any out there (a live update's few frames: looked up, not gathered)."""
+        out = {}
+        for reason, counts in self._counts.items():
+            if counts:
+                n = [counts.get(k, 0) for k in range(first, end)]
+                if any(n):
+                    out[reason.value] = np.array(n, dtype=float)
+        return out
+
     def per_frame(self, n_frames: int) -> dict[str, np.ndarray]:
         """Reason value -> (K,) counts, every reason present."""
         out = {}

@@ -5,7 +5,9 @@ IMU samples as they arrive (``add_imu`` preintegrates them at once), then each f
 its tracked features and the sample that closes its interval. ``add_frame`` returns the
 newest pose with its covariance (iSAM2 underneath; pass ``--lag-s`` for GTSAM's
 incremental fixed-lag smoother). Until the estimate has settled under the C-DTM factors the
-covariance is the prior's carried by the IMU (marked ``settling``); with ground truth the
+covariance is the prior's carried by the IMU (marked ``settling``); a frame the update
+flags says why (``FrameUpdate.flags``: the verdict's frame flags as far as they are known
+when it arrives, e.g. ``map_mismatch``, ``few_features``); with ground truth the
 summary gives the share of frames whose error lies inside 3 sigma (chi-square(3), 99.73%).
 
 Run: ``python scripts/isam2_incremental.py [LOG] [--lag-s 10]``
@@ -49,7 +51,8 @@ def main(argv: list[str] | None = None) -> dict:
                 f"{np.array2string(update.world_T_body[:3, 3], precision=1)} m, "
                 f"1-sigma {np.array2string(sigma_pos, precision=2)} m (body axes), "
                 f"{1e3 * update.update_time_s:.1f} ms (+ IMU {1e3 * update.imu_time_s:.1f} ms)"
-                f"{'' if update.converged else ' (settling)'}")
+                f"{'' if update.converged else ' (settling)'}"
+                f"{', flagged ' + ', '.join(update.flags) if update.flags else ''}")
         if flight.groundtruth is not None:
             truth = flight.groundtruth.interpolate(np.array([frame.t_ns])).position_m[0]
             errors.append(update.world_T_body[:3, 3] - truth)

@@ -14,7 +14,9 @@ paper's geometry: 1000 m, 200 m/s, 60 deg FOV, 1 fps, 640x480).
 Each line gives the newest frame's position 1-sigma; until the estimate has settled under
 the C-DTM factors (from the prior's 50 m), it is the prior's carried by the IMU, marked
 ``settling``. Where the tracks read the DTM worse than flight.yaml states, the line says
-to what its height 1-sigma grew (``FrameUpdate.map_sigma_h_m`` from there). With ground
+to what its height 1-sigma grew (``FrameUpdate.map_sigma_h_m`` from there), and a frame
+the update flags says why (``FrameUpdate.flags``: ``map_mismatch``, ``few_features``...,
+the verdict's frame flags as far as they are known then). With ground
 truth each line gives the error, and the summary the share of frames whose position error
 lies inside 3 sigma (chi-square(3) at 99.73%).
 
@@ -103,6 +105,8 @@ def main(argv: list[str] | None = None) -> dict:
                 f"{'' if update.converged else ' (settling)'}")
         if smoother.map_grown and smoother.map_grown[-1][0] == k:  # the map read worse
             line += f", DTM height 1-sigma grown to {update.map_sigma_h_m:.2f} m"
+        if update.flags:  # why this frame's fix is weak or not to be trusted, known now
+            line += f", flagged {', '.join(update.flags)}"
         if flight.groundtruth is not None:
             truth = flight.groundtruth.interpolate(np.array([t_ns])).position_m[0]
             errors.append(update.world_T_body[:3, 3] - truth)

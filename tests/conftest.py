@@ -69,6 +69,13 @@ def flightlog_files():
 
 
 @pytest.fixture(scope="session")
+def live():
+    """:mod:`tests.support.live`: a log fed to the live API frame by frame, each update's
+    position NEES against the log's truth."""
+    return _support("live")
+
+
+@pytest.fixture(scope="session")
 def synthetic():
     """:mod:`tests.support.synthetic`: a made-up smoother result, a smooth world DTM."""
     return _support("synthetic")

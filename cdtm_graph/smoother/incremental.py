@@ -58,6 +58,7 @@ from cdtm_graph.robust.stages import (
 from cdtm_graph.robust.track_judge import TrackJudge
 from cdtm_graph.smoother.assembly import ClutterOutcome, assemble_result
 from cdtm_graph.smoother.backends import frame_keys
+from cdtm_graph.smoother.frame_flags import FrameFlags
 from cdtm_graph.smoother.map_growth import MapGrowth
 from cdtm_graph.smoother.settings import Progress, SmootherSettings
 from cdtm_graph.smoother.settling import Settling
@@ -90,6 +91,10 @@ class FrameUpdate:
         map_sigma_h_m: the DTM height 1-sigma its factors hold: flight.yaml's, until the
             tracks show the map worse (:class:`~cdtm_graph.robust.map_error.MapErrorWatch`;
             :attr:`IncrementalSmoother.map_grown`).
+        flags: why the frame's fix is weak or not to be trusted, as known now
+            (:class:`~cdtm_graph.codes.Code` members: ``map_mismatch``, ``few_features``,
+            ``no_fix``, ``clutter``...; :class:`~cdtm_graph.smoother.frame_flags.
+            FrameFlags`): the run's verdict flags the frame again from its whole window.
     """
 
     frame: int
@@ -102,6 +107,7 @@ class FrameUpdate:
     imu_time_s: float = 0.0
     converged: bool = True
     map_sigma_h_m: float = float("nan")
+    flags: tuple[str, ...] = ()
 
 
 class IncrementalSmoother:
@@ -174,7 +180,7 @@ class IncrementalSmoother:
         if frame_interval_s is not None and search is not None \
                 and search.needed_at_start() and not w.holds_search(search, frame_interval_s):
             raise _lag_too_short(settings, frame_interval_s)
-        self._frame_flags: dict[int, list[str]] = {}
+        self._flags = FrameFlags(clutter=graph.clutter if self._judge is not None else None)
         self._map_offset = MapOffset.of(config.dtm)  # in what it reports, not what it uses
         self._principal_point = LiveShare(config.camera, dtm)  # likewise, a declared one's
         self._pair_prior_of: Callable[[], Callable[[int], np.ndarray]] | None = None
@@ -183,7 +189,6 @@ class IncrementalSmoother:
         # per update: outliers that moved one would switch off the tests that stop them.
         self.converging = True
         self._settling = Settling(w, settings.final_iterations)  # the live covariance honest
-        self._features_per_frame: dict[int, int] = {}
         self.n_features = self.n_cdtm_factors = 0
         self.update_times_s: list[float] = []
         self.imu_times_s: list[float] = []
@@ -254,8 +259,7 @@ class IncrementalSmoother:
                                lambda: w.pair_prior(k, link, values))
         work = self.stages.run(FrameWork(k, *(seen or (None, None))), self)
         self._pair_prior_of = None  # (this frame's: no later stage run may use it)
-        if work.flags:
-            self._frame_flags.setdefault(k, []).extend(work.flags)
+        self._flags.add(k, work.flags)
         new = work.factors
         for f in new:
             graph.add(f.factor)
@@ -275,6 +279,8 @@ class IncrementalSmoother:
             with self.stages.charged(HoldForFix.name, HoldForFix.rejects):
                 self._try_acquisition(k)
         converged, reported = self._settling.reported(k, self.n_cdtm_factors > 0)
+        flags = self._flags.newest(w.t_ns, self.rejections, pim, self._judge, new,
+                                   work.track_ids)
         self._imu.start(int(t_ns), w.biases[k])
         pose_cov = self._principal_point.added_to_pose(
             self._map_offset.added_to_pose(reported[:6, :6], w.poses[k]), w.poses[k])
@@ -282,7 +288,8 @@ class IncrementalSmoother:
         self.update_times_s.append(elapsed)
         self.imu_times_s.append(self._imu.take_time_s())
         return FrameUpdate(k, int(t_ns), w.poses[k], w.velocities[k], pose_cov, work.n_features,
-                           elapsed, self.imu_times_s[-1], converged, self._build.noise.sigma_h_m)
+                           elapsed, self.imu_times_s[-1], converged, self._build.noise.sigma_h_m,
+                           flags)
 
     # -- what the stages ask (robust.stages.SolverView) --------------------------------
 
@@ -333,9 +340,7 @@ class IncrementalSmoother:
             return
         self._apply_fix(correction, self._search.held, k)
         for j, _, _ in self._search.found():  # their sightings are in now
-            self._frame_flags[j].remove(Code.NO_FIX)
-            if not self._frame_flags[j]:
-                del self._frame_flags[j]
+            self._flags.clear(j, Code.NO_FIX)
 
     def _apply_fix(self, correction: Correction,
                    held: list[tuple[int, np.ndarray, np.ndarray]], k: int) -> None:
@@ -377,7 +382,7 @@ class IncrementalSmoother:
         n_features = sum(f.features.n for f in factors)
         self.n_features += n_features
         self.n_cdtm_factors += len(factors)
-        self._features_per_frame[k] = n_features
+        self._flags.features[k] = n_features
 
     # -- results ----------------------------------------------------------------------
 
@@ -439,8 +444,7 @@ class IncrementalSmoother:
     @property
     def unfixed_frames(self) -> np.ndarray:
         """Frames whose sightings were held back for a fix that was not found (sorted)."""
-        return np.array(sorted(k for k, flags in self._frame_flags.items()
-                               if Code.NO_FIX in flags), dtype=np.int64)
+        return self._flags.frames_with(Code.NO_FIX)
 
     def values(self) -> gtsam.Values:
         """Latest estimate of every frame so far (frames out of a lag window keep the
@@ -486,7 +490,7 @@ class IncrementalSmoother:
         counts = GraphCounts(
             K, self._pairing.table.n_tracks, self._pairing.n_observations,
             self._pairing.n_pairs, self.n_features, self.n_cdtm_factors, K - 1,
-            np.array([self._features_per_frame.get(k, 0) for k in range(K)]),
+            np.array([self._flags.features.get(k, 0) for k in range(K)]),
             rejected_per_frame=self.rejections.per_frame(K))
         nis = self.innovation_nis
         stats = SolverStats(
@@ -500,7 +504,7 @@ class IncrementalSmoother:
         clutter = None if self._judge is None or clutter_settings is None else ClutterOutcome(
             self._judge.clutter, self._judge.considered(K), clutter_settings)
         return assemble_result(self.config, estimate, covariances, stats, counts, settings,
-                               self._frame_flags, self._window.live_factors(), clutter,
+                               self._flags.own, self._window.live_factors(), clutter,
                                stages=self.stages.summary(), broad_map_error=None
                                if self._rounds is None or self._rounds.watch is None
                                else self._rounds.watch.result(self._window.t_ns))

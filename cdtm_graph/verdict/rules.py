@@ -91,6 +91,7 @@ from cdtm_graph.verdict.fix_geometry import (
 )
 from cdtm_graph.verdict.imu_faults import MeasuredImuNoise, imu_gaps
 from cdtm_graph.verdict.outcome import Reason, SelfChecks, Status, Verdict
+from cdtm_graph.verdict.window_counts import count_flags
 
 
 @dataclass(frozen=True)
@@ -308,11 +309,7 @@ class _Frames:
         self.features = _per_frame(counts.features_per_frame, self.k)
         self.outliers = _per_frame(counts.outliers_per_frame, self.k)
         self.rejected = {r: _per_frame(v, self.k) for r, v in counts.rejected_per_frame.items()}
-        # features the graph was offered: kept, or left out for a reason that is a fault
-        faults = [v for r, v in self.rejected.items()
-                  if settings.rejection_rules.get(r, settings.default_rejection_rule)
-                  .min_fraction is not None]
-        self.offered = self.features + sum(faults, np.zeros(self.k))
+        self.offered = _offered(self.features, self.rejected, settings)
         self.chi2 = _per_frame(counts.residual_chi2_per_frame, self.k)
         self.has_chi2 = np.asarray(counts.residual_chi2_per_frame).size == self.k
         self.later = np.arange(self.k) >= 1  # frame 0 ends no feature pair
@@ -323,34 +320,58 @@ def _per_frame(values: Any, k: int) -> np.ndarray:
     return arr if arr.shape == (k,) else np.zeros(k)
 
 
-def _no_features(f: _Frames, off_dtm: np.ndarray) -> FrameTest:
-    flagged = f.later & (f.features == 0) & ~off_dtm
-    return FrameTest(Code.NO_FEATURES, flagged,
-                     lambda a, b: "no C-DTM feature: the position comes from the IMU alone")
+def _offered(features: np.ndarray, rejected: Mapping[str, np.ndarray],
+             settings: VerdictSettings) -> np.ndarray:
+    """(K,) the features each frame was offered: kept, or left out for a reason that is a
+    fault."""
+    faults = [v for r, v in rejected.items()
+              if settings.rejection_rules.get(r, settings.default_rejection_rule)
+              .min_fraction is not None]
+    return features + sum(faults, np.zeros(features.size))
 
 
-def _rejection_tests(f: _Frames, settings: VerdictSettings
-                     ) -> tuple[list[FrameTest], list[tuple[Code, str]]]:
-    """One test per rejection code, its reasons' counts summed over each window; and the
-    run-wide failures (:attr:`RejectionRule.failed`)."""
+def _count_flags(features: np.ndarray, rejected: Mapping[str, np.ndarray],
+                 offered: np.ndarray, first: int, half: int, settings: VerdictSettings
+                 ) -> tuple[list[tuple[str, RejectionRule, list[str]]], np.ndarray,
+                            tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """The rejection codes whose rules flag (each with its rule and reasons), the features
+    each left out per frame ((M, K): its reasons summed), and
+    :func:`~cdtm_graph.verdict.window_counts.count_flags` of these frames."""
     by_code: dict[str, tuple[RejectionRule, list[str]]] = {}
-    for reason in f.rejected:
+    for reason in rejected:
         rule = settings.rejection_rules.get(reason, settings.default_rejection_rule)
         if rule.min_fraction is None:
             continue
         by_code.setdefault(rule.code, (rule, []))[1].append(reason)
-    offered = window_sum(f.offered, f.half)
-    tests = []
+    codes = [(code, rule, reasons) for code, (rule, reasons) in by_code.items()]
+    left_out = np.zeros((len(codes), features.size))
+    for row, (_, _, reasons) in zip(left_out, codes):
+        for r in reasons:
+            row += rejected[r]
+    off_dtm_row = next((i for i, (code, _, _) in enumerate(codes) if code == Code.OFF_DTM), -1)
+    return codes, left_out, count_flags(
+        np.asarray(features, dtype=float), left_out, np.asarray(offered, dtype=float),
+        np.array([rule.min_fraction for _, rule, _ in codes], dtype=float), off_dtm_row,
+        first, half, float(settings.min_features_per_frame))
+
+
+def _count_tests(f: _Frames, settings: VerdictSettings
+                 ) -> tuple[list[FrameTest], list[tuple[Code, str]], np.ndarray]:
+    """The tests that need no solution, only what each frame was offered and kept:
+    no_features, one per rejection code (its reasons' counts summed over each window;
+    off_dtm among them), few_features (the mean over the window's frames that have a
+    fix: off-map neighbours are not "few"); with the run-wide failures of the rejection
+    rules (:attr:`RejectionRule.failed`) and the frames without a fix."""
+    codes, left_out, (flagged, no_features, few, mean_features) = _count_flags(
+        f.features, f.rejected, f.offered, 0, f.half, settings)
+    tests = [FrameTest(Code.NO_FEATURES, no_features, lambda a, b: (
+        "no C-DTM feature: the position comes from the IMU alone"))]
+    unfixed = no_features.copy()
+    n_offered = f.offered.sum()
     failures: list[tuple[Code, str]] = []
-    for code, (rule, reasons) in by_code.items():
-        left_out = {r: window_sum(f.rejected[r], f.half) for r in reasons}
-        total = sum(left_out.values(), np.zeros(f.k))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            share = np.where(offered > 0, total / np.maximum(offered, 1), 0.0)
-        flagged = f.later & (share >= rule.min_fraction) & (total > 0)
-        if code == Code.OFF_DTM:  # a frame all of whose rays missed is off the map
-            missed = sum((f.rejected[r] for r in reasons), np.zeros(f.k))
-            flagged |= f.later & (f.features == 0) & (missed > 0)
+    for (code, rule, reasons), code_flagged, n in zip(codes, flagged, left_out):
+        if code == Code.OFF_DTM:
+            unfixed |= code_flagged
 
         def describe(a: int, b: int, rule=rule, reasons=reasons) -> str:
             n_offered = f.offered[a:b + 1].sum()
@@ -361,8 +382,7 @@ def _rejection_tests(f: _Frames, settings: VerdictSettings
                     f"({', '.join(parts)}): {rule.meaning}")
 
         run_wide = None
-        n_run = sum(f.rejected[r].sum() for r in reasons)
-        n_offered = f.offered.sum()
+        n_run = n.sum()
         if (rule.min_run_fraction is not None and n_offered > 0
                 and n_run >= rule.min_run_fraction * n_offered):
             run_wide = (f"over the whole flight {_pct(n_run / n_offered)} of the features "
@@ -373,21 +393,44 @@ def _rejection_tests(f: _Frames, settings: VerdictSettings
                 f"over the whole flight {_pct(n_run / n_offered)} of the features offered "
                 f"were left out ({', '.join(reasons)}; at most {_pct(rule.failed[1])} "
                 f"tolerated): {rule.failed[2]}")))
-        tests.append(FrameTest(code, flagged, describe, run_wide=run_wide))
-    return tests, failures
+        tests.append(FrameTest(code, code_flagged, describe, run_wide=run_wide))
+    tests.append(FrameTest(Code.FEW_FEATURES, few, lambda a, b: (
+        f"{mean_features[a:b + 1].mean():.0f} C-DTM features per frame, fewer than "
+        f"{settings.min_features_per_frame:g}: a weak fix")))
+    return tests, failures, unfixed
+
+
+def newest_frame_flags(features: np.ndarray, rejected: Mapping[str, np.ndarray],
+                       first: int, half: int, settings: VerdictSettings | None = None
+                       ) -> list[str]:
+    """The flags :func:`assess` would set on the newest of these frames from what has
+    arrived by its update: the tests that need no solution (``no_features``,
+    ``off_dtm``, ``few_features``, the rejection shares such as ``map_mismatch``), each
+    over the part of the frame's window up to it (the frames within ``half`` before it).
+    A run's verdict takes the whole window, the frames after it too.
+
+    Args:
+        features, rejected: (K,) each frame's features, and reason value -> (K,) the
+            features left out for it, as ``counts`` holds them: at least the ``2 * half``
+            frames before the newest (``few_features`` leaves out the frames of its
+            window without a fix, each judged over its own window).
+        first: the index of the first of them in the run.
+        half: the frames on each side of a frame in its window
+            (:func:`~cdtm_graph.verdict.fix_geometry.window_half_width`).
+    """
+    settings = settings or VerdictSettings()
+    codes, _, (flagged, no_features, few, _) = _count_flags(
+        features, rejected, _offered(features, rejected, settings), first, half, settings)
+    return ([Code.NO_FEATURES] * bool(no_features[-1])
+            + [code for (code, _, _), fl in zip(codes, flagged) if fl[-1]]
+            + [Code.FEW_FEATURES] * bool(few[-1]))
 
 
 def _geometry_tests(f: _Frames, result: SmootherResult, settings: VerdictSettings,
                     unfixed: np.ndarray) -> list[FrameTest]:
-    """few_features, flat_terrain, narrow_fov from each frame's window."""
+    """flat_terrain, narrow_fov from each frame's window."""
     judged = f.later & ~unfixed
-    # the mean over the window's frames that have a fix (off-map neighbours are not "few")
-    mean_features = (window_sum(np.where(judged, f.features, 0.0), f.half)
-                     / np.maximum(window_sum(judged.astype(float), f.half), 1.0))
-    few = judged & (mean_features < settings.min_features_per_frame)
-    tests = [FrameTest(Code.FEW_FEATURES, few, lambda a, b: (
-        f"{mean_features[a:b + 1].mean():.0f} C-DTM features per frame, fewer than "
-        f"{settings.min_features_per_frame:g}: a weak fix"))]
+    tests: list[FrameTest] = []
     if result.cdtm_information is None or np.shape(result.cdtm_information)[0] != f.k:
         return tests
     info = window_information(unit_height_information(np.asarray(result.cdtm_information)),
@@ -623,10 +666,7 @@ def assess(result: SmootherResult, errors: ErrorReport | None = None,
     """
     settings = settings or VerdictSettings()
     f = _Frames(result, settings)
-    tests, rejection_failures = _rejection_tests(f, settings)
-    off_dtm = next((t.flagged for t in tests if t.code == Code.OFF_DTM), np.zeros(f.k, bool))
-    tests.insert(0, _no_features(f, off_dtm))
-    unfixed = tests[0].flagged | off_dtm
+    tests, rejection_failures, unfixed = _count_tests(f, settings)
     tests += _geometry_tests(f, result, settings, unfixed)
     imu = _imu_test(result.estimate.t_ns, imu_t_ns, settings)
     if imu is not None:

@@ -218,30 +218,10 @@ def test_a_grown_map_takes_its_tangent_planes_slopes_regionally(mode):
                for n in verdict.notes)
 
 
-def _live_nees(log, dtm, settings: SmootherSettings):
-    """The live API (``IncrementalSmoother.add_frame``) over a log: each frame's position
-    NEES as the update reports it (frames 10 on: the prior's start apart), and the
-    smoother."""
-    from cdtm_graph.smoother.incremental import IncrementalSmoother
-
-    dt_s = float(np.median(np.diff(log.frames.t_ns))) * 1e-9
-    smoother = IncrementalSmoother(log.config, dtm, settings, frame_interval_s=dt_s)
-    updates = []
-    add = smoother.add_frame
-    smoother.add_frame = lambda *a, **k: updates.append(add(*a, **k)) or updates[-1]
-    smoother.feed(log)
-    truth = log.groundtruth.interpolate(np.array([u.t_ns for u in updates])).position_m
-    nees = []
-    for u, p in zip(updates, truth):
-        e, R = u.world_T_body[:3, 3] - p, u.world_T_body[:3, :3]
-        nees.append(e @ np.linalg.solve(R @ u.pose_covariance[3:, 3:] @ R.T, e))
-    return np.array(nees[10:]), smoother, updates
-
-
 @pytest.mark.slow  # a 90-frame flight fed in each mode (~8 s)
 @pytest.mark.parametrize("mode, measured", [(Mode.ISAM2, 3.29), (Mode.FIXED_LAG, 3.49)],
                          ids=["isam2", "fixed_lag"])
-def test_the_live_path_grows_a_map_worse_than_stated_as_it_goes(mode, measured):
+def test_the_live_path_grows_a_map_worse_than_stated_as_it_goes(live, mode, measured):
     """10 m of white noise on every post of a map stating 2.4 m (the robustness flight,
     seed 2), fed to the live API frame by frame: its updates report sigma_h as stated
     until the tracks read the map worse (:class:`MapErrorWatch`), then go on with the
@@ -258,7 +238,8 @@ def test_the_live_path_grows_a_map_worse_than_stated_as_it_goes(mode, measured):
     seed = 2
     log, dtm = SCENARIOS["clean"].flight(dataclasses.replace(BASE, seed=seed))
     noisy = with_dtm_noise(dtm, 10.0, np.random.default_rng(seed + 100))
-    nees, smoother, updates = _live_nees(log, noisy, mode.settings(SmootherSettings()))
+    nees, smoother, updates = live.live_updates(log, noisy, mode.settings(SmootherSettings()))
+    nees = nees[10:]  # (the prior's start apart)
     assert smoother.map_grown and 25 <= smoother.map_grown[0][0] <= 50
     first = smoother.map_grown[0][0]
     assert all(u.map_sigma_h_m == SIGMA_H_M for u in updates[:first])
@@ -318,7 +299,7 @@ def test_a_run_made_again_after_a_grown_map_holds_it(monkeypatch):
 
 
 @pytest.mark.slow  # a 90-frame fixed-lag flight fed (~4 s)
-def test_the_live_path_does_not_take_clutter_for_a_worse_map():
+def test_the_live_path_does_not_take_clutter_for_a_worse_map(live):
     """A forest the DTM lacks (20% of the ground, trees 15-25 m: the robustness study's
     ``forest``, seed 1), fed to the live fixed lag: the track tests drop the trees, and
     their heights, all above the ground, would read as a map 1.5-2x worse than stated
@@ -327,7 +308,8 @@ def test_the_live_path_does_not_take_clutter_for_a_worse_map():
     sigma_h stays as stated. Mutation tried (2026-11-28): that rule off -> grown at frame
     20, and in ``smooth()`` the run's ANEES 3.25 -> 5.03, 1313 -> 466 features dropped."""
     log, dtm = SCENARIOS["forest"].flight(dataclasses.replace(BASE, seed=1))
-    _, smoother, updates = _live_nees(log, dtm, Mode.FIXED_LAG.settings(SmootherSettings()))
+    _, smoother, updates = live.live_updates(log, dtm,
+                                             Mode.FIXED_LAG.settings(SmootherSettings()))
     assert smoother.map_grown == () and {u.map_sigma_h_m for u in updates} == {SIGMA_H_M}
 
 

@@ -48,6 +48,7 @@ from cdtm_graph.verdict.rules import (
     VerdictSettings,
     assess,
     fix_geometry,
+    newest_frame_flags,
     truncated_chi2_2dof_mean,
     window_half_width,
     window_information,
@@ -251,6 +252,67 @@ def test_map_mismatch_over_the_flight(per_frame, status):
     # the windows flag their frames only where at least 20% went
     flagged = any("map_mismatch" in names for names in verdict.flags.values())
     assert flagged is (per_frame / 150 >= 0.2)
+
+
+def _cut(result: SmootherResult, k: int) -> SmootherResult:
+    """The synthetic run as far as frame k (its newest)."""
+    c, e = result.counts, result.estimate
+    return dataclasses.replace(
+        result, estimate=TrajectoryEstimate(e.t_ns[:k + 1], e.world_T_body[:k + 1],
+                                            e.velocity_mps[:k + 1], e.gyro_bias[:k + 1],
+                                            e.accel_bias[:k + 1]),
+        counts=dataclasses.replace(
+            c, features_per_frame=c.features_per_frame[:k + 1],
+            outliers_per_frame=c.outliers_per_frame[:k + 1],
+            rejected_per_frame={r: v[:k + 1] for r, v in c.rejected_per_frame.items()},
+            residual_chi2_per_frame=c.residual_chi2_per_frame[:k + 1]),
+        cdtm_information=result.cdtm_information[:k + 1])
+
+
+def test_a_live_updates_flags_are_the_verdicts_on_the_run_as_far_as_it_has_come():
+    """``newest_frame_flags`` (what ``FrameUpdate.flags`` reports, from the frames within
+    half a window before the newest) is, frame by frame, what :func:`assess` flags on the
+    newest frame of the run cut there: the same rules on what has arrived. A burst of
+    features off the map (frames 10-19), one frame without any (25), a stretch of few
+    (30-35), rays off the map (40-46), then 10 features (47-48) and 22. The frames the
+    live update passes (``2 * half`` before the newest) are enough: the same flags as
+    the whole run so far. Mutations (each fails): the window's share taken over the
+    newest frame alone (``half`` 0: map_mismatch from frame 10, not 12); no rule's code
+    in the newest flags; ``half`` frames passed, not ``2 * half`` (frames 47-48's own
+    windows then cut before the off-map frames: no longer off the map, they count as
+    few)."""
+    k = 60
+    result = _result(k)
+    features = result.counts.features_per_frame.copy()
+    mismatch, missed = np.zeros(k, int), np.zeros(k, int)
+    mismatch[10:20] = 120
+    features[10:20] = 30
+    features[25] = 0
+    features[30:36] = 8
+    missed[40:47], features[40:47] = 140, 10
+    features[47:49], features[49:] = 10, 22
+    result = dataclasses.replace(result, counts=dataclasses.replace(
+        result.counts, features_per_frame=features,
+        rejected_per_frame={"map_mismatch": mismatch, "missed_dtm": missed},
+        residual_chi2_per_frame=features * truncated_chi2_2dof_mean(0.999)))
+    half = window_half_width(result.estimate.t_ns, VerdictSettings().window_s)
+    def newest(first: int, j: int) -> list[str]:
+        return sorted(newest_frame_flags(
+            features[first:j + 1].astype(float),
+            {"map_mismatch": mismatch[first:j + 1], "missed_dtm": missed[first:j + 1]},
+            first, half))
+
+    seen = set()
+    for j in range(1, k):
+        live = newest(0, j)
+        assert live == sorted(assess(_cut(result, j)).flags.get(j, [])), j
+        assert newest(max(0, j - 2 * half), j) == live, j
+        seen.update(live)
+    assert seen == {"map_mismatch", "few_features", "no_features", "off_dtm"}
+    # (the first frame of the burst: 120 of 150 offered, but the window's earlier frames
+    # hold it under 20% until frame 12)
+    assert "map_mismatch" not in newest_frame_flags(
+        features[5:11].astype(float), {"map_mismatch": mismatch[5:11]}, 5, half)
 
 
 def test_a_short_stretch_is_a_flag_not_a_reason():
