@@ -280,22 +280,33 @@ def _neighbourhood_mean(points: np.ndarray, values: np.ndarray, used: np.ndarray
 
 def considered_offsets(clutter: Clutter, key_a: Sequence[int], key_b: Sequence[int],
                        track_ids: Sequence[np.ndarray], n_frames: int) -> np.ndarray:
-    """(K,) the vertical offset each frame's C-DTM features carry on average: the mean
-    expected clutter height of the features of the factors that involve the frame.
+    """(K,) the vertical offset each frame's C-DTM features carry on average
+    (:func:`frame_offset_m` of the factors that involve the frame).
 
     A common offset of the ground a frame sees moves its altitude by as much; the
     estimate cannot tell, so it is a considered bias of the frame's vertical position.
     """
-    total = np.zeros(n_frames)
-    count = np.zeros(n_frames)
+    offsets = np.zeros(n_frames)
     if not clutter.significant:
-        return total
+        return offsets
+    by_frame: dict[int, list[np.ndarray]] = {}
     for a, b, ids in zip(key_a, key_b, track_ids):
-        offset = float(np.sum(clutter.expected_offset_m(ids)))
         for k in (int(gtsam.Symbol(a).index()), int(gtsam.Symbol(b).index())):
-            total[k] += offset
-            count[k] += ids.size
-    return np.where(count > 0, total / np.maximum(count, 1), 0.0)
+            by_frame.setdefault(k, []).append(ids)
+    for k, ids_of_frame in by_frame.items():
+        offsets[k] = frame_offset_m(clutter, ids_of_frame)
+    return offsets
+
+
+def frame_offset_m(clutter: Clutter, track_ids: Sequence[np.ndarray]) -> float:
+    """The mean expected clutter height of these features (the tracks of a frame's
+    factors, one array a factor): the vertical offset the frame's fix carries; 0 without
+    clutter or features."""
+    n = sum(ids.size for ids in track_ids)
+    if not clutter.significant or n == 0:
+        return 0.0
+    return sum((float(np.sum(clutter.expected_offset_m(ids))) for ids in track_ids),
+               0.0) / n
 
 
 def with_vertical_bias(covariances: StateCovariances, world_T_body: np.ndarray,

@@ -5,12 +5,20 @@ A run's verdict (:func:`~cdtm_graph.verdict.rules.assess`) flags a frame from it
 window, after the run. A live user reads each update as it comes, and an update whose
 covariance is small while its features leave the map is confidently wrong unless it says
 so then. So every update reports the flags known of its newest frame
-(``FrameUpdate.flags``): the verdict's tests that need no solution, over the part of the
-frame's window that has arrived (:func:`~cdtm_graph.verdict.rules.newest_frame_flags`:
-the same rules, the same thresholds), the smoother's own (``no_fix``), an IMU gap the
-preintegration held a sample across, and clutter its features may carry (the track
-tests' clutter fit, :func:`~cdtm_graph.robust.clutter.considered_offsets`, as the run's
-result flags it).
+(``FrameUpdate.flags``):
+
+- the verdict's tests that need no solution, over the part of the frame's window that
+  has arrived (:func:`~cdtm_graph.verdict.rules.newest_frame_flags`: the same kernel, the
+  default :class:`~cdtm_graph.verdict.rules.VerdictSettings`' thresholds; the window's
+  frames from the latest frames' spacing);
+- the smoother's own (``no_fix``, ``search_beyond_lag``);
+- ``imu_gap`` where the frame's interval was preintegrated across a gap (a sample held:
+  :class:`~cdtm_graph.imu.GapNoise`, gaps beyond three nominal sample periods; finer than
+  the verdict's test from the sample times, more than 0.1 s or 3 median intervals);
+- ``clutter`` where its features carry, on average, more expected clutter height than
+  the flag under the track tests' latest fit (:func:`~cdtm_graph.robust.clutter.
+  frame_offset_m` of the factors that end at it; the run's result takes every factor
+  that involves the frame, at the run's last fit).
 """
 
 from __future__ import annotations
@@ -22,15 +30,15 @@ import numpy as np
 from cdtm_graph.codes import Code
 from cdtm_graph.imu import Preintegration
 from cdtm_graph.results import Rejections
-from cdtm_graph.robust.clutter import ClutterSettings, considered_offsets
+from cdtm_graph.robust.clutter import ClutterSettings, frame_offset_m
 from cdtm_graph.robust.track_judge import TrackJudge
 from cdtm_graph.verdict.fix_geometry import window_half_width
 from cdtm_graph.verdict.rules import VerdictSettings, newest_frame_flags
-from factors import CdtmPairFactor
 
-#: A window's width live: from the spacing of this many latest frames, taken again every
-#: this many frames (the verdict takes the whole run's median spacing).
-SPACING_FRAMES = 64
+#: A window's width live: from the median spacing of this many latest frames (a window is
+#: seconds: where the frame rate changes, the frames it holds change with it; the verdict
+#: takes the whole run's median), taken again every ``SPACING_EVERY`` frames.
+SPACING_FRAMES, SPACING_EVERY = 64, 8
 
 
 class FrameFlags:
@@ -66,7 +74,6 @@ class FrameFlags:
 
     def newest(self, t_ns: Sequence[int], rejections: Rejections,
                pim: Preintegration | None, judge: TrackJudge | None,
-               factors: Sequence[CdtmPairFactor] = (),
                track_ids: Sequence[np.ndarray] = ()) -> tuple[str, ...]:
         """The newest frame's flags (frame ``len(t_ns) - 1``) as known at its update.
 
@@ -74,10 +81,10 @@ class FrameFlags:
             t_ns: every frame's stamp so far. rejections: the run's so far.
             pim: its interval's preintegration (an IMU gap held across; None: frame 0).
             judge: the track tests (their clutter fit now; None: none).
-            factors, track_ids: the frame's own C-DTM factors and their features' tracks.
+            track_ids: the tracks of the features of the frame's own C-DTM factors.
         """
         k = len(t_ns) - 1
-        if k < SPACING_FRAMES or k % SPACING_FRAMES == 0:  # (from the latest frames)
+        if k % SPACING_EVERY == 0 or k < SPACING_EVERY:
             self._half = window_half_width(np.asarray(t_ns[-SPACING_FRAMES:], np.int64),
                                            self.verdict.window_s)
         first = max(0, k - 2 * self._half)  # (its window's frames with their own windows)
@@ -87,9 +94,8 @@ class FrameFlags:
         flags += [f for f in self.own.get(k, ()) if f not in flags]
         if pim is not None and pim.spans_gap:
             flags.append(Code.IMU_GAP)
-        if judge is not None and self.clutter is not None and factors:
-            offset_m = considered_offsets(judge.clutter, [f.key_a for f in factors],
-                                          [f.key_b for f in factors], track_ids, k + 1)[k]
-            if offset_m > self.clutter.flag_offset_m:
-                flags.append(Code.CLUTTER)
+        # (its factors so far: those that end at it, as they entered)
+        if judge is not None and self.clutter is not None \
+                and frame_offset_m(judge.clutter, track_ids) > self.clutter.flag_offset_m:
+            flags.append(Code.CLUTTER)
         return tuple(flags)

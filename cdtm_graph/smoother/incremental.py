@@ -279,8 +279,7 @@ class IncrementalSmoother:
             with self.stages.charged(HoldForFix.name, HoldForFix.rejects):
                 self._try_acquisition(k)
         converged, reported = self._settling.reported(k, self.n_cdtm_factors > 0)
-        flags = self._flags.newest(w.t_ns, self.rejections, pim, self._judge, new,
-                                   work.track_ids)
+        flags = self._flags.newest(w.t_ns, self.rejections, pim, self._judge, work.track_ids)
         self._imu.start(int(t_ns), w.biases[k])
         pose_cov = self._principal_point.added_to_pose(
             self._map_offset.added_to_pose(reported[:6, :6], w.poses[k]), w.poses[k])

@@ -5,14 +5,18 @@ as they are known when the frame arrives."""
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from cdtm_graph.codes import Code
 from cdtm_graph.constants import chi2_quantile
+from cdtm_graph.results import Rejection, Rejections
 from cdtm_graph.smoother import SmootherSettings
+from cdtm_graph.smoother.frame_flags import FrameFlags
 from cdtm_graph.studies.robustness import BASE, SCENARIOS, Mode
+from cdtm_graph.verdict.rules import newest_frame_flags
 
 #: An update's position error beyond 3 sigma (chi-square(3) at 99.73%).
 BEYOND_3_SIGMA = chi2_quantile(0.9973, 3)
@@ -23,6 +27,41 @@ def _fed(live, scenario: str, frames: int, seed: int, mode: Mode):
     log, dtm = SCENARIOS[scenario].flight(dataclasses.replace(BASE, frames=frames, seed=seed))
     nees, _, updates = live.live_updates(log, dtm, mode.settings(SmootherSettings()))
     return nees, updates
+
+
+def test_an_update_judges_its_frame_over_its_window_and_the_frames_before_it():
+    """``FrameFlags.newest`` at each frame of a synthetic run (1 s apart: the verdict's
+    window is 5 frames each side) gives what ``newest_frame_flags`` gives over the whole
+    run so far, the verdict's own rules (``tests/verdict``: equal to ``assess`` on the run
+    cut there), the smoother's own flag and an IMU gap beside them. Features off the map
+    (10-19), none (25), few (30-35), rays off the map (40-46), then 10 features (47-48)
+    and 22. Mutations tried (each fails): ``half`` frames passed, not ``2 * half`` (frame
+    52: 47-48's windows cut before the off-map frames, so they count as few); the window
+    taken as one frame each side."""
+    k = 60
+    features = np.full(k, 150)
+    features[0] = 0
+    mismatch, missed = np.zeros(k, int), np.zeros(k, int)
+    mismatch[10:20], features[10:20] = 120, 30
+    features[25] = 0
+    features[30:36] = 8
+    missed[40:47], features[40:47] = 140, 10
+    features[47:49], features[49:] = 10, 22
+    flags, rejections = FrameFlags(), Rejections()
+    t_ns = []
+    for j in range(k):
+        t_ns.append(j * 1_000_000_000)
+        flags.features[j] = int(features[j])
+        rejections.add(Rejection.MAP_MISMATCH, j, int(mismatch[j]))
+        rejections.add(Rejection.MISSED_DTM, j, int(missed[j]))
+        flags.add(j, [Code.NO_FIX] if j == 33 else [])
+        gap = SimpleNamespace(spans_gap=j == 20)
+        everything = newest_frame_flags(features[:j + 1].astype(float),
+                                        {"map_mismatch": mismatch[:j + 1].astype(float),
+                                         "missed_dtm": missed[:j + 1].astype(float)}, 0, 5)
+        expected = everything + [Code.NO_FIX] * (j == 33) + [Code.IMU_GAP] * (j == 20)
+        assert list(flags.newest(t_ns, rejections, gap, None)) == expected, j
+    assert flags.frames_with(Code.NO_FIX).tolist() == [33]
 
 
 @pytest.mark.slow  # a 90-frame flight fed in each mode (~4 s)
@@ -65,8 +104,8 @@ def test_a_clean_flights_live_updates_say_nothing(live, mode):
     """Never crying wolf: the clean robustness flights (seeds 1-2, 45 frames) carry no
     flag on any update, while their errors stay inside 3 sigma (their windows leave out
     so few features that a ``map_mismatch`` share of 1% instead of 20% flags none either,
-    2026-11-28). Mutation tried: frame 0, which ends no pair, judged (``_Frames.later``
-    off: ``no_features`` on it) -> fails."""
+    2026-11-28). Mutation tried: frame 0, which ends no pair, judged (``later`` off in
+    ``verdict.window_counts.count_flags``: ``no_features`` on it) -> fails."""
     for seed in (1, 2):
         nees, updates = _fed(live, "clean", 45, seed, mode)
         assert not (nees > BEYOND_3_SIGMA).any()

@@ -274,13 +274,14 @@ def test_a_live_updates_flags_are_the_verdicts_on_the_run_as_far_as_it_has_come(
     half a window before the newest) is, frame by frame, what :func:`assess` flags on the
     newest frame of the run cut there: the same rules on what has arrived. A burst of
     features off the map (frames 10-19), one frame without any (25), a stretch of few
-    (30-35), rays off the map (40-46), then 10 features (47-48) and 22. The frames the
-    live update passes (``2 * half`` before the newest) are enough: the same flags as
-    the whole run so far. Mutations (each fails): the window's share taken over the
-    newest frame alone (``half`` 0: map_mismatch from frame 10, not 12); no rule's code
-    in the newest flags; ``half`` frames passed, not ``2 * half`` (frames 47-48's own
-    windows then cut before the off-map frames: no longer off the map, they count as
-    few)."""
+    (30-35), rays off the map (40-46), then 10 features (47-48) and 22. The ``2 * half``
+    frames before the newest (what ``FrameFlags`` passes) give the flags of the whole run
+    so far; ``half`` would not (frame 52: 47-48's own windows cut before the off-map
+    frames, so they count as few). ``map_mismatch`` starts at frame 11 (240 of 900
+    offered in its window so far; frame 10, the burst's first, 120 of 900). Mutations
+    (each fails): the window's share over the newest frame alone (``half`` 0 in
+    ``newest_frame_flags``: from frame 10); no rule's code in the newest flags; ``half``
+    frames in the slice's assert."""
     k = 60
     result = _result(k)
     features = result.counts.features_per_frame.copy()
@@ -296,23 +297,22 @@ def test_a_live_updates_flags_are_the_verdicts_on_the_run_as_far_as_it_has_come(
         rejected_per_frame={"map_mismatch": mismatch, "missed_dtm": missed},
         residual_chi2_per_frame=features * truncated_chi2_2dof_mean(0.999)))
     half = window_half_width(result.estimate.t_ns, VerdictSettings().window_s)
+
     def newest(first: int, j: int) -> list[str]:
         return sorted(newest_frame_flags(
             features[first:j + 1].astype(float),
             {"map_mismatch": mismatch[first:j + 1], "missed_dtm": missed[first:j + 1]},
             first, half))
 
-    seen = set()
+    flagged: dict[str, list[int]] = {}
     for j in range(1, k):
         live = newest(0, j)
         assert live == sorted(assess(_cut(result, j)).flags.get(j, [])), j
         assert newest(max(0, j - 2 * half), j) == live, j
-        seen.update(live)
-    assert seen == {"map_mismatch", "few_features", "no_features", "off_dtm"}
-    # (the first frame of the burst: 120 of 150 offered, but the window's earlier frames
-    # hold it under 20% until frame 12)
-    assert "map_mismatch" not in newest_frame_flags(
-        features[5:11].astype(float), {"map_mismatch": mismatch[5:11]}, 5, half)
+        for code in live:
+            flagged.setdefault(code, []).append(j)
+    assert set(flagged) == {"map_mismatch", "few_features", "no_features", "off_dtm"}
+    assert flagged["map_mismatch"][0] == 11 and flagged["no_features"] == [25]
 
 
 def test_a_short_stretch_is_a_flag_not_a_reason():
